@@ -1,0 +1,410 @@
+//! The cooperative filter of paper Steps 4-5: the joint state of the platforms that broadcast
+//! at a ranging epoch, its covariance rebuilt from their broadcasts and the cross-covariances
+//! stored at the last event (Eq. 10), the range update (Eqs. 11-13), and the storage of the new
+//! cross-covariances.
+//!
+//! # Why the decentralized filter is exact
+//!
+//! Consider one joint filter over the stacked error states of all platforms, in which a
+//! platform's *local* measurement corrects that platform only (its gain is nonzero only in its
+//! own rows: `K = [0 .. K_i .. 0]`, with `K_i` the optimal gain for `P_ii`). Then, in Joseph
+//! form, the joint covariance evolves blockwise as
+//!
+//! ```text
+//! time update:    P_ij <- Phi_i P_ij Phi_j^T              (+ Q_i on the diagonal block only)
+//! local update:   P_ij <- (I - K_i H_i) P_ij              (j != i)
+//!                 P_ii <- (I - K_i H_i) P_ii (..)^T + K_i R K_i^T
+//! ```
+//!
+//! because the process noise and the local measurement noise of one platform are independent of
+//! every other platform (paper Eq. 9). So `P_ij(now) = Psi_i C_ij Psi_j^T` with `C_ij` the cross
+//! block right after the last joint update and `Psi_i` the product of every factor applied to
+//! platform `i` since then (Eq. 10). Platform `i` knows `P_ii` and `Psi_i`; every node stores
+//! the same `C_ij`; so at a ranging epoch every node can rebuild the joint covariance *exactly*,
+//! and, running the same joint update on the same broadcasts, obtains the same posterior. This
+//! is an identity, not an approximation: for linear-Gaussian models the decentralized estimates
+//! equal those of that joint filter to rounding (see `tests/equivalence.rs`).
+//!
+//! It is *not* the full centralized EKF (see [`super::team::Method::Centralized`]): there, a
+//! platform's local measurement also moves the other platforms through their correlation
+//! (`K_j = P_ji H_i^T S^-1 != 0`). The decentralized filter forgoes that coupling between
+//! events, so it is slightly suboptimal, but still consistent: its covariance is the true
+//! covariance of its own (suboptimal) estimation error. The gap is small when local
+//! measurements say little about what the correlation carries (an odometer does not observe
+//! position), which the experiment measures.
+//!
+//! # Platforms that miss an event
+//!
+//! A platform that does not broadcast at an epoch is not part of the joint state: it is not
+//! corrected, and its `Psi` keeps accumulating. The stored cross block `C_ik` of a participant
+//! `i` with such a platform `k` must stay in `k`'s reference, so it is carried through the
+//! update as a passive column `X_ik = Psi_i C_ik` and stored as `(I - K H) X`. The invariant
+//! `P_ik(now) = Psi_i C_ik Psi_k^T` holds for every pair at all times.
+
+use std::collections::BTreeMap;
+
+use nalgebra::{DMatrix, DVector};
+
+use super::EstimationError;
+use super::kalman::{self, LinearizedMeasurement, UpdateDiagnostics};
+use super::platform::{PlatformId, Snapshot};
+use super::unicycle::wrap_angle;
+
+/// A measurement that relates the states of several platforms.
+#[derive(Debug, Clone, PartialEq)]
+pub enum CoopMeasurement {
+    /// 3-D distance between two platforms (paper Eq. 11).
+    Range { from: PlatformId, to: PlatformId, range_m: f64, sigma_m: f64 },
+    /// Horizontal distance (N, E only) between two platforms.
+    PlanarRange { from: PlatformId, to: PlatformId, range_m: f64, sigma_m: f64 },
+    /// Horizontal range and bearing of `to` seen from `from`; the bearing is measured from
+    /// `from`'s heading, clockwise seen from above. `from` must have a heading state.
+    RangeBearing { from: PlatformId, to: PlatformId, range_m: f64, bearing_rad: f64, sigma_range_m: f64, sigma_bearing_rad: f64 },
+    /// A generic linearised measurement: `residual ~= sum_i H_i dx_i + v`, `v ~ N(0, r)`.
+    Linear { blocks: Vec<(PlatformId, DMatrix<f64>)>, residual: DVector<f64>, r: DMatrix<f64> },
+}
+
+impl CoopMeasurement {
+    /// The platforms this measurement involves.
+    pub fn platforms(&self) -> Vec<PlatformId> {
+        match self {
+            CoopMeasurement::Range { from, to, .. }
+            | CoopMeasurement::PlanarRange { from, to, .. }
+            | CoopMeasurement::RangeBearing { from, to, .. } => vec![*from, *to],
+            CoopMeasurement::Linear { blocks, .. } => blocks.iter().map(|(id, _)| *id).collect(),
+        }
+    }
+
+    /// Number of scalar measurements.
+    pub fn len(&self) -> usize {
+        match self {
+            CoopMeasurement::Range { .. } | CoopMeasurement::PlanarRange { .. } => 1,
+            CoopMeasurement::RangeBearing { .. } => 2,
+            CoopMeasurement::Linear { residual, .. } => residual.len(),
+        }
+    }
+
+    /// Always false: every variant holds at least one scalar (an empty `Linear` is rejected
+    /// when linearised).
+    pub fn is_empty(&self) -> bool {
+        self.len() == 0
+    }
+
+    /// Linearises about the broadcast geometry: Jacobian blocks per platform, residual, noise.
+    pub fn linearize<'a>(
+        &self,
+        snapshot: impl Fn(PlatformId) -> Option<&'a Snapshot>,
+    ) -> Result<Vec<(PlatformId, LinearizedMeasurement)>, EstimationError> {
+        let get = |id| snapshot(id).ok_or(EstimationError::UnknownPlatform(id));
+        let sigma_ok =
+            |s: f64, what| if s.is_finite() && s > 0.0 { Ok(()) } else { Err(EstimationError::InvalidValue { what, value: s }) };
+        match self {
+            CoopMeasurement::Range { from, to, range_m, sigma_m }
+            | CoopMeasurement::PlanarRange { from, to, range_m, sigma_m } => {
+                let planar = matches!(self, CoopMeasurement::PlanarRange { .. });
+                if from == to {
+                    return Err(EstimationError::NotApplicable("range from a platform to itself"));
+                }
+                if !range_m.is_finite() {
+                    return Err(EstimationError::NonFinite { what: "range" });
+                }
+                sigma_ok(*sigma_m, "range sigma")?;
+                let (a, b) = (get(*from)?, get(*to)?);
+                let mut d = a.geometry.position_ned_m - b.geometry.position_ned_m;
+                if planar {
+                    d[2] = 0.0;
+                }
+                let predicted = d.norm();
+                if predicted < 1e-6 {
+                    return Err(EstimationError::NotApplicable("range between co-located estimates has no direction"));
+                }
+                let u = d / predicted;
+                let mut out = Vec::with_capacity(2);
+                for (snap, sign) in [(a, 1.0), (b, -1.0)] {
+                    let mut h = DMatrix::zeros(1, snap.dim());
+                    for (axis, idx) in snap.geometry.position_index.iter().enumerate() {
+                        if let Some(i) = idx {
+                            h[(0, *i)] = sign * u[axis];
+                        }
+                    }
+                    out.push((snap.id, h));
+                }
+                Ok(split(out, DVector::from_element(1, range_m - predicted), DMatrix::from_element(1, 1, sigma_m * sigma_m)))
+            }
+            CoopMeasurement::RangeBearing { from, to, range_m, bearing_rad, sigma_range_m, sigma_bearing_rad } => {
+                if from == to {
+                    return Err(EstimationError::NotApplicable("bearing from a platform to itself"));
+                }
+                if !range_m.is_finite() || !bearing_rad.is_finite() {
+                    return Err(EstimationError::NonFinite { what: "range-bearing measurement" });
+                }
+                sigma_ok(*sigma_range_m, "range sigma")?;
+                sigma_ok(*sigma_bearing_rad, "bearing sigma")?;
+                let (a, b) = (get(*from)?, get(*to)?);
+                let heading =
+                    a.geometry.heading.ok_or(EstimationError::NotApplicable("bearing from a platform without heading"))?;
+                let dn = b.geometry.position_ned_m[0] - a.geometry.position_ned_m[0];
+                let de = b.geometry.position_ned_m[1] - a.geometry.position_ned_m[1];
+                let rho2 = dn * dn + de * de;
+                let rho = rho2.sqrt();
+                if rho < 1e-6 {
+                    return Err(EstimationError::NotApplicable("bearing between co-located estimates"));
+                }
+                let predicted_bearing = de.atan2(dn) - heading.yaw_rad;
+                // d(rho)/d(p_to) = [dn, de]/rho ; d(beta)/d(p_to) = [-de, dn]/rho^2 ; d(beta)/d(yaw_from) = -1.
+                let rows = [[dn / rho, de / rho], [-de / rho2, dn / rho2]];
+                let mut out = Vec::with_capacity(2);
+                for (snap, sign) in [(a, -1.0), (b, 1.0)] {
+                    let mut h = DMatrix::zeros(2, snap.dim());
+                    for axis in 0..2 {
+                        if let Some(i) = snap.geometry.position_index[axis] {
+                            h[(0, i)] = sign * rows[0][axis];
+                            h[(1, i)] = sign * rows[1][axis];
+                        }
+                    }
+                    if sign < 0.0 {
+                        h[(1, heading.index)] -= 1.0;
+                    }
+                    out.push((snap.id, h));
+                }
+                let residual = DVector::from_vec(vec![range_m - rho, wrap_angle(bearing_rad - predicted_bearing)]);
+                let r = DMatrix::from_diagonal(&DVector::from_vec(vec![sigma_range_m.powi(2), sigma_bearing_rad.powi(2)]));
+                Ok(split(out, residual, r))
+            }
+            CoopMeasurement::Linear { blocks, residual, r } => {
+                if residual.is_empty() || blocks.is_empty() {
+                    return Err(EstimationError::NotApplicable("empty linear measurement"));
+                }
+                let mut out = Vec::with_capacity(blocks.len());
+                for (id, h) in blocks {
+                    let snap = get(*id)?;
+                    if out.iter().any(|(seen, _)| seen == id) {
+                        return Err(EstimationError::DuplicatePlatform(*id));
+                    }
+                    if h.nrows() != residual.len() || h.ncols() != snap.dim() {
+                        return Err(EstimationError::DimensionMismatch {
+                            what: "linear measurement block",
+                            expected: snap.dim(),
+                            got: h.ncols(),
+                        });
+                    }
+                    out.push((*id, h.clone()));
+                }
+                let meas = split(out, residual.clone(), r.clone());
+                for (id, m) in &meas {
+                    m.validate(get(*id)?.dim())?;
+                }
+                Ok(meas)
+            }
+        }
+    }
+}
+
+/// Pairs each platform's Jacobian block with the shared residual and noise.
+fn split(
+    blocks: Vec<(PlatformId, DMatrix<f64>)>,
+    residual: DVector<f64>,
+    r: DMatrix<f64>,
+) -> Vec<(PlatformId, LinearizedMeasurement)> {
+    blocks.into_iter().map(|(id, h)| (id, LinearizedMeasurement { h, residual: residual.clone(), r: r.clone() })).collect()
+}
+
+/// The cross-covariance blocks `C_ij` stored after the last joint update that involved both
+/// platforms (paper Step 5: "saved locally to use ... before the next collaborative
+/// localization"). The current cross-covariance is `Psi_i C_ij Psi_j^T`; a missing block is zero
+/// (no correlation yet: the first event, paper Step 5's closing note).
+#[derive(Debug, Clone, Default, PartialEq)]
+pub struct CrossCovariances {
+    blocks: BTreeMap<(PlatformId, PlatformId), DMatrix<f64>>,
+}
+
+impl CrossCovariances {
+    pub fn new() -> Self {
+        Self::default()
+    }
+
+    /// `C_ij` (`n_i x n_j`), if stored.
+    pub fn get(&self, i: PlatformId, j: PlatformId) -> Option<DMatrix<f64>> {
+        if i < j { self.blocks.get(&(i, j)).cloned() } else { self.blocks.get(&(j, i)).map(|m| m.transpose()) }
+    }
+
+    fn set(&mut self, i: PlatformId, j: PlatformId, c: DMatrix<f64>) {
+        if i < j {
+            self.blocks.insert((i, j), c);
+        } else {
+            self.blocks.insert((j, i), c.transpose());
+        }
+    }
+
+    /// Forgets every block that involves `id` (a platform that left the team for good).
+    pub fn forget(&mut self, id: PlatformId) {
+        self.blocks.retain(|(a, b), _| *a != id && *b != id);
+    }
+
+    /// Number of stored blocks.
+    pub fn len(&self) -> usize {
+        self.blocks.len()
+    }
+
+    pub fn is_empty(&self) -> bool {
+        self.blocks.is_empty()
+    }
+
+    /// Every platform that appears in a stored block, with its state dimension.
+    fn known_platforms(&self) -> BTreeMap<PlatformId, usize> {
+        let mut out = BTreeMap::new();
+        for ((a, b), m) in &self.blocks {
+            out.insert(*a, m.nrows());
+            out.insert(*b, m.ncols());
+        }
+        out
+    }
+}
+
+/// Whether a joint update rebuilds the cross-covariances (the paper's method) or takes them as
+/// zero (the paper's "non-covariance transfer" mode).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum CrossMode {
+    /// Rebuild `P_ij = Psi_i C_ij Psi_j^T` and store the posterior cross blocks.
+    Propagate,
+    /// Cross blocks are zero at every event, nothing is stored.
+    Ignore,
+}
+
+/// One participant's share of a joint update: what its own filter writes back.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Correction {
+    pub id: PlatformId,
+    /// Error-state correction to inject.
+    pub dx: DVector<f64>,
+    /// Posterior covariance of its own error state.
+    pub p: DMatrix<f64>,
+}
+
+/// What a joint update produced.
+#[derive(Debug, Clone)]
+pub struct EventOutcome {
+    /// One entry per broadcast, in broadcast order.
+    pub corrections: Vec<Correction>,
+    /// Innovation statistics of the stacked measurement.
+    pub diagnostics: UpdateDiagnostics,
+    /// The joint prior covariance that was used (participants in broadcast order).
+    pub prior_covariance: DMatrix<f64>,
+}
+
+/// The paper's joint update at a ranging epoch, as every node runs it.
+///
+/// `snapshots` are the broadcasts of the participants (each node includes its own),
+/// `measurements` the ranges exchanged for this epoch. Every node that runs this on the same
+/// inputs with the same `cross` gets the same result, bit for bit. On error, `cross` is
+/// untouched.
+pub fn cooperative_update(
+    cross: &mut CrossCovariances,
+    snapshots: &[Snapshot],
+    measurements: &[CoopMeasurement],
+    mode: CrossMode,
+) -> Result<EventOutcome, EstimationError> {
+    // Layout of the joint state: participants in broadcast order.
+    let mut offset = BTreeMap::new();
+    let mut n = 0;
+    for s in snapshots {
+        s.validate()?;
+        if offset.insert(s.id, (n, s.dim())).is_some() {
+            return Err(EstimationError::DuplicatePlatform(s.id));
+        }
+        n += s.dim();
+    }
+    let find = |id: PlatformId| snapshots.iter().find(|s| s.id == id);
+
+    // Stacked measurement.
+    let m: usize = measurements.iter().map(CoopMeasurement::len).sum();
+    if m == 0 {
+        return Err(EstimationError::NotApplicable("a cooperative update needs at least one measurement"));
+    }
+    let mut h = DMatrix::zeros(m, n);
+    let mut residual = DVector::zeros(m);
+    let mut r = DMatrix::zeros(m, m);
+    let mut row = 0;
+    for meas in measurements {
+        let parts = meas.linearize(find)?;
+        let k = meas.len();
+        for (id, lin) in &parts {
+            let (off, dim) = offset[id];
+            h.view_mut((row, off), (k, dim)).copy_from(&lin.h);
+        }
+        let first = &parts[0].1;
+        residual.rows_mut(row, k).copy_from(&first.residual);
+        r.view_mut((row, row), (k, k)).copy_from(&first.r);
+        row += k;
+    }
+
+    // Joint prior covariance (paper Step 4).
+    let mut p = DMatrix::zeros(n, n);
+    for s in snapshots {
+        let (o, d) = offset[&s.id];
+        p.view_mut((o, o), (d, d)).copy_from(&s.covariance);
+    }
+    let mut passive_ids = Vec::new();
+    let mut passive = None;
+    if mode == CrossMode::Propagate {
+        for (a, sa) in snapshots.iter().enumerate() {
+            for sb in &snapshots[a + 1..] {
+                if let Some(c) = cross.get(sa.id, sb.id) {
+                    let pij = &sa.psi * c * sb.psi.transpose();
+                    let ((oa, da), (ob, db)) = (offset[&sa.id], offset[&sb.id]);
+                    p.view_mut((oa, ob), (da, db)).copy_from(&pij);
+                    p.view_mut((ob, oa), (db, da)).copy_from(&pij.transpose());
+                }
+            }
+        }
+        // Known platforms that did not broadcast: carry their cross blocks as passive columns.
+        let absent: Vec<(PlatformId, usize)> =
+            cross.known_platforms().into_iter().filter(|(id, _)| !offset.contains_key(id)).collect();
+        let width: usize = absent.iter().map(|(_, d)| d).sum();
+        if width > 0 {
+            let mut x = DMatrix::zeros(n, width);
+            let mut col = 0;
+            for (k, dk) in &absent {
+                for s in snapshots {
+                    if let Some(c) = cross.get(s.id, *k) {
+                        let (o, d) = offset[&s.id];
+                        x.view_mut((o, col), (d, *dk)).copy_from(&(&s.psi * c));
+                    }
+                }
+                passive_ids.push((*k, col, *dk));
+                col += dk;
+            }
+            passive = Some(x);
+        }
+    }
+    let prior = p.clone();
+
+    let meas = LinearizedMeasurement { h, residual, r };
+    let up = kalman::joint_update(&p, &meas, passive.as_ref())?;
+
+    // Step 5: store the new cross blocks (only now that nothing can fail).
+    if mode == CrossMode::Propagate {
+        for (a, sa) in snapshots.iter().enumerate() {
+            for sb in &snapshots[a + 1..] {
+                let ((oa, da), (ob, db)) = (offset[&sa.id], offset[&sb.id]);
+                cross.set(sa.id, sb.id, up.p.view((oa, ob), (da, db)).into_owned());
+            }
+        }
+        if let Some(x) = &up.passive {
+            for (k, col, dk) in &passive_ids {
+                for s in snapshots {
+                    let (o, d) = offset[&s.id];
+                    cross.set(s.id, *k, x.view((o, *col), (d, *dk)).into_owned());
+                }
+            }
+        }
+    }
+    let corrections = snapshots
+        .iter()
+        .map(|s| {
+            let (o, d) = offset[&s.id];
+            Correction { id: s.id, dx: up.dx.rows(o, d).into_owned(), p: up.p.view((o, o), (d, d)).into_owned() }
+        })
+        .collect();
+    Ok(EventOutcome { corrections, diagnostics: up.diagnostics, prior_covariance: prior })
+}

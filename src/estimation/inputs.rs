@@ -1,0 +1,39 @@
+//! Sensor samples as a MAVLink vehicle delivers them, in the core's units and frames. The
+//! simulator produces them, the protocol layer decodes them from HIGHRES_IMU / ODOMETRY and the
+//! cooploc range message, and the filters consume them: one set of types for all three.
+
+use nalgebra::Vector3;
+use serde::{Deserialize, Serialize};
+
+use super::platform::PlatformId;
+use crate::time::TimeUs;
+
+/// One IMU sample (HIGHRES_IMU): the mean specific force and angular rate over the sample
+/// interval that ends at `t`, body FRD.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct ImuSample {
+    pub t: TimeUs,
+    /// Specific force (acceleration minus gravity), m/s^2; about [0, 0, -9.8] at rest.
+    pub specific_force_frd_m_s2: Vector3<f64>,
+    /// Angular rate relative to inertial space, rad/s.
+    pub angular_rate_frd_rad_s: Vector3<f64>,
+}
+
+/// One odometer sample (ODOMETRY, body-frame x velocity): forward speed at `t`.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct OdometerSample {
+    pub t: TimeUs,
+    pub speed_m_s: f64,
+}
+
+/// One inter-platform range (the cooploc range message).
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct RangeSample {
+    pub t: TimeUs,
+    /// Platform whose radio measured.
+    pub from: PlatformId,
+    /// Platform ranged to.
+    pub to: PlatformId,
+    pub range_m: f64,
+    pub sigma_m: f64,
+}

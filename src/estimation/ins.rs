@@ -1,0 +1,1 @@
+//! Strapdown INS (being written).

@@ -1,0 +1,35 @@
+//! The estimation core: pure math, no I/O.
+//!
+//! | module | what |
+//! |---|---|
+//! | [`kalman`] | shared update and propagation routines (Joseph local update, joint update, `Psi`) |
+//! | [`platform`] | the [`PlatformFilter`] trait every platform model implements; broadcasts |
+//! | [`ins`] | strapdown INS error-state EKF for land vehicles (odometer + non-holonomic constraints) |
+//! | [`unicycle`] | planar unicycle robot |
+//! | [`linear`] | generic linear-Gaussian platform |
+//! | [`coop`] | the paper's cooperative joint update and the cross-covariance store (Eq. 10) |
+//! | [`ci`] | covariance-intersection baseline |
+//! | [`team`] | a team under one [`Method`]: dead reckoning, no-propagation, decentralized, centralized, CI |
+//! | [`consistency`] | NEES and chi-square bands |
+//!
+//! Frames: one convention end to end, MAVLink's: local NED (north, east, down; metres) and body
+//! FRD (forward, right, down). Yaw is from north, clockwise seen from above. Time is [`TimeUs`](crate::time::TimeUs).
+
+pub mod ci;
+pub mod consistency;
+pub mod coop;
+mod error;
+pub mod inputs;
+pub mod ins;
+pub mod kalman;
+pub mod linear;
+pub mod platform;
+pub mod team;
+pub mod unicycle;
+
+pub use coop::{CoopMeasurement, Correction, CrossCovariances, CrossMode, EventOutcome, cooperative_update};
+pub use error::EstimationError;
+pub use inputs::{ImuSample, OdometerSample, RangeSample};
+pub use kalman::{LinearizedMeasurement, UpdateDiagnostics};
+pub use platform::{Geometry, Heading, PlatformFilter, PlatformId, Snapshot};
+pub use team::{Method, Team};

@@ -1,0 +1,188 @@
+//! Running a whole team under one cooperative-localization method, on the same inputs and the
+//! same code paths: the experiment, the replay and the tests drive a [`Team`]; a node in the field
+//! runs the same [`cooperative_update`] on its own copy of the cross-covariances.
+//!
+//! The caller owns the platform models: it propagates each platform through
+//! [`Team::filter_mut`] (the model-specific inputs: IMU samples, wheel speeds, ...) and hands
+//! linearised local measurements to [`Team::local_update`] and ranges to
+//! [`Team::cooperative_event`], which dispatch on the method.
+
+use nalgebra::DVector;
+use serde::{Deserialize, Serialize};
+
+use super::EstimationError;
+use super::ci::ci_update;
+use super::coop::{CoopMeasurement, Correction, CrossCovariances, CrossMode, cooperative_update};
+use super::kalman::{LinearizedMeasurement, UpdateDiagnostics};
+use super::platform::{PlatformFilter, PlatformId, Snapshot};
+
+/// The cooperative-localization methods cooploc compares.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, PartialOrd, Ord, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum Method {
+    /// Each platform on its own sensors; ranges are ignored.
+    DeadReckoning,
+    /// Joint range update with cross-covariances taken as zero at every event (the paper's
+    /// "non-covariance transfer" mode).
+    NoPropagation,
+    /// The paper's method: cross-covariances rebuilt from the recursive coefficient matrices.
+    Decentralized,
+    /// One joint EKF over all platforms that processes every measurement jointly, local ones
+    /// included (the optimal reference; needs a central computer).
+    Centralized,
+    /// Pairwise covariance intersection (consistent under any unknown correlation).
+    CovarianceIntersection,
+}
+
+impl Method {
+    pub const ALL: [Method; 5] = [
+        Method::DeadReckoning,
+        Method::NoPropagation,
+        Method::Decentralized,
+        Method::Centralized,
+        Method::CovarianceIntersection,
+    ];
+
+    /// Short name used on the command line, in files and on the wire.
+    pub fn short_name(self) -> &'static str {
+        match self {
+            Method::DeadReckoning => "dr",
+            Method::NoPropagation => "naive",
+            Method::Decentralized => "dcl",
+            Method::Centralized => "centralized",
+            Method::CovarianceIntersection => "ci",
+        }
+    }
+
+    /// Parses a [`Method::short_name`].
+    pub fn from_short_name(s: &str) -> Option<Method> {
+        Method::ALL.into_iter().find(|m| m.short_name() == s)
+    }
+
+    /// Whether the method needs the recursive coefficient matrices.
+    pub fn needs_psi(self) -> bool {
+        matches!(self, Method::Decentralized | Method::Centralized)
+    }
+}
+
+impl std::fmt::Display for Method {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(self.short_name())
+    }
+}
+
+/// A team of platforms under one method.
+#[derive(Debug, Clone)]
+pub struct Team<F> {
+    method: Method,
+    ids: Vec<PlatformId>,
+    filters: Vec<F>,
+    cross: CrossCovariances,
+}
+
+impl<F: PlatformFilter> Team<F> {
+    /// Builds a team; ids must be distinct.
+    pub fn new(method: Method, members: Vec<(PlatformId, F)>) -> Result<Self, EstimationError> {
+        let mut ids = Vec::with_capacity(members.len());
+        let mut filters = Vec::with_capacity(members.len());
+        for (id, mut f) in members {
+            if ids.contains(&id) {
+                return Err(EstimationError::DuplicatePlatform(id));
+            }
+            f.set_track_psi(method.needs_psi());
+            ids.push(id);
+            filters.push(f);
+        }
+        Ok(Self { method, ids, filters, cross: CrossCovariances::new() })
+    }
+
+    pub fn method(&self) -> Method {
+        self.method
+    }
+
+    pub fn ids(&self) -> &[PlatformId] {
+        &self.ids
+    }
+
+    fn index(&self, id: PlatformId) -> Result<usize, EstimationError> {
+        self.ids.iter().position(|&i| i == id).ok_or(EstimationError::UnknownPlatform(id))
+    }
+
+    pub fn filter(&self, id: PlatformId) -> Option<&F> {
+        self.index(id).ok().map(|i| &self.filters[i])
+    }
+
+    /// The platform's own filter, for model-specific propagation.
+    pub fn filter_mut(&mut self, id: PlatformId) -> Option<&mut F> {
+        self.index(id).ok().map(|i| &mut self.filters[i])
+    }
+
+    /// Stored cross-covariances (empty unless the method propagates them).
+    pub fn cross(&self) -> &CrossCovariances {
+        &self.cross
+    }
+
+    fn snapshots(&self) -> Vec<Snapshot> {
+        self.ids.iter().zip(&self.filters).map(|(&id, f)| f.snapshot(id)).collect()
+    }
+
+    fn write_back(&mut self, corrections: &[Correction]) -> Result<(), EstimationError> {
+        for c in corrections {
+            let i = self.index(c.id)?;
+            self.filters[i].apply_joint(&c.dx, &c.p)?;
+        }
+        Ok(())
+    }
+
+    /// A measurement of platform `id`'s own error state. The centralized EKF applies it to the
+    /// joint state (moving every correlated platform); every other method to that platform only.
+    pub fn local_update(&mut self, id: PlatformId, meas: &LinearizedMeasurement) -> Result<UpdateDiagnostics, EstimationError> {
+        let i = self.index(id)?;
+        if self.method != Method::Centralized {
+            return self.filters[i].update_local(meas);
+        }
+        meas.validate(self.filters[i].dim())?;
+        let joint =
+            CoopMeasurement::Linear { blocks: vec![(id, meas.h.clone())], residual: meas.residual.clone(), r: meas.r.clone() };
+        let snapshots = self.snapshots();
+        let outcome = cooperative_update(&mut self.cross, &snapshots, &[joint], CrossMode::Propagate)?;
+        self.write_back(&outcome.corrections)?;
+        Ok(outcome.diagnostics)
+    }
+
+    /// A ranging epoch: every platform broadcasts and all take the joint update of `measurements`.
+    /// Returns the innovation statistics, or `None` for dead reckoning (ranges ignored) and for
+    /// covariance intersection (pairwise, no single innovation).
+    pub fn cooperative_event(&mut self, measurements: &[CoopMeasurement]) -> Result<Option<UpdateDiagnostics>, EstimationError> {
+        if measurements.is_empty() {
+            return Ok(None);
+        }
+        let (corrections, diagnostics) = match self.method {
+            Method::DeadReckoning => return Ok(None),
+            Method::CovarianceIntersection => (ci_update(&self.snapshots(), measurements)?, None),
+            Method::NoPropagation => {
+                let out = cooperative_update(&mut CrossCovariances::new(), &self.snapshots(), measurements, CrossMode::Ignore)?;
+                (out.corrections, Some(out.diagnostics))
+            }
+            Method::Decentralized | Method::Centralized => {
+                let snapshots = self.snapshots();
+                let out = cooperative_update(&mut self.cross, &snapshots, measurements, CrossMode::Propagate)?;
+                (out.corrections, Some(out.diagnostics))
+            }
+        };
+        self.write_back(&corrections)?;
+        Ok(diagnostics)
+    }
+}
+
+/// Stacks corrections into one vector (for tests and diagnostics).
+pub fn stack_corrections(corrections: &[Correction]) -> DVector<f64> {
+    let n = corrections.iter().map(|c| c.dx.len()).sum();
+    let mut out = DVector::zeros(n);
+    let mut o = 0;
+    for c in corrections {
+        out.rows_mut(o, c.dx.len()).copy_from(&c.dx);
+        o += c.dx.len();
+    }
+    out
+}

@@ -1,0 +1,19 @@
+//! # cooploc
+//!
+//! Decentralized cooperative localization of vehicle teams over MAVLink, after Wang et al.,
+//! *Decentralized Collaborative Localization Algorithm Based on Covariance Propagation*.
+//!
+//! The crate is laid out by concern:
+//!
+//! - [`estimation`]: the pure math. Per-platform filters (a strapdown INS with odometer and
+//!   non-holonomic constraints, a planar unicycle, a generic linear model), the recursive
+//!   coefficient matrix Psi, the cooperative joint update, and the baselines (dead reckoning,
+//!   no-propagation, centralized EKF, covariance intersection). No sockets, files, clocks or
+//!   async: state in, state out.
+//! - [`sitl`]: the simulated world (truth trajectories, sensor error models, scenario files).
+//!   Its source lives in the top-level `sitl/` folder.
+//! - [`time`]: the typed timestamp shared by all of the above.
+pub mod estimation;
+#[path = "../sitl/mod.rs"]
+pub mod sitl;
+pub mod time;
