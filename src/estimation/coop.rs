@@ -156,8 +156,8 @@ impl CoopMeasurement {
                 let mut out = Vec::with_capacity(2);
                 for (snap, sign) in [(a, -1.0), (b, 1.0)] {
                     let mut h = DMatrix::zeros(2, snap.dim());
-                    for axis in 0..2 {
-                        if let Some(i) = snap.geometry.position_index[axis] {
+                    for (axis, idx) in snap.geometry.position_index.iter().take(2).enumerate() {
+                        if let Some(i) = *idx {
                             h[(0, i)] = sign * rows[0][axis];
                             h[(1, i)] = sign * rows[1][axis];
                         }

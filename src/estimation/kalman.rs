@@ -189,8 +189,13 @@ pub fn joint_update(
         }
         check_finite(x, "passive cross-covariance")?;
     }
-    let hp = &meas.h * p; // m x n
-    let mut s = &hp * meas.h.transpose() + &meas.r;
+    // Range Jacobians touch a handful of columns of a joint state of hundreds: multiply by the
+    // nonzeros only. P H^T is built column by column from columns of P (contiguous), and
+    // H P = (P H^T)^T because P is symmetric.
+    let nonzeros = row_nonzeros(&meas.h);
+    let ph_t = sparse_mul_transposed(p, &nonzeros);
+    let hp = ph_t.transpose(); // m x n
+    let mut s = sparse_mul_transposed(&hp, &nonzeros) + &meas.r;
     symmetrize(&mut s);
     let (chol, s) = innovation_factor(s)?;
     let l = chol.l();
@@ -207,7 +212,7 @@ pub fn joint_update(
     let passive = match passive {
         Some(x) => {
             // (I - K H) X = X - W^T L^-1 (H X)
-            let hx = &meas.h * x;
+            let hx = sparse_mul_transposed(&x.transpose(), &nonzeros).transpose();
             let z = l
                 .solve_lower_triangular(&hx)
                 .ok_or(EstimationError::NotPositiveDefinite { what: "innovation covariance factor" })?;
@@ -225,6 +230,23 @@ pub fn joint_update(
         passive,
         diagnostics: UpdateDiagnostics { innovation: meas.residual.clone(), innovation_cov: s, nis },
     })
+}
+
+/// The nonzero entries `(column, value)` of each row of `h`.
+fn row_nonzeros(h: &DMatrix<f64>) -> Vec<Vec<(usize, f64)>> {
+    (0..h.nrows()).map(|r| (0..h.ncols()).filter(|&c| h[(r, c)] != 0.0).map(|c| (c, h[(r, c)])).collect()).collect()
+}
+
+/// `A H^T` for a sparse `H` given by its row nonzeros: column `r` is `sum_c H[r, c] A[:, c]`.
+fn sparse_mul_transposed(a: &DMatrix<f64>, h_rows: &[Vec<(usize, f64)>]) -> DMatrix<f64> {
+    let mut out = DMatrix::zeros(a.nrows(), h_rows.len());
+    for (r, row) in h_rows.iter().enumerate() {
+        let mut col = out.column_mut(r);
+        for &(c, v) in row {
+            col.axpy(v, &a.column(c), 1.0);
+        }
+    }
+    out
 }
 
 /// Time update of a covariance and its recursive coefficient matrix (paper Eq. 3 and Eq. 6):

@@ -76,10 +76,10 @@ impl Snapshot {
                 return Err(EstimationError::DimensionMismatch { what: "broadcast state index", expected: n, got: i });
             }
         }
-        if let Some(h) = self.geometry.heading {
-            if !h.yaw_rad.is_finite() {
-                return Err(EstimationError::NonFinite { what: "broadcast heading" });
-            }
+        if let Some(h) = self.geometry.heading
+            && !h.yaw_rad.is_finite()
+        {
+            return Err(EstimationError::NonFinite { what: "broadcast heading" });
         }
         Ok(())
     }

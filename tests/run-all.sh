@@ -1,0 +1,24 @@
+#!/usr/bin/env bash
+# Runs every test of cooploc, after installing what the tests need beyond cargo:
+# a Python virtualenv (.venv) with the pinned reference tools of tests/requirements.txt.
+# Usage (from anywhere): bash tests/run-all.sh
+set -euo pipefail
+cd "$(dirname "$0")/.."
+
+venv=.venv
+stamp=$venv/.requirements.sha256
+want=$(sha256sum tests/requirements.txt | cut -d' ' -f1)
+if [ ! -x "$venv/bin/python" ] || [ "$(cat "$stamp" 2>/dev/null)" != "$want" ]; then
+    echo "==> creating $venv with tests/requirements.txt"
+    rm -rf "$venv"
+    python3 -m venv "$venv"
+    "$venv/bin/pip" install --quiet --disable-pip-version-check -r tests/requirements.txt
+    echo "$want" > "$stamp"
+fi
+export COOPLOC_PYTHON="$PWD/$venv/bin/python"
+
+# One optimised build serves the unit, property, Monte Carlo and end-to-end tests.
+echo "==> cargo test --release"
+cargo test --release --all-targets
+echo "==> doc tests"
+cargo test --release --doc
