@@ -116,9 +116,9 @@ fn run(method: Method, seed: u64) -> Vec<f64> {
             }
             team.cooperative_event(&ranges).unwrap();
             let mut e = DVector::zeros(3 * ROBOTS);
-            for i in 0..ROBOTS {
+            for (i, x) in truth.iter().enumerate() {
                 let est = team.filter(i as u16).unwrap().state();
-                let d = truth[i] - est;
+                let d = x - est;
                 e.fixed_rows_mut::<3>(3 * i).copy_from(&Vector3::new(d[0], d[1], wrap_angle(d[2])));
             }
             out.push(nees(&e, &believed_joint_covariance(&team)).unwrap());
