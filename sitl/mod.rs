@@ -8,7 +8,7 @@
 //! | module | what |
 //! |---|---|
 //! | [`scenario`] | the TOML scenario: world, sensors, ranging schedules, platforms, initial sigmas, filter tuning; validation naming the bad field |
-//! | `truth` | the world model (flat Earth, NED, constant gravity, Earth rate), truth trajectories, exact IMU increments |
+//! | [`truth`] | the world model (flat Earth, NED, constant gravity, Earth rate), truth trajectories, exact IMU increments |
 //! | `sensors` | IMU, odometer and ranging error models, seeded per platform, sensor and run |
 //! | `world` | a scenario made into a world: a run's inputs as vectors or as one time-ordered event stream; initial estimates |
 //!
@@ -17,9 +17,11 @@
 //! `7.292115e-5 [cos L, 0, -sin L]` rad/s; body axes FRD; vehicles on level ground (roll = pitch =
 //! 0, constant D) that never slip, each following segments of constant longitudinal acceleration
 //! and yaw rate. The INS mechanises the same model, so with perfect sensors it reproduces the
-//! truth (see the strapdown test in `truth`).
+//! truth (see the strapdown test in [`truth`]).
 //!
 
 pub mod scenario;
+pub mod truth;
 
 pub use scenario::{PAPER_TOML, Scenario, ScenarioError};
+pub use truth::{Earth, Trajectory, TruthState};
