@@ -45,15 +45,17 @@ pub struct SensorModel {
     pub end: TimeUs,
     /// Per-axis standard deviation of the constant accelerometer bias, m/s^2.
     pub accel_bias_sigma_m_s2: f64,
-    /// Per-axis, per-sample accelerometer white noise, m/s^2.
+    /// Accelerometer white-noise density (velocity random walk), m/s^2/sqrt(Hz).
+    pub accel_noise_density_m_s2_per_sqrt_hz: f64,
+    /// Per-axis, per-sample accelerometer white noise, m/s^2 (density times sqrt(rate)).
     pub accel_noise_sigma_m_s2: f64,
     /// Accelerometer bias random walk, m/s^2/sqrt(s).
     pub accel_bias_walk_m_s2_per_sqrt_s: f64,
     /// Per-axis standard deviation of the constant gyro bias, rad/s.
     pub gyro_bias_sigma_rad_s: f64,
-    /// Angle random walk, rad/sqrt(s) (the gyro white-noise density).
+    /// Angle random walk, rad/sqrt(s): the gyro white-noise density in rad/s/sqrt(Hz).
     pub gyro_arw_rad_per_sqrt_s: f64,
-    /// Per-axis, per-sample gyro white noise, rad/s.
+    /// Per-axis, per-sample gyro white noise, rad/s (ARW times sqrt(rate)).
     pub gyro_noise_sigma_rad_s: f64,
     /// Gyro bias random walk, rad/s/sqrt(s).
     pub gyro_bias_walk_rad_s_per_sqrt_s: f64,
@@ -73,6 +75,7 @@ impl SensorModel {
             odometer_period_us: scenario.odometer_period_us(),
             end: scenario.end(),
             accel_bias_sigma_m_s2: s.accel_bias_ug * MICRO_G_M_S2,
+            accel_noise_density_m_s2_per_sqrt_hz: s.accel_noise_ug_per_sqrt_hz * MICRO_G_M_S2,
             accel_noise_sigma_m_s2: s.accel_noise_ug_per_sqrt_hz * MICRO_G_M_S2 * rate_sqrt,
             accel_bias_walk_m_s2_per_sqrt_s: s.accel_bias_walk_ug_per_sqrt_s * MICRO_G_M_S2,
             gyro_bias_sigma_rad_s: s.gyro_bias_deg_h * DEG_PER_H_RAD_S,
@@ -314,6 +317,7 @@ mod tests {
         let m = SensorModel::from_scenario(&Scenario::from_toml_str(SMALL).unwrap());
         assert!((m.gyro_arw_rad_per_sqrt_s - 3.490_658_5e-4).abs() < 1e-11);
         assert!((m.accel_noise_sigma_m_s2 - 0.013_868_7).abs() < 1e-8);
+        assert!((m.accel_noise_density_m_s2_per_sqrt_hz - 9.806_65e-4).abs() < 1e-15);
         assert!((m.gyro_bias_sigma_rad_s - 1.454_441e-5).abs() < 1e-11);
         assert!((m.accel_bias_sigma_m_s2 - 4.903_325e-3).abs() < 1e-12);
     }

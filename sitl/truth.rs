@@ -198,17 +198,21 @@ impl Trajectory {
     }
 
     /// Index of the segment in force at `t_us` (the last one that starts at or before it).
+    fn segment_index(&self, t_us: u64) -> usize {
+        self.segments.partition_point(|s| s.start_us <= t_us).saturating_sub(1)
+    }
+
     fn segment_at(&self, t_us: u64) -> &SegmentPlan {
-        let i = self.segments.partition_point(|s| s.start_us <= t_us);
-        &self.segments[i.saturating_sub(1)]
+        &self.segments[self.segment_index(t_us)]
     }
 
     /// The true state at `t`.
     pub fn truth_at(&self, t: TimeUs) -> TruthState {
-        let seg = self.segment_at(t.0);
+        let i = self.segment_index(t.0);
+        let seg = &self.segments[i];
         let tau = (t.0 - seg.start_us) as f64 * 1e-6;
         // The last knot of this segment at or before t.
-        let seg_knots_end = self.segments.iter().find(|s| s.start_us > seg.start_us).map_or(self.knots.len(), |s| s.first_knot);
+        let seg_knots_end = self.segments.get(i + 1).map_or(self.knots.len(), |s| s.first_knot);
         let k = (seg.first_knot + ((t.0 - seg.start_us) / KNOT_US) as usize).min(seg_knots_end - 1);
         let knot = self.knots[k];
         let d = seg.displacement_ne((knot.t_us - seg.start_us) as f64 * 1e-6, tau);

@@ -146,11 +146,14 @@ impl World {
         Ok(OdometerStream::new(self.trajectory(id)?, &self.model, seed, run))
     }
 
-    /// Truth of every platform at `k * truth period`, `k = 0..`, up to the end of the run.
+    /// Platform `id`'s truth at `k / truth_rate_hz`, `k = 0..`, up to the end of the run.
     pub fn truth_samples(&self, id: PlatformId) -> Result<Vec<TruthState>, ScenarioError> {
-        let traj = self.trajectory(id)?;
+        Ok(self.truth_of(self.trajectory(id)?))
+    }
+
+    fn truth_of(&self, traj: &Trajectory) -> Vec<TruthState> {
         let period = self.scenario.truth_period_us();
-        Ok((0..).map(|k| k * period).take_while(|&t| t <= self.end().0).map(|t| traj.truth_at(TimeUs(t))).collect())
+        (0..).map(|k| k * period).take_while(|&t| t <= self.end().0).map(|t| traj.truth_at(TimeUs(t))).collect()
     }
 
     /// All inputs of one run except ranging.
@@ -163,7 +166,7 @@ impl World {
                 errors: sensors::draw_errors(&self.model, seed, run, traj.id()),
                 imu: ImuStream::new(traj, &self.model, seed, run).collect(),
                 odometer: OdometerStream::new(traj, &self.model, seed, run).collect(),
-                truth: self.truth_samples(traj.id()).unwrap_or_default(),
+                truth: self.truth_of(traj),
             })
             .collect();
         RunInputs { seed, run, platforms }
@@ -394,12 +397,24 @@ mod tests {
     fn paper_world_builds_and_keeps_its_vehicles_apart() {
         let world = World::new(&Scenario::from_toml_str(PAPER_TOML).unwrap()).unwrap();
         assert_eq!(world.platform_ids(), vec![1, 2, 3]);
-        // Pairwise distances stay between 20 m and 2 km over the run (ranging stays meaningful).
+        let run = world.run_inputs(1, 0);
+        for p in &run.platforms {
+            assert_eq!((p.imu.len(), p.odometer.len(), p.truth.len()), (76_000, 3_800, 3_801));
+            assert!(
+                p.imu.iter().all(|s| s
+                    .specific_force_frd_m_s2
+                    .iter()
+                    .chain(s.angular_rate_frd_rad_s.iter())
+                    .all(|x| x.is_finite()))
+            );
+        }
+        assert_eq!(world.ranges("1hz", 1, 0).unwrap().iter().map(|(_, r)| r.len()).sum::<usize>(), 380 * 3);
+        // Pairwise distances stay between 100 m and 800 m over the run (as paper.toml says).
         for t in (0..=380).map(|s| TimeUs(s * 1_000_000)) {
             let p: Vec<_> = world.platforms().iter().map(|tr| tr.truth_at(t).pos_ned_m).collect();
             for (i, j) in [(0, 1), (0, 2), (1, 2)] {
                 let d = (p[i] - p[j]).norm();
-                assert!((20.0..2000.0).contains(&d), "platforms {i}, {j} are {d} m apart at {t}");
+                assert!((100.0..800.0).contains(&d), "platforms {i}, {j} are {d} m apart at {t}");
             }
         }
     }
