@@ -474,46 +474,49 @@ fn phi_rows(f: &FdtBlocks, c: &[f64; ERROR_DIM], o: &mut [f64; ERROR_DIM]) {
     }
 }
 
-/// `m <- m (I + F dt)^T` in place: column `c` of the product gains `sum_k F dt[c, k] m[:, k]`,
-/// contiguous 16-long column updates (columns 0..9 change).
+/// `out = m (I + F dt)^T`: column `c` of the product is `m[:, c] + sum_k F dt[c, k] m[:, k]`, a
+/// few contiguous 16-long column updates (only columns 0..9 differ from `m`).
 #[inline]
-fn times_phi_transpose(f: &FdtBlocks, m: &mut Columns) {
-    let old: [[f64; ERROR_DIM]; 6] = [m[VEL], m[VEL + 1], m[VEL + 2], m[ATT], m[ATT + 1], m[ATT + 2]];
+fn times_phi_transpose(f: &FdtBlocks, m: &Columns, out: &mut Columns) {
+    out[ACCEL_BIAS..].copy_from_slice(&m[ACCEL_BIAS..]);
     for i in 0..3 {
-        let mut dv = [0.0; ERROR_DIM];
-        let mut dphi = [0.0; ERROR_DIM];
+        let mut dv = m[VEL + i];
+        let mut dphi = m[ATT + i];
         for j in 0..3 {
             let (vv, vphi, nr, pp) = (f.vv[i][j], f.vphi[i][j], f.neg_r[i][j], f.phiphi[i][j]);
-            let (cv, cphi, cba, cbg) = (&old[j], &old[3 + j], &m[ACCEL_BIAS + j], &m[GYRO_BIAS + j]);
+            let (cv, cphi, cba, cbg) = (&m[VEL + j], &m[ATT + j], &m[ACCEL_BIAS + j], &m[GYRO_BIAS + j]);
             for r in 0..ERROR_DIM {
                 dv[r] += vv * cv[r] + vphi * cphi[r] + nr * cba[r];
                 dphi[r] += pp * cphi[r] + nr * cbg[r];
             }
         }
+        let (cp, cv) = (&m[POS + i], &m[VEL + i]);
+        let dp = &mut out[POS + i];
         for r in 0..ERROR_DIM {
-            m[POS + i][r] += f.pv * old[i][r];
-            m[VEL + i][r] += dv[r];
-            m[ATT + i][r] += dphi[r];
+            dp[r] = cp[r] + f.pv * cv[r];
         }
+        out[VEL + i] = dv;
+        out[ATT + i] = dphi;
     }
 }
 
-/// True when every entry is finite (a branch-free reduction: `x * 0` is NaN for NaN and
-/// infinities, and zero otherwise).
+/// False when an entry is NaN or infinite, by a branch-free sum (NaN and infinities propagate
+/// through it). A sum that overflows also reads as non-finite: a matrix with entries near
+/// `f64::MAX` has diverged anyway.
 fn all_finite(m: &Columns) -> bool {
     let mut acc = [0.0; ERROR_DIM];
     for c in m {
         for (a, v) in acc.iter_mut().zip(c) {
-            *a += v * 0.0;
+            *a += v;
         }
     }
-    acc.iter().all(|&a| a == 0.0)
+    acc.iter().sum::<f64>().is_finite()
 }
 
 /// `Phi P Phi^T + diag(qd)` for `Phi = I + F dt` and a symmetric `P`, never forming a dense
 /// product:
 ///
-/// - `B = P Phi^T` in place (columns 0..9 change, contiguous column updates);
+/// - `B = P Phi^T` (columns 0..9 change, contiguous column updates);
 /// - `Phi B` differs from `B` in rows 0..9 only. Its top-left 9x9 block is `Phi` applied to
 ///   columns 0..9 of `B` (symmetrised after); its bottom-left block is `B`'s as is; its
 ///   top-right block is the transpose of the bottom-left (the result is symmetric); its
@@ -521,9 +524,9 @@ fn all_finite(m: &Columns) -> bool {
 #[allow(clippy::needless_range_loop)] // (i, j) and (j, i) pairs: indices read clearer than iterators
 fn propagate_covariance(f: &FdtBlocks, p: &Matrix16, qd_diag: &Vector16) -> Matrix16 {
     const TOP: usize = ACCEL_BIAS; // rows 0..9 are the ones Phi changes
-    let mut out = *p;
+    let mut out = Matrix16::zeros();
+    times_phi_transpose(f, &p.data.0, &mut out.data.0);
     let m = &mut out.data.0;
-    times_phi_transpose(f, m);
     for c in m.iter_mut().take(TOP) {
         let b = *c;
         phi_rows(f, &b, c);
@@ -546,8 +549,8 @@ fn propagate_covariance(f: &FdtBlocks, p: &Matrix16, qd_diag: &Vector16) -> Matr
 
 /// `M (I + F dt)^T`.
 fn times_phi_transpose_matrix(f: &FdtBlocks, m: &Matrix16) -> Matrix16 {
-    let mut out = *m;
-    times_phi_transpose(f, &mut out.data.0);
+    let mut out = Matrix16::zeros();
+    times_phi_transpose(f, &m.data.0, &mut out.data.0);
     out
 }
 

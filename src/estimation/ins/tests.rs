@@ -260,6 +260,8 @@ fn sparse_propagation_equals_dense() {
         let mut q = p;
         q[(7, 11)] = bad;
         assert!(!all_finite(&q.data.0));
+        q[(3, 2)] = -bad;
+        assert!(!all_finite(&q.data.0), "opposite infinities must not cancel");
     }
 }
 
