@@ -1,1 +1,0 @@
-//! Strapdown INS (being written).

@@ -1,0 +1,626 @@
+use nalgebra::Vector3;
+use rand::SeedableRng;
+use rand_chacha::ChaCha8Rng;
+use rand_distr::{Distribution, Normal};
+
+use super::*;
+
+const G: f64 = STANDARD_GRAVITY_M_S2;
+
+fn noise_free(latitude_deg: f64) -> InsConfig {
+    InsConfig {
+        latitude_deg,
+        accel_noise_density_m_s2_per_sqrt_hz: 0.0,
+        gyro_noise_density_rad_s_per_sqrt_hz: 0.0,
+        ..InsConfig::default()
+    }
+}
+
+fn small_sigma() -> InsInitialSigma {
+    InsInitialSigma {
+        pos_ned_m: Vector3::repeat(1.0),
+        vel_ned_m_s: Vector3::repeat(0.1),
+        att_ned_rad: Vector3::new(0.01, 0.01, 0.05),
+        accel_bias_frd_m_s2: Vector3::repeat(0.02),
+        gyro_bias_frd_rad_s: Vector3::repeat(1e-4),
+        odometer_scale: 0.01,
+    }
+}
+
+fn yaw_q(yaw: f64) -> UnitQuaternion<f64> {
+    UnitQuaternion::from_axis_angle(&Vector3::z_axis(), yaw)
+}
+
+fn imu(t_us: u64, f: Vector3<f64>, w: Vector3<f64>) -> ImuSample {
+    ImuSample { t: TimeUs(t_us), specific_force_frd_m_s2: f, angular_rate_frd_rad_s: w }
+}
+
+/// Five-point Gauss-Legendre mean of `f` over `[a, b]` (exact to rounding for the smooth,
+/// slowly varying truth signals used here).
+fn gl_mean(a: f64, b: f64, f: impl Fn(f64) -> Vector3<f64>) -> Vector3<f64> {
+    const X: [f64; 5] = [0.0, -0.538_469_310_105_683_1, 0.538_469_310_105_683_1, -0.906_179_845_938_664, 0.906_179_845_938_664];
+    const W: [f64; 5] = [
+        0.568_888_888_888_888_9,
+        0.478_628_670_499_366_5,
+        0.478_628_670_499_366_5,
+        0.236_926_885_056_189_1,
+        0.236_926_885_056_189_1,
+    ];
+    let (m, h) = (0.5 * (a + b), 0.5 * (b - a));
+    X.iter().zip(W).map(|(&x, w)| f(m + h * x) * w).sum::<Vector3<f64>>() * 0.5
+}
+
+fn random_spd(rng: &mut ChaCha8Rng) -> Matrix16 {
+    let n = Normal::new(0.0, 1.0).unwrap();
+    let l = Matrix16::from_fn(|_, _| n.sample(rng));
+    let p = l * l.transpose() + Matrix16::identity();
+    0.5 * (p + p.transpose())
+}
+
+fn random_matrix(rng: &mut ChaCha8Rng) -> Matrix16 {
+    let n = Normal::new(0.0, 1.0).unwrap();
+    Matrix16::from_fn(|_, _| n.sample(rng))
+}
+
+fn rel_err(a: &Matrix16, b: &Matrix16) -> f64 {
+    (a - b).norm() / b.norm()
+}
+
+#[test]
+fn positive_phi_down_increases_yaw() {
+    for yaw in [-3.0, -1.0, 0.0, 0.7, 2.5] {
+        let est = yaw_q(yaw);
+        for d in [1e-3, -2e-3, 0.1] {
+            let truth = UnitQuaternion::from_scaled_axis(Vector3::new(0.0, 0.0, d)) * est;
+            let dyaw = crate::estimation::unicycle::wrap_angle(yaw_of(&truth) - yaw_of(&est));
+            assert!((dyaw - d).abs() < 1e-12, "yaw {yaw} d {d}: {dyaw}");
+            let phi = attitude_error_ned(&truth, &est);
+            assert!((phi - Vector3::new(0.0, 0.0, d)).norm() < 1e-12);
+        }
+    }
+    // yaw_of agrees with nalgebra's ZYX Euler angles on a tilted attitude.
+    let q = UnitQuaternion::from_euler_angles(0.1, -0.2, 2.0);
+    assert!((yaw_of(&q) - q.euler_angles().2).abs() < 1e-12);
+    assert!((yaw_of(&q) - 2.0).abs() < 1e-12);
+    // The filter advertises exactly that index.
+    let f = InsFilter::new(noise_free(0.0), TimeUs(0), InsState::at_rest(yaw_q(0.3)), small_sigma()).unwrap();
+    let h = f.geometry().heading.unwrap();
+    assert_eq!(h.index, HEADING_INDEX);
+    assert_eq!(HEADING_INDEX, 8);
+    assert!((h.yaw_rad - 0.3).abs() < 1e-15);
+    assert!(f.snapshot(1).validate().is_ok());
+}
+
+/// Test 1: a vehicle at rest, fed the exact specific force and Earth rate, stays put.
+#[test]
+fn stationary_noise_free_stays_put() {
+    let cfg = noise_free(45.0);
+    let r = yaw_q(0.7);
+    let f_b = r.inverse_transform_vector(&-cfg.gravity_ned_m_s2());
+    let w_b = r.inverse_transform_vector(&cfg.earth_rate_ned_rad_s());
+    let mut f = InsFilter::new(cfg, TimeUs(0), InsState::at_rest(r), small_sigma()).unwrap();
+    for k in 1..=120_000u64 {
+        f.propagate(&imu(k * 5_000, f_b, w_b)).unwrap();
+    }
+    assert_eq!(f.time(), TimeUs(600_000_000));
+    assert!(f.position_ned_m().norm() < 1e-3, "{}", f.position_ned_m());
+    assert!(f.velocity_ned_m_s().norm() < 1e-5, "{}", f.velocity_ned_m_s());
+    let att = attitude_error_ned(&r, &f.attitude()).norm();
+    assert!(att < 1e-7, "{att}");
+}
+
+/// Analytic truth of a level constant-rate turn at constant speed on the rotating Earth.
+struct Turn {
+    yaw0: f64,
+    rate_rad_s: f64,
+    speed_m_s: f64,
+    w_ie: Vector3<f64>,
+    g: Vector3<f64>,
+}
+
+impl Turn {
+    fn yaw(&self, t: f64) -> f64 {
+        self.yaw0 + self.rate_rad_s * t
+    }
+    fn att(&self, t: f64) -> UnitQuaternion<f64> {
+        yaw_q(self.yaw(t))
+    }
+    fn vel(&self, t: f64) -> Vector3<f64> {
+        let (s, c) = self.yaw(t).sin_cos();
+        self.speed_m_s * Vector3::new(c, s, 0.0)
+    }
+    fn pos(&self, t: f64) -> Vector3<f64> {
+        let (s, c) = self.yaw(t).sin_cos();
+        let (s0, c0) = self.yaw0.sin_cos();
+        self.speed_m_s / self.rate_rad_s * Vector3::new(s - s0, c0 - c, 0.0)
+    }
+    fn specific_force_b(&self, t: f64) -> Vector3<f64> {
+        let (s, c) = self.yaw(t).sin_cos();
+        let a = self.speed_m_s * self.rate_rad_s * Vector3::new(-s, c, 0.0);
+        self.att(t).inverse_transform_vector(&(a + 2.0 * self.w_ie.cross(&self.vel(t)) - self.g))
+    }
+    fn rate_b(&self, t: f64) -> Vector3<f64> {
+        Vector3::new(0.0, 0.0, self.rate_rad_s) + self.att(t).inverse_transform_vector(&self.w_ie)
+    }
+    /// The IMU sample of the interval ending at `k dt`: exact means of the truth.
+    fn sample(&self, k: u64, dt_us: u64) -> ImuSample {
+        let (a, b) = ((k - 1) as f64 * dt_us as f64 * 1e-6, k as f64 * dt_us as f64 * 1e-6);
+        imu(k * dt_us, gl_mean(a, b, |t| self.specific_force_b(t)), gl_mean(a, b, |t| self.rate_b(t)))
+    }
+    fn state(&self, t: f64) -> InsState {
+        InsState { pos_ned_m: self.pos(t), vel_ned_m_s: self.vel(t), ..InsState::at_rest(self.att(t)) }
+    }
+}
+
+/// Test 2: coning, sculling, rotation and Earth-rate corrections on a 380 s turn.
+#[test]
+fn constant_rate_turn_noise_free() {
+    let cfg = noise_free(45.0);
+    let turn = Turn { yaw0: 0.3, rate_rad_s: 0.05, speed_m_s: 10.0, w_ie: cfg.earth_rate_ned_rad_s(), g: cfg.gravity_ned_m_s2() };
+    let mut f = InsFilter::new(cfg, TimeUs(0), turn.state(0.0), small_sigma()).unwrap();
+    let dt_us = 5_000;
+    let n = 380 * 200;
+    for k in 1..=n {
+        f.propagate(&turn.sample(k, dt_us)).unwrap();
+    }
+    let t = 380.0;
+    let dp = (f.position_ned_m() - turn.pos(t)).norm();
+    let dyaw = attitude_error_ned(&turn.att(t), &f.attitude()).norm();
+    let dv = (f.velocity_ned_m_s() - turn.vel(t)).norm();
+    assert!(dp < 0.05, "position error {dp} m");
+    assert!(dyaw < 1e-5, "attitude error {dyaw} rad");
+    assert!(dv < 1e-3, "velocity error {dv} m/s");
+}
+
+/// A filter with a dense random covariance and `Psi`, tilted and moving, with biases.
+fn busy_filter(rng: &mut ChaCha8Rng) -> InsFilter {
+    let cfg = InsConfig {
+        latitude_deg: 30.0,
+        accel_bias_random_walk_m_s3_per_sqrt_hz: 1e-4,
+        gyro_bias_random_walk_rad_s2_per_sqrt_hz: 1e-6,
+        ..InsConfig::default()
+    };
+    let x = InsState {
+        pos_ned_m: Vector3::new(10.0, -20.0, 1.0),
+        vel_ned_m_s: Vector3::new(5.0, -3.0, 0.5),
+        att_frd_to_ned: UnitQuaternion::from_euler_angles(0.05, -0.08, 1.2),
+        accel_bias_frd_m_s2: Vector3::new(0.02, -0.01, 0.03),
+        gyro_bias_frd_rad_s: Vector3::new(1e-4, -2e-4, 5e-5),
+        odometer_scale_error: 0.01,
+    };
+    let mut f = InsFilter::new(cfg, TimeUs(1_000_000), x, small_sigma()).unwrap();
+    f.p = random_spd(rng);
+    f.psi_t = random_matrix(rng);
+    f
+}
+
+/// Test 3: the block-sparse time update equals the dense `Phi P Phi^T + Qd`, `Phi Psi`.
+#[test]
+fn sparse_propagation_equals_dense() {
+    let mut rng = ChaCha8Rng::seed_from_u64(3);
+    for track in [true, false] {
+        let mut f = busy_filter(&mut rng);
+        f.set_track_psi(track);
+        if track {
+            f.psi_t = random_matrix(&mut rng);
+        }
+        let (p0, psi0, x0) = (f.p, f.psi16(), f.x);
+        let s = imu(1_005_000, Vector3::new(0.5, 0.3, -9.7), Vector3::new(0.02, -0.01, 0.3));
+        f.propagate(&s).unwrap();
+        // Dense Phi built independently from the documented F.
+        let dt = 0.005;
+        let r = x0.att_frd_to_ned.to_rotation_matrix().into_inner();
+        let f_n = r * (s.specific_force_frd_m_s2 - x0.accel_bias_frd_m_s2);
+        let w_ie = f.config.earth_rate_ned_rad_s();
+        let mut fc = Matrix16::zeros();
+        fc.fixed_view_mut::<3, 3>(0, 3).copy_from(&Matrix3::identity());
+        fc.fixed_view_mut::<3, 3>(3, 3).copy_from(&(-2.0 * w_ie.cross_matrix()));
+        fc.fixed_view_mut::<3, 3>(3, 6).copy_from(&(-f_n.cross_matrix()));
+        fc.fixed_view_mut::<3, 3>(3, 9).copy_from(&-r);
+        fc.fixed_view_mut::<3, 3>(6, 6).copy_from(&(-w_ie.cross_matrix()));
+        fc.fixed_view_mut::<3, 3>(6, 12).copy_from(&-r);
+        let phi = Matrix16::identity() + fc * dt;
+        let c = f.config;
+        let mut q = Vector16::zeros();
+        q.fixed_rows_mut::<3>(3).fill(c.accel_noise_density_m_s2_per_sqrt_hz.powi(2) * dt);
+        q.fixed_rows_mut::<3>(6).fill(c.gyro_noise_density_rad_s_per_sqrt_hz.powi(2) * dt);
+        q.fixed_rows_mut::<3>(9).fill(c.accel_bias_random_walk_m_s3_per_sqrt_hz.powi(2) * dt);
+        q.fixed_rows_mut::<3>(12).fill(c.gyro_bias_random_walk_rad_s2_per_sqrt_hz.powi(2) * dt);
+        let p_dense = phi * p0 * phi.transpose() + Matrix16::from_diagonal(&q);
+        assert!(rel_err(&f.p, &p_dense) < 1e-12, "{}", rel_err(&f.p, &p_dense));
+        assert_eq!(f.p, f.p.transpose(), "symmetric");
+        if track {
+            assert!(rel_err(&f.psi16(), &(phi * psi0)) < 1e-12);
+        } else {
+            assert_eq!(f.psi16(), Matrix16::identity());
+        }
+    }
+    // The routines themselves against the dense F dt they stand for.
+    let w_ie = Vector3::new(0.3, -0.1, 0.2);
+    let r = UnitQuaternion::from_euler_angles(0.3, -0.2, 2.0).to_rotation_matrix().into_inner();
+    let f = FdtBlocks::new(0.01, &r, &Vector3::new(1.0, -2.0, -9.0), &w_ie);
+    let phi = Matrix16::identity() + f.dense();
+    let m = random_matrix(&mut rng);
+    assert!(rel_err(&times_phi_transpose_matrix(&f, &m), &(m * phi.transpose())) < 1e-14);
+    for c in 0..ERROR_DIM {
+        let mut o = [0.0; ERROR_DIM];
+        phi_rows(&f, &m.data.0[c], &mut o);
+        let dense = phi * m.column(c);
+        for r in 0..ACCEL_BIAS {
+            assert!((o[r] - dense[r]).abs() < 1e-14 * dense.norm());
+        }
+    }
+    let p = random_spd(&mut rng);
+    let qd = Vector16::from_fn(|i, _| i as f64 * 1e-3);
+    let p_new = propagate_covariance(&f, &p, &qd);
+    assert!(rel_err(&p_new, &(phi * p * phi.transpose() + Matrix16::from_diagonal(&qd))) < 1e-12);
+    // The finiteness reduction.
+    assert!(all_finite(&p.data.0));
+    for bad in [f64::NAN, f64::INFINITY, f64::NEG_INFINITY] {
+        let mut q = p;
+        q[(7, 11)] = bad;
+        assert!(!all_finite(&q.data.0));
+        q[(3, 2)] = -bad;
+        assert!(!all_finite(&q.data.0), "opposite infinities must not cancel");
+    }
+}
+
+/// The error `x_true - x_est` in error-state coordinates.
+fn state_error(truth: &InsState, est: &InsState) -> Vector16 {
+    let mut e = Vector16::zeros();
+    e.fixed_rows_mut::<3>(POS).copy_from(&(truth.pos_ned_m - est.pos_ned_m));
+    e.fixed_rows_mut::<3>(VEL).copy_from(&(truth.vel_ned_m_s - est.vel_ned_m_s));
+    e.fixed_rows_mut::<3>(ATT).copy_from(&attitude_error_ned(&truth.att_frd_to_ned, &est.att_frd_to_ned));
+    e.fixed_rows_mut::<3>(ACCEL_BIAS).copy_from(&(truth.accel_bias_frd_m_s2 - est.accel_bias_frd_m_s2));
+    e.fixed_rows_mut::<3>(GYRO_BIAS).copy_from(&(truth.gyro_bias_frd_rad_s - est.gyro_bias_frd_rad_s));
+    e[ODO_SCALE] = truth.odometer_scale_error - est.odometer_scale_error;
+    e
+}
+
+/// Test 4: the error model (F, hence Phi and Psi) against finite differences of the
+/// mechanization: two noise-free copies, one started from a perturbed state, driven by the
+/// same IMU samples; their difference after 1 s must be `Psi dx0` to first order. The Earth
+/// rate is exaggerated (0.1 rad/s) so that its terms are visible.
+#[test]
+fn error_model_matches_finite_differences() {
+    let mut rng = ChaCha8Rng::seed_from_u64(4);
+    let mut base = busy_filter(&mut rng);
+    base.w_ie_n = Vector3::new(0.07, 0.0, -0.07);
+    base.psi_t = Matrix16::identity();
+    let dt_us = 500;
+    let steps = 2_000;
+    let t0 = base.time().0;
+    let sample = |k: u64| {
+        let t = k as f64 * dt_us as f64 * 1e-6;
+        imu(
+            t0 + k * dt_us,
+            Vector3::new(1.0 + 0.5 * t.sin(), 0.8 * (0.7 * t).cos(), -9.8 + 0.3 * (2.0 * t).sin()),
+            Vector3::new(0.1 * t.sin(), 0.05 * (1.3 * t).cos(), 0.2 + 0.1 * (0.5 * t).sin()),
+        )
+    };
+    let mut est = base.clone();
+    for k in 1..=steps {
+        est.propagate(&sample(k)).unwrap();
+    }
+    let phi_total = est.psi16();
+    // Perturbation size per block: small enough for the second-order terms to stay below
+    // the tolerance.
+    let eps = [1e-3, 1e-3, 1e-3, 1e-4, 1e-4, 1e-4, 1e-5, 1e-5, 1e-5, 1e-4, 1e-4, 1e-4, 1e-6, 1e-6, 1e-6, 1e-4];
+    let block_of = |i: usize| if i == ODO_SCALE { ODO_SCALE..ODO_SCALE + 1 } else { (i / 3 * 3)..(i / 3 * 3 + 3) };
+    for (i, &e) in eps.iter().enumerate() {
+        let mut dx0 = Vector16::zeros();
+        dx0[i] = e;
+        let mut truth = base.clone();
+        truth.x = base.x.injected(&dx0).unwrap();
+        for k in 1..=steps {
+            truth.propagate(&sample(k)).unwrap();
+        }
+        let actual = state_error(&truth.x, &est.x);
+        let predicted = phi_total * dx0;
+        // Block by block: the difference relative to the block's predicted size. `Phi = I + F dt`
+        // is first order, so a chain of `m` integrations (gyro bias -> attitude -> velocity ->
+        // position: m = 3) differs from the exact transition by about `m dt / T` (1.5e-3 here),
+        // while a wrong sign or factor in F shows as an O(1e-1) to O(1) discrepancy.
+        for start in [POS, VEL, ATT, ACCEL_BIAS, GYRO_BIAS, ODO_SCALE] {
+            let b = block_of(start);
+            let pred = predicted.rows(b.start, b.len());
+            let act = actual.rows(b.start, b.len());
+            let err = (act - pred).norm();
+            // Blocks the perturbation does not reach to first order must stay at second order.
+            let floor = 1e-7 * e;
+            assert!(
+                err <= 2e-3 * pred.norm() + floor,
+                "perturbing {i}: block {start}: actual {act} predicted {pred} (err {err:e}, |pred| {:e})",
+                pred.norm()
+            );
+        }
+        // And the perturbation does reach position for every non-scale state.
+        if i != ODO_SCALE {
+            assert!(predicted.rows(POS, 3).norm() > 1e-3 * e, "state {i} never reaches position?");
+        }
+    }
+}
+
+/// Test 5: odometer and constraint Jacobian against central differences of `h` under error
+/// injection.
+#[test]
+fn odometer_jacobian_matches_numerical_derivative() {
+    let mut rng = ChaCha8Rng::seed_from_u64(5);
+    let f = busy_filter(&mut rng);
+    let s = OdometerSample { t: f.time(), speed_m_s: 6.3 };
+    let m = f.odometer_measurement(&s).unwrap();
+    let h0 = odometer_prediction(&f.x);
+    assert!((m.residual[0] - (6.3 - h0.x)).abs() < 1e-15);
+    assert!((m.residual[1] + h0.y).abs() < 1e-15 && (m.residual[2] + h0.z).abs() < 1e-15);
+    assert_eq!(m.r[(0, 0)], 0.2 * 0.2);
+    let eps = 1e-6;
+    for i in 0..ERROR_DIM {
+        let mut dx = Vector16::zeros();
+        dx[i] = eps;
+        let hp = odometer_prediction(&f.x.injected(&dx).unwrap());
+        let hm = odometer_prediction(&f.x.injected(&-dx).unwrap());
+        let numeric = (hp - hm) / (2.0 * eps);
+        for row in 0..3 {
+            assert!(
+                (numeric[row] - m.h[(row, i)]).abs() < 1e-6,
+                "d h{row} / d x{i}: numeric {} analytic {}",
+                numeric[row],
+                m.h[(row, i)]
+            );
+        }
+    }
+    // Linearising changes nothing.
+    let before = f.clone();
+    let _ = f.odometer_measurement(&s).unwrap();
+    assert_eq!(f, before);
+}
+
+/// Reset Jacobian: `G` is the derivative of the post-reset error with respect to the remaining
+/// error, and the opposite sign is wrong.
+#[test]
+fn reset_jacobian_is_derivative_of_the_reset() {
+    let phi_hat = Vector3::new(0.03, -0.02, 0.05);
+    let mut dx = Vector16::zeros();
+    dx.fixed_rows_mut::<3>(ATT).copy_from(&phi_hat);
+    let g = reset_jacobian(&dx);
+    let g_att = g.fixed_view::<3, 3>(ATT, ATT).into_owned();
+    // phi+ = Log(Exp(phi_hat + d) Exp(-phi_hat)).
+    let post = |d: Vector3<f64>| {
+        (UnitQuaternion::from_scaled_axis(phi_hat + d) * UnitQuaternion::from_scaled_axis(-phi_hat)).scaled_axis()
+    };
+    let eps = 1e-6;
+    let mut numeric = Matrix3::zeros();
+    for j in 0..3 {
+        let mut d = Vector3::zeros();
+        d[j] = eps;
+        numeric.set_column(j, &((post(d) - post(-d)) / (2.0 * eps)));
+    }
+    assert!((numeric - g_att).amax() < 1e-9, "{numeric} vs {g_att}");
+    let first_order_plus = Matrix3::identity() + 0.5 * phi_hat.cross_matrix();
+    let first_order_minus = Matrix3::identity() - 0.5 * phi_hat.cross_matrix();
+    assert!((numeric - first_order_plus).amax() < 1e-3);
+    assert!((numeric - first_order_minus).amax() > 0.02);
+    // Identity off the attitude block.
+    let mut off = g;
+    off.fixed_view_mut::<3, 3>(ATT, ATT).copy_from(&Matrix3::identity());
+    assert_eq!(off, Matrix16::identity());
+    // Small-angle branch agrees with the closed form at the switch.
+    let a = Vector3::new(1e-4, 0.0, 0.0) * 0.999_999;
+    let b = Vector3::new(1e-4, 0.0, 0.0) * 1.000_001;
+    assert!((so3_left_jacobian(&a) - so3_left_jacobian(&b)).amax() < 1e-9);
+}
+
+/// Test 8: a joint write-back resets with `G`: `Psi = G`, `P = G p G^T`.
+#[test]
+fn apply_joint_uses_reset_jacobian() {
+    let mut rng = ChaCha8Rng::seed_from_u64(8);
+    let mut f = busy_filter(&mut rng);
+    let n = Normal::new(0.0, 0.01).unwrap();
+    let dx = DVector::from_fn(ERROR_DIM, |_, _| n.sample(&mut rng));
+    let p = to_dmatrix(&random_spd(&mut rng));
+    let before = f.x;
+    f.apply_joint(&dx, &p).unwrap();
+    let g = reset_jacobian(&to_vector16(&dx));
+    assert_eq!(f.psi(), to_dmatrix(&g));
+    let expected = to_dmatrix(&g) * &p * to_dmatrix(&g).transpose();
+    assert!((f.covariance() - &expected).amax() < 1e-12 * expected.amax());
+    assert_ne!(g, Matrix16::identity());
+    assert_eq!(f.x, before.injected(&to_vector16(&dx)).unwrap());
+    assert!((f.x.pos_ned_m - before.pos_ned_m - Vector3::new(dx[0], dx[1], dx[2])).norm() < 1e-12);
+    // Without Psi tracking it stays the identity.
+    f.set_track_psi(false);
+    f.apply_joint(&dx, &p).unwrap();
+    assert_eq!(f.psi(), DMatrix::identity(ERROR_DIM, ERROR_DIM));
+    // Bad write-backs change nothing.
+    let snapshot = f.clone();
+    assert!(f.apply_joint(&DVector::zeros(15), &p).is_err());
+    let mut bad = p.clone();
+    bad[(3, 4)] = f64::NAN;
+    assert!(f.apply_joint(&DVector::zeros(ERROR_DIM), &bad).is_err());
+    let mut huge = DVector::zeros(ERROR_DIM);
+    huge[ATT] = 1e300;
+    huge[ATT + 1] = 1e300;
+    assert_eq!(f.apply_joint(&huge, &p), Err(EstimationError::NonFinite { what: "INS state after error injection" }));
+    assert_eq!(f, snapshot);
+}
+
+/// A local update folds `G (I - K H)` into `Psi` and resets the covariance with `G`.
+#[test]
+fn update_local_resets_with_g() {
+    let mut rng = ChaCha8Rng::seed_from_u64(9);
+    let mut f = busy_filter(&mut rng);
+    let (p0, psi0) = (f.p, f.psi16());
+    let meas = f.odometer_measurement(&OdometerSample { t: f.time(), speed_m_s: 4.0 }).unwrap();
+    let up = kalman::local_update(&to_dmatrix(&p0), &meas).unwrap();
+    let diag = f.update_local(&meas).unwrap();
+    assert_eq!(diag, up.diagnostics);
+    let dx = to_vector16(&up.dx);
+    let g = reset_jacobian(&dx);
+    assert!(dx.fixed_rows::<3>(ATT).norm() > 1e-3, "the update must rotate for this test to mean anything");
+    assert!(rel_err(&f.psi16(), &(g * to_matrix16(&up.i_minus_kh) * psi0)) < 1e-14);
+    assert!(rel_err(&f.p, &(g * to_matrix16(&up.p) * g.transpose())) < 1e-13);
+}
+
+fn sample_vec(rng: &mut ChaCha8Rng, sigma: &Vector3<f64>) -> Vector3<f64> {
+    Vector3::from_fn(|i, _| if sigma[i] > 0.0 { Normal::new(0.0, sigma[i]).unwrap().sample(rng) } else { 0.0 })
+}
+
+/// Test 6: IMU + odometer on a straight drive with biases and noise: errors within 4 sigma of
+/// the filter's covariance, and odometer updates shrink the velocity covariance.
+#[test]
+fn noisy_straight_drive_is_consistent() {
+    let cfg = InsConfig {
+        latitude_deg: 45.0,
+        accel_noise_density_m_s2_per_sqrt_hz: 2e-3,
+        gyro_noise_density_rad_s_per_sqrt_hz: 1e-4,
+        sigma_odometer_m_s: 0.1,
+        ..InsConfig::default()
+    };
+    let sigma0 = InsInitialSigma {
+        pos_ned_m: Vector3::repeat(0.5),
+        vel_ned_m_s: Vector3::repeat(0.05),
+        att_ned_rad: Vector3::new(2e-3, 2e-3, 1e-2),
+        accel_bias_frd_m_s2: Vector3::repeat(0.03),
+        gyro_bias_frd_rad_s: Vector3::repeat(2e-4),
+        odometer_scale: 0.02,
+    };
+    let (w_ie, g) = (cfg.earth_rate_ned_rad_s(), cfg.gravity_ned_m_s2());
+    let speed = 10.0;
+    let yaw = 0.4;
+    let r_true = yaw_q(yaw);
+    let v_true = r_true * Vector3::new(speed, 0.0, 0.0);
+    let f_true = r_true.inverse_transform_vector(&(2.0 * w_ie.cross(&v_true) - g));
+    let w_true = r_true.inverse_transform_vector(&w_ie);
+    let dt_us = 5_000u64;
+    let dt = dt_us as f64 * 1e-6;
+    let mut worst: f64 = 0.0;
+    for seed in 0..6 {
+        let mut rng = ChaCha8Rng::seed_from_u64(600 + seed);
+        let b_a = sample_vec(&mut rng, &sigma0.accel_bias_frd_m_s2);
+        let b_g = sample_vec(&mut rng, &sigma0.gyro_bias_frd_rad_s);
+        let k_true = Normal::new(0.0, sigma0.odometer_scale).unwrap().sample(&mut rng);
+        let phi0 = sample_vec(&mut rng, &sigma0.att_ned_rad);
+        let est = InsState {
+            pos_ned_m: -sample_vec(&mut rng, &sigma0.pos_ned_m),
+            vel_ned_m_s: v_true - sample_vec(&mut rng, &sigma0.vel_ned_m_s),
+            att_frd_to_ned: UnitQuaternion::from_scaled_axis(-phi0) * r_true,
+            ..InsState::at_rest(r_true)
+        };
+        let mut f = InsFilter::new(cfg, TimeUs(0), est, sigma0).unwrap();
+        let na = Normal::new(0.0, cfg.accel_noise_density_m_s2_per_sqrt_hz / dt.sqrt()).unwrap();
+        let ng = Normal::new(0.0, cfg.gyro_noise_density_rad_s_per_sqrt_hz / dt.sqrt()).unwrap();
+        let nodo = Normal::new(0.0, cfg.sigma_odometer_m_s).unwrap();
+        for k in 1..=12_000u64 {
+            let fm = f_true + b_a + Vector3::from_fn(|_, _| na.sample(&mut rng));
+            let wm = w_true + b_g + Vector3::from_fn(|_, _| ng.sample(&mut rng));
+            f.propagate(&imu(k * dt_us, fm, wm)).unwrap();
+            if k % 20 == 0 {
+                let vel_trace = f.p.fixed_view::<3, 3>(VEL, VEL).trace();
+                let s = OdometerSample { t: f.time(), speed_m_s: (1.0 + k_true) * speed + nodo.sample(&mut rng) };
+                f.update_odometer(&s).unwrap();
+                assert!(f.p.fixed_view::<3, 3>(VEL, VEL).trace() < vel_trace, "an odometer update must shrink P_vv");
+            }
+        }
+        let t = f.time().as_secs_f64();
+        let truth = InsState {
+            pos_ned_m: v_true * t,
+            vel_ned_m_s: v_true,
+            att_frd_to_ned: r_true,
+            accel_bias_frd_m_s2: b_a,
+            gyro_bias_frd_rad_s: b_g,
+            odometer_scale_error: k_true,
+        };
+        let e = state_error(&truth, &f.x);
+        for i in [POS, POS + 1, POS + 2, VEL, VEL + 1, VEL + 2, HEADING_INDEX, ODO_SCALE] {
+            let z = e[i] / f.p[(i, i)].sqrt();
+            worst = worst.max(z.abs());
+            assert!(z.abs() < 4.0, "seed {seed}: error state {i}: {} is {z} sigma", e[i]);
+        }
+        // The odometer makes the scale factor and the body-frame velocity well known (not the
+        // NED velocity: the yaw error is unobservable on a straight road, V sigma_yaw ~ 0.1 m/s).
+        assert!(f.p[(ODO_SCALE, ODO_SCALE)].sqrt() < 0.5 * sigma0.odometer_scale);
+        let h = f.odometer_measurement(&OdometerSample { t: f.time(), speed_m_s: speed }).unwrap().h;
+        let p_body = &h * to_dmatrix(&f.p) * h.transpose();
+        for axis in 0..3 {
+            assert!(p_body[(axis, axis)].sqrt() < 0.03, "body velocity sigma {axis}: {}", p_body[(axis, axis)].sqrt());
+        }
+    }
+    assert!(worst > 0.3, "errors suspiciously small: {worst}");
+}
+
+/// Test 7: bad samples are typed errors and leave the filter bit-identical.
+#[test]
+fn bad_imu_samples_are_rejected_without_change() {
+    let cfg = noise_free(45.0);
+    let r = yaw_q(0.2);
+    let f_b = r.inverse_transform_vector(&-cfg.gravity_ned_m_s2());
+    let w_b = r.inverse_transform_vector(&cfg.earth_rate_ned_rad_s());
+    let mut f = InsFilter::new(cfg, TimeUs(1_000_000), InsState::at_rest(r), small_sigma()).unwrap();
+    f.propagate(&imu(1_005_000, f_b, w_b)).unwrap();
+    let before = f.clone();
+    let nan_f = Vector3::new(f64::NAN, 0.0, -G);
+    let cases = [
+        (imu(1_010_000, nan_f, w_b), EstimationError::NonFinite { what: "IMU specific force" }),
+        (imu(1_010_000, f_b, Vector3::new(0.0, f64::INFINITY, 0.0)), EstimationError::NonFinite { what: "IMU angular rate" }),
+        (
+            imu(1_000_000, f_b, w_b),
+            EstimationError::TimeWentBackwards { what: "IMU sample", from_us: 1_005_000, to_us: 1_000_000 },
+        ),
+        (imu(1_005_000, f_b, w_b), EstimationError::InvalidValue { what: "IMU time step (s)", value: 0.0 }),
+        (imu(3_005_000, f_b, w_b), EstimationError::InvalidValue { what: "IMU sample gap (s)", value: 2.0 }),
+        (
+            imu(1_010_000, Vector3::new(0.0, 0.0, -600.0), w_b),
+            EstimationError::InvalidValue { what: "IMU specific force magnitude (m/s^2)", value: 600.0 },
+        ),
+        (
+            imu(1_010_000, f_b, Vector3::new(50.0, 0.0, 0.0)),
+            EstimationError::InvalidValue { what: "IMU angular rate magnitude (rad/s)", value: 50.0 },
+        ),
+    ];
+    for (s, expected) in cases {
+        assert_eq!(f.propagate(&s), Err(expected));
+        assert_eq!(f, before);
+    }
+    let odo = OdometerSample { t: f.time(), speed_m_s: f64::NAN };
+    assert_eq!(f.update_odometer(&odo), Err(EstimationError::NonFinite { what: "odometer speed" }));
+    assert_eq!(f, before);
+    // And a good sample still goes through afterwards.
+    f.propagate(&imu(1_010_000, f_b, w_b)).unwrap();
+    assert_eq!(f.time(), TimeUs(1_010_000));
+}
+
+#[test]
+fn config_parsing_defaults_and_validation() {
+    let cfg: InsConfig = toml::from_str(
+        "latitude_deg = 45.0\naccel_noise_density_m_s2_per_sqrt_hz = 1e-3\ngyro_noise_density_rad_s_per_sqrt_hz = 5e-5\n",
+    )
+    .unwrap();
+    assert_eq!(cfg.gravity_m_s2, 9.80665);
+    assert_eq!(cfg.sigma_odometer_m_s, 0.2);
+    assert_eq!(cfg.max_imu_gap_s, 0.5);
+    assert_eq!(cfg.accel_bias_random_walk_m_s3_per_sqrt_hz, 0.0);
+    assert!(cfg.validate().is_ok());
+    let unknown = toml::from_str::<InsConfig>(
+        "latitude_deg = 45.0\naccel_noise_density_m_s2_per_sqrt_hz = 1e-3\ngyro_noise_density_rad_s_per_sqrt_hz = 5e-5\nsigma_odo = 1.0\n",
+    );
+    assert!(unknown.is_err());
+    let bad = InsConfig { sigma_nhc_lateral_m_s: -1.0, ..cfg };
+    assert_eq!(bad.validate(), Err(EstimationError::InvalidValue { what: "sigma_nhc_lateral_m_s", value: -1.0 }));
+    let bad = InsConfig { gyro_noise_density_rad_s_per_sqrt_hz: f64::NAN, ..cfg };
+    assert!(matches!(bad.validate(), Err(EstimationError::InvalidValue { what: "gyro_noise_density_rad_s_per_sqrt_hz", .. })));
+    let bad = InsConfig { latitude_deg: 91.0, ..cfg };
+    assert!(InsFilter::new(bad, TimeUs(0), InsState::at_rest(yaw_q(0.0)), small_sigma()).is_err());
+    let sigma = InsInitialSigma { att_ned_rad: Vector3::new(0.0, -1.0, 0.0), ..small_sigma() };
+    assert_eq!(
+        InsFilter::new(cfg, TimeUs(0), InsState::at_rest(yaw_q(0.0)), sigma).unwrap_err(),
+        EstimationError::InvalidValue { what: "initial attitude sigma", value: -1.0 }
+    );
+    let mut x = InsState::at_rest(yaw_q(0.0));
+    x.vel_ned_m_s.x = f64::NAN;
+    assert!(InsFilter::new(cfg, TimeUs(0), x, small_sigma()).is_err());
+    // Initial covariance: the squared sigmas on the diagonal.
+    let f = InsFilter::new(cfg, TimeUs(0), InsState::at_rest(yaw_q(0.0)), small_sigma()).unwrap();
+    assert_eq!(f.covariance16()[(HEADING_INDEX, HEADING_INDEX)], 0.05 * 0.05);
+    assert_eq!(f.covariance16()[(ODO_SCALE, ODO_SCALE)], 0.01 * 0.01);
+    assert_eq!(f.psi16(), Matrix16::identity());
+}
