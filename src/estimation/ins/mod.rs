@@ -343,7 +343,7 @@ impl InsInitialSigma {
 }
 
 /// Yaw of an attitude (body FRD to NED): heading of the body x axis from north, clockwise seen
-/// from above, `atan2(R[1,0], R[0,0])`, in (-pi, pi].
+/// from above, `atan2(R[1,0], R[0,0])`, in [-pi, pi].
 pub fn yaw_of(q: &UnitQuaternion<f64>) -> f64 {
     let (w, x, y, z) = (q.w, q.i, q.j, q.k);
     let r10 = 2.0 * (x * y + w * z);
@@ -583,7 +583,10 @@ impl InsFilter {
         initial_sigma: InsInitialSigma,
     ) -> Result<Self, EstimationError> {
         config.validate()?;
-        if !initial.is_finite() {
+        // A deserialised quaternion need not be unit: normalise (a zero one becomes NaN here).
+        let mut x = initial;
+        x.att_frd_to_ned = UnitQuaternion::new_normalize(x.att_frd_to_ned.into_inner());
+        if !x.is_finite() {
             return Err(EstimationError::NonFinite { what: "initial INS state" });
         }
         let p = initial_sigma.covariance()?;
@@ -597,8 +600,6 @@ impl InsFilter {
         for (i, density) in blocks {
             q_psd.fixed_rows_mut::<3>(i).fill(density * density);
         }
-        let mut x = initial;
-        x.att_frd_to_ned = UnitQuaternion::new_normalize(x.att_frd_to_ned.into_inner());
         Ok(Self {
             w_ie_n: config.earth_rate_ned_rad_s(),
             g_n: config.gravity_ned_m_s2(),

@@ -618,9 +618,90 @@ fn config_parsing_defaults_and_validation() {
     let mut x = InsState::at_rest(yaw_q(0.0));
     x.vel_ned_m_s.x = f64::NAN;
     assert!(InsFilter::new(cfg, TimeUs(0), x, small_sigma()).is_err());
+    // A zero quaternion (possible from a file) is rejected; a non-unit one is normalised.
+    let zero = InsState {
+        att_frd_to_ned: UnitQuaternion::new_unchecked(nalgebra::Quaternion::new(0.0, 0.0, 0.0, 0.0)),
+        ..InsState::at_rest(yaw_q(0.0))
+    };
+    assert_eq!(
+        InsFilter::new(cfg, TimeUs(0), zero, small_sigma()).unwrap_err(),
+        EstimationError::NonFinite { what: "initial INS state" }
+    );
+    let long = InsState {
+        att_frd_to_ned: UnitQuaternion::new_unchecked(yaw_q(0.4).into_inner() * 3.0),
+        ..InsState::at_rest(yaw_q(0.0))
+    };
+    let f = InsFilter::new(cfg, TimeUs(0), long, small_sigma()).unwrap();
+    assert!((f.attitude().into_inner().norm() - 1.0).abs() < 1e-15);
+    assert!((f.yaw_rad() - 0.4).abs() < 1e-15);
     // Initial covariance: the squared sigmas on the diagonal.
     let f = InsFilter::new(cfg, TimeUs(0), InsState::at_rest(yaw_q(0.0)), small_sigma()).unwrap();
     assert_eq!(f.covariance16()[(HEADING_INDEX, HEADING_INDEX)], 0.05 * 0.05);
     assert_eq!(f.covariance16()[(ODO_SCALE, ODO_SCALE)], 0.01 * 0.01);
     assert_eq!(f.psi16(), Matrix16::identity());
+}
+
+/// Two INS vehicles in a team: odometer updates and a range event go through every method, and
+/// the event shrinks the position covariance along the line of sight.
+#[test]
+fn works_in_a_team() {
+    use crate::estimation::{CoopMeasurement, Method, Team};
+    let cfg = InsConfig { latitude_deg: 45.0, ..InsConfig::default() };
+    let (w_ie, g) = (cfg.earth_rate_ned_rad_s(), cfg.gravity_ned_m_s2());
+    let make = |north_m: f64| {
+        let x = InsState { pos_ned_m: Vector3::new(north_m, 0.0, 0.0), ..InsState::at_rest(yaw_q(0.0)) };
+        InsFilter::new(cfg, TimeUs(0), x, small_sigma()).unwrap()
+    };
+    let f_b = -g;
+    let w_b = w_ie;
+    for method in Method::ALL {
+        let mut team = Team::new(method, vec![(1, make(0.0)), (2, make(50.0))]).unwrap();
+        for k in 1..=200u64 {
+            for id in [1, 2] {
+                team.filter_mut(id).unwrap().propagate(&imu(k * 5_000, f_b, w_b)).unwrap();
+            }
+            if k % 20 == 0 {
+                for id in [1, 2] {
+                    let f = team.filter(id).unwrap();
+                    let meas = f.odometer_measurement(&OdometerSample { t: f.time(), speed_m_s: 0.0 }).unwrap();
+                    team.local_update(id, &meas).unwrap();
+                }
+            }
+        }
+        let before = team.filter(2).unwrap().covariance16()[(0, 0)];
+        let ranges = [
+            CoopMeasurement::Range { from: 1, to: 2, range_m: 50.3, sigma_m: 0.1 },
+            CoopMeasurement::RangeBearing {
+                from: 1,
+                to: 2,
+                range_m: 50.3,
+                bearing_rad: 0.01,
+                sigma_range_m: 0.1,
+                sigma_bearing_rad: 0.01,
+            },
+        ];
+        team.cooperative_event(&ranges).unwrap();
+        let after = team.filter(2).unwrap().covariance16()[(0, 0)];
+        let f2 = team.filter(2).unwrap();
+        match method {
+            Method::DeadReckoning => assert_eq!(after, before, "{method}"),
+            // Covariance intersection inflates the whole 16-state covariance by 1/w before the
+            // update, so it need not shrink anything here; it only has to run.
+            Method::CovarianceIntersection => {}
+            _ => assert!(after < 0.6 * before, "{method}: {before} -> {after}"),
+        }
+        if method.needs_psi() {
+            // Psi restarted at the reset Jacobian of the write-back: identity off the attitude block.
+            let psi = f2.psi16();
+            let mut off = psi;
+            off.fixed_view_mut::<3, 3>(ATT, ATT).fill(0.0);
+            let mut eye = Matrix16::identity();
+            eye.fixed_view_mut::<3, 3>(ATT, ATT).fill(0.0);
+            assert_eq!(off, eye, "{method}");
+            assert_ne!(psi, Matrix16::identity(), "{method}: the event must have rotated the attitude");
+        }
+        if method != Method::DeadReckoning {
+            assert!(f2.position_ned_m().x > 50.0, "{method}: moved toward the measured range");
+        }
+    }
 }
