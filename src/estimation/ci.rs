@@ -1,11 +1,21 @@
 //! Cooperative localization by covariance intersection: the usual consistent-but-conservative
 //! answer when cross-correlations are unknown.
 //!
-//! For a measurement between platforms `i` and `j` with unknown cross-covariance, the block
-//! diagonal `diag(P_i / w, P_j / (1 - w))`, `0 < w < 1`, bounds the true joint covariance for
-//! every possible correlation (the covariance-intersection bound applied to the stacked state).
-//! The update runs on that bound; `w` minimises the trace of the stacked posterior (golden-section
-//! search). Each platform keeps its own block; no correlation is stored. Measurements are
+//! For a measurement between platforms `i` and `j` whose correlation is unknown, the block
+//! diagonal `diag(A_i / w, A_j / (1 - w))`, `0 < w < 1`, bounds the true joint covariance of any
+//! two sub-states with marginals `A_i`, `A_j`, for every possible correlation. cooploc applies
+//! that bound to the *measured sub-states only* (the error states the measurement's Jacobian
+//! touches: position, and heading for a bearing), and each platform fuses for itself, as it
+//! would on its own computer: platform `i` picks the `w` that minimises the trace of its own
+//! measured sub-state's posterior (golden-section search), keeps its own part, and carries the
+//! correction into the rest of its state by Gaussian conditioning (`dx = P_xs P_ss^-1 ds`,
+//! `P <- P - P_xs P_ss^-1 (P_ss - P_ss+) P_ss^-1 P_sx`). `j` does the same with its own weight.
+//!
+//! Why not the bound on whole states: it inflates every state the range cannot see (an INS's
+//! heading, biases) by `1 / w` at every fusion, and with ranging at 1 Hz an INS then diverges
+//! exponentially. The price of the sub-state form: the fused sub-state is consistent for any
+//! correlation, but the conditioning step assumes the rest of the state is correlated with the
+//! other platform only through the fused sub-state. No correlation is stored. Measurements are
 //! processed one at a time, each relinearised at the estimates corrected so far.
 
 use nalgebra::{DMatrix, DVector};
@@ -39,6 +49,15 @@ fn golden_section(mut lo: f64, mut hi: f64, iterations: usize, f: impl Fn(f64) -
     0.5 * (lo + hi)
 }
 
+/// The columns of `h` that hold a nonzero entry.
+fn measured_columns(h: &DMatrix<f64>) -> Vec<usize> {
+    (0..h.ncols()).filter(|&c| h.column(c).iter().any(|v| *v != 0.0)).collect()
+}
+
+fn sub_matrix(p: &DMatrix<f64>, rows: &[usize], cols: &[usize]) -> DMatrix<f64> {
+    DMatrix::from_fn(rows.len(), cols.len(), |r, c| p[(rows[r], cols[c])])
+}
+
 /// Applies `measurements` one by one with covariance intersection. Returns one correction per
 /// snapshot (in snapshot order): the accumulated error-state correction and the final own
 /// covariance.
@@ -60,37 +79,70 @@ pub fn ci_update(snapshots: &[Snapshot], measurements: &[CoopMeasurement]) -> Re
         if idx.len() > 2 {
             return Err(EstimationError::NotApplicable("covariance intersection takes measurements of one or two platforms"));
         }
-        let dims: Vec<usize> = idx.iter().map(|&i| work[i].dim()).collect();
+        let m = meas.len();
+        // The measured sub-state of each involved platform, and the measurement on the stack of them.
+        let cols: Vec<Vec<usize>> = parts.iter().map(|(_, lin)| measured_columns(&lin.h)).collect();
+        let dims: Vec<usize> = cols.iter().map(Vec::len).collect();
         let n: usize = dims.iter().sum();
-        let mut h = DMatrix::zeros(meas.len(), n);
+        let mut h = DMatrix::zeros(m, n);
         let mut off = 0;
-        for ((_, lin), d) in parts.iter().zip(&dims) {
-            h.view_mut((0, off), (meas.len(), *d)).copy_from(&lin.h);
-            off += d;
+        for ((_, lin), c) in parts.iter().zip(&cols) {
+            for (k, &col) in c.iter().enumerate() {
+                h.set_column(off + k, &lin.h.column(col));
+            }
+            off += c.len();
         }
         let stacked = LinearizedMeasurement { h, residual: parts[0].1.residual.clone(), r: parts[0].1.r.clone() };
-        let bound = |w: f64| {
+        let marginals: Vec<DMatrix<f64>> = idx.iter().zip(&cols).map(|(&i, c)| sub_matrix(&work[i].covariance, c, c)).collect();
+        let bound = |weights: &[f64]| {
             let mut p = DMatrix::zeros(n, n);
-            let weights = if idx.len() == 1 { vec![1.0] } else { vec![w, 1.0 - w] };
             let mut off = 0;
-            for ((&i, d), wt) in idx.iter().zip(&dims).zip(&weights) {
-                p.view_mut((off, off), (*d, *d)).copy_from(&(&work[i].covariance / *wt));
-                off += d;
+            for (a, w) in marginals.iter().zip(weights) {
+                p.view_mut((off, off), (a.nrows(), a.nrows())).copy_from(&(a / *w));
+                off += a.nrows();
             }
             p
         };
-        let w = if idx.len() == 1 {
-            1.0
-        } else {
-            golden_section(1e-3, 1.0 - 1e-3, 40, |w| {
-                kalman::joint_update(&bound(w), &stacked, None).map(|u| u.p.trace()).unwrap_or(f64::INFINITY)
-            })
-        };
-        let up = kalman::joint_update(&bound(w), &stacked, None)?;
+        // Each involved platform fuses for itself, all from the same prior.
+        let mut fused = Vec::with_capacity(idx.len());
         let mut off = 0;
-        for (&i, d) in idx.iter().zip(&dims) {
-            let dxi = up.dx.rows(off, *d).into_owned();
+        for (k, d) in dims.iter().enumerate() {
+            let weights = |w: f64| {
+                if idx.len() == 1 {
+                    vec![1.0]
+                } else if k == 0 {
+                    vec![w, 1.0 - w]
+                } else {
+                    vec![1.0 - w, w]
+                }
+            };
+            let w = if idx.len() == 1 {
+                1.0
+            } else {
+                golden_section(1e-3, 1.0 - 1e-3, 40, |w| {
+                    kalman::joint_update(&bound(&weights(w)), &stacked, None)
+                        .map(|u| u.p.view((off, off), (*d, *d)).trace())
+                        .unwrap_or(f64::INFINITY)
+                })
+            };
+            let up = kalman::joint_update(&bound(&weights(w)), &stacked, None)?;
+            fused.push((up.dx.rows(off, *d).into_owned(), up.p.view((off, off), (*d, *d)).into_owned()));
+            off += d;
+        }
+        // Carry each platform's fused sub-state into its whole state by conditioning.
+        for ((&i, c), (ds, p_ss_post)) in idx.iter().zip(&cols).zip(fused) {
             let s = &mut work[i];
+            let all: Vec<usize> = (0..s.dim()).collect();
+            let p_xs = sub_matrix(&s.covariance, &all, c);
+            let p_ss = sub_matrix(&s.covariance, c, c);
+            let chol = nalgebra::Cholesky::new(p_ss.clone())
+                .ok_or(EstimationError::NotPositiveDefinite { what: "measured sub-state covariance" })?;
+            let gain = chol.solve(&p_xs.transpose()).transpose(); // P_xs P_ss^-1
+            let dxi = &gain * ds;
+            let mut p = &s.covariance - &gain * (p_ss - p_ss_post) * gain.transpose();
+            kalman::symmetrize(&mut p);
+            kalman::check_finite(&p, "covariance-intersection posterior")?;
+            kalman::check_finite(&dxi, "covariance-intersection correction")?;
             for (axis, pi) in s.geometry.position_index.iter().enumerate() {
                 if let Some(k) = pi {
                     s.geometry.position_ned_m[axis] += dxi[*k];
@@ -99,9 +151,8 @@ pub fn ci_update(snapshots: &[Snapshot], measurements: &[CoopMeasurement]) -> Re
             if let Some(hd) = s.geometry.heading.as_mut() {
                 hd.yaw_rad += dxi[hd.index];
             }
-            s.covariance = up.p.view((off, off), (*d, *d)).into_owned();
+            s.covariance = p;
             dx[i] += dxi;
-            off += d;
         }
     }
     Ok(work.into_iter().zip(dx).map(|(s, dx)| Correction { id: s.id, dx, p: s.covariance }).collect())
