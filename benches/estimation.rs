@@ -1,15 +1,21 @@
 //! Criterion benchmarks of the estimation core. Run: `cargo bench --bench estimation`.
 //!
+//! - `ins/imu_step_with_psi`, `ins/imu_step_without_psi`: one 200 Hz strapdown step of the
+//!   16-state INS (mechanization, covariance and, first, the Psi update), driving a turn.
+//! - `ins/odometer_update`: one odometer + non-holonomic update (3 rows), Psi included.
 //! - `cooperative_event/N`: one joint range update of N 16-state platforms, each ranging to up
 //!   to 6 neighbours (a ring: i ranges to i+1, i+2, i+3), cross blocks rebuilt from Psi and
 //!   stored (the paper's method), starting from a store filled by a previous event.
 
 use std::hint::black_box;
 
+use cooploc::estimation::ins::{InsConfig, InsFilter, InsInitialSigma, InsState};
 use cooploc::estimation::linear::LinearPlatform;
 use cooploc::estimation::{CoopMeasurement, CrossCovariances, CrossMode, PlatformFilter, Snapshot, cooperative_update};
+use cooploc::estimation::{ImuSample, OdometerSample};
+use cooploc::time::TimeUs;
 use criterion::{BatchSize, Criterion, criterion_group, criterion_main};
-use nalgebra::{DMatrix, DVector};
+use nalgebra::{DMatrix, DVector, UnitQuaternion, Vector3};
 
 const DIM: usize = 16;
 
@@ -43,6 +49,54 @@ fn ring_ranges(n: usize) -> Vec<CoopMeasurement> {
     out
 }
 
+fn ins_filter(track_psi: bool) -> InsFilter {
+    let config = InsConfig { latitude_deg: 34.7, ..InsConfig::default() };
+    let sigma = InsInitialSigma {
+        pos_ned_m: Vector3::repeat(0.1),
+        vel_ned_m_s: Vector3::repeat(0.05),
+        att_ned_rad: Vector3::new(2e-4, 2e-4, 1e-3),
+        accel_bias_frd_m_s2: Vector3::repeat(5e-3),
+        gyro_bias_frd_rad_s: Vector3::repeat(1.5e-5),
+        odometer_scale: 1e-3,
+    };
+    let mut state = InsState::at_rest(UnitQuaternion::from_euler_angles(0.0, 0.0, 0.5));
+    state.vel_ned_m_s = state.att_frd_to_ned * Vector3::new(10.0, 0.0, 0.0);
+    let mut f = InsFilter::new(config, TimeUs(0), state, sigma).unwrap();
+    f.set_track_psi(track_psi);
+    f
+}
+
+fn imu_sample(k: u64) -> ImuSample {
+    ImuSample {
+        t: TimeUs(5_000 * k),
+        specific_force_frd_m_s2: Vector3::new(0.01, 1.0, -9.80665),
+        angular_rate_frd_rad_s: Vector3::new(1e-5, -2e-5, 0.1),
+    }
+}
+
+fn ins(c: &mut Criterion) {
+    let mut group = c.benchmark_group("ins");
+    for (name, psi) in [("imu_step_with_psi", true), ("imu_step_without_psi", false)] {
+        let mut f = ins_filter(psi);
+        let mut k = 0u64;
+        group.bench_function(name, |b| {
+            b.iter(|| {
+                k += 1;
+                f.propagate(black_box(&imu_sample(k))).unwrap();
+            })
+        });
+    }
+    let mut f = ins_filter(true);
+    for k in 1..=20 {
+        f.propagate(&imu_sample(k)).unwrap();
+    }
+    let odo = OdometerSample { t: f.time(), speed_m_s: 10.05 };
+    group.bench_function("odometer_update", |b| {
+        b.iter_batched(|| f.clone(), |mut f| black_box(f.update_odometer(black_box(&odo)).unwrap()), BatchSize::SmallInput)
+    });
+    group.finish();
+}
+
 fn cooperative_event(c: &mut Criterion) {
     let mut group = c.benchmark_group("cooperative_event");
     group.sample_size(20);
@@ -62,5 +116,5 @@ fn cooperative_event(c: &mut Criterion) {
     group.finish();
 }
 
-criterion_group!(benches, cooperative_event);
+criterion_group!(benches, ins, cooperative_event);
 criterion_main!(benches);

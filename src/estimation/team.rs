@@ -150,6 +150,33 @@ impl<F: PlatformFilter> Team<F> {
         Ok(outcome.diagnostics)
     }
 
+    /// Several simultaneous local measurements (one epoch). The centralized EKF processes them as
+    /// one stacked joint update (what a central computer does with one epoch's measurements, and
+    /// equal to processing them one by one for linear models); every other method applies each to
+    /// its own platform. Returns one diagnostics entry per measurement, or one for the stacked
+    /// update of the centralized EKF.
+    pub fn local_updates(
+        &mut self,
+        batch: &[(PlatformId, LinearizedMeasurement)],
+    ) -> Result<Vec<UpdateDiagnostics>, EstimationError> {
+        if self.method != Method::Centralized || batch.len() < 2 {
+            return batch.iter().map(|(id, m)| self.local_update(*id, m)).collect();
+        }
+        let mut joint = Vec::with_capacity(batch.len());
+        for (id, meas) in batch {
+            meas.validate(self.filters[self.index(*id)?].dim())?;
+            joint.push(CoopMeasurement::Linear {
+                blocks: vec![(*id, meas.h.clone())],
+                residual: meas.residual.clone(),
+                r: meas.r.clone(),
+            });
+        }
+        let snapshots = self.snapshots();
+        let outcome = cooperative_update(&mut self.cross, &snapshots, &joint, CrossMode::Propagate)?;
+        self.write_back(&outcome.corrections)?;
+        Ok(vec![outcome.diagnostics])
+    }
+
     /// A ranging epoch: every platform broadcasts and all take the joint update of `measurements`.
     /// Returns the innovation statistics, or `None` for dead reckoning (ranges ignored) and for
     /// covariance intersection (pairwise, no single innovation).

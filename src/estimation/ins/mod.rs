@@ -120,6 +120,8 @@ pub const STANDARD_GRAVITY_M_S2: f64 = 9.806_65;
 /// A 16x16 matrix over the error state.
 pub type Matrix16 = SMatrix<f64, ERROR_DIM, ERROR_DIM>;
 /// A vector over the error state.
+/// Measurement Jacobians of the 16-state error: any number of rows, 16 columns.
+type Rows16 = nalgebra::OMatrix<f64, nalgebra::Dyn, nalgebra::Const<ERROR_DIM>>;
 pub type Vector16 = SVector<f64, ERROR_DIM>;
 
 /// Largest specific force accepted, m/s^2 (50 g); beyond it a sample is rejected as absurd.
@@ -788,8 +790,15 @@ fn to_dmatrix(m: &Matrix16) -> DMatrix<f64> {
 }
 
 /// `G P G^T`, symmetrised.
+/// `G P G^T` for a reset Jacobian from [`reset_jacobian`], which differs from the identity only in
+/// its attitude block: only the attitude rows and columns of `P` change.
 fn reset_covariance(g: &Matrix16, p: &Matrix16) -> Matrix16 {
-    let out = g * p * g.transpose();
+    let g_att = g.fixed_view::<3, 3>(ATT, ATT).into_owned();
+    let mut out = *p;
+    let rows = g_att * p.fixed_rows::<3>(ATT);
+    out.fixed_rows_mut::<3>(ATT).copy_from(&rows);
+    let cols = out.fixed_columns::<3>(ATT) * g_att.transpose();
+    out.fixed_columns_mut::<3>(ATT).copy_from(&cols);
     0.5 * (out + out.transpose())
 }
 
@@ -814,21 +823,51 @@ impl PlatformFilter for InsFilter {
         }
     }
 
+    /// The optimal-gain update in fixed-width form (this is the odometer's path, 10 Hz per
+    /// vehicle and once per local measurement for every method of every Monte Carlo run).
+    /// With `S = L L^T` and `W = L^-1 H P`: `P+ = P - W^T W` (the optimal-gain covariance as a
+    /// symmetric downdate, equal to the Joseph form for the optimal gain), `dx = W^T L^-1 r`, and
+    /// `Psi+ = (I - K H) Psi = Psi - W^T L^-1 (H Psi)` with `K = W^T L^-1`; then the error reset:
+    /// `P <- G P G^T`, `Psi <- G Psi`.
     fn update_local(&mut self, meas: &LinearizedMeasurement) -> Result<UpdateDiagnostics, EstimationError> {
-        let up = kalman::local_update(&self.covariance(), meas)?;
-        let dx = to_vector16(&up.dx);
+        meas.validate(ERROR_DIM)?;
+        let m = meas.len();
+        let h = Rows16::from_fn(m, |r, c| meas.h[(r, c)]);
+        let hp = &h * self.p;
+        let mut s = DMatrix::from_fn(m, m, |r, c| hp.row(r).dot(&h.row(c))) + &meas.r;
+        kalman::symmetrize(&mut s);
+        let chol = nalgebra::Cholesky::new(s.clone())
+            .ok_or(EstimationError::NotPositiveDefinite { what: "innovation covariance H P H^T + R" })?;
+        let l = chol.l();
+        let not_pd = EstimationError::NotPositiveDefinite { what: "innovation covariance factor" };
+        let w = l.solve_lower_triangular(&hp).ok_or(not_pd.clone())?;
+        let white = l.solve_lower_triangular(&meas.residual).ok_or(not_pd.clone())?;
+        let dx: Vector16 = w.tr_mul(&white);
+        let p_post = self.p - w.tr_mul(&w);
         let x = self.x.injected(&dx)?;
         let g = reset_jacobian(&dx);
-        let p = reset_covariance(&g, &to_matrix16(&up.p));
+        let p = reset_covariance(&g, &p_post);
         kalman::check_finite(&p, "INS covariance after reset")?;
-        if self.track_psi {
-            let psi_t = self.psi_t * to_matrix16(&up.i_minus_kh).transpose() * g.transpose();
+        let psi_t = if self.track_psi {
+            // Psi is stored transposed: Psi^T+ = Psi^T - (L^-1 H Psi)^T W, then columns of the
+            // attitude block times G_att^T.
+            let z = l.solve_lower_triangular(&(&h * self.psi_t.transpose())).ok_or(not_pd)?;
+            let mut psi_t = self.psi_t - z.tr_mul(&w);
+            let g_att = g.fixed_view::<3, 3>(ATT, ATT).into_owned();
+            let cols = psi_t.fixed_columns::<3>(ATT) * g_att.transpose();
+            psi_t.fixed_columns_mut::<3>(ATT).copy_from(&cols);
             kalman::check_finite(&psi_t, "INS Psi after update")?;
-            self.psi_t = psi_t;
-        }
+            Some(psi_t)
+        } else {
+            None
+        };
         self.x = x;
         self.p = p;
-        Ok(up.diagnostics)
+        if let Some(psi_t) = psi_t {
+            self.psi_t = psi_t;
+        }
+        let nis = white.norm_squared();
+        Ok(UpdateDiagnostics { innovation: meas.residual.clone(), innovation_cov: s, nis })
     }
 
     fn apply_joint(&mut self, dx: &DVector<f64>, p: &DMatrix<f64>) -> Result<(), EstimationError> {
