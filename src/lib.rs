@@ -14,6 +14,7 @@
 //!   Its source lives in the top-level `sitl/` folder.
 //! - [`time`]: the typed timestamp shared by all of the above.
 pub mod estimation;
+pub mod experiment;
 #[path = "../sitl/mod.rs"]
 pub mod sitl;
 pub mod time;

@@ -1,0 +1,290 @@
+//! The paper's experiment (section 4) as a Monte Carlo comparison of every method on the same
+//! simulated inputs. Pure computation: the world of [`crate::sitl`], the INS of
+//! [`crate::estimation::ins`], and a [`Team`] per method; files and plots are in [`report`].
+//!
+//! One run draws every sensor error and noise once ([`World::run_inputs`]); each method then
+//! filters exactly those samples, and each ranging schedule adds its ranges (the ranges of the
+//! four-event schedule are the 1 Hz ranges at those epochs). Dead reckoning ignores ranges, so it
+//! runs once per run and serves both schedules.
+
+mod plots;
+pub mod report;
+
+use nalgebra::{DVector, Vector3};
+use serde::Serialize;
+
+use crate::estimation::consistency::nees;
+use crate::estimation::ins::{self, InsConfig, InsFilter, InsInitialSigma, InsState};
+use crate::estimation::unicycle::wrap_angle;
+use crate::estimation::{CoopMeasurement, EstimationError, Method, PlatformFilter, PlatformId, RangeSample, Team};
+use crate::sitl::scenario::{Scenario, ScenarioError};
+use crate::sitl::world::{PlatformRun, RunInputs, World};
+use crate::time::TimeUs;
+
+/// What went wrong in an experiment.
+#[derive(Debug, thiserror::Error)]
+pub enum ExperimentError {
+    #[error(transparent)]
+    Scenario(#[from] ScenarioError),
+    #[error("run {run}, method {method}, platform {platform}, t = {t}: {source}")]
+    Filter { run: u32, method: Method, platform: PlatformId, t: TimeUs, source: EstimationError },
+    #[error("invalid experiment settings: {0}")]
+    Settings(String),
+}
+
+/// The filter settings a scenario implies: its sensor numbers become the INS noise model and
+/// initial uncertainty (every number lives in the scenario file).
+pub fn ins_settings(world: &World) -> (InsConfig, InsInitialSigma) {
+    let s: &Scenario = world.scenario();
+    let m = world.sensor_model();
+    let config = InsConfig {
+        latitude_deg: s.latitude_deg,
+        gravity_m_s2: s.gravity_m_s2,
+        accel_noise_density_m_s2_per_sqrt_hz: m.accel_noise_density_m_s2_per_sqrt_hz,
+        gyro_noise_density_rad_s_per_sqrt_hz: m.gyro_arw_rad_per_sqrt_s,
+        accel_bias_random_walk_m_s3_per_sqrt_hz: m.accel_bias_walk_m_s2_per_sqrt_s,
+        gyro_bias_random_walk_rad_s2_per_sqrt_hz: m.gyro_bias_walk_rad_s_per_sqrt_s,
+        sigma_odometer_m_s: m.odometer_sigma_m_s,
+        sigma_nhc_lateral_m_s: s.filter.nhc_lateral_sigma_m_s,
+        sigma_nhc_vertical_m_s: s.filter.nhc_vertical_sigma_m_s,
+        max_imu_gap_s: 0.5,
+    };
+    let i = &s.initial;
+    let rp = i.roll_pitch_sigma_deg.to_radians();
+    let sigma = InsInitialSigma {
+        pos_ned_m: Vector3::repeat(i.position_sigma_m),
+        vel_ned_m_s: Vector3::repeat(i.velocity_sigma_m_s),
+        att_ned_rad: Vector3::new(rp, rp, i.yaw_sigma_deg.to_radians()),
+        accel_bias_frd_m_s2: Vector3::repeat(m.accel_bias_sigma_m_s2),
+        gyro_bias_frd_rad_s: Vector3::repeat(m.gyro_bias_sigma_rad_s),
+        odometer_scale: m.odometer_scale_sigma,
+    };
+    (config, sigma)
+}
+
+/// Error of one platform's estimate at one instant.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize)]
+pub struct ErrorSample {
+    pub t_s: f64,
+    /// Horizontal (N, E) position error, m.
+    pub pos_err_m: f64,
+    /// Yaw error, degrees (truth minus estimate).
+    pub heading_err_deg: f64,
+}
+
+/// One platform's outcome in one filter run.
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct PlatformOutcome {
+    pub id: PlatformId,
+    /// Error at every truth sample.
+    pub trace: Vec<ErrorSample>,
+    /// NEES of the 15 navigation and bias error states at the end of the run.
+    pub final_nees: f64,
+    /// Estimated horizontal track at every truth sample (N, E), m.
+    pub track_ne_m: Vec<[f64; 2]>,
+}
+
+impl PlatformOutcome {
+    pub fn final_error(&self) -> ErrorSample {
+        *self.trace.last().expect("a run has at least one truth sample")
+    }
+}
+
+/// One method's filter run over one run's inputs.
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct FilterRun {
+    pub method: Method,
+    pub platforms: Vec<PlatformOutcome>,
+}
+
+/// The error state of an INS estimate against the truth (15 states: no odometer scale).
+fn error15(f: &InsFilter, run: &PlatformRun, k: usize) -> DVector<f64> {
+    let truth = &run.truth[k];
+    let x = f.state();
+    let mut e = DVector::zeros(15);
+    e.fixed_rows_mut::<3>(ins::POS).copy_from(&(truth.pos_ned_m - x.pos_ned_m));
+    e.fixed_rows_mut::<3>(ins::VEL).copy_from(&(truth.vel_ned_m_s - x.vel_ned_m_s));
+    e.fixed_rows_mut::<3>(ins::ATT).copy_from(&ins::attitude_error_ned(&truth.attitude, &x.att_frd_to_ned));
+    e.fixed_rows_mut::<3>(ins::ACCEL_BIAS).copy_from(&(run.errors.accel_bias_m_s2 - x.accel_bias_frd_m_s2));
+    e.fixed_rows_mut::<3>(ins::GYRO_BIAS).copy_from(&(run.errors.gyro_bias_rad_s - x.gyro_bias_frd_rad_s));
+    e
+}
+
+fn error_sample(f: &InsFilter, run: &PlatformRun, k: usize) -> ErrorSample {
+    let truth = &run.truth[k];
+    let d = truth.pos_ned_m - f.position_ned_m();
+    ErrorSample {
+        t_s: truth.t.as_secs_f64(),
+        pos_err_m: d.xy().norm(),
+        heading_err_deg: wrap_angle(truth.yaw_rad - f.yaw_rad()).to_degrees(),
+    }
+}
+
+/// Runs one method over one run's inputs and ranging epochs.
+pub fn run_filter(
+    world: &World,
+    inputs: &RunInputs,
+    ranges: &[(TimeUs, Vec<RangeSample>)],
+    method: Method,
+) -> Result<FilterRun, ExperimentError> {
+    let (config, sigma) = ins_settings(world);
+    let fail = |platform, t, source| ExperimentError::Filter { run: inputs.run, method, platform, t, source };
+    let mut members = Vec::new();
+    for p in &inputs.platforms {
+        let init = world.initial_estimate(inputs.seed, inputs.run, p.id)?;
+        let state = InsState {
+            pos_ned_m: init.pos_ned_m(),
+            vel_ned_m_s: init.vel_ned_m_s(),
+            att_frd_to_ned: init.attitude(),
+            accel_bias_frd_m_s2: Vector3::zeros(),
+            gyro_bias_frd_rad_s: Vector3::zeros(),
+            odometer_scale_error: 0.0,
+        };
+        let t0 = init.truth.t;
+        members.push((p.id, InsFilter::new(config, t0, state, sigma).map_err(|e| fail(p.id, t0, e))?));
+    }
+    let mut team = Team::new(method, members).map_err(|e| fail(0, TimeUs(0), e))?;
+    let n = inputs.platforms.len();
+    let mut outcomes: Vec<PlatformOutcome> = inputs
+        .platforms
+        .iter()
+        .map(|p| PlatformOutcome {
+            id: p.id,
+            trace: Vec::with_capacity(p.truth.len()),
+            final_nees: f64::NAN,
+            track_ne_m: Vec::with_capacity(p.truth.len()),
+        })
+        .collect();
+    // Cursors into each platform's samples, and into the ranging epochs.
+    let (mut imu, mut odo, mut truth) = (vec![0usize; n], vec![0usize; n], vec![0usize; n]);
+    let mut epoch = 0usize;
+    loop {
+        // The next instant anything happens.
+        let mut t = TimeUs(u64::MAX);
+        for (i, p) in inputs.platforms.iter().enumerate() {
+            for next in [p.imu.get(imu[i]).map(|s| s.t), p.odometer.get(odo[i]).map(|s| s.t), p.truth.get(truth[i]).map(|s| s.t)]
+            {
+                t = t.min(next.unwrap_or(TimeUs(u64::MAX)));
+            }
+        }
+        if let Some((te, _)) = ranges.get(epoch) {
+            t = t.min(*te);
+        }
+        if t == TimeUs(u64::MAX) {
+            break;
+        }
+        // IMU, then odometer, then ranges, then the truth comparison: all of one instant.
+        for (i, p) in inputs.platforms.iter().enumerate() {
+            if let Some(s) = p.imu.get(imu[i]).filter(|s| s.t == t) {
+                team.filter_mut(p.id).expect("member").propagate(s).map_err(|e| fail(p.id, t, e))?;
+                imu[i] += 1;
+            }
+        }
+        let mut batch = Vec::new();
+        for (i, p) in inputs.platforms.iter().enumerate() {
+            if let Some(s) = p.odometer.get(odo[i]).filter(|s| s.t == t) {
+                batch.push((p.id, team.filter(p.id).expect("member").odometer_measurement(s).map_err(|e| fail(p.id, t, e))?));
+                odo[i] += 1;
+            }
+        }
+        if !batch.is_empty() {
+            team.local_updates(&batch).map_err(|e| fail(batch[0].0, t, e))?;
+        }
+        if let Some((te, samples)) = ranges.get(epoch).filter(|(te, _)| *te == t) {
+            let meas: Vec<CoopMeasurement> = samples
+                .iter()
+                .map(|r| CoopMeasurement::Range { from: r.from, to: r.to, range_m: r.range_m, sigma_m: r.sigma_m })
+                .collect();
+            team.cooperative_event(&meas).map_err(|e| fail(samples.first().map_or(0, |r| r.from), *te, e))?;
+            epoch += 1;
+        }
+        for (i, p) in inputs.platforms.iter().enumerate() {
+            if p.truth.get(truth[i]).is_some_and(|s| s.t == t) {
+                let f = team.filter(p.id).expect("member");
+                outcomes[i].trace.push(error_sample(f, p, truth[i]));
+                let pos = f.position_ned_m();
+                outcomes[i].track_ne_m.push([pos[0], pos[1]]);
+                truth[i] += 1;
+            }
+        }
+    }
+    for (i, p) in inputs.platforms.iter().enumerate() {
+        let f = team.filter(p.id).expect("member");
+        let e = error15(f, p, p.truth.len() - 1);
+        let cov = f.covariance().view((0, 0), (15, 15)).into_owned();
+        outcomes[i].final_nees = nees(&e, &cov).map_err(|e| fail(p.id, f.time(), e))?;
+    }
+    Ok(FilterRun { method, platforms: outcomes })
+}
+
+/// What to run.
+#[derive(Debug, Clone, PartialEq)]
+pub struct ExperimentSpec {
+    pub runs: u32,
+    pub seed: u64,
+    pub methods: Vec<Method>,
+    /// Names of ranging schedules of the scenario.
+    pub schedules: Vec<String>,
+}
+
+/// Every filter run of one Monte Carlo run, by schedule.
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct RunResult {
+    pub run: u32,
+    /// `(schedule, filter runs in the spec's method order)`.
+    pub schedules: Vec<(String, Vec<FilterRun>)>,
+}
+
+/// One Monte Carlo run: inputs drawn once, every method over every schedule.
+pub fn run_once(world: &World, spec: &ExperimentSpec, run: u32) -> Result<RunResult, ExperimentError> {
+    let inputs = world.run_inputs(spec.seed, run);
+    let mut dead_reckoning = None;
+    let mut schedules = Vec::new();
+    for name in &spec.schedules {
+        let ranges = world.ranges(name, spec.seed, run)?;
+        let mut runs = Vec::new();
+        for &method in &spec.methods {
+            let r = if method == Method::DeadReckoning {
+                match &dead_reckoning {
+                    Some(r) => Clone::clone(r),
+                    None => {
+                        let r = run_filter(world, &inputs, &[], method)?;
+                        dead_reckoning = Some(r.clone());
+                        r
+                    }
+                }
+            } else {
+                run_filter(world, &inputs, &ranges, method)?
+            };
+            runs.push(r);
+        }
+        schedules.push((name.clone(), runs));
+    }
+    Ok(RunResult { run, schedules })
+}
+
+/// Runs the whole Monte Carlo in parallel (rayon, all cores); `progress` is called after each run.
+pub fn run_experiment(
+    world: &World,
+    spec: &ExperimentSpec,
+    progress: &(dyn Fn() + Sync),
+) -> Result<Vec<RunResult>, ExperimentError> {
+    use rayon::prelude::*;
+    if spec.runs == 0 {
+        return Err(ExperimentError::Settings("at least one run is needed".into()));
+    }
+    if spec.methods.is_empty() {
+        return Err(ExperimentError::Settings("at least one method is needed".into()));
+    }
+    for name in &spec.schedules {
+        world.scenario().schedule(name)?;
+    }
+    (0..spec.runs)
+        .into_par_iter()
+        .map(|run| {
+            let r = run_once(world, spec, run);
+            progress();
+            r
+        })
+        .collect()
+}

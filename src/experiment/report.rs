@@ -1,0 +1,327 @@
+//! Summaries, tables, files and plots of an experiment. Everything here derives from the
+//! [`RunResult`]s; nothing is recomputed or typed in, except the paper's own figures, which are
+//! printed beside ours for comparison.
+
+use std::fmt::Write as _;
+use std::path::Path;
+
+use serde::Serialize;
+
+use super::{ExperimentSpec, RunResult};
+use crate::estimation::Method;
+use crate::estimation::PlatformId;
+
+/// The paper's section 4 figures, for the side-by-side columns.
+pub const PAPER_NOTES: &[&str] = &[
+    "paper, 1 Hz ranging: dead reckoning final position error 6-12 m, heading error 0.5 deg;",
+    "       cooperative final position error up to 3 m (-50% to -75%), heading under 0.23 deg (-54%);",
+    "paper, four events: covariance transfer vs none, position -24.1% on average (-10.3% to -49.3%),",
+    "       heading -11.9% on average (-7.1% to -13.6%).",
+];
+
+/// Final-error statistics of one platform under one method, over runs.
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct PlatformStats {
+    pub id: PlatformId,
+    pub final_pos_err_mean_m: f64,
+    pub final_pos_err_rms_m: f64,
+    pub final_heading_err_mean_abs_deg: f64,
+    pub final_heading_err_rms_deg: f64,
+    /// Run average of the final 15-state NEES.
+    pub final_nees_mean: f64,
+}
+
+/// One method under one schedule.
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct MethodStats {
+    pub method: Method,
+    pub platforms: Vec<PlatformStats>,
+}
+
+impl MethodStats {
+    /// Average over platforms of a per-platform statistic.
+    pub fn average(&self, f: impl Fn(&PlatformStats) -> f64) -> f64 {
+        self.platforms.iter().map(f).sum::<f64>() / self.platforms.len() as f64
+    }
+}
+
+/// Relative change of `method` against `baseline`, per platform, in percent (negative = better).
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct Reduction {
+    pub method: Method,
+    pub baseline: Method,
+    pub pos_percent: Vec<f64>,
+    pub heading_percent: Vec<f64>,
+}
+
+impl Reduction {
+    pub fn mean(v: &[f64]) -> f64 {
+        v.iter().sum::<f64>() / v.len() as f64
+    }
+}
+
+/// RMS over runs of the error at every truth sample.
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct Curve {
+    pub method: Method,
+    pub platform: PlatformId,
+    pub t_s: Vec<f64>,
+    pub pos_rms_m: Vec<f64>,
+    pub heading_rms_deg: Vec<f64>,
+}
+
+/// Everything about one schedule.
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct ScheduleSummary {
+    pub schedule: String,
+    pub runs: usize,
+    pub methods: Vec<MethodStats>,
+    pub reductions: Vec<Reduction>,
+    /// 95% band of the run-averaged 15-state NEES of a consistent filter.
+    pub nees_band: (f64, f64),
+    #[serde(skip)]
+    pub curves: Vec<Curve>,
+}
+
+impl ScheduleSummary {
+    pub fn method(&self, m: Method) -> Option<&MethodStats> {
+        self.methods.iter().find(|s| s.method == m)
+    }
+}
+
+fn rms(v: impl Iterator<Item = f64> + Clone) -> f64 {
+    let n = v.clone().count() as f64;
+    (v.map(|x| x * x).sum::<f64>() / n).sqrt()
+}
+
+fn mean(v: impl Iterator<Item = f64> + Clone) -> f64 {
+    let n = v.clone().count() as f64;
+    v.sum::<f64>() / n
+}
+
+/// Summarises every schedule of an experiment.
+pub fn summarize(spec: &ExperimentSpec, results: &[RunResult]) -> Vec<ScheduleSummary> {
+    let runs = results.len();
+    spec.schedules
+        .iter()
+        .enumerate()
+        .map(|(si, name)| {
+            let by_method = |mi: usize| results.iter().map(move |r| &r.schedules[si].1[mi]);
+            let mut methods = Vec::new();
+            let mut curves = Vec::new();
+            for (mi, &method) in spec.methods.iter().enumerate() {
+                let first = by_method(mi).next().expect("at least one run");
+                let mut platforms = Vec::new();
+                for (pi, p) in first.platforms.iter().enumerate() {
+                    let finals = by_method(mi).map(|r| r.platforms[pi].final_error());
+                    platforms.push(PlatformStats {
+                        id: p.id,
+                        final_pos_err_mean_m: mean(finals.clone().map(|e| e.pos_err_m)),
+                        final_pos_err_rms_m: rms(finals.clone().map(|e| e.pos_err_m)),
+                        final_heading_err_mean_abs_deg: mean(finals.clone().map(|e| e.heading_err_deg.abs())),
+                        final_heading_err_rms_deg: rms(finals.clone().map(|e| e.heading_err_deg)),
+                        final_nees_mean: mean(by_method(mi).map(|r| r.platforms[pi].final_nees)),
+                    });
+                    let len = p.trace.len();
+                    let at = |k: usize| by_method(mi).map(move |r| r.platforms[pi].trace[k]);
+                    curves.push(Curve {
+                        method,
+                        platform: p.id,
+                        t_s: p.trace.iter().map(|e| e.t_s).collect(),
+                        pos_rms_m: (0..len).map(|k| rms(at(k).map(|e| e.pos_err_m))).collect(),
+                        heading_rms_deg: (0..len).map(|k| rms(at(k).map(|e| e.heading_err_deg))).collect(),
+                    });
+                }
+                methods.push(MethodStats { method, platforms });
+            }
+            let mut reductions = Vec::new();
+            let pairs = [
+                (Method::NoPropagation, Method::DeadReckoning),
+                (Method::Decentralized, Method::DeadReckoning),
+                (Method::Centralized, Method::DeadReckoning),
+                (Method::CovarianceIntersection, Method::DeadReckoning),
+                (Method::Decentralized, Method::NoPropagation),
+                (Method::Decentralized, Method::Centralized),
+            ];
+            for (m, b) in pairs {
+                let (Some(ms), Some(bs)) = (methods.iter().find(|s| s.method == m), methods.iter().find(|s| s.method == b))
+                else {
+                    continue;
+                };
+                let change = |a: f64, b: f64| 100.0 * (a - b) / b;
+                reductions.push(Reduction {
+                    method: m,
+                    baseline: b,
+                    pos_percent: ms
+                        .platforms
+                        .iter()
+                        .zip(&bs.platforms)
+                        .map(|(a, b)| change(a.final_pos_err_mean_m, b.final_pos_err_mean_m))
+                        .collect(),
+                    heading_percent: ms
+                        .platforms
+                        .iter()
+                        .zip(&bs.platforms)
+                        .map(|(a, b)| change(a.final_heading_err_mean_abs_deg, b.final_heading_err_mean_abs_deg))
+                        .collect(),
+                });
+            }
+            let nees_band = crate::estimation::consistency::average_nees_band(15, runs, 0.95);
+            ScheduleSummary { schedule: name.clone(), runs, methods, reductions, nees_band, curves }
+        })
+        .collect()
+}
+
+/// The table printed for one schedule.
+pub fn table(s: &ScheduleSummary) -> String {
+    let mut out = String::new();
+    let _ =
+        writeln!(out, "schedule {} ({} runs): final errors at the end of the run, mean and RMS over runs", s.schedule, s.runs);
+    let _ = writeln!(
+        out,
+        "{:<12} {:>8} | {:>9} {:>9} | {:>11} {:>11} | {:>8}",
+        "method", "platform", "pos mean", "pos RMS", "hdg mean|.|", "hdg RMS", "NEES"
+    );
+    let _ = writeln!(out, "{}", "-".repeat(82));
+    for m in &s.methods {
+        for p in &m.platforms {
+            let _ = writeln!(
+                out,
+                "{:<12} {:>8} | {:>7.2} m {:>7.2} m | {:>7.3} deg {:>7.3} deg | {:>8.1}",
+                m.method.short_name(),
+                p.id,
+                p.final_pos_err_mean_m,
+                p.final_pos_err_rms_m,
+                p.final_heading_err_mean_abs_deg,
+                p.final_heading_err_rms_deg,
+                p.final_nees_mean
+            );
+        }
+        let _ = writeln!(
+            out,
+            "{:<12} {:>8} | {:>7.2} m {:>7.2} m | {:>7.3} deg {:>7.3} deg | {:>8.1}",
+            m.method.short_name(),
+            "avg",
+            m.average(|p| p.final_pos_err_mean_m),
+            m.average(|p| p.final_pos_err_rms_m),
+            m.average(|p| p.final_heading_err_mean_abs_deg),
+            m.average(|p| p.final_heading_err_rms_deg),
+            m.average(|p| p.final_nees_mean)
+        );
+    }
+    let _ = writeln!(
+        out,
+        "NEES of a consistent filter (15 states, run average): 95% band [{:.1}, {:.1}]",
+        s.nees_band.0, s.nees_band.1
+    );
+    let _ = writeln!(out, "change of the mean final error, per platform (negative = smaller error):");
+    for r in &s.reductions {
+        let fmt = |v: &[f64]| v.iter().map(|x| format!("{x:+.1}%")).collect::<Vec<_>>().join(" ");
+        let _ = writeln!(
+            out,
+            "  {:>11} vs {:<11} position {} (avg {:+.1}%)   heading {} (avg {:+.1}%)",
+            r.method.short_name(),
+            r.baseline.short_name(),
+            fmt(&r.pos_percent),
+            Reduction::mean(&r.pos_percent),
+            fmt(&r.heading_percent),
+            Reduction::mean(&r.heading_percent)
+        );
+    }
+    for line in PAPER_NOTES {
+        let _ = writeln!(out, "{line}");
+    }
+    out
+}
+
+/// Writes `summary.json`, `final_errors.csv`, `error_curves.csv` and the plots into `dir`.
+pub fn write_all(
+    dir: &Path,
+    spec: &ExperimentSpec,
+    scenario_name: &str,
+    results: &[RunResult],
+    summaries: &[ScheduleSummary],
+    tracks: &Tracks,
+    plots: bool,
+) -> anyhow::Result<Vec<std::path::PathBuf>> {
+    use anyhow::Context as _;
+    std::fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))?;
+    let mut written = Vec::new();
+
+    #[derive(Serialize)]
+    struct Json<'a> {
+        scenario: &'a str,
+        runs: u32,
+        seed: u64,
+        position_error: &'static str,
+        schedules: &'a [ScheduleSummary],
+    }
+    let path = dir.join("summary.json");
+    let json = Json {
+        scenario: scenario_name,
+        runs: spec.runs,
+        seed: spec.seed,
+        position_error: "horizontal (north, east) distance between estimate and truth at the end of the run",
+        schedules: summaries,
+    };
+    std::fs::write(&path, serde_json::to_string_pretty(&json)?).with_context(|| format!("writing {}", path.display()))?;
+    written.push(path);
+
+    let path = dir.join("final_errors.csv");
+    let mut w = csv::Writer::from_path(&path).with_context(|| format!("writing {}", path.display()))?;
+    w.write_record(["run", "schedule", "method", "platform", "final_pos_err_m", "final_heading_err_deg", "final_nees"])?;
+    for r in results {
+        for (schedule, runs) in &r.schedules {
+            for fr in runs {
+                for p in &fr.platforms {
+                    let e = p.final_error();
+                    w.write_record([
+                        r.run.to_string(),
+                        schedule.clone(),
+                        fr.method.short_name().to_string(),
+                        p.id.to_string(),
+                        format!("{:.6}", e.pos_err_m),
+                        format!("{:.6}", e.heading_err_deg),
+                        format!("{:.4}", p.final_nees),
+                    ])?;
+                }
+            }
+        }
+    }
+    w.flush()?;
+    written.push(path);
+
+    let path = dir.join("error_curves.csv");
+    let mut w = csv::Writer::from_path(&path).with_context(|| format!("writing {}", path.display()))?;
+    w.write_record(["schedule", "method", "platform", "t_s", "pos_rms_m", "heading_rms_deg"])?;
+    for s in summaries {
+        for c in &s.curves {
+            for k in 0..c.t_s.len() {
+                w.write_record([
+                    s.schedule.clone(),
+                    c.method.short_name().to_string(),
+                    c.platform.to_string(),
+                    format!("{:.3}", c.t_s[k]),
+                    format!("{:.6}", c.pos_rms_m[k]),
+                    format!("{:.6}", c.heading_rms_deg[k]),
+                ])?;
+            }
+        }
+    }
+    w.flush()?;
+    written.push(path);
+
+    if plots {
+        written.extend(super::plots::write_plots(dir, summaries, tracks)?);
+    }
+    Ok(written)
+}
+
+/// Truth and estimated tracks of run 0, for the trajectory figure.
+#[derive(Debug, Clone, Default)]
+pub struct Tracks {
+    /// `(platform, truth N/E track)`.
+    pub truth: Vec<(PlatformId, Vec<[f64; 2]>)>,
+    /// `(method, platform, estimated N/E track)`.
+    pub estimated: Vec<(Method, PlatformId, Vec<[f64; 2]>)>,
+}

@@ -1,0 +1,110 @@
+//! `cooploc experiment`: arguments, progress bar and printing around [`cooploc::experiment`].
+
+use std::path::PathBuf;
+use std::time::Instant;
+
+use anyhow::{Context, bail};
+use cooploc::estimation::Method;
+use cooploc::experiment::report::{self, Tracks};
+use cooploc::experiment::{ExperimentSpec, run_experiment};
+use cooploc::sitl::scenario::Scenario;
+use cooploc::sitl::world::World;
+
+#[derive(clap::Args)]
+pub struct Args {
+    /// Scenario file.
+    #[arg(default_value = "sitl/scenarios/paper.toml")]
+    scenario: PathBuf,
+    /// Number of Monte Carlo runs.
+    #[arg(long, default_value_t = 50)]
+    runs: u32,
+    /// Seed of the whole experiment (run k uses seed and k).
+    #[arg(long, default_value_t = 1)]
+    seed: u64,
+    /// Directory for summary.json, the CSV files and the plots.
+    #[arg(long, default_value = "experiment-out")]
+    out: PathBuf,
+    /// Methods, comma separated: dr, naive, dcl, centralized, ci.
+    #[arg(long, value_delimiter = ',', default_value = "dr,naive,dcl,centralized,ci")]
+    methods: Vec<String>,
+    /// Ranging schedules of the scenario, comma separated (default: all of them).
+    #[arg(long, value_delimiter = ',')]
+    schedules: Vec<String>,
+    /// Worker threads (default: all cores).
+    #[arg(long)]
+    threads: Option<usize>,
+    /// Skip the plots (tables, CSV and JSON only).
+    #[arg(long)]
+    no_plots: bool,
+}
+
+pub fn run(args: Args) -> anyhow::Result<()> {
+    let mut methods = Vec::new();
+    for m in &args.methods {
+        match Method::from_short_name(m) {
+            Some(method) if !methods.contains(&method) => methods.push(method),
+            Some(_) => bail!("method {m} given twice"),
+            None => bail!("unknown method {m:?}: expected one of dr, naive, dcl, centralized, ci"),
+        }
+    }
+    let scenario = Scenario::from_path(&args.scenario)?;
+    let world = World::new(&scenario)?;
+    let schedules = if args.schedules.is_empty() {
+        scenario.ranging.schedules.iter().map(|s| s.name.clone()).collect()
+    } else {
+        args.schedules.clone()
+    };
+    let spec = ExperimentSpec { runs: args.runs, seed: args.seed, methods, schedules };
+    if let Some(n) = args.threads {
+        rayon::ThreadPoolBuilder::new().num_threads(n).build_global().context("setting the thread count")?;
+    }
+
+    let bar = indicatif::ProgressBar::new(u64::from(spec.runs));
+    bar.set_style(
+        indicatif::ProgressStyle::with_template("{elapsed_precise} [{bar:40}] {pos}/{len} runs, eta {eta}")
+            .expect("valid template")
+            .progress_chars("=> "),
+    );
+    let started = Instant::now();
+    let results = run_experiment(&world, &spec, &|| bar.inc(1))?;
+    bar.finish_and_clear();
+    let elapsed = started.elapsed();
+
+    let summaries = report::summarize(&spec, &results);
+    println!(
+        "cooploc experiment: scenario {} ({}), {} runs, seed {}, {} threads, {:.1} s",
+        scenario.name,
+        args.scenario.display(),
+        spec.runs,
+        spec.seed,
+        rayon::current_num_threads(),
+        elapsed.as_secs_f64()
+    );
+    println!("position error = horizontal distance to truth at the end of the run; heading error = yaw error\n");
+    for s in &summaries {
+        println!("{}", report::table(s));
+    }
+
+    let mut tracks = Tracks::default();
+    for id in world.platform_ids() {
+        let truth = world.truth_samples(id)?;
+        tracks.truth.push((id, truth.iter().map(|s| [s.pos_ned_m[0], s.pos_ned_m[1]]).collect()));
+    }
+    if let Some((_, runs)) = results[0].schedules.first() {
+        for fr in runs.iter().filter(|r| matches!(r.method, Method::DeadReckoning | Method::Decentralized)) {
+            for p in &fr.platforms {
+                tracks.estimated.push((fr.method, p.id, p.track_ne_m.clone()));
+            }
+        }
+    }
+    let written = if args.no_plots {
+        report::write_all(&args.out, &spec, &scenario.name, &results, &summaries, &Tracks::default(), false)?
+    } else {
+        report::write_all(&args.out, &spec, &scenario.name, &results, &summaries, &tracks, true)?
+    };
+    println!("wrote:");
+    for p in written {
+        println!("  {}", p.display());
+    }
+    Ok(())
+}
