@@ -146,6 +146,10 @@ pub struct FilterTuning {
     pub nhc_lateral_sigma_m_s: f64,
     /// Non-holonomic constraint: body-down velocity is zero with this sigma, m/s.
     pub nhc_vertical_sigma_m_s: f64,
+    /// Rate of the INS covariance (and Psi) propagation, Hz; must divide the IMU rate. Absent:
+    /// the IMU rate (every sample).
+    #[serde(default)]
+    pub covariance_rate_hz: Option<f64>,
 }
 
 /// One vehicle: its id and its truth profile.
@@ -234,6 +238,15 @@ impl Scenario {
         ] {
             non_negative(field, v)?;
         }
+        if let Some(rate) = self.filter.covariance_rate_hz {
+            let period = period_us("filter.covariance_rate_hz", rate)?;
+            if period % imu_period_us != 0 {
+                return Err(invalid(
+                    "filter.covariance_rate_hz",
+                    format!("must divide the IMU rate {} Hz evenly, got {rate}", s.imu_rate_hz),
+                ));
+            }
+        }
         for (i, sched) in self.ranging.schedules.iter().enumerate() {
             let field = format!("ranging.schedules[{i}]");
             if sched.name.trim().is_empty() {
@@ -255,6 +268,14 @@ impl Scenario {
             p.validate(&field, duration_us)?;
         }
         Ok(())
+    }
+
+    /// How many IMU samples one INS covariance step spans (`filter.covariance_rate_hz`).
+    pub fn covariance_decimation(&self) -> u32 {
+        match self.filter.covariance_rate_hz {
+            Some(rate) => (rate_to_period_us(rate) / self.imu_period_us()).max(1) as u32,
+            None => 1,
+        }
     }
 
     /// IMU sample period.
@@ -611,6 +632,17 @@ segments = [{ duration_s = 10.0, accel_m_s2 = 0.2, yaw_rate_deg_s = -3.0 }]
         let no_segments =
             SMALL.replace("segments = [{ duration_s = 10.0, accel_m_s2 = 0.2, yaw_rate_deg_s = -3.0 }]", "segments = []");
         assert_eq!(field_of(&no_segments), "platforms[1].segments");
+    }
+
+    #[test]
+    fn covariance_rate_must_divide_the_imu_rate() {
+        let with = |rate: &str| {
+            SMALL.replace("nhc_vertical_sigma_m_s = 0.1", &format!("nhc_vertical_sigma_m_s = 0.1\ncovariance_rate_hz = {rate}"))
+        };
+        assert_eq!(Scenario::from_toml_str(&with("50.0")).unwrap().covariance_decimation(), 4);
+        assert_eq!(Scenario::from_toml_str(SMALL).unwrap().covariance_decimation(), 1);
+        assert_eq!(field_of(&with("30.0")), "filter.covariance_rate_hz");
+        assert_eq!(field_of(&with("-50.0")), "filter.covariance_rate_hz");
     }
 
     #[test]

@@ -48,6 +48,7 @@ pub fn ins_settings(world: &World) -> (InsConfig, InsInitialSigma) {
         sigma_nhc_lateral_m_s: s.filter.nhc_lateral_sigma_m_s,
         sigma_nhc_vertical_m_s: s.filter.nhc_vertical_sigma_m_s,
         max_imu_gap_s: 0.5,
+        covariance_decimation: s.covariance_decimation(),
     };
     let i = &s.initial;
     let rp = i.roll_pitch_sigma_deg.to_radians();

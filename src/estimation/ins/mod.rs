@@ -174,6 +174,17 @@ pub struct InsConfig {
     /// Longest accepted interval between IMU samples, s (default 0.5).
     #[serde(default = "default_max_imu_gap")]
     pub max_imu_gap_s: f64,
+    /// Propagate the covariance and `Psi` once every this many IMU samples (default 1: every
+    /// sample). The nominal state integrates every sample regardless; over the interval the
+    /// transition is `I + sum(F_k dt_k)` and the noise `Q sum(dt_k)`, which drops only
+    /// second-order terms in `F dt` (as PX4's EKF2 or PSINS do at a filter rate below the IMU
+    /// rate). Any update first brings the covariance to the present.
+    #[serde(default = "default_covariance_decimation")]
+    pub covariance_decimation: u32,
+}
+
+fn default_covariance_decimation() -> u32 {
+    1
 }
 
 impl Default for InsConfig {
@@ -191,6 +202,7 @@ impl Default for InsConfig {
             sigma_nhc_lateral_m_s: default_sigma_nhc(),
             sigma_nhc_vertical_m_s: default_sigma_nhc(),
             max_imu_gap_s: default_max_imu_gap(),
+            covariance_decimation: default_covariance_decimation(),
         }
     }
 }
@@ -213,6 +225,9 @@ impl InsConfig {
             if !value.is_finite() || value <= 0.0 {
                 return Err(EstimationError::InvalidValue { what, value });
             }
+        }
+        if self.covariance_decimation == 0 {
+            return Err(EstimationError::InvalidValue { what: "covariance_decimation", value: 0.0 });
         }
         let non_negative = [
             (self.accel_noise_density_m_s2_per_sqrt_hz, "accel_noise_density_m_s2_per_sqrt_hz"),
@@ -413,7 +428,7 @@ fn block(m: &Matrix3<f64>) -> Block {
 type Columns = [[f64; ERROR_DIM]; ERROR_DIM];
 
 /// The nonzero blocks of `F dt` (the continuous error dynamics times the step).
-#[derive(Debug, Clone, Copy)]
+#[derive(Debug, Clone, Copy, PartialEq)]
 struct FdtBlocks {
     /// `d(dp)/d(dv) dt = dt I`.
     pv: f64,
@@ -438,6 +453,18 @@ impl FdtBlocks {
             vphi: block(&(f_n.cross_matrix() * -dt)),
             phiphi: block(&neg_wie_dt),
             neg_r: block(&(r * -dt)),
+        }
+    }
+
+    /// The sum of two steps' `F dt` (first-order transition over both).
+    fn add(&self, o: &FdtBlocks) -> FdtBlocks {
+        let add = |a: &Block, b: &Block| std::array::from_fn(|i| std::array::from_fn(|j| a[i][j] + b[i][j]));
+        FdtBlocks {
+            pv: self.pv + o.pv,
+            vv: add(&self.vv, &o.vv),
+            vphi: add(&self.vphi, &o.vphi),
+            phiphi: add(&self.phiphi, &o.phiphi),
+            neg_r: add(&self.neg_r, &o.neg_r),
         }
     }
 
@@ -574,6 +601,9 @@ pub struct InsFilter {
     /// Bias-corrected increments of the previous IMU interval (zero before the first).
     prev_dtheta: Vector3<f64>,
     prev_dv: Vector3<f64>,
+    /// IMU steps whose covariance propagation is still to be applied: summed `F dt`, summed
+    /// `dt`, count (see [`InsConfig::covariance_decimation`]).
+    pending: Option<(FdtBlocks, f64, u32)>,
 }
 
 impl InsFilter {
@@ -614,6 +644,7 @@ impl InsFilter {
             track_psi: true,
             prev_dtheta: Vector3::zeros(),
             prev_dv: Vector3::zeros(),
+            pending: None,
         })
     }
 
@@ -650,16 +681,43 @@ impl InsFilter {
     }
 
     /// Error covariance `P`.
-    pub fn covariance16(&self) -> &Matrix16 {
-        &self.p
+    pub fn covariance16(&self) -> Matrix16 {
+        self.current().0
     }
 
     /// Recursive coefficient matrix `Psi` (identity while not tracked).
     pub fn psi16(&self) -> Matrix16 {
-        self.psi_t.transpose()
+        self.current().1.transpose()
     }
 
     /// Checks an IMU sample against the filter's time and physical bounds; returns `dt` in s.
+    /// Covariance and transposed `Psi` at the current time: the stored ones with any pending
+    /// propagation applied (see [`InsConfig::covariance_decimation`]). Changes nothing.
+    fn current(&self) -> (Matrix16, Matrix16) {
+        match &self.pending {
+            None => (self.p, self.psi_t),
+            Some((fdt, sum_dt, _)) => {
+                let p = propagate_covariance(fdt, &self.p, &(self.q_psd * *sum_dt));
+                let psi_t = if self.track_psi { times_phi_transpose_matrix(fdt, &self.psi_t) } else { self.psi_t };
+                (p, psi_t)
+            }
+        }
+    }
+
+    /// Applies any pending covariance propagation.
+    fn flush(&mut self) -> Result<(), EstimationError> {
+        if self.pending.is_some() {
+            let (p, psi_t) = self.current();
+            if !all_finite(&p.data.0) || !all_finite(&psi_t.data.0) {
+                return Err(EstimationError::NonFinite { what: "propagated INS covariance" });
+            }
+            self.p = p;
+            self.psi_t = psi_t;
+            self.pending = None;
+        }
+        Ok(())
+    }
+
     fn check_imu(&self, s: &ImuSample) -> Result<f64, EstimationError> {
         if s.t < self.t {
             return Err(EstimationError::TimeWentBackwards { what: "IMU sample", from_us: self.t.0, to_us: s.t.0 });
@@ -708,24 +766,36 @@ impl InsFilter {
         let att = UnitQuaternion::new_normalize(q.into_inner());
 
         let fdt = FdtBlocks::new(dt, &r, &(r * f_b), &self.w_ie_n);
-        let p = propagate_covariance(&fdt, &self.p, &(self.q_psd * dt));
-        let psi_t = self.track_psi.then(|| times_phi_transpose_matrix(&fdt, &self.psi_t));
+        let pending = match &self.pending {
+            Some((acc, sum_dt, n)) => (acc.add(&fdt), sum_dt + dt, n + 1),
+            None => (fdt, dt, 1),
+        };
+        let (p, psi_t, pending) = if pending.2 >= self.config.covariance_decimation {
+            let (fdt, sum_dt, _) = pending;
+            let p = propagate_covariance(&fdt, &self.p, &(self.q_psd * sum_dt));
+            (Some(p), self.track_psi.then(|| times_phi_transpose_matrix(&fdt, &self.psi_t)), None)
+        } else {
+            (None, None, Some(pending))
+        };
 
         let next = InsState { pos_ned_m: pos, vel_ned_m_s: vel, att_frd_to_ned: att, ..*x };
         if !next.is_finite() {
             return Err(EstimationError::NonFinite { what: "propagated INS state" });
         }
-        if !all_finite(&p.data.0) {
+        if p.as_ref().is_some_and(|m| !all_finite(&m.data.0)) {
             return Err(EstimationError::NonFinite { what: "propagated INS covariance" });
         }
         if psi_t.as_ref().is_some_and(|m| !all_finite(&m.data.0)) {
             return Err(EstimationError::NonFinite { what: "propagated INS Psi" });
         }
         self.x = next;
-        self.p = p;
+        if let Some(p) = p {
+            self.p = p;
+        }
         if let Some(psi_t) = psi_t {
             self.psi_t = psi_t;
         }
+        self.pending = pending;
         self.t = s.t;
         self.prev_dtheta = dtheta;
         self.prev_dv = dv;
@@ -808,11 +878,11 @@ impl PlatformFilter for InsFilter {
     }
 
     fn covariance(&self) -> DMatrix<f64> {
-        to_dmatrix(&self.p)
+        to_dmatrix(&self.current().0)
     }
 
     fn psi(&self) -> DMatrix<f64> {
-        to_dmatrix(&self.psi_t.transpose())
+        to_dmatrix(&self.current().1.transpose())
     }
 
     fn geometry(&self) -> Geometry {
@@ -831,6 +901,7 @@ impl PlatformFilter for InsFilter {
     /// `P <- G P G^T`, `Psi <- G Psi`.
     fn update_local(&mut self, meas: &LinearizedMeasurement) -> Result<UpdateDiagnostics, EstimationError> {
         meas.validate(ERROR_DIM)?;
+        self.flush()?;
         let m = meas.len();
         let h = Rows16::from_fn(m, |r, c| meas.h[(r, c)]);
         let hp = &h * self.p;
@@ -879,6 +950,8 @@ impl PlatformFilter for InsFilter {
         kalman::check_finite(&p, "INS covariance after reset")?;
         self.x = x;
         self.p = p;
+        // The joint update started from the covariance at the present (pending steps included).
+        self.pending = None;
         self.psi_t = if self.track_psi { g.transpose() } else { Matrix16::identity() };
         Ok(())
     }

@@ -708,3 +708,59 @@ fn works_in_a_team() {
         }
     }
 }
+
+/// With `covariance_decimation = N`, the covariance and Psi step once every N samples with the
+/// summed `F dt`; reading them mid-interval brings them to the present without changing the
+/// filter; and after a turn the result stays close to stepping at every sample (only
+/// second-order terms in `F dt` differ).
+#[test]
+fn decimated_covariance_propagation() {
+    let config = InsConfig { latitude_deg: 34.7, covariance_decimation: 4, ..InsConfig::default() };
+    let every = InsConfig { covariance_decimation: 1, ..config };
+    let start = |c: InsConfig| {
+        let mut x = InsState::at_rest(yaw_q(0.3));
+        x.vel_ned_m_s = x.att_frd_to_ned * Vector3::new(10.0, 0.0, 0.0);
+        InsFilter::new(c, TimeUs(0), x, small_sigma()).unwrap()
+    };
+    let (mut a, mut b) = (start(config), start(every));
+    let sample = |k: u64| imu(5_000 * k, Vector3::new(0.2, 1.0, -9.80665), Vector3::new(0.0, 0.0, 0.1));
+    for k in 1..=3 {
+        a.propagate(&sample(k)).unwrap();
+        b.propagate(&sample(k)).unwrap();
+    }
+    // Mid-interval: three steps pending. Reading is pure.
+    let before = a.clone();
+    let (p_mid, psi_mid) = (a.covariance16(), a.psi16());
+    assert_eq!(a, before);
+    // Stepping three samples at once drops the second-order products of F dt, the largest of
+    // which is position-attitude: dt * dt * |f| ~ 2.5e-5 * 9.8 per pair of steps, times 3 pairs.
+    let second_order = 3.0 * 0.005 * 0.005 * 9.9;
+    assert!(rel_err(&p_mid, &b.covariance16()) < second_order, "{}", rel_err(&p_mid, &b.covariance16()));
+    assert!(rel_err(&psi_mid, &b.psi16()) < second_order, "{}", rel_err(&psi_mid, &b.psi16()));
+    assert!(rel_err(&psi_mid, &b.psi16()) > 0.0, "the summed transition is not the product");
+    for k in 4..=400 {
+        a.propagate(&sample(k)).unwrap();
+        b.propagate(&sample(k)).unwrap();
+    }
+    assert_eq!(a.x, b.x, "the nominal state integrates every sample either way");
+    // Over a horizon t, stepping by h = N dt is a rectangular rule of step h: the position-
+    // attitude chain (~ f t^2 / 2) is off by ~ h / t relative, against dt / t stepping every
+    // sample. Here h / t = 4 * 0.005 / 2 = 1% (it fades as t grows: 0.005% over 380 s).
+    let h_over_t = 4.0 * 0.005 / 2.0;
+    assert!(rel_err(&a.covariance16(), &b.covariance16()) < 2.0 * h_over_t, "{}", rel_err(&a.covariance16(), &b.covariance16()));
+    assert!(rel_err(&a.psi16(), &b.psi16()) < 2.0 * h_over_t, "{}", rel_err(&a.psi16(), &b.psi16()));
+    // A local update brings the covariance to the present first and keeps P and Psi in step.
+    for k in 401..=402 {
+        a.propagate(&sample(k)).unwrap();
+    }
+    let p_now = a.covariance16();
+    let meas = a.odometer_measurement(&OdometerSample { t: a.time(), speed_m_s: 10.0 }).unwrap();
+    let expected = kalman::local_update(&to_dmatrix(&p_now), &meas).unwrap();
+    a.update_local(&meas).unwrap();
+    let g = reset_jacobian(&to_vector16(&expected.dx));
+    assert!(rel_err(&a.covariance16(), &reset_covariance(&g, &to_matrix16(&expected.p))) < 1e-9);
+    assert_eq!(
+        InsConfig { covariance_decimation: 0, ..config }.validate(),
+        Err(EstimationError::InvalidValue { what: "covariance_decimation", value: 0.0 })
+    );
+}
