@@ -78,11 +78,9 @@ fn imu_sample(k: u64) -> ImuSample {
 
 fn ins(c: &mut Criterion) {
     let mut group = c.benchmark_group("ins");
-    for (name, psi, decimation) in [
-        ("imu_step_with_psi", true, 1),
-        ("imu_step_without_psi", false, 1),
-        ("imu_step_with_psi_covariance_every_4", true, 4),
-    ] {
+    for (name, psi, decimation) in
+        [("imu_step_with_psi", true, 1), ("imu_step_without_psi", false, 1), ("imu_step_with_psi_covariance_every_4", true, 4)]
+    {
         let mut f = ins_filter(psi, decimation);
         let mut k = 0u64;
         group.bench_function(name, |b| {

@@ -69,6 +69,8 @@ pub struct ErrorSample {
     pub t_s: f64,
     /// Horizontal (N, E) position error, m.
     pub pos_err_m: f64,
+    /// The same as a vector, truth minus estimate, N and E, m.
+    pub pos_err_ne_m: [f64; 2],
     /// Yaw error, degrees (truth minus estimate).
     pub heading_err_deg: f64,
 }
@@ -117,6 +119,7 @@ fn error_sample(f: &InsFilter, run: &PlatformRun, k: usize) -> ErrorSample {
     ErrorSample {
         t_s: truth.t.as_secs_f64(),
         pos_err_m: d.xy().norm(),
+        pos_err_ne_m: [d[0], d[1]],
         heading_err_deg: wrap_angle(truth.yaw_rad - f.yaw_rad()).to_degrees(),
     }
 }
