@@ -15,6 +15,11 @@
 //! - [`time`]: the typed timestamp shared by all of the above.
 pub mod estimation;
 pub mod experiment;
+pub mod protocol;
 #[path = "../sitl/mod.rs"]
 pub mod sitl;
 pub mod time;
+
+// The generated dialect code refers to `crate::utils`.
+#[allow(unused_imports)]
+use mavlink_core::utils;

@@ -1,0 +1,19 @@
+//! The cooploc MAVLink dialect and the one place where the wire meets the core's types.
+//!
+//! - [`dialect`]: Rust generated at build time by mavlink-bindgen from `dialects/cooploc.xml`
+//!   (which includes the vendored common.xml): every common message plus the cooploc ones.
+//! - [`record`]: the state broadcast as bytes (layout, quantisation rule).
+//! - [`fragment`]: cutting records into COOPLOC_STATE_FRAGMENT payloads and reassembling them.
+//! - [`wire`]: conversions between generated messages and the core's types (units, packing).
+
+pub mod fragment;
+pub mod record;
+pub mod wire;
+
+/// Generated bindings of `dialects/cooploc.xml`.
+#[allow(clippy::all, missing_docs, unused_imports, unexpected_cfgs)]
+pub mod dialect {
+    include!(concat!(env!("OUT_DIR"), "/mod.rs"));
+}
+
+pub use dialect::cooploc::MavMessage;

@@ -1,0 +1,359 @@
+//! Conversions between the generated MAVLink messages and the core's types: units,
+//! quantisation and packing happen here and nowhere else.
+//!
+//! Every conversion from the wire validates what it reads (finite numbers, physical ranges,
+//! array lengths) and returns a [`WireError`] naming the field instead of panicking. Every
+//! conversion to the wire that rounds (f64 to f32) has a `*_as_sent` companion that returns
+//! the value as the receivers will see it, so that the sender can use exactly that
+//! (quantisation rule, see [`super::record`]).
+
+use mavlink_core::{MavHeader, MavlinkVersion, Message};
+use nalgebra::{Matrix3, Vector3};
+
+use super::dialect::cooploc::{
+    COOPLOC_EPOCH_DATA, COOPLOC_ESTIMATE_DATA, COOPLOC_RANGE_DATA, COOPLOC_STATE_FRAGMENT_DATA, CooplocMethod, HIGHRES_IMU_DATA,
+    MavFrame, MavMessage, ODOMETRY_DATA,
+};
+use super::fragment::{FRAGMENT_DATA, Fragment};
+use crate::estimation::{ImuSample, Method, OdometerSample, PlatformId, RangeSample};
+use crate::time::TimeUs;
+
+/// A message from the wire that cannot be used.
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+pub enum WireError {
+    #[error("{message}.{field}: {reason}")]
+    Field { message: &'static str, field: &'static str, reason: String },
+    #[error("MAVLink frame: {0}")]
+    Frame(String),
+}
+
+fn bad(message: &'static str, field: &'static str, reason: impl Into<String>) -> WireError {
+    WireError::Field { message, field, reason: reason.into() }
+}
+
+fn finite(message: &'static str, field: &'static str, v: f32) -> Result<f64, WireError> {
+    if v.is_finite() { Ok(v as f64) } else { Err(bad(message, field, format!("not finite ({v})"))) }
+}
+
+/// Serialises a message as one MAVLink 2 frame.
+pub fn to_frame(header: MavHeader, msg: &MavMessage) -> Vec<u8> {
+    let mut out = Vec::with_capacity(mavlink_core::consts::MAX_FRAME_SIZE);
+    // Writing into a Vec cannot fail.
+    mavlink_core::write_v2_msg(&mut out, header, msg).expect("writing to a Vec");
+    out
+}
+
+/// Parses the first MAVLink 2 frame in `bytes` (any garbage before it is skipped).
+pub fn from_frame(bytes: &[u8]) -> Result<(MavHeader, MavMessage), WireError> {
+    let mut reader = mavlink_core::MavlinkReader::new(bytes);
+    reader.read_message::<MavMessage>(MavlinkVersion::V2).map_err(|e| WireError::Frame(e.to_string()))
+}
+
+/// Message id of a message (for counters and logs).
+pub fn message_id(msg: &MavMessage) -> u32 {
+    msg.message_id()
+}
+
+// ---- state fragments ----
+
+pub fn fragment_to_message(f: &Fragment) -> MavMessage {
+    let mut data = [0u8; FRAGMENT_DATA];
+    data[..f.data.len()].copy_from_slice(&f.data);
+    MavMessage::COOPLOC_STATE_FRAGMENT(COOPLOC_STATE_FRAGMENT_DATA {
+        time_usec: f.time_usec,
+        epoch: f.epoch,
+        record_crc32: f.record_crc32,
+        record_len: f.record_len,
+        platform: f.platform,
+        frag_index: f.index,
+        frag_count: f.count,
+        data_len: f.data.len() as u8,
+        data,
+    })
+}
+
+pub fn fragment_from_message(m: &COOPLOC_STATE_FRAGMENT_DATA) -> Result<Fragment, WireError> {
+    const MSG: &str = "COOPLOC_STATE_FRAGMENT";
+    let n = m.data_len as usize;
+    if n == 0 || n > FRAGMENT_DATA {
+        return Err(bad(MSG, "data_len", format!("{n} outside 1..={FRAGMENT_DATA}")));
+    }
+    Ok(Fragment {
+        platform: m.platform,
+        epoch: m.epoch,
+        time_usec: m.time_usec,
+        record_crc32: m.record_crc32,
+        record_len: m.record_len,
+        index: m.frag_index,
+        count: m.frag_count,
+        data: m.data[..n].to_vec(),
+    })
+}
+
+// ---- ranges ----
+
+/// A measured range as COOPLOC_RANGE (distance and sigma as f32).
+pub fn range_to_message(r: &RangeSample, epoch: u32) -> MavMessage {
+    MavMessage::COOPLOC_RANGE(COOPLOC_RANGE_DATA {
+        time_usec: r.t.0,
+        epoch,
+        distance: r.range_m as f32,
+        sigma: r.sigma_m as f32,
+        from_platform: r.from,
+        to_platform: r.to,
+    })
+}
+
+/// A COOPLOC_RANGE as a range sample and its epoch.
+pub fn range_from_message(m: &COOPLOC_RANGE_DATA) -> Result<(u32, RangeSample), WireError> {
+    const MSG: &str = "COOPLOC_RANGE";
+    let range_m = finite(MSG, "distance", m.distance)?;
+    if range_m < 0.0 {
+        return Err(bad(MSG, "distance", format!("negative ({range_m} m)")));
+    }
+    let sigma_m = finite(MSG, "sigma", m.sigma)?;
+    if sigma_m <= 0.0 {
+        return Err(bad(MSG, "sigma", format!("must be positive, got {sigma_m} m")));
+    }
+    if m.from_platform == m.to_platform {
+        return Err(bad(MSG, "to_platform", format!("equals from_platform ({})", m.from_platform)));
+    }
+    Ok((m.epoch, RangeSample { t: TimeUs(m.time_usec), from: m.from_platform, to: m.to_platform, range_m, sigma_m }))
+}
+
+/// The range as every receiver will see it (f32 on the wire): what the measuring node uses too.
+pub fn range_as_sent(r: &RangeSample) -> RangeSample {
+    RangeSample { range_m: r.range_m as f32 as f64, sigma_m: r.sigma_m as f32 as f64, ..*r }
+}
+
+// ---- epoch announcement ----
+
+/// An epoch and the platforms whose state broadcasts it expects.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct EpochAnnouncement {
+    pub epoch: u32,
+    pub t: TimeUs,
+    pub announcer: PlatformId,
+    pub participants: Vec<PlatformId>,
+}
+
+/// Most participants one COOPLOC_EPOCH can name.
+pub const MAX_PARTICIPANTS: usize = 64;
+
+pub fn epoch_to_message(a: &EpochAnnouncement) -> Result<MavMessage, WireError> {
+    if a.participants.len() > MAX_PARTICIPANTS {
+        return Err(bad("COOPLOC_EPOCH", "participants", format!("{} > {MAX_PARTICIPANTS}", a.participants.len())));
+    }
+    let mut participants = [0u16; MAX_PARTICIPANTS];
+    participants[..a.participants.len()].copy_from_slice(&a.participants);
+    Ok(MavMessage::COOPLOC_EPOCH(COOPLOC_EPOCH_DATA {
+        time_usec: a.t.0,
+        epoch: a.epoch,
+        announcer: a.announcer,
+        participants,
+        count: a.participants.len() as u8,
+    }))
+}
+
+pub fn epoch_from_message(m: &COOPLOC_EPOCH_DATA) -> Result<EpochAnnouncement, WireError> {
+    let n = m.count as usize;
+    if n > MAX_PARTICIPANTS {
+        return Err(bad("COOPLOC_EPOCH", "count", format!("{n} > {MAX_PARTICIPANTS}")));
+    }
+    let participants = m.participants[..n].to_vec();
+    for (i, p) in participants.iter().enumerate() {
+        if participants[..i].contains(p) {
+            return Err(bad("COOPLOC_EPOCH", "participants", format!("platform {p} listed twice")));
+        }
+    }
+    Ok(EpochAnnouncement { epoch: m.epoch, t: TimeUs(m.time_usec), announcer: m.announcer, participants })
+}
+
+// ---- estimate report ----
+
+/// What a node reports after each event, for ground stations and logs.
+#[derive(Debug, Clone, PartialEq)]
+pub struct EstimateReport {
+    pub platform: PlatformId,
+    pub t: TimeUs,
+    pub epoch: u32,
+    pub method: Method,
+    pub position_ned_m: Vector3<f64>,
+    pub velocity_ned_m_s: Vector3<f64>,
+    pub yaw_rad: f64,
+    pub position_covariance_m2: Matrix3<f64>,
+    pub yaw_variance_rad2: f64,
+    /// NIS of the last joint update (NaN: none yet).
+    pub nis: f64,
+    pub participants: u8,
+    pub ranges: u8,
+}
+
+fn method_to_wire(m: Method) -> CooplocMethod {
+    match m {
+        Method::DeadReckoning => CooplocMethod::COOPLOC_METHOD_DEAD_RECKONING,
+        Method::NoPropagation => CooplocMethod::COOPLOC_METHOD_NO_PROPAGATION,
+        Method::Decentralized => CooplocMethod::COOPLOC_METHOD_DECENTRALIZED,
+        Method::Centralized => CooplocMethod::COOPLOC_METHOD_CENTRALIZED,
+        Method::CovarianceIntersection => CooplocMethod::COOPLOC_METHOD_COVARIANCE_INTERSECTION,
+    }
+}
+
+fn method_from_wire(m: CooplocMethod) -> Method {
+    match m {
+        CooplocMethod::COOPLOC_METHOD_DEAD_RECKONING => Method::DeadReckoning,
+        CooplocMethod::COOPLOC_METHOD_NO_PROPAGATION => Method::NoPropagation,
+        CooplocMethod::COOPLOC_METHOD_DECENTRALIZED => Method::Decentralized,
+        CooplocMethod::COOPLOC_METHOD_CENTRALIZED => Method::Centralized,
+        CooplocMethod::COOPLOC_METHOD_COVARIANCE_INTERSECTION => Method::CovarianceIntersection,
+    }
+}
+
+pub fn estimate_to_message(e: &EstimateReport) -> MavMessage {
+    let c = &e.position_covariance_m2;
+    MavMessage::COOPLOC_ESTIMATE(COOPLOC_ESTIMATE_DATA {
+        time_usec: e.t.0,
+        epoch: e.epoch,
+        x: e.position_ned_m[0] as f32,
+        y: e.position_ned_m[1] as f32,
+        z: e.position_ned_m[2] as f32,
+        vx: e.velocity_ned_m_s[0] as f32,
+        vy: e.velocity_ned_m_s[1] as f32,
+        vz: e.velocity_ned_m_s[2] as f32,
+        yaw: e.yaw_rad as f32,
+        pos_covariance: [c[(0, 0)], c[(0, 1)], c[(0, 2)], c[(1, 1)], c[(1, 2)], c[(2, 2)]].map(|v| v as f32),
+        yaw_variance: e.yaw_variance_rad2 as f32,
+        nis: e.nis as f32,
+        platform: e.platform,
+        method: method_to_wire(e.method),
+        participants: e.participants,
+        ranges: e.ranges,
+    })
+}
+
+pub fn estimate_from_message(m: &COOPLOC_ESTIMATE_DATA) -> Result<EstimateReport, WireError> {
+    const MSG: &str = "COOPLOC_ESTIMATE";
+    let position = Vector3::new(finite(MSG, "x", m.x)?, finite(MSG, "y", m.y)?, finite(MSG, "z", m.z)?);
+    let velocity = Vector3::new(finite(MSG, "vx", m.vx)?, finite(MSG, "vy", m.vy)?, finite(MSG, "vz", m.vz)?);
+    let mut cov = [0.0; 6];
+    for (o, v) in cov.iter_mut().zip(m.pos_covariance) {
+        *o = finite(MSG, "pos_covariance", v)?;
+    }
+    let c = Matrix3::new(cov[0], cov[1], cov[2], cov[1], cov[3], cov[4], cov[2], cov[4], cov[5]);
+    if c[(0, 0)] < 0.0 || c[(1, 1)] < 0.0 || c[(2, 2)] < 0.0 {
+        return Err(bad(MSG, "pos_covariance", "negative variance"));
+    }
+    let yaw_variance = finite(MSG, "yaw_variance", m.yaw_variance)?;
+    if yaw_variance < 0.0 {
+        return Err(bad(MSG, "yaw_variance", "negative"));
+    }
+    Ok(EstimateReport {
+        platform: m.platform,
+        t: TimeUs(m.time_usec),
+        epoch: m.epoch,
+        method: method_from_wire(m.method),
+        position_ned_m: position,
+        velocity_ned_m_s: velocity,
+        yaw_rad: finite(MSG, "yaw", m.yaw)?,
+        position_covariance_m2: c,
+        yaw_variance_rad2: yaw_variance,
+        nis: m.nis as f64,
+        participants: m.participants,
+        ranges: m.ranges,
+    })
+}
+
+// ---- vehicle sensor streams ----
+
+/// Largest plausible specific force and angular rate from a vehicle (beyond: a corrupt sample).
+const MAX_ACCEL_M_S2: f64 = 50.0 * 9.80665;
+const MAX_RATE_RAD_S: f64 = 40.0;
+
+/// HIGHRES_IMU (body FRD, m/s^2 and rad/s) as an IMU sample.
+pub fn imu_from_highres(m: &HIGHRES_IMU_DATA) -> Result<ImuSample, WireError> {
+    const MSG: &str = "HIGHRES_IMU";
+    let f = Vector3::new(finite(MSG, "xacc", m.xacc)?, finite(MSG, "yacc", m.yacc)?, finite(MSG, "zacc", m.zacc)?);
+    let w = Vector3::new(finite(MSG, "xgyro", m.xgyro)?, finite(MSG, "ygyro", m.ygyro)?, finite(MSG, "zgyro", m.zgyro)?);
+    if f.norm() > MAX_ACCEL_M_S2 {
+        return Err(bad(MSG, "xacc", format!("specific force {:.1} m/s^2 beyond 50 g", f.norm())));
+    }
+    if w.norm() > MAX_RATE_RAD_S {
+        return Err(bad(MSG, "xgyro", format!("angular rate {:.1} rad/s beyond {MAX_RATE_RAD_S}", w.norm())));
+    }
+    Ok(ImuSample { t: TimeUs(m.time_usec), specific_force_frd_m_s2: f, angular_rate_frd_rad_s: w })
+}
+
+/// An IMU sample as HIGHRES_IMU with the accelerometer and gyro fields marked updated.
+pub fn imu_to_highres(s: &ImuSample) -> MavMessage {
+    let f = s.specific_force_frd_m_s2.map(|v| v as f32);
+    let w = s.angular_rate_frd_rad_s.map(|v| v as f32);
+    MavMessage::HIGHRES_IMU(HIGHRES_IMU_DATA {
+        time_usec: s.t.0,
+        xacc: f[0],
+        yacc: f[1],
+        zacc: f[2],
+        xgyro: w[0],
+        ygyro: w[1],
+        zgyro: w[2],
+        fields_updated: super::dialect::cooploc::HighresImuUpdatedFlags::from_bits_truncate(0b11_1111),
+        ..Default::default()
+    })
+}
+
+/// The sample as receivers see it (f32 on the wire).
+pub fn imu_as_sent(s: &ImuSample) -> ImuSample {
+    ImuSample {
+        t: s.t,
+        specific_force_frd_m_s2: s.specific_force_frd_m_s2.map(|v| v as f32 as f64),
+        angular_rate_frd_rad_s: s.angular_rate_frd_rad_s.map(|v| v as f32 as f64),
+    }
+}
+
+/// ODOMETRY with a body-frame velocity (child frame BODY_FRD) as an odometer sample: the forward
+/// speed `vx`.
+pub fn odometer_from_odometry(m: &ODOMETRY_DATA) -> Result<OdometerSample, WireError> {
+    const MSG: &str = "ODOMETRY";
+    if !matches!(m.child_frame_id, MavFrame::MAV_FRAME_BODY_FRD) {
+        return Err(bad(
+            MSG,
+            "child_frame_id",
+            format!("{:?}: cooploc reads the body-frame (BODY_FRD) velocity", m.child_frame_id),
+        ));
+    }
+    let speed = finite(MSG, "vx", m.vx)?;
+    if speed.abs() > 200.0 {
+        return Err(bad(MSG, "vx", format!("{speed} m/s is not a land vehicle's speed")));
+    }
+    Ok(OdometerSample { t: TimeUs(m.time_usec), speed_m_s: speed })
+}
+
+/// An odometer sample as ODOMETRY: body-frame velocity (x forward), pose and rates unknown (NaN).
+pub fn odometer_to_odometry(s: &OdometerSample, sigma_m_s: f64) -> MavMessage {
+    // Only vx is measured; vy and vz are zero by the vehicle's non-holonomic constraint (their
+    // uncertainty is the filter's tuning, not the odometer's), angular rates are not reported.
+    let mut velocity_covariance = [0.0f32; 21];
+    velocity_covariance[0] = (sigma_m_s * sigma_m_s) as f32;
+    MavMessage::ODOMETRY(ODOMETRY_DATA {
+        time_usec: s.t.0,
+        frame_id: MavFrame::MAV_FRAME_LOCAL_NED,
+        child_frame_id: MavFrame::MAV_FRAME_BODY_FRD,
+        x: f32::NAN,
+        y: f32::NAN,
+        z: f32::NAN,
+        q: [f32::NAN, 0.0, 0.0, 0.0],
+        vx: s.speed_m_s as f32,
+        vy: 0.0,
+        vz: 0.0,
+        rollspeed: f32::NAN,
+        pitchspeed: f32::NAN,
+        yawspeed: f32::NAN,
+        pose_covariance: [f32::NAN; 21],
+        velocity_covariance,
+        ..Default::default()
+    })
+}
+
+/// The sample as receivers see it (f32 on the wire).
+pub fn odometer_as_sent(s: &OdometerSample) -> OdometerSample {
+    OdometerSample { t: s.t, speed_m_s: s.speed_m_s as f32 as f64 }
+}
