@@ -17,6 +17,13 @@ if [ ! -x "$venv/bin/python" ] || [ "$(cat "$stamp" 2>/dev/null)" != "$want" ]; 
 fi
 export COOPLOC_PYTHON="$PWD/$venv/bin/python"
 
+echo "==> validating dialects/cooploc.xml with pymavlink's mavgen (wire protocol 2.0)"
+mavgen_out=$(mktemp -d)
+"$COOPLOC_PYTHON" -m pymavlink.tools.mavgen --lang=Python3 --wire-protocol=2.0 \
+    --output="$mavgen_out/cooploc.py" dialects/cooploc.xml > "$mavgen_out/log" 2>&1 \
+    || { cat "$mavgen_out/log"; echo "mavgen rejected dialects/cooploc.xml"; exit 1; }
+rm -rf "$mavgen_out"
+
 # One optimised build serves the unit, property, Monte Carlo and end-to-end tests.
 echo "==> cargo test --release"
 cargo test --release --all-targets

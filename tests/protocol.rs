@@ -1,0 +1,218 @@
+//! The protocol layer on its own: state records, fragmentation and reassembly, and the
+//! quantisation rule that keeps every node bit-identical.
+
+use cooploc::estimation::linear::LinearPlatform;
+use cooploc::estimation::{CoopMeasurement, CrossCovariances, CrossMode, PlatformFilter, Snapshot, cooperative_update};
+use cooploc::protocol::fragment::{FRAGMENT_DATA, Fragment, Pushed, Reassembler, fragment};
+use cooploc::protocol::record::{self, Encoding, RecordError};
+use nalgebra::{DMatrix, DVector};
+use proptest::prelude::*;
+
+fn snapshot(id: u16, n: usize, x: f64) -> Snapshot {
+    let mut x0 = DVector::zeros(n);
+    x0[0] = x;
+    x0[1] = 0.5 * x;
+    let a = DMatrix::from_fn(n, n, |r, c| ((r * 7 + c * 3 + id as usize) % 11) as f64 * 0.013 + 1e-9);
+    let p = &a * a.transpose() + DMatrix::identity(n, n) * 0.37;
+    let mut s = LinearPlatform::new(x0, p, [Some(0), Some(1), None]).unwrap().snapshot(id);
+    s.psi += DMatrix::from_fn(n, n, |r, c| (r as f64 - c as f64) * 1.0e-3 / 3.0);
+    s
+}
+
+#[test]
+fn records_round_trip_exactly_in_f64_and_idempotently_in_f32() {
+    let s = snapshot(4, 16, 1234.5678);
+    let bytes = record::encode(&s, Encoding::F64).unwrap();
+    assert_eq!(bytes.len(), record::record_len(16, Encoding::F64));
+    assert_eq!(record::decode(4, &bytes).unwrap(), s, "f64 is exact");
+    let bytes32 = record::encode(&s, Encoding::F32).unwrap();
+    assert_eq!(bytes32.len(), record::record_len(16, Encoding::F32));
+    let sent = record::decode(4, &bytes32).unwrap();
+    assert_ne!(sent.covariance, s.covariance, "f32 rounds");
+    assert!((&sent.covariance - &s.covariance).amax() < 1e-6 * s.covariance.amax());
+    assert_eq!(sent.covariance, sent.covariance.transpose(), "rebuilt symmetric");
+    assert_eq!(sent.geometry.position_ned_m, s.geometry.position_ned_m, "positions always go as f64");
+    // What went on the wire, sent again, is the same bytes: nothing drifts.
+    assert_eq!(record::encode(&sent, Encoding::F32).unwrap(), bytes32);
+}
+
+#[test]
+fn malformed_records_are_errors() {
+    let bytes = record::encode(&snapshot(1, 5, 3.0), Encoding::F64).unwrap();
+    assert!(matches!(record::decode(1, &bytes[..10]), Err(RecordError::TooShort { .. })));
+    assert!(matches!(record::decode(1, &bytes[..bytes.len() - 1]), Err(RecordError::LengthMismatch { .. })));
+    let mut b = bytes.clone();
+    b[0] = 9;
+    assert_eq!(record::decode(1, &b), Err(RecordError::Version(9)));
+    let mut b = bytes.clone();
+    b[1] = 7;
+    assert_eq!(record::decode(1, &b), Err(RecordError::Encoding(7)));
+    let mut b = bytes.clone();
+    b[5] = 5; // position index 5 in a 5-state record
+    assert!(matches!(record::decode(1, &b), Err(RecordError::Index { .. })));
+    let mut b = bytes.clone();
+    b[2..4].copy_from_slice(&0u16.to_le_bytes());
+    assert_eq!(record::decode(1, &b), Err(RecordError::Dimension(0)));
+    let mut b = bytes.clone();
+    b[40..48].copy_from_slice(&f64::NAN.to_le_bytes());
+    assert!(matches!(record::decode(1, &b), Err(RecordError::NonFinite(_))));
+    let mut nan = snapshot(1, 5, 3.0);
+    nan.psi[(2, 2)] = f64::INFINITY;
+    assert!(record::encode(&nan, Encoding::F64).is_err());
+}
+
+/// Delivers `order` (indices into `frags`, repeats allowed) and returns what completed.
+fn deliver(r: &mut Reassembler, frags: &[Fragment], order: &[usize]) -> Vec<Vec<u8>> {
+    let mut done = Vec::new();
+    for &i in order {
+        match r.push(&frags[i]) {
+            Pushed::Complete(rec) => done.push(rec.bytes),
+            Pushed::Rejected(why) => panic!("valid fragment rejected: {why}"),
+            Pushed::Stored | Pushed::Duplicate => {}
+        }
+    }
+    done
+}
+
+proptest! {
+    #![proptest_config(ProptestConfig::with_cases(512))]
+
+    /// Any permutation, duplication or loss pattern yields the exact record (every fragment
+    /// arrived) or nothing (some did not), for two records interleaved.
+    #[test]
+    fn reassembly_is_exact_or_incomplete(
+        len_a in 1usize..4000,
+        len_b in 1usize..4000,
+        seed in any::<u64>(),
+        picks in proptest::collection::vec((any::<bool>(), any::<u16>()), 0..80),
+    ) {
+        let mk = |len: usize, salt: u64| (0..len).map(|i| ((i as u64).wrapping_mul(2654435761) ^ salt ^ seed) as u8).collect::<Vec<u8>>();
+        let (ra, rb) = (mk(len_a, 1), mk(len_b, 2));
+        let fa = fragment(1, 10, 1_000_000, &ra).unwrap();
+        let fb = fragment(2, 10, 1_000_000, &rb).unwrap();
+        let mut all = fa.clone();
+        all.extend(fb.iter().cloned());
+        let order: Vec<usize> = picks.iter().map(|(_, k)| *k as usize % all.len()).collect();
+        let mut r = Reassembler::new(4);
+        let done = deliver(&mut r, &all, &order);
+        let got_a = (0..fa.len()).all(|i| order.contains(&i));
+        let got_b = (fa.len()..all.len()).all(|i| order.contains(&i));
+        let expected: Vec<&Vec<u8>> = [(got_a, &ra), (got_b, &rb)].into_iter().filter(|(g, _)| *g).map(|(_, r)| r).collect();
+        prop_assert_eq!(done.len(), expected.len());
+        for rec in &done {
+            prop_assert!(expected.contains(&rec), "a completed record differs from what was sent");
+        }
+        prop_assert_eq!(r.in_progress(), usize::from(!got_a && order.iter().any(|&i| i < fa.len())) + usize::from(!got_b && order.iter().any(|&i| i >= fa.len())));
+    }
+
+    /// A corrupted fragment never yields a record.
+    #[test]
+    fn corrupted_data_never_completes(len in 2usize..3000, which in any::<u16>(), bit in 0u8..8) {
+        let rec: Vec<u8> = (0..len).map(|i| (i * 31 % 251) as u8).collect();
+        let mut frags = fragment(3, 1, 5, &rec).unwrap();
+        let k = which as usize % frags.len();
+        let j = which as usize % frags[k].data.len();
+        frags[k].data[j] ^= 1 << bit;
+        let mut r = Reassembler::new(2);
+        for f in &frags {
+            prop_assert!(!matches!(r.push(f), Pushed::Complete(_)));
+        }
+        let dropped = r.take_dropped();
+        prop_assert_eq!(dropped.len(), 1);
+        prop_assert_eq!(dropped[0].reason, "CRC-32 mismatch");
+    }
+}
+
+#[test]
+fn memory_is_bounded_and_old_epochs_expire() {
+    let rec = vec![7u8; 3 * FRAGMENT_DATA + 5];
+    let mut r = Reassembler::new(5);
+    for epoch in 0..100u32 {
+        for platform in 0..4u16 {
+            let frags = fragment(platform, epoch, 0, &rec).unwrap();
+            r.push(&frags[0]);
+            assert!(r.in_progress() <= 5);
+        }
+    }
+    let dropped = r.take_dropped();
+    assert_eq!(dropped.len(), 400 - 5, "all but the newest five were evicted");
+    assert!(dropped.iter().all(|d| d.reason == "evicted for room" && d.received == 1 && d.count == 4));
+    r.expire_before(100);
+    assert_eq!(r.in_progress(), 0);
+    assert_eq!(r.take_dropped().len(), 5);
+    // A fragment whose header contradicts itself is rejected, not stored.
+    let mut f = fragment(1, 1, 0, &rec).unwrap()[1].clone();
+    f.count = 9;
+    assert!(matches!(r.push(&f), Pushed::Rejected(_)));
+    f.count = 4;
+    f.data.pop();
+    assert!(matches!(r.push(&f), Pushed::Rejected(_)));
+    assert_eq!(r.in_progress(), 0);
+}
+
+/// Three nodes exchange f32 records. Each runs the joint update on the decoded broadcasts, its
+/// own included, and all three get the same bits; a sender that kept its own unrounded state
+/// would not.
+#[test]
+fn quantisation_rule_keeps_nodes_bit_identical() {
+    let snaps: Vec<Snapshot> = (0..3u16).map(|i| snapshot(i, 6, 40.0 * i as f64 + 3.0)).collect();
+    let wire: Vec<Vec<u8>> = snaps.iter().map(|s| record::encode(s, Encoding::F32).unwrap()).collect();
+    let ranges = vec![
+        CoopMeasurement::Range { from: 0, to: 1, range_m: 44.7, sigma_m: 0.1 },
+        CoopMeasurement::Range { from: 1, to: 2, range_m: 44.9, sigma_m: 0.1 },
+    ];
+    let mut outcomes = Vec::new();
+    for _node in 0..3 {
+        let received: Vec<Snapshot> = wire.iter().enumerate().map(|(i, b)| record::decode(i as u16, b).unwrap()).collect();
+        outcomes.push(
+            cooperative_update(&mut CrossCovariances::new(), &received, &ranges, CrossMode::Propagate).unwrap().corrections,
+        );
+    }
+    assert_eq!(outcomes[0], outcomes[1]);
+    assert_eq!(outcomes[0], outcomes[2]);
+    let mut own = snaps.iter().enumerate().map(|(i, _)| record::decode(i as u16, &wire[i]).unwrap()).collect::<Vec<_>>();
+    own[0] = snaps[0].clone();
+    let selfish = cooperative_update(&mut CrossCovariances::new(), &own, &ranges, CrossMode::Propagate).unwrap().corrections;
+    assert_ne!(selfish, outcomes[0], "using unrounded own values would break bit-identity");
+}
+
+/// Bytes on the wire, MAVLink framing included, for one 16-state INS platform per cooperative
+/// event, against streaming its raw sensors to a central node. Prints the figures the README
+/// quotes (`cargo test --release --test protocol wire_budget -- --nocapture`).
+#[test]
+fn wire_budget() {
+    use cooploc::estimation::{ImuSample, OdometerSample, RangeSample};
+    use cooploc::protocol::wire::{fragment_to_message, imu_to_highres, odometer_to_odometry, range_to_message, to_frame};
+    use cooploc::time::TimeUs;
+    use mavlink_core::MavHeader;
+    let header = MavHeader { system_id: 1, component_id: 191, sequence: 0 };
+    let frames_len = |msgs: &[cooploc::protocol::MavMessage]| msgs.iter().map(|m| to_frame(header, m).len()).sum::<usize>();
+    let snap = snapshot(1, 16, 1234.5);
+    let mut per_event = Vec::new();
+    for enc in [Encoding::F64, Encoding::F32] {
+        let rec = record::encode(&snap, enc).unwrap();
+        let msgs: Vec<_> = fragment(1, 7, 7_000_000, &rec).unwrap().iter().map(fragment_to_message).collect();
+        per_event.push((enc, rec.len(), msgs.len(), frames_len(&msgs)));
+    }
+    let range = RangeSample { t: TimeUs(7_000_000), from: 1, to: 2, range_m: 212.37, sigma_m: 0.1 };
+    let range_bytes = frames_len(&[range_to_message(&range, 7)]);
+    let imu = ImuSample {
+        t: TimeUs(5_000),
+        specific_force_frd_m_s2: nalgebra::Vector3::new(0.1, 0.2, -9.8),
+        angular_rate_frd_rad_s: nalgebra::Vector3::new(0.001, -0.002, 0.05),
+    };
+    let imu_bytes = frames_len(&[imu_to_highres(&imu)]);
+    let odo_bytes = frames_len(&[odometer_to_odometry(&OdometerSample { t: TimeUs(100_000), speed_m_s: 10.0 }, 0.2)]);
+    let raw_per_s = 200 * imu_bytes + 10 * odo_bytes;
+    for (enc, rec, n, bytes) in &per_event {
+        eprintln!("state broadcast, {enc:?}: record {rec} B in {n} fragments = {bytes} B on the wire per platform per event");
+    }
+    eprintln!("one COOPLOC_RANGE frame: {range_bytes} B; with the paper's 3 platforms each platform sends at most 2 per event");
+    eprintln!(
+        "raw sensors to a central node: HIGHRES_IMU {imu_bytes} B x 200 Hz + ODOMETRY {odo_bytes} B x 10 Hz = {raw_per_s} B/s per platform"
+    );
+    let (_, _, _, f64_bytes) = per_event[0];
+    let (_, _, _, f32_bytes) = per_event[1];
+    assert!(f32_bytes < f64_bytes * 6 / 10, "f32 roughly halves the broadcast");
+    assert!(f64_bytes + 2 * range_bytes < raw_per_s, "one event per second costs less than streaming raw sensors");
+}
