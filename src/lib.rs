@@ -15,6 +15,7 @@
 //! - [`time`]: the typed timestamp shared by all of the above.
 pub mod estimation;
 pub mod experiment;
+pub mod node;
 pub mod protocol;
 #[path = "../sitl/mod.rs"]
 pub mod sitl;

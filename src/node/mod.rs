@@ -1,0 +1,3 @@
+//! The per-vehicle companion node: [`core`] is the whole protocol as a pure state machine (inputs
+//! in, messages out, no sockets, no clocks); the tokio runner that owns the sockets comes on top.
+pub mod core;
