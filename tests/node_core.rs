@@ -73,7 +73,7 @@ fn run_network(
                     let header = MavHeader { system_id: u32::from(nodes[i].id()), component_id: 191, sequence: 0 };
                     let (_, decoded) = from_frame(&to_frame(header, &msg)).unwrap();
                     for j in (0..nodes.len()).filter(|&j| j != i) {
-                        queue.push_back((j, NodeInput::Peer(decoded.clone())));
+                        queue.push_back((j, NodeInput::Peer(Box::new(decoded.clone()))));
                     }
                 }
             }
@@ -84,7 +84,7 @@ fn run_network(
         for output in nodes[i].end_of_input() {
             if let NodeOutput::ToPeers(msg) = output {
                 for j in (0..nodes.len()).filter(|&j| j != i) {
-                    let _ = nodes[j].handle(NodeInput::Peer(msg.clone()));
+                    let _ = nodes[j].handle(NodeInput::Peer(Box::new(msg.clone())));
                 }
             }
         }

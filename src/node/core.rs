@@ -72,7 +72,7 @@ pub enum NodeInput {
         range: RangeSample,
     },
     /// A message from the cooperative network.
-    Peer(MavMessage),
+    Peer(Box<MavMessage>),
 }
 
 /// What the node sends out.
@@ -225,7 +225,7 @@ impl NodeCore {
                 self.broadcast_due(&mut out);
             }
             NodeInput::Peer(msg) => {
-                self.peer_message(msg);
+                self.peer_message(*msg);
                 self.broadcast_due(&mut out);
             }
         }
