@@ -2,6 +2,7 @@
 //! types, calls the library, prints, and maps errors to an exit code.
 
 mod experiment_cmd;
+mod node_cmd;
 
 use std::process::ExitCode;
 
@@ -18,12 +19,20 @@ struct Cli {
 enum Command {
     /// Monte Carlo reproduction of the paper's experiment: every method on the same simulated inputs.
     Experiment(experiment_cmd::Args),
+    /// The per-vehicle companion: local filter on the vehicle's IMU and odometry, cooperative
+    /// protocol with the other nodes, estimate back to the vehicle.
+    Node(node_cmd::Args),
 }
 
 fn main() -> ExitCode {
     let cli = Cli::parse();
+    tracing_subscriber::fmt()
+        .with_writer(std::io::stderr)
+        .with_env_filter(tracing_subscriber::EnvFilter::try_from_env("COOPLOC_LOG").unwrap_or_else(|_| "warn".into()))
+        .init();
     let result = match cli.command {
         Command::Experiment(args) => experiment_cmd::run(args),
+        Command::Node(args) => node_cmd::run_cmd(args),
     };
     match result {
         Ok(()) => ExitCode::SUCCESS,

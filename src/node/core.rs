@@ -383,7 +383,9 @@ impl NodeCore {
         }
         self.stats.epochs_applied += 1;
         self.last_event = Some((epoch, nis, participants.len() as u8, ranges.len() as u8));
-        let _ = out;
+        let report = self.estimate();
+        out.push(NodeOutput::ToPeers(wire::estimate_to_message(&report)));
+        out.push(NodeOutput::ToVehicle(wire::estimate_to_local_position(&report)));
     }
 
     /// Restores the checkpoint at `t`, writes back the correction, and replays the inputs after

@@ -12,7 +12,7 @@ use nalgebra::{Matrix3, Vector3};
 
 use super::dialect::cooploc::{
     COOPLOC_EPOCH_DATA, COOPLOC_ESTIMATE_DATA, COOPLOC_RANGE_DATA, COOPLOC_STATE_FRAGMENT_DATA, CooplocMethod, HIGHRES_IMU_DATA,
-    MavFrame, MavMessage, ODOMETRY_DATA,
+    LOCAL_POSITION_NED_DATA, MavFrame, MavMessage, ODOMETRY_DATA,
 };
 use super::fragment::{FRAGMENT_DATA, Fragment};
 use crate::estimation::{ImuSample, Method, OdometerSample, PlatformId, RangeSample};
@@ -260,6 +260,20 @@ pub fn estimate_from_message(m: &COOPLOC_ESTIMATE_DATA) -> Result<EstimateReport
         nis: m.nis as f64,
         participants: m.participants,
         ranges: m.ranges,
+    })
+}
+
+/// The estimate as LOCAL_POSITION_NED, the standard message autopilots and ground stations show
+/// (time since boot in ms: the vehicle's time).
+pub fn estimate_to_local_position(e: &EstimateReport) -> MavMessage {
+    MavMessage::LOCAL_POSITION_NED(LOCAL_POSITION_NED_DATA {
+        time_boot_ms: (e.t.0 / 1000) as u32,
+        x: e.position_ned_m[0] as f32,
+        y: e.position_ned_m[1] as f32,
+        z: e.position_ned_m[2] as f32,
+        vx: e.velocity_ned_m_s[0] as f32,
+        vy: e.velocity_ned_m_s[1] as f32,
+        vz: e.velocity_ned_m_s[2] as f32,
     })
 }
 

@@ -1,0 +1,148 @@
+//! `cooploc node`: arguments, logging and the final summary around [`cooploc::node`].
+
+use std::net::SocketAddr;
+use std::path::PathBuf;
+use std::time::Duration;
+
+use anyhow::{Context, bail};
+use cooploc::estimation::Method;
+use cooploc::estimation::ins::InsState;
+use cooploc::experiment::ins_settings;
+use cooploc::node::core::{NodeConfig, NodeCore};
+use cooploc::node::runner::{Links, run};
+use cooploc::protocol::record::Encoding;
+use cooploc::sitl::scenario::Scenario;
+use cooploc::sitl::world::World;
+use cooploc::time::TimeUs;
+use nalgebra::{UnitQuaternion, Vector3};
+
+#[derive(clap::Args)]
+pub struct Args {
+    /// Platform id: the vehicle's MAVLink system id.
+    #[arg(long)]
+    id: u16,
+    /// MAVLink URL of the vehicle (udpout:HOST:PORT, udpin:HOST:PORT, tcpout:, tcpin:, serial:/dev/ttyX:BAUD).
+    #[arg(long)]
+    vehicle: String,
+    /// Local address of the cooperative-network socket.
+    #[arg(long, default_value = "127.0.0.1:0")]
+    coop_bind: SocketAddr,
+    /// Peer nodes' cooperative addresses (more are learned from their traffic).
+    #[arg(long = "peer")]
+    peers: Vec<SocketAddr>,
+    /// Method: dr, naive, dcl or ci.
+    #[arg(long, default_value = "dcl")]
+    method: String,
+    /// Scenario whose sensor and filter numbers tune the INS (the vehicle's sensors).
+    #[arg(long, default_value = "sitl/scenarios/paper.toml")]
+    scenario: PathBuf,
+    /// Number format of the broadcast matrices: f64 or f32.
+    #[arg(long, default_value = "f64")]
+    encoding: String,
+    /// How long after an epoch (vehicle time) to wait for the broadcasts, ms.
+    #[arg(long, default_value_t = 500)]
+    epoch_wait_ms: u64,
+    /// Initial position N,E,D (m).
+    #[arg(long, value_delimiter = ',', required = true)]
+    init_ned: Vec<f64>,
+    /// Initial velocity N,E,D (m/s).
+    #[arg(long, value_delimiter = ',', default_values_t = [0.0, 0.0, 0.0])]
+    init_vel_ned: Vec<f64>,
+    /// Initial roll, pitch, yaw (deg).
+    #[arg(long, value_delimiter = ',', allow_hyphen_values = true, default_values_t = [0.0, 0.0, 0.0])]
+    init_rpy_deg: Vec<f64>,
+    /// Vehicle time of the initial state (us); the first IMU sample must come after it.
+    #[arg(long, default_value_t = 0)]
+    init_time_us: u64,
+    /// Stop when the vehicle has been silent this long (s); 0: run until Ctrl-C.
+    #[arg(long, default_value_t = 0.0)]
+    idle_exit_s: f64,
+}
+
+pub fn run_cmd(args: Args) -> anyhow::Result<()> {
+    let method = match Method::from_short_name(&args.method) {
+        Some(m @ (Method::DeadReckoning | Method::NoPropagation | Method::Decentralized | Method::CovarianceIntersection)) => m,
+        _ => bail!("--method {:?}: a node runs dr, naive, dcl or ci", args.method),
+    };
+    let encoding = match args.encoding.as_str() {
+        "f64" => Encoding::F64,
+        "f32" => Encoding::F32,
+        e => bail!("--encoding {e:?}: expected f64 or f32"),
+    };
+    if args.id == 0 || args.id > 255 {
+        bail!("--id {}: a MAVLink system id is 1..=255", args.id);
+    }
+    if !args.idle_exit_s.is_finite() || args.idle_exit_s < 0.0 {
+        bail!("--idle-exit-s {}: must be a non-negative number of seconds", args.idle_exit_s);
+    }
+    for (name, v) in
+        [("--init-ned", &args.init_ned), ("--init-vel-ned", &args.init_vel_ned), ("--init-rpy-deg", &args.init_rpy_deg)]
+    {
+        if v.len() != 3 || v.iter().any(|x| !x.is_finite()) {
+            bail!("{name}: three finite numbers, comma separated");
+        }
+    }
+    let scenario = Scenario::from_path(&args.scenario)?;
+    let world = World::new(&scenario)?;
+    let (ins, initial_sigma) = ins_settings(&world);
+    let rpy = &args.init_rpy_deg;
+    let state = InsState {
+        pos_ned_m: Vector3::from_column_slice(&args.init_ned),
+        vel_ned_m_s: Vector3::from_column_slice(&args.init_vel_ned),
+        att_frd_to_ned: UnitQuaternion::from_euler_angles(rpy[0].to_radians(), rpy[1].to_radians(), rpy[2].to_radians()),
+        accel_bias_frd_m_s2: Vector3::zeros(),
+        gyro_bias_frd_rad_s: Vector3::zeros(),
+        odometer_scale_error: 0.0,
+    };
+    let cfg = NodeConfig {
+        id: args.id,
+        method,
+        ins,
+        initial_sigma,
+        encoding,
+        epoch_wait_us: args.epoch_wait_ms * 1000,
+        history_us: (args.epoch_wait_ms * 1000).max(1_000_000) * 4,
+    };
+    let core = NodeCore::new(cfg, TimeUs(args.init_time_us), state).context("node configuration")?;
+    let links = Links {
+        vehicle: args.vehicle.clone(),
+        coop_bind: args.coop_bind,
+        peers: args.peers.clone(),
+        idle_exit: (args.idle_exit_s > 0.0).then(|| Duration::from_secs_f64(args.idle_exit_s)),
+        grace: Duration::from_millis(500),
+    };
+    let rt = tokio::runtime::Builder::new_multi_thread().worker_threads(2).enable_all().build()?;
+    let summary = rt.block_on(async move {
+        let (tx, rx) = tokio::sync::oneshot::channel();
+        let id = args.id;
+        let announce = tokio::spawn(async move {
+            if let Ok(addr) = rx.await {
+                println!("node {id} coop udp {addr}");
+            }
+        });
+        let shutdown = async {
+            let _ = tokio::signal::ctrl_c().await;
+        };
+        let summary = run(core, links, tx, shutdown).await;
+        let _ = announce.await;
+        summary
+    })?;
+    let e = &summary.estimate;
+    println!(
+        "node {} done: t {} pos_ned_m [{:.4}, {:.4}, {:.4}] yaw_deg {:.5} epochs_applied {} epochs_skipped {} vehicle_frames {} vehicle_rejected {} coop_frames {} coop_rejected {} peers {}",
+        e.platform,
+        e.t.0,
+        e.position_ned_m[0],
+        e.position_ned_m[1],
+        e.position_ned_m[2],
+        e.yaw_rad.to_degrees(),
+        summary.stats.epochs_applied,
+        summary.stats.epochs_skipped,
+        summary.vehicle_frames,
+        summary.vehicle_rejected,
+        summary.coop_frames,
+        summary.coop_rejected,
+        summary.peers.len()
+    );
+    Ok(())
+}
