@@ -5,9 +5,8 @@
 
 use std::collections::VecDeque;
 
-use cooploc::estimation::ins::InsState;
 use cooploc::estimation::{Method, RangeSample};
-use cooploc::experiment::{ins_settings, run_filter};
+use cooploc::experiment::{initial_state, ins_settings, run_filter};
 use cooploc::node::core::{NodeConfig, NodeCore, NodeInput, NodeOutput};
 use cooploc::protocol::record::Encoding;
 use cooploc::protocol::wire::{self, from_frame, to_frame};
@@ -15,7 +14,6 @@ use cooploc::sitl::world::SimEvent;
 use cooploc::sitl::{PAPER_TOML, Scenario, World};
 use cooploc::time::TimeUs;
 use mavlink_core::MavHeader;
-use nalgebra::Vector3;
 
 fn run_network(
     world: &World,
@@ -29,15 +27,7 @@ fn run_network(
         .platform_ids()
         .into_iter()
         .map(|id| {
-            let init = world.initial_estimate(seed, run, id).unwrap();
-            let state = InsState {
-                pos_ned_m: init.pos_ned_m(),
-                vel_ned_m_s: init.vel_ned_m_s(),
-                att_frd_to_ned: init.attitude(),
-                accel_bias_frd_m_s2: Vector3::zeros(),
-                gyro_bias_frd_rad_s: Vector3::zeros(),
-                odometer_scale_error: 0.0,
-            };
+            let (t0, state) = initial_state(world, seed, run, id).unwrap();
             let cfg = NodeConfig {
                 id,
                 method,
@@ -47,7 +37,7 @@ fn run_network(
                 epoch_wait_us: 500_000,
                 history_us: 3_000_000,
             };
-            NodeCore::new(cfg, init.truth.t, state).unwrap()
+            NodeCore::new(cfg, t0, state).unwrap()
         })
         .collect();
     let index = |id| world.platform_ids().iter().position(|&p| p == id).unwrap();

@@ -63,6 +63,21 @@ pub fn ins_settings(world: &World) -> (InsConfig, InsInitialSigma) {
     (config, sigma)
 }
 
+/// A platform's initial filter state in run `run` (truth at time zero plus the errors the
+/// scenario's `[initial]` sigmas draw; zero biases and scale error), and its time.
+pub fn initial_state(world: &World, seed: u64, run: u32, id: PlatformId) -> Result<(TimeUs, InsState), ScenarioError> {
+    let init = world.initial_estimate(seed, run, id)?;
+    let state = InsState {
+        pos_ned_m: init.pos_ned_m(),
+        vel_ned_m_s: init.vel_ned_m_s(),
+        att_frd_to_ned: init.attitude(),
+        accel_bias_frd_m_s2: Vector3::zeros(),
+        gyro_bias_frd_rad_s: Vector3::zeros(),
+        odometer_scale_error: 0.0,
+    };
+    Ok((init.truth.t, state))
+}
+
 /// Error of one platform's estimate at one instant.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize)]
 pub struct ErrorSample {
@@ -135,16 +150,7 @@ pub fn run_filter(
     let fail = |platform, t, source| ExperimentError::Filter { run: inputs.run, method, platform, t, source };
     let mut members = Vec::new();
     for p in &inputs.platforms {
-        let init = world.initial_estimate(inputs.seed, inputs.run, p.id)?;
-        let state = InsState {
-            pos_ned_m: init.pos_ned_m(),
-            vel_ned_m_s: init.vel_ned_m_s(),
-            att_frd_to_ned: init.attitude(),
-            accel_bias_frd_m_s2: Vector3::zeros(),
-            gyro_bias_frd_rad_s: Vector3::zeros(),
-            odometer_scale_error: 0.0,
-        };
-        let t0 = init.truth.t;
+        let (t0, state) = initial_state(world, inputs.seed, inputs.run, p.id)?;
         members.push((p.id, InsFilter::new(config, t0, state, sigma).map_err(|e| fail(p.id, t0, e))?));
     }
     let mut team = Team::new(method, members).map_err(|e| fail(0, TimeUs(0), e))?;
