@@ -13,11 +13,16 @@ pub fn nees(error: &DVector<f64>, p: &DMatrix<f64>) -> Result<f64, EstimationErr
 
 /// Two-sided acceptance band for the average of `runs` independent NEES values of a
 /// `dim`-dimensional consistent estimator: `[chi2_{a/2}(runs dim), chi2_{1-a/2}(runs dim)] / runs`.
+/// NaNs when there is no degree of freedom or the confidence is not in (0, 1).
 pub fn average_nees_band(dim: usize, runs: usize, confidence: f64) -> (f64, f64) {
     let dof = (dim * runs) as f64;
-    let chi = ChiSquared::new(dof).expect("dof > 0");
-    let alpha = 1.0 - confidence;
-    (chi.inverse_cdf(alpha / 2.0) / runs as f64, chi.inverse_cdf(1.0 - alpha / 2.0) / runs as f64)
+    match ChiSquared::new(dof) {
+        Ok(chi) if confidence > 0.0 && confidence < 1.0 => {
+            let alpha = 1.0 - confidence;
+            (chi.inverse_cdf(alpha / 2.0) / runs as f64, chi.inverse_cdf(1.0 - alpha / 2.0) / runs as f64)
+        }
+        _ => (f64::NAN, f64::NAN),
+    }
 }
 
 #[cfg(test)]
@@ -30,6 +35,12 @@ mod tests {
         let (lo, hi) = average_nees_band(2, 50, 0.95);
         assert!((lo * 50.0 - 74.222).abs() < 1e-2, "{lo}");
         assert!((hi * 50.0 - 129.561).abs() < 1e-2, "{hi}");
+    }
+
+    #[test]
+    fn degenerate_band_is_nan_not_a_panic() {
+        assert!(average_nees_band(0, 10, 0.95).0.is_nan());
+        assert!(average_nees_band(3, 10, 1.5).1.is_nan());
     }
 
     #[test]
