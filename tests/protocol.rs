@@ -191,7 +191,7 @@ fn wire_budget() {
     let mut per_event = Vec::new();
     for enc in [Encoding::F64, Encoding::F32] {
         let rec = record::encode(&snap, enc).unwrap();
-        let msgs: Vec<_> = fragment(1, 7, 7_000_000, &rec).unwrap().iter().map(fragment_to_message).collect();
+        let msgs: Vec<_> = fragment(1, 7, 7_000_000, &rec).unwrap().iter().map(|f| fragment_to_message(f).unwrap()).collect();
         per_event.push((enc, rec.len(), msgs.len(), frames_len(&msgs)));
     }
     let range = RangeSample { t: TimeUs(7_000_000), from: 1, to: 2, range_m: 212.37, sigma_m: 0.1 };

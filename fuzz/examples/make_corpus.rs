@@ -39,7 +39,7 @@ fn fragment_frames(fragments: &[Fragment], system_id: u32, seq: &mut u8) -> Vec<
         .iter()
         .map(|f| {
             *seq = seq.wrapping_add(1);
-            wire::to_frame(header(system_id, *seq), &wire::fragment_to_message(f))
+            wire::to_frame(header(system_id, *seq), &wire::fragment_to_message(f).expect("fragments from fragment() fit"))
         })
         .collect()
 }

@@ -116,7 +116,7 @@ fn handle(msg: &MavMessage, re: &mut Reassembler) {
         MavMessage::COOPLOC_STATE_FRAGMENT(d) => {
             if let Ok(f) = wire::fragment_from_message(d) {
                 assert!(!f.data.is_empty() && f.data.len() <= FRAGMENT_DATA);
-                let MavMessage::COOPLOC_STATE_FRAGMENT(back) = wire::fragment_to_message(&f) else {
+                let Ok(MavMessage::COOPLOC_STATE_FRAGMENT(back)) = wire::fragment_to_message(&f) else {
                     panic!("fragment_to_message made another message")
                 };
                 assert_eq!(wire::fragment_from_message(&back).as_ref(), Ok(&f), "fragment round trip");

@@ -313,7 +313,7 @@ impl NodeCore {
             let e = self.epochs.get_mut(&epoch).expect("listed");
             e.broadcast = true;
             if let Some((own, frags)) = sent {
-                out.extend(frags.iter().map(|f| NodeOutput::ToPeers(wire::fragment_to_message(f))));
+                out.extend(frags.iter().filter_map(|f| wire::fragment_to_message(f).ok()).map(NodeOutput::ToPeers));
                 e.records.insert(self.cfg.id, own);
                 self.stats.records_sent += 1;
             }

@@ -204,20 +204,23 @@ pub async fn run(
             r = coop.recv_from(&mut buf) => {
                 let Ok((n, from)) = r else { continue };
                 summary_counts.2 += 1;
-                match wire::from_frame(&buf[..n]) {
-                    Ok((header, msg)) if header.system_id != u32::from(id) => {
-                        if peers.insert(from) {
-                            tracing::info!(platform = id, peer = %from, sysid = header.system_id, "new peer");
-                        }
-                        vec![NodeInput::Peer(Box::new(msg))]
-                    }
-                    Ok(_) => continue,
-                    Err(e) => {
-                        summary_counts.3 += 1;
-                        tracing::debug!(platform = id, %from, error = %e, "cooperative datagram dropped");
-                        continue;
-                    }
+                let frames = wire::frames(&buf[..n]);
+                if frames.is_empty() {
+                    summary_counts.3 += 1;
+                    tracing::debug!(platform = id, %from, bytes = n, "cooperative datagram without a valid frame dropped");
+                    continue;
                 }
+                let mut inputs = Vec::with_capacity(frames.len());
+                for (header, msg) in frames {
+                    if header.system_id == u32::from(id) {
+                        continue; // our own traffic, looped back
+                    }
+                    if peers.insert(from) {
+                        tracing::info!(platform = id, peer = %from, sysid = header.system_id, "new peer");
+                    }
+                    inputs.push(NodeInput::Peer(Box::new(msg)));
+                }
+                inputs
             }
         };
         for input in inputs {

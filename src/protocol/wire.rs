@@ -49,6 +49,17 @@ pub fn from_frame(bytes: &[u8]) -> Result<(MavHeader, MavMessage), WireError> {
     reader.read_message::<MavMessage>(MavlinkVersion::V2).map_err(|e| WireError::Frame(e.to_string()))
 }
 
+/// Every valid MAVLink 2 frame in `bytes` (a datagram may carry several), in order; what is not
+/// a valid frame is skipped.
+pub fn frames(bytes: &[u8]) -> Vec<(MavHeader, MavMessage)> {
+    let mut reader = mavlink_core::MavlinkReader::new(bytes);
+    let mut out = Vec::new();
+    while let Ok(frame) = reader.read_message::<MavMessage>(MavlinkVersion::V2) {
+        out.push(frame);
+    }
+    out
+}
+
 /// Message id of a message (for counters and logs).
 pub fn message_id(msg: &MavMessage) -> u32 {
     msg.message_id()
@@ -56,10 +67,14 @@ pub fn message_id(msg: &MavMessage) -> u32 {
 
 // ---- state fragments ----
 
-pub fn fragment_to_message(f: &Fragment) -> MavMessage {
+/// A fragment as COOPLOC_STATE_FRAGMENT; fails on empty data or more than [`FRAGMENT_DATA`] bytes.
+pub fn fragment_to_message(f: &Fragment) -> Result<MavMessage, WireError> {
+    if f.data.is_empty() || f.data.len() > FRAGMENT_DATA {
+        return Err(bad("COOPLOC_STATE_FRAGMENT", "data_len", format!("{} outside 1..={FRAGMENT_DATA}", f.data.len())));
+    }
     let mut data = [0u8; FRAGMENT_DATA];
     data[..f.data.len()].copy_from_slice(&f.data);
-    MavMessage::COOPLOC_STATE_FRAGMENT(COOPLOC_STATE_FRAGMENT_DATA {
+    Ok(MavMessage::COOPLOC_STATE_FRAGMENT(COOPLOC_STATE_FRAGMENT_DATA {
         time_usec: f.time_usec,
         epoch: f.epoch,
         record_crc32: f.record_crc32,
@@ -69,7 +84,7 @@ pub fn fragment_to_message(f: &Fragment) -> MavMessage {
         frag_count: f.count,
         data_len: f.data.len() as u8,
         data,
-    })
+    }))
 }
 
 pub fn fragment_from_message(m: &COOPLOC_STATE_FRAGMENT_DATA) -> Result<Fragment, WireError> {
