@@ -552,3 +552,75 @@ fn stream_defaults_are_every_sample_and_10_hz_truth() {
     assert_eq!(d.highres_imu, Interval::EverySample);
     assert_eq!(d.sim_state, Interval::Every(100_000));
 }
+
+/// Reads frames from a blocking byte stream until `pred` matches (bounded by TIMEOUT).
+fn read_until<R: std::io::Read>(
+    reader: &mut mavlink_core::MavlinkReader<R>,
+    mut pred: impl FnMut(&MavMessage) -> bool,
+) -> Vec<(MavHeader, MavMessage)> {
+    let deadline = std::time::Instant::now() + TIMEOUT;
+    let mut got = Vec::new();
+    while std::time::Instant::now() < deadline {
+        match reader.read_any_message::<MavMessage>() {
+            Ok(f) => {
+                let done = pred(&f.1);
+                got.push(f);
+                if done {
+                    return got;
+                }
+            }
+            // The port's read timeout: try again until the deadline.
+            Err(mavlink_core::error::MessageReadError::Io(e)) if e.kind() == std::io::ErrorKind::TimedOut => {}
+            Err(e) => panic!("{e}"),
+        }
+    }
+    panic!("nothing matched within {TIMEOUT:?}");
+}
+
+#[cfg(unix)]
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_vehicle_on_a_pseudo_terminal_streams_and_answers_commands_and_ctrl_c_stops_the_run() {
+    use serialport::SerialPort;
+    use std::io::Write;
+    let (master, slave) = serialport::TTYPort::pair().expect("a pseudo-terminal pair");
+    let path = slave.name().expect("the slave's path");
+    let world = world();
+    let mut cfg = config(&world, Speed::Factor(1.0));
+    cfg.wait_for_peers = false;
+    cfg.endpoints[0].1 = cooploc::simulator::Endpoint::Serial { path: path.clone(), baud: 921_600 };
+    let sim = Simulator::bind(world.clone(), cfg).await.unwrap();
+    assert_eq!(sim.endpoints()[0].1.to_string(), format!("serial {path} 921600"));
+    let (stop, stopped) = oneshot::channel::<()>();
+    let handle = tokio::spawn(sim.run(async {
+        let _ = stopped.await;
+    }));
+    let client = tokio::task::spawn_blocking(move || {
+        let mut writer = master.try_clone_native().unwrap();
+        let mut reader = mavlink_core::MavlinkReader::new(master);
+        let got = read_until(&mut reader, |m| matches!(m, MavMessage::HEARTBEAT(_)));
+        let (h, _) = got.last().unwrap();
+        assert_eq!((h.system_id, h.component_id), (1, 1));
+        // Garbage on the line, then a command: the garbage is skipped.
+        writer.write_all(b"\x00\xff line noise \xfd\x03").unwrap();
+        writer.write_all(&frame(&command(1, MavCmd::MAV_CMD_SET_MESSAGE_INTERVAL, 105.0, 100_000.0))).unwrap();
+        let got = read_until(&mut reader, |m| ack_of(m).is_some());
+        assert_eq!(ack_of(&got.last().unwrap().1), Some((MavCmd::MAV_CMD_SET_MESSAGE_INTERVAL, MavResult::MAV_RESULT_ACCEPTED)));
+        // Then 10 Hz IMU.
+        let mut t = Vec::new();
+        read_until(&mut reader, |m| {
+            if let MavMessage::HIGHRES_IMU(d) = m {
+                t.push(d.time_usec);
+            }
+            t.len() == 3
+        });
+        assert!(t.windows(2).all(|w| w[1] - w[0] == 100_000), "{t:?}");
+    });
+    tokio::time::timeout(TIMEOUT, client).await.expect("the client finishes").unwrap();
+    stop.send(()).unwrap();
+    let report = tokio::time::timeout(TIMEOUT, handle).await.expect("the run stops").unwrap().unwrap();
+    assert_eq!(report.reason, StopReason::Shutdown);
+    assert!(report.sim_time < TimeUs(3_000_000));
+    let v1 = &report.vehicles[0];
+    assert_eq!(v1.counters.commands_accepted, 1);
+    assert_eq!(v1.link.dropped, 0);
+}
