@@ -566,3 +566,224 @@ impl VehicleCore {
 fn message_id_param(v: f32) -> Option<u32> {
     ((0.0..=16_777_215.0).contains(&v) && v.fract() == 0.0).then_some(v as u32)
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::protocol::dialect::cooploc::{COMMAND_INT_DATA, COMMAND_LONG_DATA};
+    use crate::sitl::scenario::tests::SMALL;
+    use crate::sitl::{Scenario, World};
+
+    fn world() -> World {
+        World::new(&Scenario::from_toml_str(SMALL).unwrap()).unwrap()
+    }
+
+    fn core(platform: PlatformId) -> VehicleCore {
+        VehicleCore::new(VehicleConfig {
+            platform,
+            defaults: StreamDefaults::default(),
+            origin: GeoOrigin { lat_deg: 34.7, lon_deg: 0.0, alt_m: 0.0 },
+            gravity_m_s2: 9.80665,
+            odometer_sigma_m_s: 0.2,
+            imu_period_us: 5_000,
+            odometer_period_us: 100_000,
+            range_period_us: Some(1_000_000),
+        })
+        .unwrap()
+    }
+
+    const GCS: MavHeader = MavHeader { system_id: 255, component_id: 190, sequence: 0 };
+
+    fn long(target_system: u8, command: MavCmd, param1: f32, param2: f32) -> MavMessage {
+        MavMessage::COMMAND_LONG(COMMAND_LONG_DATA {
+            command,
+            param1,
+            param2,
+            target_system,
+            target_component: 1,
+            ..Default::default()
+        })
+    }
+
+    /// Sends a command, returns the ACK's result and the replies after it.
+    fn ask(c: &mut VehicleCore, w: &World, msg: MavMessage) -> Option<(MavResult, Vec<MavMessage>)> {
+        let mut out = Vec::new();
+        c.on_message(TimeUs(0), GCS, &msg, w.trajectory(c.platform()).unwrap(), &mut out);
+        let mut it = out.into_iter();
+        let first = it.next()?;
+        assert_eq!(first.destination, Destination::Requester);
+        let MavMessage::COMMAND_ACK(ack) = first.message else { panic!("ACK first, got {:?}", first.message) };
+        assert_eq!((ack.target_system, ack.target_component), (255, 190));
+        Some((ack.result, it.map(|o| o.message).collect()))
+    }
+
+    fn imu(t: u64) -> ImuSample {
+        ImuSample {
+            t: TimeUs(t),
+            specific_force_frd_m_s2: nalgebra::Vector3::zeros(),
+            angular_rate_frd_rad_s: nalgebra::Vector3::zeros(),
+        }
+    }
+
+    fn imu_times(c: &mut VehicleCore, samples: impl Iterator<Item = u64>) -> Vec<u64> {
+        let mut out = Vec::new();
+        samples.for_each(|t| c.on_imu(&imu(t), &mut out));
+        out.iter()
+            .filter_map(|o| match &o.message {
+                MavMessage::HIGHRES_IMU(d) => Some(d.time_usec),
+                _ => None,
+            })
+            .collect()
+    }
+
+    #[test]
+    fn platform_ids_outside_mavlink_system_ids_are_refused() {
+        for id in [0, 256, 1000] {
+            let mut cfg = core(1).config.clone();
+            cfg.platform = id;
+            assert_eq!(VehicleCore::new(cfg).unwrap_err(), BadSystemId(id));
+        }
+        assert_eq!(core(255).system_id(), 255);
+    }
+
+    #[test]
+    fn heartbeat_and_sim_state_follow_the_simulated_clock_with_increasing_sequence() {
+        let w = world();
+        let mut c = core(2);
+        let mut out = Vec::new();
+        c.advance_to(TimeUs(2_050_000), w.trajectory(2).unwrap(), &mut out);
+        let hb = out.iter().filter(|o| matches!(o.message, MavMessage::HEARTBEAT(_))).count();
+        let sim = out.iter().filter(|o| matches!(o.message, MavMessage::SIM_STATE(_))).count();
+        assert_eq!((hb, sim), (3, 21), "heartbeats at 0, 1, 2 s; SIM_STATE every 100 ms from 0");
+        for (k, o) in out.iter().enumerate() {
+            assert_eq!((o.header.system_id, o.header.component_id, o.header.sequence), (2, 1, k as u8));
+            assert_eq!(o.destination, Destination::AllPeers);
+        }
+        assert_eq!(c.next_periodic_due(), Some(TimeUs(2_100_000)));
+        out.clear();
+        c.advance_to(TimeUs(2_050_000), w.trajectory(2).unwrap(), &mut out);
+        assert!(out.is_empty(), "nothing twice");
+    }
+
+    #[test]
+    fn intervals_decimate_samples_and_keep_the_mean_rate() {
+        let w = world();
+        let mut c = core(1);
+        assert_eq!(imu_times(&mut c, (1..=4).map(|k| k * 5_000)), vec![5_000, 10_000, 15_000, 20_000]);
+        assert_eq!(
+            ask(&mut c, &w, long(1, MavCmd::MAV_CMD_SET_MESSAGE_INTERVAL, 105.0, 7_000.0)).unwrap().0,
+            MavResult::MAV_RESULT_ACCEPTED
+        );
+        // 7 ms on a 5 ms grid, from 7 ms after the last one sent (20 ms): the mean rate holds.
+        let t = imu_times(&mut c, (5..1005).map(|k| k * 5_000));
+        assert_eq!(t[0], 30_000);
+        assert!((t.len() as f64 - (5_020_000.0 - 27_000.0) / 7_000.0).abs() <= 1.0, "{}", t.len());
+        assert!(t.windows(2).all(|w| (5_000..=10_000).contains(&(w[1] - w[0]))));
+        // Slower than the sensor: every sample.
+        ask(&mut c, &w, long(1, MavCmd::MAV_CMD_SET_MESSAGE_INTERVAL, 105.0, 1.0)).unwrap();
+        assert_eq!(imu_times(&mut c, (1005..1010).map(|k| k * 5_000)).len(), 5);
+        // -1 disables, 0 restores the default.
+        ask(&mut c, &w, long(1, MavCmd::MAV_CMD_SET_MESSAGE_INTERVAL, 105.0, -1.0)).unwrap();
+        assert_eq!(c.interval(Stream::HighresImu), Interval::Disabled);
+        assert!(imu_times(&mut c, (1010..1020).map(|k| k * 5_000)).is_empty());
+        ask(&mut c, &w, long(1, MavCmd::MAV_CMD_SET_MESSAGE_INTERVAL, 105.0, 0.0)).unwrap();
+        assert_eq!(c.interval(Stream::HighresImu), Interval::EverySample);
+        assert_eq!(imu_times(&mut c, (1020..1030).map(|k| k * 5_000)).len(), 10);
+    }
+
+    #[test]
+    fn bad_requests_are_denied_and_change_nothing() {
+        let w = world();
+        let mut c = core(1);
+        for (id, interval) in [
+            (105.0, -2.0),
+            (105.0, f32::NEG_INFINITY),
+            (105.0, f32::NAN),
+            (105.0, 3e9),
+            (108.0, 999.0),
+            (0.0, 2_000_000.0),
+            (-1.0, 1000.0),
+            (f32::NAN, 1000.0),
+            (1e30, 1000.0),
+            (33.0, 1000.0),
+        ] {
+            let (result, replies) = ask(&mut c, &w, long(1, MavCmd::MAV_CMD_SET_MESSAGE_INTERVAL, id, interval)).unwrap();
+            assert_eq!(result, MavResult::MAV_RESULT_DENIED, "message {id}, interval {interval}");
+            assert!(replies.is_empty());
+        }
+        for s in Stream::ALL {
+            assert_eq!(c.interval(s), c.streams[s.index()].default, "{s:?} unchanged");
+        }
+        // The heartbeat accepts its own 1 Hz and the default.
+        assert_eq!(
+            ask(&mut c, &w, long(1, MavCmd::MAV_CMD_SET_MESSAGE_INTERVAL, 0.0, 1e6)).unwrap().0,
+            MavResult::MAV_RESULT_ACCEPTED
+        );
+        assert_eq!(ask(&mut c, &w, long(1, MavCmd::MAV_CMD_DO_SET_MODE, 1.0, 0.0)).unwrap().0, MavResult::MAV_RESULT_UNSUPPORTED);
+        assert_eq!(c.counters().commands_rejected, 10);
+        assert_eq!(c.counters().commands_unsupported, 1);
+    }
+
+    #[test]
+    fn commands_for_others_are_ignored_and_command_int_works_too() {
+        let w = world();
+        let mut c = core(1);
+        assert!(ask(&mut c, &w, long(2, MavCmd::MAV_CMD_SET_MESSAGE_INTERVAL, 105.0, -1.0)).is_none());
+        let mut other_component = long(1, MavCmd::MAV_CMD_SET_MESSAGE_INTERVAL, 105.0, -1.0);
+        if let MavMessage::COMMAND_LONG(d) = &mut other_component {
+            d.target_component = 191;
+        }
+        assert!(ask(&mut c, &w, other_component).is_none());
+        assert_eq!(c.counters().ignored, 2);
+        assert_eq!(c.interval(Stream::HighresImu), Interval::EverySample);
+        // Broadcast (target 0) and COMMAND_INT.
+        let int = MavMessage::COMMAND_INT(COMMAND_INT_DATA {
+            command: MavCmd::MAV_CMD_SET_MESSAGE_INTERVAL,
+            param1: 331.0,
+            param2: 500_000.0,
+            ..Default::default()
+        });
+        assert_eq!(ask(&mut c, &w, int).unwrap().0, MavResult::MAV_RESULT_ACCEPTED);
+        assert_eq!(c.interval(Stream::Odometry), Interval::Every(500_000));
+        let (r, replies) = ask(&mut c, &w, long(0, MavCmd::MAV_CMD_REQUEST_MESSAGE, 244.0, 331.0)).unwrap();
+        assert_eq!(r, MavResult::MAV_RESULT_ACCEPTED);
+        assert_eq!(replies, vec![MavMessage::MESSAGE_INTERVAL(MESSAGE_INTERVAL_DATA { interval_us: 500_000, message_id: 331 })]);
+        let (_, replies) = ask(&mut c, &w, long(0, MavCmd::MAV_CMD_REQUEST_MESSAGE, 244.0, 105.0)).unwrap();
+        assert_eq!(replies, vec![MavMessage::MESSAGE_INTERVAL(MESSAGE_INTERVAL_DATA { interval_us: 5_000, message_id: 105 })]);
+    }
+
+    #[test]
+    fn ranges_are_sent_by_the_measuring_platform_only() {
+        let r = |from, to| RangeSample { t: TimeUs(1_000_000), from, to, range_m: 100.0, sigma_m: 0.1 };
+        let ranges = [r(1, 2), r(1, 3), r(2, 3)];
+        for (platform, want) in [(1, 2), (2, 1), (3, 0)] {
+            let mut c = core(platform);
+            let mut out = Vec::new();
+            c.on_ranges(4, TimeUs(1_000_000), &ranges, &mut out);
+            assert_eq!(out.len(), want);
+            for o in &out {
+                let MavMessage::COOPLOC_RANGE(d) = &o.message else { panic!() };
+                assert_eq!((d.from_platform, d.epoch), (platform, 4));
+            }
+        }
+    }
+
+    #[test]
+    fn garbage_is_counted_and_valid_frames_in_one_datagram_are_all_handled() {
+        let w = world();
+        let truth = w.trajectory(1).unwrap();
+        let mut c = core(1);
+        let mut out = Vec::new();
+        for junk in [&b""[..], b"\xfd", b"not mavlink at all", &[0xFE; 300]] {
+            assert!(!c.on_bytes(TimeUs(0), junk, truth, &mut out));
+        }
+        assert_eq!(c.counters().malformed, 4);
+        assert!(out.is_empty());
+        let mut two = wire::to_frame(GCS, &long(1, MavCmd::MAV_CMD_REQUEST_MESSAGE, 0.0, 0.0));
+        two.extend(b"junk between");
+        two.extend(wire::to_frame(GCS, &long(1, MavCmd::MAV_CMD_REQUEST_MESSAGE, 148.0, 0.0)));
+        assert!(c.on_bytes(TimeUs(0), &two, truth, &mut out));
+        assert_eq!(c.counters().frames_received, 2);
+        assert_eq!(out.len(), 4, "two ACKs, a HEARTBEAT and an AUTOPILOT_VERSION");
+    }
+}
