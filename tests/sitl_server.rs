@@ -624,3 +624,74 @@ async fn a_vehicle_on_a_pseudo_terminal_streams_and_answers_commands_and_ctrl_c_
     assert_eq!(v1.counters.commands_accepted, 1);
     assert_eq!(v1.link.dropped, 0);
 }
+
+fn python() -> Option<String> {
+    match std::env::var("COOPLOC_PYTHON") {
+        Ok(p) => Some(p),
+        Err(_) if std::env::var("CI").as_deref() == Ok("true") => {
+            panic!("COOPLOC_PYTHON is not set: run the tests through tests/run-all.sh")
+        }
+        Err(_) => {
+            eprintln!("SKIPPED: the pymavlink client needs COOPLOC_PYTHON (tests/run-all.sh sets it)");
+            None
+        }
+    }
+}
+
+/// pymavlink (an independent implementation, its own common.xml) as a `udpout` client: it sees
+/// the vehicle's HEARTBEAT, gets its SET_MESSAGE_INTERVAL acknowledged, and the rate changes.
+const PYMAVLINK_CLIENT: &str = r#"
+import os, sys
+os.environ["MAVLINK20"] = "1"
+from pymavlink import mavutil
+m = mavutil.mavlink_connection("udpout:" + sys.argv[1], source_system=255, source_component=190)
+m.mav.heartbeat_send(mavutil.mavlink.MAV_TYPE_GCS, mavutil.mavlink.MAV_AUTOPILOT_INVALID, 0, 0, 0)
+hb = m.recv_match(type="HEARTBEAT", blocking=True, timeout=20)
+assert hb is not None and hb.get_srcSystem() == 1 and hb.get_srcComponent() == 1 and hb.type == 10, hb
+m.mav.command_long_send(1, 1, mavutil.mavlink.MAV_CMD_SET_MESSAGE_INTERVAL, 0, 105, 50000, 0, 0, 0, 0, 0)
+last = None
+while True:
+    msg = m.recv_match(blocking=True, timeout=20)
+    assert msg is not None, "no COMMAND_ACK"
+    if msg.get_type() == "COMMAND_ACK":
+        assert msg.command == 511 and msg.result == 0 and msg.target_system == 255, msg
+        break
+    if msg.get_type() == "HIGHRES_IMU":
+        last = msg.time_usec
+after = []
+while len(after) < 5:
+    msg = m.recv_match(type="HIGHRES_IMU", blocking=True, timeout=20)
+    assert msg is not None, "no HIGHRES_IMU after the ACK"
+    after.append(msg.time_usec)
+times = ([last] if last is not None else []) + after
+assert all(b - a == 50000 for a, b in zip(times, times[1:])), times
+print("ok", after[0])
+"#;
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn pymavlink_connects_with_udpout_and_a_listener_gets_udpout_targets() {
+    let Some(python) = python() else { return };
+    let world = world();
+    // Vehicles 2 and 3 stream to a listener that never sends (their `udpout` target).
+    let listener = client_socket();
+    let mut cfg = config(&world, Speed::Factor(2.0));
+    for (_, e) in cfg.endpoints.iter_mut().skip(1) {
+        let cooploc::simulator::Endpoint::Udp { targets, .. } = e else { unreachable!() };
+        targets.push(listener.local_addr().unwrap());
+    }
+    let started = start(world, cfg).await;
+    let port = started.endpoints[0].1.to_string();
+    // The script bounds each of its own waits.
+    let out = tokio::task::spawn_blocking(move || {
+        std::process::Command::new(&python).arg("-c").arg(PYMAVLINK_CLIENT).arg(&port).output().unwrap()
+    });
+    let out = tokio::time::timeout(TIMEOUT * 4, out).await.expect("pymavlink finishes").unwrap();
+    assert!(out.status.success(), "{}{}", String::from_utf8_lossy(&out.stdout), String::from_utf8_lossy(&out.stderr));
+    assert!(String::from_utf8_lossy(&out.stdout).starts_with("ok"));
+    let report = tokio::time::timeout(TIMEOUT, started.handle).await.unwrap().unwrap();
+    assert_eq!(report.vehicles[0].counters.commands_accepted, 1);
+    let mut senders: Vec<u32> =
+        drain(&listener).iter().filter(|(_, m)| matches!(m, MavMessage::HEARTBEAT(_))).map(|(h, _)| h.system_id).collect();
+    senders.sort();
+    assert_eq!(senders, vec![2, 2, 2, 2, 3, 3, 3, 3], "every heartbeat of vehicles 2 and 3, none of vehicle 1");
+}
