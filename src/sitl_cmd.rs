@@ -10,6 +10,13 @@ use cooploc::sitl::scenario::Scenario;
 use cooploc::sitl::world::World;
 
 #[derive(clap::Args)]
+#[command(after_help = "\
+Connecting (vehicle N listens on BIND:BASE_PORT+N and streams to every peer it has heard a MAVLink frame from):
+  cooploc node --vehicle udpout:127.0.0.1:14541
+  mavproxy.py --master=udpout:127.0.0.1:14541
+A client that listens instead: --vehicle 1=udpout:127.0.0.1:14550 here, udpin:127.0.0.1:14550 on the client.
+Timestamps, HEARTBEAT (1 Hz) and every rate are in simulated time: at --speed 10 the heartbeat comes 10 times a second.
+The endpoints are printed one per line at start: `vehicle ID udp HOST:PORT [out HOST:PORT,..]` or `vehicle ID serial PATH BAUD`.")]
 pub struct Args {
     /// Scenario file.
     #[arg(default_value = "sitl/scenarios/paper.toml")]

@@ -16,6 +16,13 @@
 //! MAV_CMD_REQUEST_MESSAGE (COMMAND_LONG or COMMAND_INT) with COMMAND_ACK; see [`vehicle`].
 //! Rates are per vehicle: every peer of a vehicle sees the same streams.
 //!
+//! ## Time
+//!
+//! Everything runs on simulated time: message timestamps (`time_usec`), the HEARTBEAT period,
+//! SIM_STATE and every interval set by command. [`Speed`] only maps simulated time to wall time
+//! (`--speed 1`: real time; `max`: no waiting). A run that falls behind its schedule catches up
+//! without waiting. With `wait_for_peers` the clock holds at zero until every vehicle has a peer.
+//!
 //! - [`vehicle`]: the sans-io core of one vehicle (streams, intervals, commands, sequence numbers).
 //! - [`Simulator`]: the tokio runner that owns the links and the clock.
 //!
