@@ -695,3 +695,32 @@ async fn pymavlink_connects_with_udpout_and_a_listener_gets_udpout_targets() {
     senders.sort();
     assert_eq!(senders, vec![2, 2, 2, 2, 3, 3, 3, 3], "every heartbeat of vehicles 2 and 3, none of vehicle 1");
 }
+
+/// What a node does: the mavlink crate's own `udpout` connection (Rust, our dialect) to a
+/// vehicle's port. It sends first; the vehicle then streams to it.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn the_mavlink_crates_udpout_connection_is_served() {
+    use mavlink::AsyncMavConnection;
+    let world = world();
+    let mut cfg = config(&world, Speed::Factor(1.0));
+    // Only vehicle 1 matters here; the others stream to nobody.
+    cfg.wait_for_peers = false;
+    let started = start(world, cfg).await;
+    let conn = mavlink::connect_async::<MavMessage>(&format!("udpout:{}", started.endpoints[0].1)).await.unwrap();
+    conn.send(&GCS, &gcs_heartbeat()).await.unwrap();
+    conn.send(&GCS, &command(1, MavCmd::MAV_CMD_REQUEST_MESSAGE, 148.0, 0.0)).await.unwrap();
+    let mut seen = (false, false, false);
+    while !(seen.0 && seen.1 && seen.2) {
+        let (h, m) = tokio::time::timeout(TIMEOUT, conn.recv()).await.expect("a frame").unwrap();
+        assert_eq!(h.system_id, 1);
+        match m {
+            MavMessage::COMMAND_ACK(a) => {
+                assert_eq!((a.command, a.result), (MavCmd::MAV_CMD_REQUEST_MESSAGE, MavResult::MAV_RESULT_ACCEPTED));
+                seen.0 = true;
+            }
+            MavMessage::AUTOPILOT_VERSION(_) => seen.1 = true,
+            MavMessage::HIGHRES_IMU(_) => seen.2 = true,
+            _ => {}
+        }
+    }
+}
