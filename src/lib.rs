@@ -12,11 +12,14 @@
 //!   async: state in, state out.
 //! - [`sitl`]: the simulated world (truth trajectories, sensor error models, scenario files).
 //!   Its source lives in the top-level `sitl/` folder.
+//! - [`simulator`]: `cooploc sitl`, the world's vehicles as MAVLink systems (a sans-io vehicle
+//!   core and a tokio runner).
 //! - [`time`]: the typed timestamp shared by all of the above.
 pub mod estimation;
 pub mod experiment;
 pub mod node;
 pub mod protocol;
+pub mod simulator;
 #[path = "../sitl/mod.rs"]
 pub mod sitl;
 pub mod time;

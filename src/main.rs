@@ -3,6 +3,7 @@
 
 mod experiment_cmd;
 mod node_cmd;
+mod sitl_cmd;
 
 use std::process::ExitCode;
 
@@ -22,17 +23,20 @@ enum Command {
     /// The per-vehicle companion: local filter on the vehicle's IMU and odometry, cooperative
     /// protocol with the other nodes, estimate back to the vehicle.
     Node(node_cmd::Args),
+    /// Runs a scenario's vehicles as MAVLink systems (one UDP or serial link each), in simulated time.
+    Sitl(sitl_cmd::Args),
 }
 
 fn main() -> ExitCode {
     let cli = Cli::parse();
     tracing_subscriber::fmt()
         .with_writer(std::io::stderr)
-        .with_env_filter(tracing_subscriber::EnvFilter::try_from_env("COOPLOC_LOG").unwrap_or_else(|_| "warn".into()))
+        .with_env_filter(tracing_subscriber::EnvFilter::try_from_default_env().unwrap_or_else(|_| "warn".into()))
         .init();
     let result = match cli.command {
         Command::Experiment(args) => experiment_cmd::run(args),
         Command::Node(args) => node_cmd::run_cmd(args),
+        Command::Sitl(args) => sitl_cmd::run(args),
     };
     match result {
         Ok(()) => ExitCode::SUCCESS,

@@ -12,10 +12,11 @@ use nalgebra::{Matrix3, Vector3};
 
 use super::dialect::cooploc::{
     COOPLOC_EPOCH_DATA, COOPLOC_ESTIMATE_DATA, COOPLOC_RANGE_DATA, COOPLOC_STATE_FRAGMENT_DATA, CooplocMethod, HIGHRES_IMU_DATA,
-    LOCAL_POSITION_NED_DATA, MavFrame, MavMessage, ODOMETRY_DATA,
+    LOCAL_POSITION_NED_DATA, MavFrame, MavMessage, ODOMETRY_DATA, SIM_STATE_DATA,
 };
 use super::fragment::{FRAGMENT_DATA, Fragment};
 use crate::estimation::{ImuSample, Method, OdometerSample, PlatformId, RangeSample};
+use crate::sitl::TruthState;
 use crate::time::TimeUs;
 
 /// A message from the wire that cannot be used.
@@ -385,4 +386,112 @@ pub fn odometer_to_odometry(s: &OdometerSample, sigma_m_s: f64) -> MavMessage {
 /// The sample as receivers see it (f32 on the wire).
 pub fn odometer_as_sent(s: &OdometerSample) -> OdometerSample {
     OdometerSample { t: s.t, speed_m_s: s.speed_m_s as f32 as f64 }
+}
+
+// ---- geodetic position and simulator truth ----
+
+/// Equatorial radius of WGS-84, m: the sphere of the flat-Earth approximation below.
+pub const EARTH_RADIUS_M: f64 = 6_378_137.0;
+
+/// Where the origin of the local NED frame sits on the Earth. The simulated world is a flat
+/// tangent plane; positions go on the wire as latitude and longitude by the flat-Earth
+/// (equirectangular) approximation about this point, which is exact to well under a centimetre
+/// over the few kilometres of a scenario (the error grows as distance^2 / R).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct GeoOrigin {
+    pub lat_deg: f64,
+    pub lon_deg: f64,
+    /// Altitude of the NED origin (D = 0), m above the reference.
+    pub alt_m: f64,
+}
+
+/// A geodetic position: degrees and metres (altitude up).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Geodetic {
+    pub lat_deg: f64,
+    pub lon_deg: f64,
+    pub alt_m: f64,
+}
+
+/// Local NED (m) to latitude, longitude (wrapped to [-180, 180)) and altitude.
+pub fn ned_to_geodetic(origin: &GeoOrigin, pos_ned_m: &Vector3<f64>) -> Geodetic {
+    let lat_deg = origin.lat_deg + (pos_ned_m[0] / EARTH_RADIUS_M).to_degrees();
+    let lon_deg = origin.lon_deg + (pos_ned_m[1] / (EARTH_RADIUS_M * origin.lat_deg.to_radians().cos())).to_degrees();
+    Geodetic { lat_deg, lon_deg: wrap_lon_deg(lon_deg), alt_m: origin.alt_m - pos_ned_m[2] }
+}
+
+/// Inverse of [`ned_to_geodetic`] (the longitude difference is taken the short way round).
+pub fn geodetic_to_ned(origin: &GeoOrigin, g: &Geodetic) -> Vector3<f64> {
+    let dlon = wrap_lon_deg(g.lon_deg - origin.lon_deg);
+    Vector3::new(
+        (g.lat_deg - origin.lat_deg).to_radians() * EARTH_RADIUS_M,
+        dlon.to_radians() * EARTH_RADIUS_M * origin.lat_deg.to_radians().cos(),
+        origin.alt_m - g.alt_m,
+    )
+}
+
+fn wrap_lon_deg(lon: f64) -> f64 {
+    (lon + 180.0).rem_euclid(360.0) - 180.0
+}
+
+/// Degrees as MAVLink's `degE7` integer (rounded; saturates outside the i32 range).
+pub fn deg_to_e7(deg: f64) -> i32 {
+    (deg * 1e7).round() as i32
+}
+
+pub fn e7_to_deg(v: i32) -> f64 {
+    v as f64 * 1e-7
+}
+
+/// Simulator truth as SIM_STATE: attitude quaternion (body FRD to NED, q1 = w) and Euler angles,
+/// position as latitude/longitude (both the float and the 1e-7 deg integer fields) and altitude,
+/// NED velocity, and body-frame specific force and angular rate relative to the Earth
+/// (`[a_long, v r, -g]` and `[0, 0, r]` on level ground: the vehicle's own motion, without the
+/// Earth-rate term the IMU senses). Standard deviations are zero: this is the truth.
+pub fn truth_to_sim_state(truth: &TruthState, origin: &GeoOrigin, gravity_m_s2: f64) -> MavMessage {
+    let q = truth.attitude.quaternion();
+    let (roll, pitch, yaw) = truth.attitude.euler_angles();
+    let g = ned_to_geodetic(origin, &truth.pos_ned_m);
+    let v = truth.vel_ned_m_s;
+    // Specific force in body FRD: kinematic acceleration minus gravity, both rotated into the body.
+    let a_body = Vector3::new(truth.accel_m_s2, truth.speed_m_s * truth.yaw_rate_rad_s, 0.0);
+    let f_body = a_body - truth.attitude.inverse_transform_vector(&Vector3::new(0.0, 0.0, gravity_m_s2));
+    MavMessage::SIM_STATE(SIM_STATE_DATA {
+        q1: q.w as f32,
+        q2: q.i as f32,
+        q3: q.j as f32,
+        q4: q.k as f32,
+        roll: roll as f32,
+        pitch: pitch as f32,
+        yaw: yaw as f32,
+        xacc: f_body[0] as f32,
+        yacc: f_body[1] as f32,
+        zacc: f_body[2] as f32,
+        xgyro: 0.0,
+        ygyro: 0.0,
+        zgyro: truth.yaw_rate_rad_s as f32,
+        lat: g.lat_deg as f32,
+        lon: g.lon_deg as f32,
+        alt: g.alt_m as f32,
+        std_dev_horz: 0.0,
+        std_dev_vert: 0.0,
+        vn: v[0] as f32,
+        ve: v[1] as f32,
+        vd: v[2] as f32,
+        lat_int: deg_to_e7(g.lat_deg),
+        lon_int: deg_to_e7(g.lon_deg),
+    })
+}
+
+/// The position of a SIM_STATE (the integer fields when set, as MAVLink prescribes) in the local
+/// NED frame of `origin`.
+pub fn sim_state_position_ned(m: &SIM_STATE_DATA, origin: &GeoOrigin) -> Result<Vector3<f64>, WireError> {
+    const MSG: &str = "SIM_STATE";
+    let lat_deg = if m.lat_int != 0 { e7_to_deg(m.lat_int) } else { finite(MSG, "lat", m.lat)? };
+    let lon_deg = if m.lon_int != 0 { e7_to_deg(m.lon_int) } else { finite(MSG, "lon", m.lon)? };
+    if !(-90.0..=90.0).contains(&lat_deg) {
+        return Err(bad(MSG, "lat_int", format!("{lat_deg} deg outside [-90, 90]")));
+    }
+    let alt_m = finite(MSG, "alt", m.alt)?;
+    Ok(geodetic_to_ned(origin, &Geodetic { lat_deg, lon_deg, alt_m }))
 }

@@ -1,0 +1,789 @@
+//! The sans-io core of one simulated vehicle: which message is due when, what a command
+//! changes, and what goes back. No sockets and no clock: the caller passes the simulated time
+//! and the vehicle's truth trajectory in, and collects [`Outgoing`] messages.
+//!
+//! Time is the simulated time everywhere: the HEARTBEAT every simulated second, SIM_STATE at its
+//! interval of simulated time, sample-driven streams decimated by their sample timestamps. At
+//! `--speed 1` that is wall time; at other speeds every rate scales with the speed.
+
+use mavlink_core::MavHeader;
+
+use crate::estimation::{ImuSample, OdometerSample, PlatformId, RangeSample};
+use crate::protocol::MavMessage;
+use crate::protocol::dialect::cooploc::{
+    AUTOPILOT_VERSION_DATA, COMMAND_ACK_DATA, HEARTBEAT_DATA, MESSAGE_INTERVAL_DATA, MavAutopilot, MavCmd, MavModeFlag,
+    MavProtocolCapability, MavResult, MavState, MavType,
+};
+use crate::protocol::wire::{self, GeoOrigin};
+use crate::sitl::Trajectory;
+use crate::time::TimeUs;
+
+/// Component id of every simulated vehicle (MAV_COMP_ID_AUTOPILOT1).
+pub const COMPONENT_ID: u8 = 1;
+
+/// Shortest interval a periodic (clock-driven) stream accepts, us (1 kHz).
+pub const MIN_PERIODIC_INTERVAL_US: u64 = 1_000;
+
+/// The messages a vehicle streams.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
+pub enum Stream {
+    Heartbeat,
+    HighresImu,
+    Odometry,
+    SimState,
+    Range,
+}
+
+impl Stream {
+    pub const ALL: [Stream; 5] = [Stream::Heartbeat, Stream::HighresImu, Stream::Odometry, Stream::SimState, Stream::Range];
+
+    /// The MAVLink message id.
+    pub fn message_id(self) -> u32 {
+        match self {
+            Stream::Heartbeat => 0,
+            Stream::HighresImu => 105,
+            Stream::Odometry => 331,
+            Stream::SimState => 108,
+            Stream::Range => 61001,
+        }
+    }
+
+    pub fn from_message_id(id: u32) -> Option<Stream> {
+        Stream::ALL.into_iter().find(|s| s.message_id() == id)
+    }
+
+    /// Sent at the samples of a sensor (decimated), rather than on the simulated clock.
+    pub fn sample_driven(self) -> bool {
+        matches!(self, Stream::HighresImu | Stream::Odometry | Stream::Range)
+    }
+
+    fn index(self) -> usize {
+        self as usize
+    }
+}
+
+/// How often a stream goes out.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Interval {
+    Disabled,
+    /// At every sample of its sensor (sample-driven streams only).
+    EverySample,
+    /// At most once per this many microseconds of simulated time.
+    Every(u64),
+}
+
+/// Default intervals of a vehicle's streams.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct StreamDefaults {
+    pub highres_imu: Interval,
+    pub odometry: Interval,
+    pub sim_state: Interval,
+    pub range: Interval,
+}
+
+impl Default for StreamDefaults {
+    /// Every IMU, odometer and range sample; SIM_STATE at 10 Hz.
+    fn default() -> Self {
+        StreamDefaults {
+            highres_imu: Interval::EverySample,
+            odometry: Interval::EverySample,
+            sim_state: Interval::Every(100_000),
+            range: Interval::EverySample,
+        }
+    }
+}
+
+/// What a vehicle core needs to know about itself and its world.
+#[derive(Debug, Clone, PartialEq)]
+pub struct VehicleConfig {
+    pub platform: PlatformId,
+    pub defaults: StreamDefaults,
+    /// Where the NED origin is (SIM_STATE latitude/longitude).
+    pub origin: GeoOrigin,
+    pub gravity_m_s2: f64,
+    /// Odometer white noise, for the ODOMETRY velocity covariance.
+    pub odometer_sigma_m_s: f64,
+    pub imu_period_us: u64,
+    pub odometer_period_us: u64,
+    /// Ranging period of a periodic schedule (reported by MESSAGE_INTERVAL), if any.
+    pub range_period_us: Option<u64>,
+}
+
+/// Where an outgoing message goes.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Destination {
+    /// Every peer of the vehicle's link (streams).
+    AllPeers,
+    /// Only the sender of the message being handled (command acknowledgements, one-shot
+    /// replies to REQUEST_MESSAGE).
+    Requester,
+}
+
+/// A message the vehicle sends, with its header (sysid, compid 1, the vehicle's sequence).
+#[derive(Debug, Clone, PartialEq)]
+pub struct Outgoing {
+    pub destination: Destination,
+    pub header: MavHeader,
+    pub message: MavMessage,
+}
+
+impl Outgoing {
+    /// The MAVLink 2 frame.
+    pub fn to_frame(&self) -> Vec<u8> {
+        wire::to_frame(self.header, &self.message)
+    }
+}
+
+/// What a vehicle has done, for logs and tests.
+#[derive(Debug, Clone, Default, PartialEq, Eq)]
+pub struct VehicleCounters {
+    /// Frames produced (each counted once, however many peers it went to).
+    pub frames_sent: u64,
+    pub heartbeat_sent: u64,
+    pub highres_imu_sent: u64,
+    pub odometry_sent: u64,
+    pub sim_state_sent: u64,
+    pub range_sent: u64,
+    /// Valid MAVLink frames received.
+    pub frames_received: u64,
+    /// Datagrams with no valid MAVLink frame (garbage, unknown ids, bad CRC) and frames that
+    /// failed to decode.
+    pub malformed: u64,
+    /// Valid frames not handled: not addressed to this vehicle, or a message it does not act on.
+    pub ignored: u64,
+    pub commands_accepted: u64,
+    /// Commands answered DENIED or TEMPORARILY_REJECTED.
+    pub commands_rejected: u64,
+    /// Commands answered UNSUPPORTED.
+    pub commands_unsupported: u64,
+}
+
+#[derive(Debug, Clone, Copy)]
+struct StreamState {
+    default: Interval,
+    current: Interval,
+    /// Next simulated time at which the stream may send.
+    next_due_us: u64,
+    /// Time of the last sample or message sent.
+    last_sent_us: Option<u64>,
+}
+
+/// One simulated vehicle's MAVLink behaviour.
+#[derive(Debug, Clone)]
+pub struct VehicleCore {
+    config: VehicleConfig,
+    sysid: u8,
+    sequence: u8,
+    streams: [StreamState; 5],
+    last_imu: Option<ImuSample>,
+    last_odometer: Option<OdometerSample>,
+    last_ranges: Vec<(u32, RangeSample)>,
+    counters: VehicleCounters,
+}
+
+/// A platform that cannot be a MAVLink system.
+#[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
+#[error("platform id {0} cannot be a MAVLink system id (1..=255)")]
+pub struct BadSystemId(pub PlatformId);
+
+impl VehicleCore {
+    pub fn new(config: VehicleConfig) -> Result<VehicleCore, BadSystemId> {
+        let sysid = u8::try_from(config.platform).ok().filter(|&s| s != 0).ok_or(BadSystemId(config.platform))?;
+        let d = config.defaults;
+        let state = |default| StreamState { default, current: default, next_due_us: 0, last_sent_us: None };
+        let mut streams = [state(Interval::Every(1_000_000)); 5];
+        streams[Stream::HighresImu.index()] = state(d.highres_imu);
+        streams[Stream::Odometry.index()] = state(d.odometry);
+        streams[Stream::SimState.index()] = state(d.sim_state);
+        streams[Stream::Range.index()] = state(d.range);
+        Ok(VehicleCore {
+            config,
+            sysid,
+            sequence: 0,
+            streams,
+            last_imu: None,
+            last_odometer: None,
+            last_ranges: Vec::new(),
+            counters: VehicleCounters::default(),
+        })
+    }
+
+    pub fn platform(&self) -> PlatformId {
+        self.config.platform
+    }
+
+    pub fn system_id(&self) -> u8 {
+        self.sysid
+    }
+
+    pub fn counters(&self) -> &VehicleCounters {
+        &self.counters
+    }
+
+    /// The current interval of a stream.
+    pub fn interval(&self, stream: Stream) -> Interval {
+        self.streams[stream.index()].current
+    }
+
+    /// Counts a datagram or byte run that held no usable frame.
+    pub fn count_malformed(&mut self) {
+        self.counters.malformed += 1;
+    }
+
+    fn emit(&mut self, destination: Destination, message: MavMessage, out: &mut Vec<Outgoing>) {
+        let header = MavHeader { system_id: u32::from(self.sysid), component_id: COMPONENT_ID, sequence: self.sequence };
+        self.sequence = self.sequence.wrapping_add(1);
+        self.counters.frames_sent += 1;
+        match &message {
+            MavMessage::HEARTBEAT(_) => self.counters.heartbeat_sent += 1,
+            MavMessage::HIGHRES_IMU(_) => self.counters.highres_imu_sent += 1,
+            MavMessage::ODOMETRY(_) => self.counters.odometry_sent += 1,
+            MavMessage::SIM_STATE(_) => self.counters.sim_state_sent += 1,
+            MavMessage::COOPLOC_RANGE(_) => self.counters.range_sent += 1,
+            _ => {}
+        }
+        out.push(Outgoing { destination, header, message });
+    }
+
+    fn heartbeat() -> MavMessage {
+        MavMessage::HEARTBEAT(HEARTBEAT_DATA {
+            custom_mode: 0,
+            mavtype: MavType::MAV_TYPE_GROUND_ROVER,
+            autopilot: MavAutopilot::MAV_AUTOPILOT_GENERIC,
+            base_mode: MavModeFlag::empty(),
+            system_status: MavState::MAV_STATE_ACTIVE,
+            mavlink_version: 3,
+        })
+    }
+
+    fn sim_state(&self, t: TimeUs, truth: &Trajectory) -> MavMessage {
+        wire::truth_to_sim_state(&truth.truth_at(t), &self.config.origin, self.config.gravity_m_s2)
+    }
+
+    /// Earliest simulated time at which a clock-driven message (HEARTBEAT, SIM_STATE) is due.
+    pub fn next_periodic_due(&self) -> Option<TimeUs> {
+        [Stream::Heartbeat, Stream::SimState]
+            .into_iter()
+            .filter_map(|s| {
+                let st = &self.streams[s.index()];
+                matches!(st.current, Interval::Every(_)).then_some(st.next_due_us)
+            })
+            .min()
+            .map(TimeUs)
+    }
+
+    /// Emits every clock-driven message due at or before `now`, each stamped with its own due
+    /// time (SIM_STATE holds the truth at that time), in time order.
+    pub fn advance_to(&mut self, now: TimeUs, truth: &Trajectory, out: &mut Vec<Outgoing>) {
+        while let Some(due) = self.next_periodic_due().filter(|d| *d <= now) {
+            for stream in [Stream::Heartbeat, Stream::SimState] {
+                let st = self.streams[stream.index()];
+                let Interval::Every(interval) = st.current else { continue };
+                if st.next_due_us != due.0 {
+                    continue;
+                }
+                let message = match stream {
+                    Stream::Heartbeat => Self::heartbeat(),
+                    _ => self.sim_state(due, truth),
+                };
+                self.emit(Destination::AllPeers, message, out);
+                let st = &mut self.streams[stream.index()];
+                st.last_sent_us = Some(due.0);
+                st.next_due_us = due.0 + interval;
+            }
+        }
+    }
+
+    /// Whether a sample-driven stream sends the sample taken at `t`.
+    fn sample_due(&mut self, stream: Stream, t: u64) -> bool {
+        let st = &mut self.streams[stream.index()];
+        let send = match st.current {
+            Interval::Disabled => false,
+            Interval::EverySample => true,
+            Interval::Every(interval) => {
+                if t >= st.next_due_us {
+                    st.next_due_us += interval;
+                    if st.next_due_us <= t {
+                        // After a gap (or at the start), restart the grid here instead of bursting.
+                        st.next_due_us = t + interval;
+                    }
+                    true
+                } else {
+                    false
+                }
+            }
+        };
+        if send {
+            st.last_sent_us = Some(t);
+        }
+        send
+    }
+
+    /// An IMU sample of this vehicle: HIGHRES_IMU if the stream's interval says so.
+    pub fn on_imu(&mut self, s: &ImuSample, out: &mut Vec<Outgoing>) {
+        self.last_imu = Some(*s);
+        if self.sample_due(Stream::HighresImu, s.t.0) {
+            self.emit(Destination::AllPeers, wire::imu_to_highres(s), out);
+        }
+    }
+
+    /// An odometer sample of this vehicle: ODOMETRY (body-frame velocity) if due.
+    pub fn on_odometer(&mut self, s: &OdometerSample, out: &mut Vec<Outgoing>) {
+        self.last_odometer = Some(*s);
+        if self.sample_due(Stream::Odometry, s.t.0) {
+            self.emit(Destination::AllPeers, wire::odometer_to_odometry(s, self.config.odometer_sigma_m_s), out);
+        }
+    }
+
+    /// A ranging epoch (numbered from 1): COOPLOC_RANGE for each range this vehicle's radio
+    /// measured (`from` = this platform). Ranges measured by others are not this vehicle's.
+    pub fn on_ranges(&mut self, epoch: u32, t: TimeUs, ranges: &[RangeSample], out: &mut Vec<Outgoing>) {
+        let mine: Vec<(u32, RangeSample)> =
+            ranges.iter().filter(|r| r.from == self.config.platform).map(|r| (epoch, *r)).collect();
+        if mine.is_empty() {
+            return;
+        }
+        self.last_ranges = mine;
+        if self.sample_due(Stream::Range, t.0) {
+            for i in 0..self.last_ranges.len() {
+                let (epoch, r) = self.last_ranges[i];
+                self.emit(Destination::AllPeers, wire::range_to_message(&r, epoch), out);
+            }
+        }
+    }
+
+    /// Handles one datagram (or any byte run holding whole frames): every MAVLink 1 or 2 frame
+    /// in it. Returns whether it held at least one valid frame (the runner learns peers from
+    /// that). A run with none counts as malformed.
+    pub fn on_bytes(&mut self, now: TimeUs, bytes: &[u8], truth: &Trajectory, out: &mut Vec<Outgoing>) -> bool {
+        let mut reader = mavlink_core::MavlinkReader::new(bytes);
+        let mut valid = false;
+        loop {
+            match reader.read_any_message::<MavMessage>() {
+                Ok((header, message)) => {
+                    valid = true;
+                    self.on_message(now, header, &message, truth, out);
+                }
+                Err(mavlink_core::error::MessageReadError::Io(_)) => break,
+                Err(mavlink_core::error::MessageReadError::Parse(e)) => {
+                    tracing::debug!(platform = self.config.platform, error = %e, "undecodable frame");
+                    self.counters.malformed += 1;
+                }
+            }
+        }
+        if !valid {
+            self.counters.malformed += 1;
+        }
+        valid
+    }
+
+    /// Handles one decoded message from a peer.
+    pub fn on_message(
+        &mut self,
+        now: TimeUs,
+        header: MavHeader,
+        message: &MavMessage,
+        truth: &Trajectory,
+        out: &mut Vec<Outgoing>,
+    ) {
+        self.counters.frames_received += 1;
+        let (command, params, target) = match message {
+            MavMessage::COMMAND_LONG(c) => (
+                c.command,
+                [c.param1, c.param2, c.param3, c.param4, c.param5, c.param6, c.param7],
+                (c.target_system, c.target_component),
+            ),
+            MavMessage::COMMAND_INT(c) => (
+                c.command,
+                [c.param1, c.param2, c.param3, c.param4, c.x as f32, c.y as f32, c.z],
+                (c.target_system, c.target_component),
+            ),
+            _ => {
+                self.counters.ignored += 1;
+                return;
+            }
+        };
+        let for_us = (target.0 == 0 || target.0 == self.sysid) && (target.1 == 0 || target.1 == COMPONENT_ID);
+        if !for_us {
+            self.counters.ignored += 1;
+            return;
+        }
+        let (result, replies) = self.command(now, command, &params, truth);
+        match result {
+            MavResult::MAV_RESULT_ACCEPTED => self.counters.commands_accepted += 1,
+            MavResult::MAV_RESULT_UNSUPPORTED => self.counters.commands_unsupported += 1,
+            _ => self.counters.commands_rejected += 1,
+        }
+        tracing::debug!(
+            platform = self.config.platform,
+            from_sysid = header.system_id,
+            from_compid = header.component_id,
+            ?command,
+            param1 = params[0],
+            param2 = params[1],
+            ?result,
+            "command"
+        );
+        let ack = MavMessage::COMMAND_ACK(COMMAND_ACK_DATA {
+            command,
+            result,
+            target_system: u8::try_from(header.system_id).unwrap_or(0),
+            target_component: header.component_id,
+            ..Default::default()
+        });
+        self.emit(Destination::Requester, ack, out);
+        for reply in replies {
+            self.emit(Destination::Requester, reply, out);
+        }
+    }
+
+    /// Executes a command: its result and the messages that follow the acknowledgement.
+    fn command(&mut self, now: TimeUs, command: MavCmd, p: &[f32; 7], truth: &Trajectory) -> (MavResult, Vec<MavMessage>) {
+        use MavResult::*;
+        match command {
+            MavCmd::MAV_CMD_SET_MESSAGE_INTERVAL => {
+                let Some(stream) = message_id_param(p[0]).and_then(Stream::from_message_id) else {
+                    return (MAV_RESULT_DENIED, vec![]);
+                };
+                match self.set_interval(now, stream, p[1]) {
+                    Ok(()) => (MAV_RESULT_ACCEPTED, vec![]),
+                    Err(()) => (MAV_RESULT_DENIED, vec![]),
+                }
+            }
+            #[allow(deprecated)] // still sent by ground stations
+            MavCmd::MAV_CMD_GET_MESSAGE_INTERVAL => {
+                let Some(id) = message_id_param(p[0]).and_then(|id| u16::try_from(id).ok()) else {
+                    return (MAV_RESULT_DENIED, vec![]);
+                };
+                (MAV_RESULT_ACCEPTED, vec![self.message_interval(id)])
+            }
+            MavCmd::MAV_CMD_REQUEST_MESSAGE => {
+                let Some(id) = message_id_param(p[0]) else { return (MAV_RESULT_DENIED, vec![]) };
+                self.request_message(now, id, p[1], truth)
+            }
+            _ => (MAV_RESULT_UNSUPPORTED, vec![]),
+        }
+    }
+
+    /// MAV_CMD_SET_MESSAGE_INTERVAL's param2: interval in us, -1 disables, 0 restores the
+    /// default. Anything else negative, not finite, beyond i32 microseconds, or (for a
+    /// clock-driven stream) under [`MIN_PERIODIC_INTERVAL_US`] is refused. HEARTBEAT stays at 1 Hz.
+    fn set_interval(&mut self, now: TimeUs, stream: Stream, interval_us: f32) -> Result<(), ()> {
+        if !interval_us.is_finite() {
+            return Err(());
+        }
+        let st = self.streams[stream.index()];
+        let new = if interval_us == -1.0 {
+            Interval::Disabled
+        } else if interval_us == 0.0 {
+            st.default
+        } else if interval_us < 0.0 || interval_us as f64 > i32::MAX as f64 {
+            return Err(());
+        } else {
+            let us = (interval_us as f64).round().max(1.0) as u64;
+            if !stream.sample_driven() && us < MIN_PERIODIC_INTERVAL_US {
+                return Err(());
+            }
+            Interval::Every(us)
+        };
+        if stream == Stream::Heartbeat && new != st.default {
+            return Err(());
+        }
+        let st = &mut self.streams[stream.index()];
+        st.current = new;
+        if let Interval::Every(us) = new {
+            // Continue from the last message sent, so the new interval holds from the next one on.
+            // A clock-driven stream never goes back in time; a sample-driven one sends its next
+            // sample once `us` has passed since the last one.
+            let floor = if stream.sample_driven() { 0 } else { now.0 };
+            st.next_due_us = st.last_sent_us.map_or(floor, |last| (last + us).max(floor));
+        }
+        Ok(())
+    }
+
+    /// MESSAGE_INTERVAL for `id`: -1 disabled, 0 not a stream of this vehicle.
+    fn message_interval(&self, id: u16) -> MavMessage {
+        let interval_us = match Stream::from_message_id(id as u32) {
+            None => 0,
+            Some(stream) => match self.streams[stream.index()].current {
+                Interval::Disabled => -1,
+                Interval::Every(us) => us.min(i32::MAX as u64) as i32,
+                Interval::EverySample => {
+                    let period = match stream {
+                        Stream::HighresImu => Some(self.config.imu_period_us),
+                        Stream::Odometry => Some(self.config.odometer_period_us),
+                        _ => self.config.range_period_us,
+                    };
+                    period.map_or(0, |p| p.min(i32::MAX as u64) as i32)
+                }
+            },
+        };
+        MavMessage::MESSAGE_INTERVAL(MESSAGE_INTERVAL_DATA { interval_us, message_id: id })
+    }
+
+    fn request_message(&mut self, now: TimeUs, id: u32, param2: f32, truth: &Trajectory) -> (MavResult, Vec<MavMessage>) {
+        use MavResult::*;
+        const AUTOPILOT_VERSION: u32 = 148;
+        const MESSAGE_INTERVAL: u32 = 244;
+        let not_yet = (MAV_RESULT_TEMPORARILY_REJECTED, vec![]);
+        match id {
+            AUTOPILOT_VERSION => (MAV_RESULT_ACCEPTED, vec![self.autopilot_version()]),
+            MESSAGE_INTERVAL => match message_id_param(param2).and_then(|id| u16::try_from(id).ok()) {
+                Some(id) => (MAV_RESULT_ACCEPTED, vec![self.message_interval(id)]),
+                None => (MAV_RESULT_DENIED, vec![]),
+            },
+            _ => match Stream::from_message_id(id) {
+                Some(Stream::Heartbeat) => (MAV_RESULT_ACCEPTED, vec![Self::heartbeat()]),
+                Some(Stream::SimState) => (MAV_RESULT_ACCEPTED, vec![self.sim_state(now, truth)]),
+                Some(Stream::HighresImu) => match self.last_imu {
+                    Some(s) => (MAV_RESULT_ACCEPTED, vec![wire::imu_to_highres(&s)]),
+                    None => not_yet,
+                },
+                Some(Stream::Odometry) => match self.last_odometer {
+                    Some(s) => (MAV_RESULT_ACCEPTED, vec![wire::odometer_to_odometry(&s, self.config.odometer_sigma_m_s)]),
+                    None => not_yet,
+                },
+                Some(Stream::Range) if self.last_ranges.is_empty() => not_yet,
+                Some(Stream::Range) => {
+                    (MAV_RESULT_ACCEPTED, self.last_ranges.iter().map(|(epoch, r)| wire::range_to_message(r, *epoch)).collect())
+                }
+                None => (MAV_RESULT_DENIED, vec![]),
+            },
+        }
+    }
+
+    fn autopilot_version(&self) -> MavMessage {
+        MavMessage::AUTOPILOT_VERSION(AUTOPILOT_VERSION_DATA {
+            capabilities: MavProtocolCapability::MAV_PROTOCOL_CAPABILITY_MAVLINK2
+                | MavProtocolCapability::MAV_PROTOCOL_CAPABILITY_COMMAND_INT,
+            uid: u64::from(self.sysid),
+            ..Default::default()
+        })
+    }
+}
+
+/// A message id carried in a float parameter: a whole number in 0..=16777215 (24-bit ids).
+fn message_id_param(v: f32) -> Option<u32> {
+    ((0.0..=16_777_215.0).contains(&v) && v.fract() == 0.0).then_some(v as u32)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::protocol::dialect::cooploc::{COMMAND_INT_DATA, COMMAND_LONG_DATA};
+    use crate::sitl::scenario::tests::SMALL;
+    use crate::sitl::{Scenario, World};
+
+    fn world() -> World {
+        World::new(&Scenario::from_toml_str(SMALL).unwrap()).unwrap()
+    }
+
+    fn core(platform: PlatformId) -> VehicleCore {
+        VehicleCore::new(VehicleConfig {
+            platform,
+            defaults: StreamDefaults::default(),
+            origin: GeoOrigin { lat_deg: 34.7, lon_deg: 0.0, alt_m: 0.0 },
+            gravity_m_s2: 9.80665,
+            odometer_sigma_m_s: 0.2,
+            imu_period_us: 5_000,
+            odometer_period_us: 100_000,
+            range_period_us: Some(1_000_000),
+        })
+        .unwrap()
+    }
+
+    const GCS: MavHeader = MavHeader { system_id: 255, component_id: 190, sequence: 0 };
+
+    fn long(target_system: u8, command: MavCmd, param1: f32, param2: f32) -> MavMessage {
+        MavMessage::COMMAND_LONG(COMMAND_LONG_DATA {
+            command,
+            param1,
+            param2,
+            target_system,
+            target_component: 1,
+            ..Default::default()
+        })
+    }
+
+    /// Sends a command, returns the ACK's result and the replies after it.
+    fn ask(c: &mut VehicleCore, w: &World, msg: MavMessage) -> Option<(MavResult, Vec<MavMessage>)> {
+        let mut out = Vec::new();
+        c.on_message(TimeUs(0), GCS, &msg, w.trajectory(c.platform()).unwrap(), &mut out);
+        let mut it = out.into_iter();
+        let first = it.next()?;
+        assert_eq!(first.destination, Destination::Requester);
+        let MavMessage::COMMAND_ACK(ack) = first.message else { panic!("ACK first, got {:?}", first.message) };
+        assert_eq!((ack.target_system, ack.target_component), (255, 190));
+        Some((ack.result, it.map(|o| o.message).collect()))
+    }
+
+    fn imu(t: u64) -> ImuSample {
+        ImuSample {
+            t: TimeUs(t),
+            specific_force_frd_m_s2: nalgebra::Vector3::zeros(),
+            angular_rate_frd_rad_s: nalgebra::Vector3::zeros(),
+        }
+    }
+
+    fn imu_times(c: &mut VehicleCore, samples: impl Iterator<Item = u64>) -> Vec<u64> {
+        let mut out = Vec::new();
+        samples.for_each(|t| c.on_imu(&imu(t), &mut out));
+        out.iter()
+            .filter_map(|o| match &o.message {
+                MavMessage::HIGHRES_IMU(d) => Some(d.time_usec),
+                _ => None,
+            })
+            .collect()
+    }
+
+    #[test]
+    fn platform_ids_outside_mavlink_system_ids_are_refused() {
+        for id in [0, 256, 1000] {
+            let mut cfg = core(1).config.clone();
+            cfg.platform = id;
+            assert_eq!(VehicleCore::new(cfg).unwrap_err(), BadSystemId(id));
+        }
+        assert_eq!(core(255).system_id(), 255);
+    }
+
+    #[test]
+    fn heartbeat_and_sim_state_follow_the_simulated_clock_with_increasing_sequence() {
+        let w = world();
+        let mut c = core(2);
+        let mut out = Vec::new();
+        c.advance_to(TimeUs(2_050_000), w.trajectory(2).unwrap(), &mut out);
+        let hb = out.iter().filter(|o| matches!(o.message, MavMessage::HEARTBEAT(_))).count();
+        let sim = out.iter().filter(|o| matches!(o.message, MavMessage::SIM_STATE(_))).count();
+        assert_eq!((hb, sim), (3, 21), "heartbeats at 0, 1, 2 s; SIM_STATE every 100 ms from 0");
+        for (k, o) in out.iter().enumerate() {
+            assert_eq!((o.header.system_id, o.header.component_id, o.header.sequence), (2, 1, k as u8));
+            assert_eq!(o.destination, Destination::AllPeers);
+        }
+        assert_eq!(c.next_periodic_due(), Some(TimeUs(2_100_000)));
+        out.clear();
+        c.advance_to(TimeUs(2_050_000), w.trajectory(2).unwrap(), &mut out);
+        assert!(out.is_empty(), "nothing twice");
+    }
+
+    #[test]
+    fn intervals_decimate_samples_and_keep_the_mean_rate() {
+        let w = world();
+        let mut c = core(1);
+        assert_eq!(imu_times(&mut c, (1..=4).map(|k| k * 5_000)), vec![5_000, 10_000, 15_000, 20_000]);
+        assert_eq!(
+            ask(&mut c, &w, long(1, MavCmd::MAV_CMD_SET_MESSAGE_INTERVAL, 105.0, 7_000.0)).unwrap().0,
+            MavResult::MAV_RESULT_ACCEPTED
+        );
+        // 7 ms on a 5 ms grid, from 7 ms after the last one sent (20 ms): the mean rate holds.
+        let t = imu_times(&mut c, (5..1005).map(|k| k * 5_000));
+        assert_eq!(t[0], 30_000);
+        assert!((t.len() as f64 - (5_020_000.0 - 27_000.0) / 7_000.0).abs() <= 1.0, "{}", t.len());
+        assert!(t.windows(2).all(|w| (5_000..=10_000).contains(&(w[1] - w[0]))));
+        // Slower than the sensor: every sample.
+        ask(&mut c, &w, long(1, MavCmd::MAV_CMD_SET_MESSAGE_INTERVAL, 105.0, 1.0)).unwrap();
+        assert_eq!(imu_times(&mut c, (1005..1010).map(|k| k * 5_000)).len(), 5);
+        // -1 disables, 0 restores the default.
+        ask(&mut c, &w, long(1, MavCmd::MAV_CMD_SET_MESSAGE_INTERVAL, 105.0, -1.0)).unwrap();
+        assert_eq!(c.interval(Stream::HighresImu), Interval::Disabled);
+        assert!(imu_times(&mut c, (1010..1020).map(|k| k * 5_000)).is_empty());
+        ask(&mut c, &w, long(1, MavCmd::MAV_CMD_SET_MESSAGE_INTERVAL, 105.0, 0.0)).unwrap();
+        assert_eq!(c.interval(Stream::HighresImu), Interval::EverySample);
+        assert_eq!(imu_times(&mut c, (1020..1030).map(|k| k * 5_000)).len(), 10);
+    }
+
+    #[test]
+    fn bad_requests_are_denied_and_change_nothing() {
+        let w = world();
+        let mut c = core(1);
+        for (id, interval) in [
+            (105.0, -2.0),
+            (105.0, f32::NEG_INFINITY),
+            (105.0, f32::NAN),
+            (105.0, 3e9),
+            (108.0, 999.0),
+            (0.0, 2_000_000.0),
+            (-1.0, 1000.0),
+            (f32::NAN, 1000.0),
+            (1e30, 1000.0),
+            (33.0, 1000.0),
+        ] {
+            let (result, replies) = ask(&mut c, &w, long(1, MavCmd::MAV_CMD_SET_MESSAGE_INTERVAL, id, interval)).unwrap();
+            assert_eq!(result, MavResult::MAV_RESULT_DENIED, "message {id}, interval {interval}");
+            assert!(replies.is_empty());
+        }
+        for s in Stream::ALL {
+            assert_eq!(c.interval(s), c.streams[s.index()].default, "{s:?} unchanged");
+        }
+        // The heartbeat accepts its own 1 Hz and the default.
+        assert_eq!(
+            ask(&mut c, &w, long(1, MavCmd::MAV_CMD_SET_MESSAGE_INTERVAL, 0.0, 1e6)).unwrap().0,
+            MavResult::MAV_RESULT_ACCEPTED
+        );
+        assert_eq!(ask(&mut c, &w, long(1, MavCmd::MAV_CMD_DO_SET_MODE, 1.0, 0.0)).unwrap().0, MavResult::MAV_RESULT_UNSUPPORTED);
+        assert_eq!(c.counters().commands_rejected, 10);
+        assert_eq!(c.counters().commands_unsupported, 1);
+    }
+
+    #[test]
+    fn commands_for_others_are_ignored_and_command_int_works_too() {
+        let w = world();
+        let mut c = core(1);
+        assert!(ask(&mut c, &w, long(2, MavCmd::MAV_CMD_SET_MESSAGE_INTERVAL, 105.0, -1.0)).is_none());
+        let mut other_component = long(1, MavCmd::MAV_CMD_SET_MESSAGE_INTERVAL, 105.0, -1.0);
+        if let MavMessage::COMMAND_LONG(d) = &mut other_component {
+            d.target_component = 191;
+        }
+        assert!(ask(&mut c, &w, other_component).is_none());
+        assert_eq!(c.counters().ignored, 2);
+        assert_eq!(c.interval(Stream::HighresImu), Interval::EverySample);
+        // Broadcast (target 0) and COMMAND_INT.
+        let int = MavMessage::COMMAND_INT(COMMAND_INT_DATA {
+            command: MavCmd::MAV_CMD_SET_MESSAGE_INTERVAL,
+            param1: 331.0,
+            param2: 500_000.0,
+            ..Default::default()
+        });
+        assert_eq!(ask(&mut c, &w, int).unwrap().0, MavResult::MAV_RESULT_ACCEPTED);
+        assert_eq!(c.interval(Stream::Odometry), Interval::Every(500_000));
+        let (r, replies) = ask(&mut c, &w, long(0, MavCmd::MAV_CMD_REQUEST_MESSAGE, 244.0, 331.0)).unwrap();
+        assert_eq!(r, MavResult::MAV_RESULT_ACCEPTED);
+        assert_eq!(replies, vec![MavMessage::MESSAGE_INTERVAL(MESSAGE_INTERVAL_DATA { interval_us: 500_000, message_id: 331 })]);
+        let (_, replies) = ask(&mut c, &w, long(0, MavCmd::MAV_CMD_REQUEST_MESSAGE, 244.0, 105.0)).unwrap();
+        assert_eq!(replies, vec![MavMessage::MESSAGE_INTERVAL(MESSAGE_INTERVAL_DATA { interval_us: 5_000, message_id: 105 })]);
+    }
+
+    #[test]
+    fn ranges_are_sent_by_the_measuring_platform_only() {
+        let r = |from, to| RangeSample { t: TimeUs(1_000_000), from, to, range_m: 100.0, sigma_m: 0.1 };
+        let ranges = [r(1, 2), r(1, 3), r(2, 3)];
+        for (platform, want) in [(1, 2), (2, 1), (3, 0)] {
+            let mut c = core(platform);
+            let mut out = Vec::new();
+            c.on_ranges(4, TimeUs(1_000_000), &ranges, &mut out);
+            assert_eq!(out.len(), want);
+            for o in &out {
+                let MavMessage::COOPLOC_RANGE(d) = &o.message else { panic!() };
+                assert_eq!((d.from_platform, d.epoch), (platform, 4));
+            }
+        }
+    }
+
+    #[test]
+    fn garbage_is_counted_and_valid_frames_in_one_datagram_are_all_handled() {
+        let w = world();
+        let truth = w.trajectory(1).unwrap();
+        let mut c = core(1);
+        let mut out = Vec::new();
+        for junk in [&b""[..], b"\xfd", b"not mavlink at all", &[0xFE; 300]] {
+            assert!(!c.on_bytes(TimeUs(0), junk, truth, &mut out));
+        }
+        assert_eq!(c.counters().malformed, 4);
+        assert!(out.is_empty());
+        let mut two = wire::to_frame(GCS, &long(1, MavCmd::MAV_CMD_REQUEST_MESSAGE, 0.0, 0.0));
+        two.extend(b"junk between");
+        two.extend(wire::to_frame(GCS, &long(1, MavCmd::MAV_CMD_REQUEST_MESSAGE, 148.0, 0.0)));
+        assert!(c.on_bytes(TimeUs(0), &two, truth, &mut out));
+        assert_eq!(c.counters().frames_received, 2);
+        assert_eq!(out.len(), 4, "two ACKs, a HEARTBEAT and an AUTOPILOT_VERSION");
+    }
+}

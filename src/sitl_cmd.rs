@@ -1,0 +1,252 @@
+//! `cooploc sitl`: arguments validated into a [`SitlConfig`] before any I/O, then the runner.
+
+use std::net::{IpAddr, SocketAddr, ToSocketAddrs};
+use std::path::PathBuf;
+
+use anyhow::{Context, bail};
+use cooploc::estimation::PlatformId;
+use cooploc::simulator::{self, Endpoint, Interval, SitlConfig, Speed, StreamDefaults};
+use cooploc::sitl::scenario::Scenario;
+use cooploc::sitl::world::World;
+
+#[derive(clap::Args)]
+#[command(after_help = "\
+Connecting (vehicle N listens on BIND:BASE_PORT+N and streams to every peer it has heard a MAVLink frame from):
+  cooploc node --vehicle udpout:127.0.0.1:14541
+  mavproxy.py --master=udpout:127.0.0.1:14541
+A client that listens instead: --vehicle 1=udpout:127.0.0.1:14550 here, udpin:127.0.0.1:14550 on the client.
+Timestamps, HEARTBEAT (1 Hz) and every rate are in simulated time: at --speed 10 the heartbeat comes 10 times a second.
+The endpoints are printed one per line at start: `vehicle ID udp HOST:PORT [out HOST:PORT,..]` or `vehicle ID serial PATH BAUD`.")]
+pub struct Args {
+    /// Scenario file.
+    #[arg(default_value = "sitl/scenarios/paper.toml")]
+    scenario: PathBuf,
+    /// Seed of the sensor errors (as in `cooploc experiment`).
+    #[arg(long, default_value_t = 1)]
+    seed: u64,
+    /// Monte Carlo run index (with the seed, picks the sensor errors).
+    #[arg(long, default_value_t = 0)]
+    run: u32,
+    /// Ranging schedule of the scenario (default: its first).
+    #[arg(long)]
+    schedule: Option<String>,
+    /// Times real time: 1 = real time, 10 = ten times faster; `max` (or 0) = as fast as possible.
+    #[arg(long, default_value = "1", value_parser = parse_speed)]
+    speed: Speed,
+    /// Vehicle N listens on UDP port BASE_PORT + N (PX4 style); 0 = an ephemeral port each.
+    #[arg(long, default_value_t = 14540)]
+    base_port: u16,
+    /// Address the vehicles' UDP sockets bind.
+    #[arg(long, default_value = "127.0.0.1")]
+    bind: IpAddr,
+    /// A vehicle's link, repeatable: `ID=udpin:HOST:PORT` (listen there instead of the default),
+    /// `ID=udpout:HOST:PORT` (also stream to that address, e.g. a ground station that listens),
+    /// `ID=serial:PATH:BAUD`.
+    #[arg(long = "vehicle", value_name = "ID=URL", value_parser = parse_vehicle_url)]
+    vehicles: Vec<(PlatformId, VehicleUrl)>,
+    /// A vehicle on a serial device or pseudo-terminal, repeatable: `ID=PATH:BAUD`.
+    #[arg(long = "serial", value_name = "ID=PATH:BAUD", value_parser = parse_serial)]
+    serials: Vec<(PlatformId, VehicleUrl)>,
+    /// Hold the simulated clock at zero until every vehicle has a peer.
+    #[arg(long)]
+    wait_for_peers: bool,
+    /// SIM_STATE (truth) rate, Hz; 0 disables it.
+    #[arg(long, default_value_t = 10.0)]
+    sim_state_hz: f64,
+    /// Longitude of the local NED origin for SIM_STATE, deg (its latitude is the scenario's).
+    #[arg(long, default_value_t = 0.0, allow_negative_numbers = true)]
+    origin_lon_deg: f64,
+}
+
+#[derive(Debug, Clone, PartialEq)]
+enum VehicleUrl {
+    UdpIn(SocketAddr),
+    UdpOut(SocketAddr),
+    Serial { path: String, baud: u32 },
+}
+
+fn parse_speed(s: &str) -> Result<Speed, String> {
+    if s.eq_ignore_ascii_case("max") {
+        return Ok(Speed::Max);
+    }
+    match s.parse::<f64>() {
+        Ok(0.0) => Ok(Speed::Max),
+        Ok(v) if v.is_finite() && v > 0.0 => Ok(Speed::Factor(v)),
+        _ => Err(format!("expected a positive number or `max`, got {s:?}")),
+    }
+}
+
+fn parse_id(s: &str) -> Result<PlatformId, String> {
+    s.parse::<PlatformId>().map_err(|_| format!("platform id {s:?} is not a number in 0..=65535"))
+}
+
+fn parse_addr(s: &str) -> Result<SocketAddr, String> {
+    s.to_socket_addrs()
+        .map_err(|e| format!("{s:?} is not HOST:PORT ({e})"))?
+        .next()
+        .ok_or_else(|| format!("{s:?} resolves to no address"))
+}
+
+fn parse_serial_spec(s: &str) -> Result<VehicleUrl, String> {
+    let (path, baud) = s.rsplit_once(':').ok_or_else(|| format!("{s:?} is not PATH:BAUD"))?;
+    let baud: u32 =
+        baud.parse().ok().filter(|&b| b > 0).ok_or_else(|| format!("baud rate {baud:?} is not a positive integer"))?;
+    if path.is_empty() {
+        return Err(format!("{s:?} has no device path"));
+    }
+    Ok(VehicleUrl::Serial { path: path.to_string(), baud })
+}
+
+fn parse_vehicle_url(s: &str) -> Result<(PlatformId, VehicleUrl), String> {
+    let (id, url) = s.split_once('=').ok_or_else(|| format!("{s:?} is not ID=URL"))?;
+    let id = parse_id(id)?;
+    let url = if let Some(a) = url.strip_prefix("udpin:") {
+        VehicleUrl::UdpIn(parse_addr(a)?)
+    } else if let Some(a) = url.strip_prefix("udpout:") {
+        VehicleUrl::UdpOut(parse_addr(a)?)
+    } else if let Some(a) = url.strip_prefix("serial:") {
+        parse_serial_spec(a)?
+    } else {
+        return Err(format!("{url:?}: expected udpin:HOST:PORT, udpout:HOST:PORT or serial:PATH:BAUD"));
+    };
+    Ok((id, url))
+}
+
+fn parse_serial(s: &str) -> Result<(PlatformId, VehicleUrl), String> {
+    let (id, spec) = s.split_once('=').ok_or_else(|| format!("{s:?} is not ID=PATH:BAUD"))?;
+    Ok((parse_id(id)?, parse_serial_spec(spec)?))
+}
+
+/// Everything checked, nothing opened.
+struct Validated {
+    world: World,
+    config: SitlConfig,
+}
+
+fn validate(args: Args) -> anyhow::Result<Validated> {
+    let scenario = Scenario::from_path(&args.scenario)?;
+    let world = World::new(&scenario)?;
+    let ids = world.platform_ids();
+    let schedule = match args.schedule {
+        Some(s) => {
+            scenario.range_epochs(&s).context("--schedule")?;
+            s
+        }
+        None => scenario.ranging.schedules.first().map(|s| s.name.clone()).context("the scenario has no ranging schedule")?,
+    };
+    if let Some(&bad) = ids.iter().find(|&&id| id == 0 || id > 255) {
+        bail!("platform id {bad} cannot be a MAVLink system id (1..=255)");
+    }
+    let mut endpoints = simulator::default_endpoints(&ids, args.bind, args.base_port).context("--base-port")?;
+    let mut udpin_set: Vec<PlatformId> = Vec::new();
+    for (flag, (id, url)) in args.vehicles.iter().map(|v| ("--vehicle", v)).chain(args.serials.iter().map(|v| ("--serial", v))) {
+        let Some((_, endpoint)) = endpoints.iter_mut().find(|(p, _)| p == id) else {
+            bail!("{flag}: platform {id} is not in the scenario (it has {ids:?})");
+        };
+        match (url, &mut *endpoint) {
+            (VehicleUrl::Serial { path, baud }, Endpoint::Udp { targets, .. })
+                if targets.is_empty() && !udpin_set.contains(id) =>
+            {
+                *endpoint = Endpoint::Serial { path: path.clone(), baud: *baud };
+            }
+            (VehicleUrl::UdpIn(addr), Endpoint::Udp { bind, .. }) if !udpin_set.contains(id) => {
+                *bind = *addr;
+                udpin_set.push(*id);
+            }
+            (VehicleUrl::UdpOut(addr), Endpoint::Udp { targets, .. }) if !targets.contains(addr) => targets.push(*addr),
+            _ => bail!("{flag}: platform {id} given conflicting links (one serial link, or one udpin and any udpout)"),
+        }
+    }
+    let sim_state = if args.sim_state_hz == 0.0 {
+        Interval::Disabled
+    } else if args.sim_state_hz.is_finite() && args.sim_state_hz > 0.0 && args.sim_state_hz <= 1000.0 {
+        Interval::Every((1e6 / args.sim_state_hz).round() as u64)
+    } else {
+        bail!("--sim-state-hz must be in [0, 1000], got {}", args.sim_state_hz);
+    };
+    if !(args.origin_lon_deg.is_finite() && (-180.0..=180.0).contains(&args.origin_lon_deg)) {
+        bail!("--origin-lon-deg must be in [-180, 180], got {}", args.origin_lon_deg);
+    }
+    let config = SitlConfig {
+        schedule,
+        seed: args.seed,
+        run: args.run,
+        speed: args.speed,
+        endpoints,
+        wait_for_peers: args.wait_for_peers,
+        streams: StreamDefaults { sim_state, ..StreamDefaults::default() },
+        origin_lon_deg: args.origin_lon_deg,
+    };
+    Ok(Validated { world, config })
+}
+
+async fn shutdown_signal() {
+    #[cfg(unix)]
+    {
+        let term = async {
+            match tokio::signal::unix::signal(tokio::signal::unix::SignalKind::terminate()) {
+                Ok(mut s) => {
+                    s.recv().await;
+                }
+                Err(_) => std::future::pending::<()>().await,
+            }
+        };
+        tokio::select! {
+            _ = tokio::signal::ctrl_c() => {}
+            _ = term => {}
+        }
+    }
+    #[cfg(not(unix))]
+    {
+        let _ = tokio::signal::ctrl_c().await;
+    }
+}
+
+pub fn run(args: Args) -> anyhow::Result<()> {
+    let scenario_path = args.scenario.clone();
+    let Validated { world, config } = validate(args)?;
+    let runtime = tokio::runtime::Builder::new_multi_thread().enable_all().build().context("starting the tokio runtime")?;
+    runtime.block_on(async move {
+        let name = world.scenario().name.clone();
+        let end = world.end();
+        let (schedule, seed, run, speed) = (config.schedule.clone(), config.seed, config.run, config.speed);
+        let sim = simulator::Simulator::bind(world, config).await?;
+        println!(
+            "cooploc sitl: scenario {name} ({}), schedule {schedule}, seed {seed}, run {run}, speed {}, {} s",
+            scenario_path.display(),
+            match speed {
+                Speed::Max => "max".to_string(),
+                Speed::Factor(f) => format!("{f}"),
+            },
+            end.as_secs_f64()
+        );
+        for (id, endpoint) in sim.endpoints() {
+            println!("vehicle {id} {endpoint}");
+        }
+        let report = sim.run(shutdown_signal()).await?;
+        println!("stopped: {:?} at simulated {}", report.reason, report.sim_time);
+        for v in &report.vehicles {
+            let c = &v.counters;
+            println!(
+                "vehicle {} sent {} frames (heartbeat {}, highres_imu {}, odometry {}, sim_state {}, range {}), \
+                 {} writes, {} unrouted; received {} frames, {} malformed, {} ignored; commands {} accepted, {} rejected, {} unsupported",
+                v.platform,
+                c.frames_sent,
+                c.heartbeat_sent,
+                c.highres_imu_sent,
+                c.odometry_sent,
+                c.sim_state_sent,
+                c.range_sent,
+                v.link.writes,
+                v.link.unrouted,
+                c.frames_received,
+                c.malformed,
+                c.ignored,
+                c.commands_accepted,
+                c.commands_rejected,
+                c.commands_unsupported
+            );
+        }
+        anyhow::Ok(())
+    })
+}
