@@ -42,9 +42,13 @@ pub struct Args {
     /// How long after an epoch (vehicle time) to wait for the broadcasts, ms.
     #[arg(long, default_value_t = 500)]
     epoch_wait_ms: u64,
-    /// Initial position N,E,D (m).
-    #[arg(long, value_delimiter = ',', required = true)]
+    /// Initial position N,E,D (m). Either this (with the other --init-* flags) or --init-from-run.
+    #[arg(long, value_delimiter = ',', required_unless_present = "init_from_run", conflicts_with = "init_from_run")]
     init_ned: Vec<f64>,
+    /// Start as `cooploc experiment` does for SEED:RUN of the scenario (truth plus the initial
+    /// errors it draws), at time zero.
+    #[arg(long, value_name = "SEED:RUN")]
+    init_from_run: Option<String>,
     /// Initial velocity N,E,D (m/s).
     #[arg(long, value_delimiter = ',', default_values_t = [0.0, 0.0, 0.0])]
     init_vel_ned: Vec<f64>,
@@ -75,24 +79,40 @@ pub fn run_cmd(args: Args) -> anyhow::Result<()> {
     if !args.idle_exit_s.is_finite() || args.idle_exit_s < 0.0 {
         bail!("--idle-exit-s {}: must be a non-negative number of seconds", args.idle_exit_s);
     }
-    for (name, v) in
-        [("--init-ned", &args.init_ned), ("--init-vel-ned", &args.init_vel_ned), ("--init-rpy-deg", &args.init_rpy_deg)]
-    {
-        if v.len() != 3 || v.iter().any(|x| !x.is_finite()) {
-            bail!("{name}: three finite numbers, comma separated");
+    let from_run = match &args.init_from_run {
+        Some(text) => {
+            let parsed = text.split_once(':').and_then(|(a, b)| Some((a.parse::<u64>().ok()?, b.parse::<u32>().ok()?)));
+            Some(parsed.with_context(|| format!("--init-from-run {text:?}: expected SEED:RUN, e.g. 1:0"))?)
+        }
+        None => None,
+    };
+    if from_run.is_none() {
+        for (name, v) in
+            [("--init-ned", &args.init_ned), ("--init-vel-ned", &args.init_vel_ned), ("--init-rpy-deg", &args.init_rpy_deg)]
+        {
+            if v.len() != 3 || v.iter().any(|x| !x.is_finite()) {
+                bail!("{name}: three finite numbers, comma separated");
+            }
         }
     }
     let scenario = Scenario::from_path(&args.scenario)?;
     let world = World::new(&scenario)?;
     let (ins, initial_sigma) = ins_settings(&world);
-    let rpy = &args.init_rpy_deg;
-    let state = InsState {
-        pos_ned_m: Vector3::from_column_slice(&args.init_ned),
-        vel_ned_m_s: Vector3::from_column_slice(&args.init_vel_ned),
-        att_frd_to_ned: UnitQuaternion::from_euler_angles(rpy[0].to_radians(), rpy[1].to_radians(), rpy[2].to_radians()),
-        accel_bias_frd_m_s2: Vector3::zeros(),
-        gyro_bias_frd_rad_s: Vector3::zeros(),
-        odometer_scale_error: 0.0,
+    let (t0, state) = match from_run {
+        Some((seed, run)) => cooploc::experiment::initial_state(&world, seed, run, args.id)
+            .with_context(|| format!("--init-from-run: platform {} is not in the scenario", args.id))?,
+        None => {
+            let rpy = &args.init_rpy_deg;
+            let state = InsState {
+                pos_ned_m: Vector3::from_column_slice(&args.init_ned),
+                vel_ned_m_s: Vector3::from_column_slice(&args.init_vel_ned),
+                att_frd_to_ned: UnitQuaternion::from_euler_angles(rpy[0].to_radians(), rpy[1].to_radians(), rpy[2].to_radians()),
+                accel_bias_frd_m_s2: Vector3::zeros(),
+                gyro_bias_frd_rad_s: Vector3::zeros(),
+                odometer_scale_error: 0.0,
+            };
+            (TimeUs(args.init_time_us), state)
+        }
     };
     let cfg = NodeConfig {
         id: args.id,
@@ -103,7 +123,7 @@ pub fn run_cmd(args: Args) -> anyhow::Result<()> {
         epoch_wait_us: args.epoch_wait_ms * 1000,
         history_us: (args.epoch_wait_ms * 1000).max(1_000_000) * 4,
     };
-    let core = NodeCore::new(cfg, TimeUs(args.init_time_us), state).context("node configuration")?;
+    let core = NodeCore::new(cfg, t0, state).context("node configuration")?;
     let links = Links {
         vehicle: args.vehicle.clone(),
         coop_bind: args.coop_bind,
@@ -144,5 +164,6 @@ pub fn run_cmd(args: Args) -> anyhow::Result<()> {
         summary.coop_rejected,
         summary.peers.len()
     );
+    println!("node {} stats {:?}", e.platform, summary.stats);
     Ok(())
 }
