@@ -4,6 +4,8 @@
 //! Regenerate the golden file after a deliberate change of the dialect:
 //! `COOPLOC_BLESS=1 cargo test --release --test dialect golden`.
 
+mod common;
+
 use std::path::{Path, PathBuf};
 use std::process::Command;
 
@@ -136,24 +138,11 @@ fn golden_bytes_and_rust_round_trip() {
     }
 }
 
-fn python() -> Option<String> {
-    match std::env::var("COOPLOC_PYTHON") {
-        Ok(p) => Some(p),
-        Err(_) if std::env::var("CI").as_deref() == Ok("true") => {
-            panic!("COOPLOC_PYTHON is not set: run the tests through tests/run-all.sh")
-        }
-        Err(_) => {
-            eprintln!("SKIPPED: pymavlink cross-check needs COOPLOC_PYTHON (tests/run-all.sh sets it)");
-            None
-        }
-    }
-}
-
 /// Rust-encoded frames decode in pymavlink to the same fields; pymavlink-encoded frames are the
 /// same bytes (the golden ones) and decode in Rust to the same message.
 #[test]
 fn pymavlink_agrees_in_both_directions() {
-    let Some(python) = python() else { return };
+    let Some(python) = common::python("the pymavlink cross-check") else { return };
     let root = Path::new(env!("CARGO_MANIFEST_DIR"));
     let cases = cases();
     let input: Vec<Value> = cases

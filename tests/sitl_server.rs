@@ -3,6 +3,8 @@
 //! what arrives (decoded values, simulated timestamps, counts), never on timing; every wait is
 //! bounded.
 
+mod common;
+
 use std::net::SocketAddr;
 use std::time::Duration;
 
@@ -625,19 +627,6 @@ async fn a_vehicle_on_a_pseudo_terminal_streams_and_answers_commands_and_ctrl_c_
     assert_eq!(v1.link.dropped, 0);
 }
 
-fn python() -> Option<String> {
-    match std::env::var("COOPLOC_PYTHON") {
-        Ok(p) => Some(p),
-        Err(_) if std::env::var("CI").as_deref() == Ok("true") => {
-            panic!("COOPLOC_PYTHON is not set: run the tests through tests/run-all.sh")
-        }
-        Err(_) => {
-            eprintln!("SKIPPED: the pymavlink client needs COOPLOC_PYTHON (tests/run-all.sh sets it)");
-            None
-        }
-    }
-}
-
 /// pymavlink (an independent implementation, its own common.xml) as a `udpout` client: it sees
 /// the vehicle's HEARTBEAT, gets its SET_MESSAGE_INTERVAL acknowledged, and the rate changes.
 const PYMAVLINK_CLIENT: &str = r#"
@@ -670,7 +659,7 @@ print("ok", after[0])
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn pymavlink_connects_with_udpout_and_a_listener_gets_udpout_targets() {
-    let Some(python) = python() else { return };
+    let Some(python) = common::python("the pymavlink client") else { return };
     let world = world();
     // Vehicles 2 and 3 stream to a listener that never sends (their `udpout` target).
     let listener = client_socket();
