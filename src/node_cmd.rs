@@ -9,8 +9,9 @@ use cooploc::estimation::Method;
 use cooploc::estimation::ins::InsState;
 use cooploc::experiment::ins_settings;
 use cooploc::node::core::{NodeConfig, NodeCore};
-use cooploc::node::runner::{Links, run};
+use cooploc::node::runner::{Links, NodeInit, run};
 use cooploc::protocol::record::Encoding;
+use cooploc::protocol::wire::GeoOrigin;
 use cooploc::sitl::scenario::Scenario;
 use cooploc::sitl::world::World;
 use cooploc::time::TimeUs;
@@ -39,11 +40,18 @@ pub struct Args {
     /// Number format of the broadcast matrices: f64 or f32.
     #[arg(long, default_value = "f64")]
     encoding: String,
-    /// How long after an epoch (vehicle time) to wait for the broadcasts, ms.
-    #[arg(long, default_value_t = 500)]
-    epoch_wait_ms: u64,
-    /// Initial position N,E,D (m). Either this (with the other --init-* flags) or --init-from-run.
-    #[arg(long, value_delimiter = ',', required_unless_present = "init_from_run", conflicts_with = "init_from_run")]
+    /// Platform ids of the team (every epoch waits for their records); default: the scenario's.
+    #[arg(long, value_delimiter = ',')]
+    team: Vec<u16>,
+    /// How long (wall time) an epoch waits for missing records before it runs without them, ms.
+    #[arg(long, default_value_t = 2000)]
+    epoch_timeout_ms: u64,
+    /// Interval (wall time) between retransmission requests while an epoch waits, ms.
+    #[arg(long, default_value_t = 100)]
+    retry_ms: u64,
+    /// Initial position N,E,D (m), with the other --init-* flags. Without it or --init-from-run,
+    /// the node initialises from the vehicle's first SIM_STATE (simulated vehicles).
+    #[arg(long, value_delimiter = ',', conflicts_with = "init_from_run")]
     init_ned: Vec<f64>,
     /// Start as `cooploc experiment` does for SEED:RUN of the scenario (truth plus the initial
     /// errors it draws), at time zero.
@@ -58,6 +66,10 @@ pub struct Args {
     /// Vehicle time of the initial state (us); the first IMU sample must come after it.
     #[arg(long, default_value_t = 0)]
     init_time_us: u64,
+    /// Longitude of the local NED origin, deg, to read SIM_STATE positions (its latitude is the
+    /// scenario's); the same as `cooploc sitl --origin-lon-deg`.
+    #[arg(long, default_value_t = 0.0, allow_negative_numbers = true)]
+    origin_lon_deg: f64,
     /// Stop when the vehicle has been silent this long (s); 0: run until Ctrl-C.
     #[arg(long, default_value_t = 0.0)]
     idle_exit_s: f64,
@@ -86,7 +98,8 @@ pub fn run_cmd(args: Args) -> anyhow::Result<()> {
         }
         None => None,
     };
-    if from_run.is_none() {
+    let from_cli = !args.init_ned.is_empty();
+    if from_cli {
         for (name, v) in
             [("--init-ned", &args.init_ned), ("--init-vel-ned", &args.init_vel_ned), ("--init-rpy-deg", &args.init_rpy_deg)]
         {
@@ -98,9 +111,12 @@ pub fn run_cmd(args: Args) -> anyhow::Result<()> {
     let scenario = Scenario::from_path(&args.scenario)?;
     let world = World::new(&scenario)?;
     let (ins, initial_sigma) = ins_settings(&world);
-    let (t0, state) = match from_run {
-        Some((seed, run)) => cooploc::experiment::initial_state(&world, seed, run, args.id)
-            .with_context(|| format!("--init-from-run: platform {} is not in the scenario", args.id))?,
+    let initial = match from_run {
+        Some((seed, run)) => Some(
+            cooploc::experiment::initial_state(&world, seed, run, args.id)
+                .with_context(|| format!("--init-from-run: platform {} is not in the scenario", args.id))?,
+        ),
+        None if !from_cli => None,
         None => {
             let rpy = &args.init_rpy_deg;
             let state = InsState {
@@ -111,19 +127,28 @@ pub fn run_cmd(args: Args) -> anyhow::Result<()> {
                 gyro_bias_frd_rad_s: Vector3::zeros(),
                 odometer_scale_error: 0.0,
             };
-            (TimeUs(args.init_time_us), state)
+            Some((TimeUs(args.init_time_us), state))
         }
     };
-    let cfg = NodeConfig {
-        id: args.id,
-        method,
-        ins,
-        initial_sigma,
-        encoding,
-        epoch_wait_us: args.epoch_wait_ms * 1000,
-        history_us: (args.epoch_wait_ms * 1000).max(1_000_000) * 4,
+    let team = if args.team.is_empty() { world.platform_ids() } else { args.team.clone() };
+    if args.retry_ms == 0 || args.retry_ms >= args.epoch_timeout_ms {
+        bail!("--retry-ms {} must be positive and below --epoch-timeout-ms {}", args.retry_ms, args.epoch_timeout_ms);
+    }
+    if !(args.origin_lon_deg.is_finite() && (-180.0..=180.0).contains(&args.origin_lon_deg)) {
+        bail!("--origin-lon-deg must be in [-180, 180], got {}", args.origin_lon_deg);
+    }
+    let mut cfg = NodeConfig::new(args.id, method, ins, initial_sigma, encoding, team);
+    cfg.epoch_timeout_us = args.epoch_timeout_ms * 1000;
+    cfg.retry_us = args.retry_ms * 1000;
+    let init = match initial {
+        Some((t0, state)) => NodeInit::Ready(Box::new(NodeCore::new(cfg, t0, state).context("node configuration")?)),
+        None => {
+            // Checked now rather than at the first SIM_STATE.
+            NodeCore::new(cfg.clone(), TimeUs(0), InsState::at_rest(UnitQuaternion::identity())).context("node configuration")?;
+            let origin = GeoOrigin { lat_deg: scenario.latitude_deg, lon_deg: args.origin_lon_deg, alt_m: 0.0 };
+            NodeInit::FromSimState { config: Box::new(cfg), origin }
+        }
     };
-    let core = NodeCore::new(cfg, t0, state).context("node configuration")?;
     let links = Links {
         vehicle: args.vehicle.clone(),
         coop_bind: args.coop_bind,
@@ -143,27 +168,37 @@ pub fn run_cmd(args: Args) -> anyhow::Result<()> {
         let shutdown = async {
             let _ = tokio::signal::ctrl_c().await;
         };
-        let summary = run(core, links, tx, shutdown).await;
+        let summary = run(init, links, tx, shutdown).await;
         let _ = announce.await;
         summary
     })?;
-    let e = &summary.estimate;
+    let Some(e) = &summary.estimate else {
+        println!(
+            "node {} done: never initialised (no SIM_STATE from the vehicle); {} inputs ignored",
+            args.id, summary.before_init
+        );
+        return Ok(());
+    };
+    let st = &summary.stats;
     println!(
-        "node {} done: t {} pos_ned_m [{:.4}, {:.4}, {:.4}] yaw_deg {:.5} epochs_applied {} epochs_skipped {} vehicle_frames {} vehicle_rejected {} coop_frames {} coop_rejected {} peers {}",
+        "node {} done: t {} pos_ned_m [{:.4}, {:.4}, {:.4}] yaw_deg {:.5} epochs_applied {} epochs_partial {} epochs_skipped {} dropped_inputs {} vehicle_frames {} vehicle_lost {} vehicle_rejected {} coop_frames {} coop_rejected {} peers {}",
         e.platform,
         e.t.0,
         e.position_ned_m[0],
         e.position_ned_m[1],
         e.position_ned_m[2],
         e.yaw_rad.to_degrees(),
-        summary.stats.epochs_applied,
-        summary.stats.epochs_skipped,
+        st.epochs_applied,
+        st.epochs_partial,
+        st.epochs_skipped,
+        st.dropped_inputs(),
         summary.vehicle_frames,
+        summary.vehicle_lost,
         summary.vehicle_rejected,
         summary.coop_frames,
         summary.coop_rejected,
         summary.peers.len()
     );
-    println!("node {} stats {:?}", e.platform, summary.stats);
+    println!("node {} stats {:?}", e.platform, st);
     Ok(())
 }

@@ -11,7 +11,7 @@ use std::process::Command;
 
 use cooploc::protocol::MavMessage;
 use cooploc::protocol::dialect::cooploc::{
-    COOPLOC_EPOCH_DATA, COOPLOC_ESTIMATE_DATA, COOPLOC_RANGE_DATA, COOPLOC_STATE_FRAGMENT_DATA, CooplocMethod,
+    COOPLOC_EPOCH_DATA, COOPLOC_ESTIMATE_DATA, COOPLOC_RANGE_DATA, COOPLOC_STATE_FRAGMENT_DATA, CooplocEpochState, CooplocMethod,
 };
 use cooploc::protocol::wire::{from_frame, to_frame};
 use mavlink_core::MavHeader;
@@ -86,8 +86,9 @@ fn cases() -> Vec<(&'static str, MavMessage, Value)> {
                 announcer: 1,
                 participants,
                 count: 3,
+                state: CooplocEpochState::COOPLOC_EPOCH_STATE_APPLIED,
             }),
-            json!({"time_usec": 200_000_000u64, "epoch": 200, "announcer": 1, "count": 3, "participants": participants.to_vec()}),
+            json!({"time_usec": 200_000_000u64, "epoch": 200, "announcer": 1, "count": 3, "participants": participants.to_vec(), "state": 1}),
         ),
     ]
 }

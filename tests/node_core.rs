@@ -8,12 +8,125 @@ use std::collections::VecDeque;
 use cooploc::estimation::{Method, RangeSample};
 use cooploc::experiment::{initial_state, ins_settings, run_filter};
 use cooploc::node::core::{NodeConfig, NodeCore, NodeInput, NodeOutput};
+use cooploc::protocol::MavMessage;
 use cooploc::protocol::record::Encoding;
 use cooploc::protocol::wire::{self, from_frame, to_frame};
 use cooploc::sitl::world::SimEvent;
 use cooploc::sitl::{PAPER_TOML, Scenario, World};
 use cooploc::time::TimeUs;
 use mavlink_core::MavHeader;
+
+/// What the simulated network does with one message from node `from` to node `to` (indices),
+/// at wall time `wall_us`: deliver it or not.
+type Network<'a> = dyn FnMut(usize, usize, &MavMessage, u64) -> bool + 'a;
+
+enum Item {
+    Input(usize, NodeInput),
+    Send(usize, Box<MavMessage>),
+}
+
+/// Routes everything queued: inputs go to their node, what a node sends goes through a real
+/// frame and `net` to every other node.
+fn deliver(nodes: &mut [NodeCore], queue: &mut VecDeque<Item>, alive: &dyn Fn(usize) -> bool, net: &mut Network<'_>, wall: u64) {
+    while let Some(item) = queue.pop_front() {
+        match item {
+            Item::Input(i, input) if alive(i) => {
+                let out = nodes[i].handle(input);
+                send(queue, i, out);
+            }
+            Item::Input(..) => {}
+            Item::Send(i, msg) => {
+                let header = MavHeader { system_id: u32::from(nodes[i].id()), component_id: 191, sequence: 0 };
+                let (_, decoded) = from_frame(&to_frame(header, &msg)).unwrap();
+                for j in (0..nodes.len()).filter(|&j| j != i) {
+                    if net(i, j, &decoded, wall) {
+                        queue.push_back(Item::Input(j, NodeInput::Peer { from: nodes[i].id(), msg: Box::new(decoded.clone()) }));
+                    }
+                }
+            }
+        }
+    }
+}
+
+fn send(queue: &mut VecDeque<Item>, i: usize, outputs: Vec<NodeOutput>) {
+    for output in outputs {
+        if let NodeOutput::ToPeers(msg) = output {
+            queue.push_back(Item::Send(i, Box::new(msg)));
+        }
+    }
+}
+
+/// Runs one node core per platform over the world's events, every message through real frames
+/// and `net`. The wall clock runs at `speed` times real time and every core is polled at every
+/// event. Node `dead.0` stops (no input, no output) from vehicle time `dead.1` on.
+#[allow(clippy::too_many_arguments)]
+fn run_network_with(
+    world: &World,
+    method: Method,
+    schedule: &str,
+    seed: u64,
+    run: u32,
+    speed: u64,
+    dead: Option<(usize, TimeUs)>,
+    net: &mut Network<'_>,
+) -> (Vec<NodeCore>, Vec<(TimeUs, Vec<RangeSample>)>) {
+    let (ins, initial_sigma) = ins_settings(world);
+    let mut nodes: Vec<NodeCore> = world
+        .platform_ids()
+        .into_iter()
+        .map(|id| {
+            let (t0, state) = initial_state(world, seed, run, id).unwrap();
+            let cfg = NodeConfig::new(id, method, ins, initial_sigma, Encoding::F64, world.platform_ids());
+            NodeCore::new(cfg, t0, state).unwrap()
+        })
+        .collect();
+    let index = |id| world.platform_ids().iter().position(|&p| p == id).unwrap();
+    let mut sent_ranges = Vec::new();
+    let mut epoch = 0u32;
+    let mut queue: VecDeque<Item> = VecDeque::new();
+    let mut now = TimeUs(0);
+    for event in world.events(schedule, seed, run).unwrap() {
+        match event {
+            SimEvent::Imu(id, s) => {
+                now = s.t;
+                queue.push_back(Item::Input(index(id), NodeInput::Imu(s)))
+            }
+            SimEvent::Odometer(id, s) => queue.push_back(Item::Input(index(id), NodeInput::Odometer(s))),
+            SimEvent::Ranges(t, samples) => {
+                epoch += 1;
+                sent_ranges.push((t, samples.iter().map(wire::range_as_sent).collect()));
+                for r in samples {
+                    queue.push_back(Item::Input(index(r.from), NodeInput::OwnRange { epoch, range: r }));
+                }
+            }
+        }
+        let alive = |i: usize| dead.is_none_or(|(d, since)| d != i || now < since);
+        let wall = now.0 / speed;
+        for (i, node) in nodes.iter_mut().enumerate() {
+            if alive(i) {
+                let out = node.poll(wall);
+                send(&mut queue, i, out);
+            }
+        }
+        deliver(&mut nodes, &mut queue, &alive, net, wall);
+    }
+    // The run ends at the last epoch's instant: close it everywhere, deliver, then run it.
+    let alive = |i: usize| dead.is_none_or(|(d, since)| d != i || now < since);
+    let wall = now.0 / speed;
+    for i in 0..nodes.len() {
+        if alive(i) {
+            let out = nodes[i].end_of_input();
+            send(&mut queue, i, out);
+            deliver(&mut nodes, &mut queue, &alive, net, wall);
+        }
+    }
+    for (i, node) in nodes.iter_mut().enumerate() {
+        if alive(i) {
+            node.run_pending();
+        }
+    }
+    (nodes, sent_ranges)
+}
 
 fn run_network(
     world: &World,
@@ -22,67 +135,7 @@ fn run_network(
     seed: u64,
     run: u32,
 ) -> (Vec<NodeCore>, Vec<(TimeUs, Vec<RangeSample>)>) {
-    let (ins, initial_sigma) = ins_settings(world);
-    let mut nodes: Vec<NodeCore> = world
-        .platform_ids()
-        .into_iter()
-        .map(|id| {
-            let (t0, state) = initial_state(world, seed, run, id).unwrap();
-            let cfg = NodeConfig {
-                id,
-                method,
-                ins,
-                initial_sigma,
-                encoding: Encoding::F64,
-                epoch_wait_us: 500_000,
-                history_us: 3_000_000,
-            };
-            NodeCore::new(cfg, t0, state).unwrap()
-        })
-        .collect();
-    let index = |id| world.platform_ids().iter().position(|&p| p == id).unwrap();
-    let mut sent_ranges = Vec::new();
-    let mut epoch = 0u32;
-    let mut queue: VecDeque<(usize, NodeInput)> = VecDeque::new();
-    for event in world.events(schedule, seed, run).unwrap() {
-        match event {
-            SimEvent::Imu(id, s) => queue.push_back((index(id), NodeInput::Imu(s))),
-            SimEvent::Odometer(id, s) => queue.push_back((index(id), NodeInput::Odometer(s))),
-            SimEvent::Ranges(t, samples) => {
-                epoch += 1;
-                sent_ranges.push((t, samples.iter().map(wire::range_as_sent).collect()));
-                for r in samples {
-                    queue.push_back((index(r.from), NodeInput::OwnRange { epoch, range: r }));
-                }
-            }
-        }
-        // Deliver everything this input causes, through real frames, to every other node.
-        while let Some((i, input)) = queue.pop_front() {
-            for output in nodes[i].handle(input) {
-                if let NodeOutput::ToPeers(msg) = output {
-                    let header = MavHeader { system_id: u32::from(nodes[i].id()), component_id: 191, sequence: 0 };
-                    let (_, decoded) = from_frame(&to_frame(header, &msg)).unwrap();
-                    for j in (0..nodes.len()).filter(|&j| j != i) {
-                        queue.push_back((j, NodeInput::Peer(Box::new(decoded.clone()))));
-                    }
-                }
-            }
-        }
-    }
-    // The run ends at the last epoch's instant: close it everywhere, deliver, then run it.
-    for i in 0..nodes.len() {
-        for output in nodes[i].end_of_input() {
-            if let NodeOutput::ToPeers(msg) = output {
-                for j in (0..nodes.len()).filter(|&j| j != i) {
-                    let _ = nodes[j].handle(NodeInput::Peer(Box::new(msg.clone())));
-                }
-            }
-        }
-    }
-    for node in &mut nodes {
-        node.run_pending();
-    }
-    (nodes, sent_ranges)
+    run_network_with(world, method, schedule, seed, run, 20, None, &mut |_, _, _, _| true)
 }
 
 #[test]
@@ -94,11 +147,74 @@ fn three_nodes_reproduce_the_experiment_bit_for_bit() {
         let reference = run_filter(&world, &inputs, &sent_ranges, method).unwrap();
         for (node, (p, outcome)) in nodes.iter().zip(inputs.platforms.iter().zip(&reference.platforms)) {
             assert_eq!(node.stats.epochs_applied, 380, "{method} node {}: {:?}", node.id(), node.stats);
-            assert_eq!(node.stats.rejected_inputs + node.stats.fragments_rejected + node.stats.records_incomplete, 0);
+            assert_eq!(node.stats.dropped_inputs() + node.stats.fragments_rejected + node.stats.records_incomplete, 0);
+            assert_eq!((node.stats.epochs_partial, node.stats.epoch_disagreements), (0, 0), "{:?}", node.stats);
             let truth = p.truth.last().unwrap();
             let err = truth.pos_ned_m - node.filter().position_ned_m();
             let reference_err = outcome.final_error().pos_err_ne_m;
             assert_eq!([err[0], err[1]], reference_err, "{method} node {}: final error differs from the experiment's", node.id());
         }
     }
+}
+
+/// Drops the first copy of one fragment of every record node 2 sends to node 1: node 1 asks
+/// (COOPLOC_EPOCH), node 2 resends, and nothing changes in the result.
+#[test]
+fn lost_fragments_are_resent_and_the_result_is_unchanged() {
+    let world = World::new(&Scenario::from_toml_str(PAPER_TOML).unwrap()).unwrap();
+    let mut dropped = std::collections::BTreeSet::new();
+    let mut net = |from: usize, to: usize, msg: &MavMessage, _wall: u64| match msg {
+        MavMessage::COOPLOC_STATE_FRAGMENT(f) if from == 1 && to == 0 && f.frag_index == 3 => !dropped.insert(f.epoch),
+        _ => true,
+    };
+    let (nodes, sent_ranges) = run_network_with(&world, Method::Decentralized, "1hz", 1, 0, 20, None, &mut net);
+    let inputs = world.run_inputs(1, 0);
+    let reference = run_filter(&world, &inputs, &sent_ranges, Method::Decentralized).unwrap();
+    assert!(nodes[1].stats.records_resent >= 380, "{:?}", nodes[1].stats);
+    assert!(nodes[0].stats.epoch_messages_sent >= 760, "{:?}", nodes[0].stats);
+    for (node, (p, outcome)) in nodes.iter().zip(inputs.platforms.iter().zip(&reference.platforms)) {
+        assert_eq!((node.stats.epochs_applied, node.stats.epochs_partial, node.stats.epoch_disagreements), (380, 0, 0));
+        let err = p.truth.last().unwrap().pos_ned_m - node.filter().position_ned_m();
+        assert_eq!([err[0], err[1]], outcome.final_error().pos_err_ne_m, "node {}", node.id());
+    }
+}
+
+/// Node 3 dies at 100 s: the others wait one timeout for it at the next epoch, run that epoch
+/// without it (PARTIAL, on the same set), mark it absent and go on without waiting.
+#[test]
+fn a_dead_node_costs_one_timeout_and_the_others_stay_in_agreement() {
+    let world = World::new(&Scenario::from_toml_str(PAPER_TOML).unwrap()).unwrap();
+    let (nodes, _) =
+        run_network_with(&world, Method::Decentralized, "1hz", 1, 0, 20, Some((2, TimeUs(100_500_000))), &mut |_, _, _, _| true);
+    let inputs = world.run_inputs(1, 0);
+    let dr = run_filter(&world, &inputs, &[], Method::DeadReckoning).unwrap();
+    for (k, node) in nodes.iter().enumerate().take(2) {
+        let st = &node.stats;
+        assert_eq!((st.epochs_partial, st.epoch_disagreements), (1, 0), "node {}: {st:?}", node.id());
+        assert_eq!(st.epochs_applied, 380, "node {}: {st:?}", node.id());
+        assert_eq!(node.absent().collect::<Vec<_>>(), vec![3]);
+        let err = (inputs.platforms[k].truth.last().unwrap().pos_ned_m - node.filter().position_ned_m()).xy().norm();
+        let dr_err = dr.platforms[k].final_error().pos_err_m;
+        assert!(err < dr_err, "node {}: {err:.2} m, dead reckoning {dr_err:.2} m", node.id());
+    }
+}
+
+/// Messages from a platform outside the team, and IMU gaps, are counted; a gap is bridged.
+#[test]
+fn unknown_platforms_are_dropped_and_imu_gaps_bridged() {
+    let world = World::new(&Scenario::from_toml_str(PAPER_TOML).unwrap()).unwrap();
+    let (ins, initial_sigma) = ins_settings(&world);
+    let (t0, state) = initial_state(&world, 1, 0, 1).unwrap();
+    let cfg = NodeConfig::new(1, Method::Decentralized, ins, initial_sigma, Encoding::F64, vec![1, 2, 3]);
+    let mut node = NodeCore::new(cfg, t0, state).unwrap();
+    let range = RangeSample { t: TimeUs(1_000_000), from: 9, to: 1, range_m: 10.0, sigma_m: 0.1 };
+    node.handle(NodeInput::Peer { from: 9, msg: Box::new(wire::range_to_message(&range, 1)) });
+    assert_eq!(node.stats.unknown_platforms, 1);
+    let imu = world.run_inputs(1, 0).platforms[0].imu.clone();
+    node.handle(NodeInput::Imu(imu[0]));
+    node.handle(NodeInput::Imu(imu[400])); // 2 s later: beyond the filter's 0.5 s
+    assert_eq!((node.stats.imu_gaps_bridged, node.stats.imu_rejected), (1, 0));
+    assert_eq!(node.filter().time(), imu[400].t);
+    node.handle(NodeInput::Imu(imu[399]));
+    assert_eq!(node.stats.imu_rejected, 1, "time going backwards is refused");
 }

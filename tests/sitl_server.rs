@@ -169,11 +169,40 @@ async fn start(world: World, config: SitlConfig) -> Started {
     Started { endpoints, handle, _stop: stop }
 }
 
+/// Frames received in a datagram but not yet returned, per client socket (the simulator puts
+/// several stream frames in one datagram, as PX4 does).
+type Queued = std::collections::VecDeque<(MavHeader, MavMessage)>;
+static PENDING: std::sync::Mutex<Vec<(std::net::SocketAddr, Queued)>> = std::sync::Mutex::new(Vec::new());
+
+fn pending_pop(sock: &UdpSocket) -> Option<(MavHeader, MavMessage)> {
+    let addr = sock.local_addr().unwrap();
+    PENDING.lock().unwrap().iter_mut().find(|(a, _)| *a == addr).and_then(|(_, q)| q.pop_front())
+}
+
+/// Every frame of one datagram: all of it must be valid frames.
+fn datagram_frames(bytes: &[u8]) -> Vec<(MavHeader, MavMessage)> {
+    let frames = wire::frames(bytes);
+    let len: usize = frames.iter().map(|(h, m)| wire::to_frame(*h, m).len()).sum();
+    assert!(!frames.is_empty() && len == bytes.len(), "a datagram of {} bytes with {} bytes of valid frames", bytes.len(), len);
+    frames
+}
+
 /// Receives one frame (bounded wait).
 async fn recv(sock: &UdpSocket) -> (MavHeader, MavMessage) {
+    if let Some(f) = pending_pop(sock) {
+        return f;
+    }
     let mut buf = [0u8; 2048];
     let (n, _) = tokio::time::timeout(TIMEOUT, sock.recv_from(&mut buf)).await.expect("a frame within the timeout").unwrap();
-    wire::from_frame(&buf[..n]).expect("a valid frame")
+    let mut frames = std::collections::VecDeque::from(datagram_frames(&buf[..n]));
+    let first = frames.pop_front().unwrap();
+    let addr = sock.local_addr().unwrap();
+    let mut pending = PENDING.lock().unwrap();
+    match pending.iter_mut().find(|(a, _)| *a == addr) {
+        Some((_, q)) => q.extend(frames),
+        None => pending.push((addr, frames)),
+    }
+    first
 }
 
 /// Receives until `pred` matches, returning everything received (bounded).
@@ -194,9 +223,12 @@ async fn recv_until(sock: &UdpSocket, mut pred: impl FnMut(&MavMessage) -> bool)
 fn drain(sock: &UdpSocket) -> Vec<(MavHeader, MavMessage)> {
     let mut buf = [0u8; 2048];
     let mut got = Vec::new();
+    while let Some(f) = pending_pop(sock) {
+        got.push(f);
+    }
     loop {
         match sock.try_recv_from(&mut buf) {
-            Ok((n, _)) => got.push(wire::from_frame(&buf[..n]).expect("a valid frame")),
+            Ok((n, _)) => got.extend(datagram_frames(&buf[..n])),
             Err(e) if e.kind() == std::io::ErrorKind::WouldBlock => return got,
             Err(e) => panic!("{e}"),
         }

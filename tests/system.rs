@@ -55,15 +55,7 @@ impl Drop for Kill {
     }
 }
 
-// Known failure, issue 5: passes when the machine is otherwise idle, fails under CPU contention.
-// The node decides an epoch's participants by a wait in vehicle time (500 ms, 25 ms of wall time
-// at 20x); a node that falls behind sends its record after its peers ran the epoch without it,
-// the nodes' cross-covariance stores then differ, and the joint covariance they rebuild is no
-// longer consistent (a node diverged to 1100 km in one run). The fix is an agreed participant set
-// per epoch (announcement and retransmission), not a longer wait. Run: `cargo test --release
-// --test system -- --ignored --nocapture`.
 #[test]
-#[ignore = "flaky until the nodes agree on each epoch's participants (issue 5)"]
 fn sitl_and_three_nodes_match_the_experiment() {
     let world = World::new(&Scenario::from_toml_str(PAPER_TOML).unwrap()).unwrap();
     let (seed, run, schedule) = (1u64, 0u32, "1hz");
@@ -105,7 +97,16 @@ fn sitl_and_three_nodes_match_the_experiment() {
         let line = wait_line(out, &format!("node {id} done:"), Duration::from_secs(240));
         let inside = line.split('[').nth(1).unwrap().split(']').next().unwrap();
         let pos: Vec<f64> = inside.split(',').map(|v| v.trim().parse().unwrap()).collect();
-        let applied: u64 = line.split("epochs_applied ").nth(1).unwrap().split_whitespace().next().unwrap().parse().unwrap();
+        let count = |name: &str| -> u64 {
+            line.split(&format!(" {name} ")).nth(1).unwrap().split_whitespace().next().unwrap().parse().unwrap()
+        };
+        let applied = count("epochs_applied");
+        let stats = wait_line(out, &format!("node {id} stats"), Duration::from_secs(5));
+        eprintln!("{line}\n{stats}");
+        assert_eq!(count("dropped_inputs"), 0, "node {id} dropped vehicle input");
+        assert_eq!(count("vehicle_lost"), 0, "node {id} lost vehicle frames");
+        assert_eq!(count("epochs_partial"), 0, "node {id} ran epochs without every team member");
+        assert!(stats.contains("epoch_disagreements: 0,"), "node {id}: {stats}");
         finals.push((*id, pos, applied));
     }
     // The experiment on the same world, fed what went on the wire.

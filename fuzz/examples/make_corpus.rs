@@ -100,6 +100,7 @@ fn main() {
         t: TimeUs(7_000_000),
         announcer: 1,
         participants: vec![1, 2, 3, 5],
+        state: wire::EpochState::COOPLOC_EPOCH_STATE_COLLECTING,
     })
     .expect("epoch message");
     let estimate_msg = wire::estimate_to_message(&EstimateReport {

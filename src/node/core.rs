@@ -2,24 +2,34 @@
 //!
 //! Time is the vehicle's: the timestamps of its IMU samples. The core keeps a checkpoint of its
 //! filter at the end of every instant (after the IMU sample and any odometer sample of that
-//! time) for the last `history_s` seconds, and every input since the oldest checkpoint.
+//! time) for the last `history_s` seconds, the checkpoints at the times of the epochs still open,
+//! and every input since the oldest checkpoint.
 //!
 //! A ranging epoch `e` at time `t_e` becomes known to the node from its own vehicle's ranges,
-//! from peers' ranges, fragments or announcements. Then:
+//! from peers' ranges, fragments or epoch messages. Epochs are run strictly in order. Then:
 //!
-//! 1. **Broadcast** (Step 3): once the filter has finished instant `t_e`, the node encodes its
-//!    checkpoint at `t_e` as a state record, fragments it to its peers, and keeps the *decoded*
-//!    record as its own broadcast (quantisation rule). Ranges its own vehicle measured are
-//!    forwarded to the peers, as sent.
-//! 2. **Joint update** (Steps 4-5): when its filter passes `t_e + epoch_wait`, the node takes the
-//!    complete records of that epoch (its own included; platforms whose record is incomplete are
-//!    left out and counted) and the ranges among those platforms, sorted by platform id so that
-//!    every node builds the same joint problem, and runs the method's update.
-//! 3. **Back to the present**: it restores its checkpoint at `t_e`, writes back its own share of
+//! 1. **Broadcast** (Step 3): once the filter has finished instant `t_e` and every earlier epoch
+//!    is resolved (so the record carries their updates), the node encodes its checkpoint at `t_e`
+//!    as a state record, fragments it to its peers, and keeps the *decoded* record as its own
+//!    broadcast (quantisation rule). Ranges its own vehicle measured are forwarded, as sent.
+//! 2. **Agreement**: the paper's update is exact only if every node runs it on the same records,
+//!    so the node waits until it holds the complete record of every expected team member (the
+//!    team minus members found absent). While it waits it sends, every `retry` of wall time, a
+//!    COOPLOC_EPOCH listing the records it holds; a node that is not listed resends its record
+//!    (lost fragments, or a peer that learned its address late). After `epoch_timeout` of wall
+//!    time it runs without the missing members, marks them absent until their records come
+//!    again, and says so (state PARTIAL, counted): the nodes may then disagree, which they detect
+//!    from each other's APPLIED/PARTIAL messages (`epoch_disagreements`).
+//! 3. **Joint update** (Steps 4-5): the complete records of the epoch and the ranges among those
+//!    platforms, sorted by platform id so that every node builds the same joint problem.
+//! 4. **Back to the present**: it restores its checkpoint at `t_e`, writes back its own share of
 //!    the update, and re-propagates every IMU and odometer input buffered since `t_e`. The result
 //!    is exactly what a filter that had the update at `t_e` would hold now.
+//!
+//! Wall time enters only through [`NodeCore::poll`] (timeouts and retries); a run whose
+//! messages all arrive is therefore deterministic and independent of timing.
 
-use std::collections::{BTreeMap, VecDeque};
+use std::collections::{BTreeMap, BTreeSet, VecDeque};
 
 use crate::estimation::ci::ci_update;
 use crate::estimation::ins::{InsConfig, InsFilter, InsInitialSigma, InsState};
@@ -30,7 +40,7 @@ use crate::estimation::{
 use crate::protocol::MavMessage;
 use crate::protocol::fragment::{Pushed, Reassembler, fragment};
 use crate::protocol::record::{self, Encoding};
-use crate::protocol::wire;
+use crate::protocol::wire::{self, EpochState};
 use crate::time::TimeUs;
 
 /// How a node runs.
@@ -43,11 +53,44 @@ pub struct NodeConfig {
     pub ins: InsConfig,
     pub initial_sigma: InsInitialSigma,
     pub encoding: Encoding,
-    /// How long after an epoch (vehicle time) the node waits for the broadcasts before running
-    /// the joint update with what is complete.
-    pub epoch_wait_us: u64,
-    /// How much history (checkpoints and inputs) the node keeps, seconds of vehicle time.
+    /// Every platform of the team, this one included: the records an epoch waits for.
+    /// Messages from other platforms are counted and dropped.
+    pub team: Vec<PlatformId>,
+    /// Wall time a node waits for missing records before it runs an epoch without them, us.
+    pub epoch_timeout_us: u64,
+    /// Wall time between COOPLOC_EPOCH messages while waiting (retransmission requests), us.
+    pub retry_us: u64,
+    /// How much history (checkpoints of every instant) the node keeps, vehicle time, us.
     pub history_us: u64,
+    /// An epoch still open this long (vehicle time) after its instant is run with what is
+    /// there, so that memory stays bounded whatever the network does, us.
+    pub max_lag_us: u64,
+}
+
+impl NodeConfig {
+    /// A configuration with the defaults of `cooploc node`: 2 s timeout, 100 ms retries, 4 s of
+    /// history, 120 s of maximum lag.
+    pub fn new(
+        id: PlatformId,
+        method: Method,
+        ins: InsConfig,
+        initial_sigma: InsInitialSigma,
+        encoding: Encoding,
+        team: Vec<PlatformId>,
+    ) -> Self {
+        Self {
+            id,
+            method,
+            ins,
+            initial_sigma,
+            encoding,
+            team,
+            epoch_timeout_us: 2_000_000,
+            retry_us: 100_000,
+            history_us: 4_000_000,
+            max_lag_us: 120_000_000,
+        }
+    }
 }
 
 /// Why a node configuration is refused.
@@ -55,8 +98,10 @@ pub struct NodeConfig {
 pub enum NodeConfigError {
     #[error("method {0} needs a central computer; a node runs dr, naive, dcl or ci")]
     Method(Method),
-    #[error("epoch wait ({wait_us} us) must be shorter than the history kept ({history_us} us)")]
-    Wait { wait_us: u64, history_us: u64 },
+    #[error("the team {team:?} must list this node's platform {id}, at most {max} platforms, none twice")]
+    Team { id: PlatformId, team: Vec<PlatformId>, max: usize },
+    #[error("the retry interval ({retry_us} us) must be positive and shorter than the epoch timeout ({timeout_us} us)")]
+    Timing { retry_us: u64, timeout_us: u64 },
     #[error(transparent)]
     Filter(#[from] EstimationError),
 }
@@ -71,8 +116,11 @@ pub enum NodeInput {
         epoch: u32,
         range: RangeSample,
     },
-    /// A message from the cooperative network.
-    Peer(Box<MavMessage>),
+    /// A message from the cooperative network, with the system id of its sender.
+    Peer {
+        from: PlatformId,
+        msg: Box<MavMessage>,
+    },
 }
 
 /// What the node sends out.
@@ -87,17 +135,39 @@ pub enum NodeOutput {
 pub struct NodeStats {
     pub imu: u64,
     pub odometer: u64,
-    pub rejected_inputs: u64,
+    /// IMU samples not after the filter's time, or refused by the filter.
+    pub imu_rejected: u64,
+    /// Gaps in the IMU stream longer than the filter takes, bridged by holding the next sample.
+    pub imu_gaps_bridged: u64,
+    /// Odometer samples without an IMU sample of the same time (lost or reordered input).
+    pub odometer_unmatched: u64,
+    /// Odometer samples the filter refused (gated or invalid).
+    pub odometer_rejected: u64,
     pub records_sent: u64,
+    pub records_resent: u64,
     pub records_received: u64,
     pub fragments_rejected: u64,
     pub records_incomplete: u64,
     pub records_undecodable: u64,
     pub ranges_rejected: u64,
+    /// Messages from platforms outside the team.
+    pub unknown_platforms: u64,
     pub late_messages: u64,
+    pub epoch_messages_sent: u64,
     pub epochs_applied: u64,
+    /// Epochs run without every expected member (timeout, lag bound or end of input).
+    pub epochs_partial: u64,
     pub epochs_skipped: u64,
+    /// Epochs a peer ran on another set of records than this node.
+    pub epoch_disagreements: u64,
     pub replayed_inputs: u64,
+}
+
+impl NodeStats {
+    /// Inputs from the vehicle that did not reach the filter.
+    pub fn dropped_inputs(&self) -> u64 {
+        self.imu_rejected + self.odometer_unmatched + self.odometer_rejected + self.imu_gaps_bridged
+    }
 }
 
 #[derive(Debug, Clone)]
@@ -118,10 +188,20 @@ impl Stamped {
 #[derive(Debug, Default)]
 struct Epoch {
     t: Option<TimeUs>,
-    broadcast: bool,
+    /// Wall time of our broadcast, once sent.
+    broadcast_at: Option<u64>,
+    last_status_at: u64,
+    last_resend_at: Option<u64>,
+    early_request_sent: bool,
     ranges: BTreeMap<(PlatformId, PlatformId), RangeSample>,
     records: BTreeMap<PlatformId, Snapshot>,
 }
+
+/// Longest IMU gap the node bridges (a longer one is refused: the navigation is lost).
+const MAX_BRIDGED_GAP_US: u64 = 60_000_000;
+
+/// Epochs remembered after they are run (resends and agreement checks).
+const EPOCHS_REMEMBERED: usize = 32;
 
 /// The node's state machine.
 #[derive(Debug)]
@@ -136,6 +216,13 @@ pub struct NodeCore {
     open_instant: Option<TimeUs>,
     epochs: BTreeMap<u32, Epoch>,
     last_applied: Option<u32>,
+    /// Our fragments of recent epochs, for resends.
+    sent: VecDeque<(u32, Vec<MavMessage>)>,
+    /// The record sets recent epochs ran on.
+    ran_on: VecDeque<(u32, Vec<PlatformId>)>,
+    absent: BTreeSet<PlatformId>,
+    /// Wall clock, us, as last given to [`NodeCore::poll`].
+    wall_us: u64,
     reassembler: Reassembler,
     cross: CrossCovariances,
     last_event: Option<(u32, f64, u8, u8)>,
@@ -144,15 +231,20 @@ pub struct NodeCore {
 
 impl NodeCore {
     /// A node whose filter starts at `t0` from `initial`.
-    pub fn new(cfg: NodeConfig, t0: TimeUs, initial: InsState) -> Result<Self, NodeConfigError> {
+    pub fn new(mut cfg: NodeConfig, t0: TimeUs, initial: InsState) -> Result<Self, NodeConfigError> {
         if !matches!(
             cfg.method,
             Method::DeadReckoning | Method::NoPropagation | Method::Decentralized | Method::CovarianceIntersection
         ) {
             return Err(NodeConfigError::Method(cfg.method));
         }
-        if cfg.epoch_wait_us >= cfg.history_us {
-            return Err(NodeConfigError::Wait { wait_us: cfg.epoch_wait_us, history_us: cfg.history_us });
+        cfg.team.sort_unstable();
+        let duplicate = cfg.team.windows(2).any(|w| w[0] == w[1]);
+        if !cfg.team.contains(&cfg.id) || duplicate || cfg.team.len() > wire::MAX_PARTICIPANTS {
+            return Err(NodeConfigError::Team { id: cfg.id, team: cfg.team, max: wire::MAX_PARTICIPANTS });
+        }
+        if cfg.retry_us == 0 || cfg.retry_us >= cfg.epoch_timeout_us {
+            return Err(NodeConfigError::Timing { retry_us: cfg.retry_us, timeout_us: cfg.epoch_timeout_us });
         }
         let mut filter = InsFilter::new(cfg.ins, t0, initial, cfg.initial_sigma)?;
         filter.set_track_psi(cfg.method.needs_psi());
@@ -165,6 +257,10 @@ impl NodeCore {
             open_instant: None,
             epochs: BTreeMap::new(),
             last_applied: None,
+            sent: VecDeque::new(),
+            ran_on: VecDeque::new(),
+            absent: BTreeSet::new(),
+            wall_us: 0,
             reassembler: Reassembler::new(256),
             cross: CrossCovariances::new(),
             last_event: None,
@@ -176,9 +272,19 @@ impl NodeCore {
         self.cfg.id
     }
 
+    pub fn config(&self) -> &NodeConfig {
+        &self.cfg
+    }
+
     /// The filter as of the last input.
     pub fn filter(&self) -> &InsFilter {
         &self.filter
+    }
+
+    /// Team members currently not waited for (they missed an epoch and have not sent a record
+    /// since).
+    pub fn absent(&self) -> impl Iterator<Item = PlatformId> + '_ {
+        self.absent.iter().copied()
     }
 
     /// Takes one input; returns what to send.
@@ -187,23 +293,27 @@ impl NodeCore {
         match input {
             NodeInput::Imu(s) => {
                 if s.t <= self.filter.time() {
-                    self.stats.rejected_inputs += 1;
+                    self.stats.imu_rejected += 1;
                     return out;
                 }
-                self.close_instant(&mut out);
-                match self.filter.propagate(&s) {
-                    Ok(()) => {
-                        self.stats.imu += 1;
-                        self.inputs.push_back(Stamped::Imu(s));
-                        self.open_instant = Some(s.t);
+                // A gap the filter refuses (lost samples): bridge it holding this sample's
+                // measurements, in steps the filter takes, rather than stop navigating.
+                let gap_us = s.t.0 - self.filter.time().0;
+                let step_us = ((self.cfg.ins.max_imu_gap_s * 1e6) as u64 / 2).max(1);
+                if gap_us > 2 * step_us && gap_us <= MAX_BRIDGED_GAP_US {
+                    self.stats.imu_gaps_bridged += 1;
+                    let mut t = self.filter.time().0 + step_us;
+                    while t < s.t.0 {
+                        self.imu(ImuSample { t: TimeUs(t), ..s }, &mut out);
+                        t += step_us;
                     }
-                    Err(_) => self.stats.rejected_inputs += 1,
                 }
+                self.imu(s, &mut out);
             }
             NodeInput::Odometer(s) => {
                 // Applied at the filter's current time, which the odometer sample must match.
                 if self.open_instant != Some(s.t) {
-                    self.stats.rejected_inputs += 1;
+                    self.stats.odometer_unmatched += 1;
                     return out;
                 }
                 match self.filter.update_odometer(&s) {
@@ -211,25 +321,50 @@ impl NodeCore {
                         self.stats.odometer += 1;
                         self.inputs.push_back(Stamped::Odometer(s));
                     }
-                    Err(_) => self.stats.rejected_inputs += 1,
+                    Err(_) => self.stats.odometer_rejected += 1,
                 }
             }
             NodeInput::OwnRange { epoch, range } => {
-                if range.from != self.cfg.id || range.to == self.cfg.id {
+                if range.from != self.cfg.id || range.to == self.cfg.id || !self.in_team(range.to) {
                     self.stats.ranges_rejected += 1;
                     return out;
                 }
                 let sent = wire::range_as_sent(&range);
                 out.push(NodeOutput::ToPeers(wire::range_to_message(&sent, epoch)));
                 self.add_range(epoch, sent);
-                self.broadcast_due(&mut out);
+                self.advance(&mut out);
             }
-            NodeInput::Peer(msg) => {
-                self.peer_message(*msg);
-                self.broadcast_due(&mut out);
+            NodeInput::Peer { from, msg } => {
+                self.peer_message(from, *msg, &mut out);
+                self.advance(&mut out);
             }
         }
         out
+    }
+
+    fn imu(&mut self, s: ImuSample, out: &mut Vec<NodeOutput>) {
+        self.close_instant(out);
+        match self.filter.propagate(&s) {
+            Ok(()) => {
+                self.stats.imu += 1;
+                self.inputs.push_back(Stamped::Imu(s));
+                self.open_instant = Some(s.t);
+            }
+            Err(_) => self.stats.imu_rejected += 1,
+        }
+    }
+
+    /// Gives the core the wall clock (us, any monotonic origin): runs the timeouts and sends the
+    /// retransmission requests that are due. Call it every few tens of milliseconds.
+    pub fn poll(&mut self, wall_us: u64) -> Vec<NodeOutput> {
+        self.wall_us = self.wall_us.max(wall_us);
+        let mut out = Vec::new();
+        self.advance(&mut out);
+        out
+    }
+
+    fn in_team(&self, p: PlatformId) -> bool {
+        self.cfg.team.binary_search(&p).is_ok()
     }
 
     fn is_open(&self, epoch: u32) -> bool {
@@ -256,20 +391,31 @@ impl NodeCore {
         }
     }
 
-    fn peer_message(&mut self, msg: MavMessage) {
+    fn peer_message(&mut self, from: PlatformId, msg: MavMessage, out: &mut Vec<NodeOutput>) {
+        let cooploc =
+            matches!(msg, MavMessage::COOPLOC_STATE_FRAGMENT(_) | MavMessage::COOPLOC_RANGE(_) | MavMessage::COOPLOC_EPOCH(_));
+        if !cooploc || from == self.cfg.id {
+            return; // heartbeats, estimates, ground stations; our own traffic looped back
+        }
+        if !self.in_team(from) {
+            self.stats.unknown_platforms += 1;
+            return;
+        }
         match msg {
             MavMessage::COOPLOC_STATE_FRAGMENT(m) => {
                 let Ok(f) = wire::fragment_from_message(&m) else {
                     self.stats.fragments_rejected += 1;
                     return;
                 };
-                if f.platform == self.cfg.id {
-                    return; // our own broadcast, echoed by multicast
+                if f.platform != from {
+                    self.stats.fragments_rejected += 1;
+                    return;
                 }
                 match self.reassembler.push(&f) {
                     Pushed::Complete(rec) => match record::decode(rec.platform, &rec.bytes) {
                         Ok(snapshot) => {
                             self.stats.records_received += 1;
+                            self.absent.remove(&rec.platform);
                             if let Some(e) = self.learn_epoch(rec.epoch, TimeUs(rec.time_usec)) {
                                 e.records.insert(rec.platform, snapshot);
                             }
@@ -282,75 +428,172 @@ impl NodeCore {
                 self.stats.records_incomplete += self.reassembler.take_dropped().len() as u64;
             }
             MavMessage::COOPLOC_RANGE(m) => match wire::range_from_message(&m) {
-                Ok((epoch, r)) if r.from != self.cfg.id => self.add_range(epoch, r),
-                Ok(_) => {}
-                Err(_) => self.stats.ranges_rejected += 1,
+                Ok((epoch, r)) if r.from == from && self.in_team(r.to) => self.add_range(epoch, r),
+                Ok(_) | Err(_) => self.stats.ranges_rejected += 1,
             },
             MavMessage::COOPLOC_EPOCH(m) => {
-                if let Ok(a) = wire::epoch_from_message(&m) {
+                let Ok(a) = wire::epoch_from_message(&m) else { return };
+                if a.announcer != from {
+                    return;
+                }
+                if a.state == EpochState::COOPLOC_EPOCH_STATE_COLLECTING {
                     self.learn_epoch(a.epoch, a.t);
+                } else if let Some((_, ours)) = self.ran_on.iter().find(|(e, _)| *e == a.epoch) {
+                    if *ours != a.participants {
+                        self.stats.epoch_disagreements += 1;
+                    }
+                } else if let Some(e) = self.epochs.get_mut(&a.epoch)
+                    && e.broadcast_at.is_some()
+                    && !e.early_request_sent
+                    && a.participants.iter().any(|p| !e.records.contains_key(p))
+                {
+                    // A peer ran the epoch on records we lack: ask for them now rather than
+                    // at the next retry.
+                    e.early_request_sent = true;
+                    e.last_status_at = self.wall_us;
+                    let (t, held) = (e.t.unwrap_or(a.t), e.records.keys().copied().collect());
+                    self.send_status(a.epoch, t, held, EpochState::COOPLOC_EPOCH_STATE_COLLECTING, out);
+                }
+                if !a.participants.contains(&self.cfg.id) && a.state == EpochState::COOPLOC_EPOCH_STATE_COLLECTING {
+                    self.resend(a.epoch, out);
                 }
             }
             _ => {}
         }
     }
 
+    /// Sends our record of `epoch` again (at most once per half retry interval).
+    fn resend(&mut self, epoch: u32, out: &mut Vec<NodeOutput>) {
+        let Some((_, frags)) = self.sent.iter().find(|(e, _)| *e == epoch) else { return };
+        if let Some(e) = self.epochs.get_mut(&epoch) {
+            if e.last_resend_at.is_some_and(|at| self.wall_us < at + self.cfg.retry_us / 2) {
+                return;
+            }
+            e.last_resend_at = Some(self.wall_us);
+        }
+        out.extend(frags.iter().cloned().map(NodeOutput::ToPeers));
+        self.stats.records_resent += 1;
+    }
+
     fn checkpoint_at(&self, t: TimeUs) -> Option<&InsFilter> {
         self.history.iter().rev().find(|(tc, _)| *tc == t).map(|(_, f)| f)
     }
 
-    /// Broadcasts the record of every known epoch whose instant is checkpointed.
-    fn broadcast_due(&mut self, out: &mut Vec<NodeOutput>) {
-        let due: Vec<(u32, TimeUs)> =
-            self.epochs.iter().filter(|(_, e)| !e.broadcast).filter_map(|(k, e)| e.t.map(|t| (*k, t))).collect();
-        for (epoch, t) in due {
-            let Some(f) = self.checkpoint_at(t) else { continue };
-            let snapshot = f.snapshot(self.cfg.id);
-            let sent = record::encode(&snapshot, self.cfg.encoding).ok().and_then(|bytes| {
-                let frags = fragment(self.cfg.id, epoch, t.0, &bytes).ok()?;
-                Some((record::decode(self.cfg.id, &bytes).ok()?, frags))
-            });
-            let e = self.epochs.get_mut(&epoch).expect("listed");
-            e.broadcast = true;
-            if let Some((own, frags)) = sent {
-                out.extend(frags.iter().filter_map(|f| wire::fragment_to_message(f).ok()).map(NodeOutput::ToPeers));
-                e.records.insert(self.cfg.id, own);
-                self.stats.records_sent += 1;
+    /// Broadcasts, resolves and retries until nothing more can be done now. Epochs go strictly
+    /// in order: only the lowest open epoch is broadcast or run.
+    fn advance(&mut self, out: &mut Vec<NodeOutput>) {
+        while let Some((&epoch, e)) = self.epochs.first_key_value() {
+            let Some(t) = e.t else {
+                self.epochs.remove(&epoch);
+                continue;
+            };
+            if e.broadcast_at.is_none() {
+                if t < self.history[0].0 {
+                    // Before our start or beyond our history: we cannot take part.
+                    self.stats.epochs_skipped += 1;
+                    self.finish_epoch(epoch);
+                    continue;
+                }
+                if self.checkpoint_at(t).is_none() {
+                    // Not there yet (wait), or passed without an instant at `t` (a lost IMU
+                    // sample): we cannot take part; the peers time out on us.
+                    let passed = self.history.back().is_some_and(|(tc, _)| *tc > t);
+                    if passed {
+                        self.stats.epochs_skipped += 1;
+                        self.finish_epoch(epoch);
+                        continue;
+                    }
+                    return;
+                }
+                self.broadcast(epoch, t, out);
+                continue;
+            }
+            let expected: Vec<PlatformId> = self.cfg.team.iter().copied().filter(|p| !self.absent.contains(p)).collect();
+            let complete = expected.iter().all(|p| e.records.contains_key(p));
+            let waited = self.wall_us.saturating_sub(e.broadcast_at.unwrap_or(0));
+            let lagging = self.filter.time().0.saturating_sub(t.0) >= self.cfg.max_lag_us;
+            if complete {
+                self.run_epoch(epoch, false, out);
+            } else if waited >= self.cfg.epoch_timeout_us || lagging {
+                let missing: Vec<PlatformId> = expected.into_iter().filter(|p| !e.records.contains_key(p)).collect();
+                self.absent.extend(missing);
+                self.run_epoch(epoch, true, out);
+            } else {
+                if self.wall_us >= e.last_status_at + self.cfg.retry_us {
+                    let held: Vec<PlatformId> = e.records.keys().copied().collect();
+                    self.epochs.get_mut(&epoch).expect("first").last_status_at = self.wall_us;
+                    self.send_status(epoch, t, held, EpochState::COOPLOC_EPOCH_STATE_COLLECTING, out);
+                }
+                return;
             }
         }
     }
 
-    /// The open instant is complete: checkpoint it, broadcast what is due, run what is ripe.
+    fn send_status(
+        &mut self,
+        epoch: u32,
+        t: TimeUs,
+        participants: Vec<PlatformId>,
+        state: EpochState,
+        out: &mut Vec<NodeOutput>,
+    ) {
+        let a = wire::EpochAnnouncement { epoch, t, announcer: self.cfg.id, participants, state };
+        if let Ok(m) = wire::epoch_to_message(&a) {
+            out.push(NodeOutput::ToPeers(m));
+            self.stats.epoch_messages_sent += 1;
+        }
+    }
+
+    /// Broadcasts our record of `epoch` (our checkpoint at `t`).
+    fn broadcast(&mut self, epoch: u32, t: TimeUs, out: &mut Vec<NodeOutput>) {
+        let snapshot = self.checkpoint_at(t).expect("checked").snapshot(self.cfg.id);
+        let sent = record::encode(&snapshot, self.cfg.encoding).ok().and_then(|bytes| {
+            let frags = fragment(self.cfg.id, epoch, t.0, &bytes).ok()?;
+            let msgs: Vec<MavMessage> = frags.iter().filter_map(|f| wire::fragment_to_message(f).ok()).collect();
+            Some((record::decode(self.cfg.id, &bytes).ok()?, msgs))
+        });
+        let wall = self.wall_us;
+        let e = self.epochs.get_mut(&epoch).expect("open");
+        e.broadcast_at = Some(wall);
+        e.last_status_at = wall;
+        if let Some((own, msgs)) = sent {
+            out.extend(msgs.iter().cloned().map(NodeOutput::ToPeers));
+            e.records.insert(self.cfg.id, own);
+            self.stats.records_sent += 1;
+            self.sent.push_back((epoch, msgs));
+            if self.sent.len() > EPOCHS_REMEMBERED {
+                self.sent.pop_front();
+            }
+        }
+    }
+
+    fn finish_epoch(&mut self, epoch: u32) {
+        self.epochs.remove(&epoch);
+        self.last_applied = Some(self.last_applied.map_or(epoch, |l| l.max(epoch)));
+        self.reassembler.expire_before(epoch + 1);
+    }
+
+    /// The open instant is complete: checkpoint it, broadcast and run what is due, forget what
+    /// is older than the history (except the checkpoints of open epochs).
     fn close_instant(&mut self, out: &mut Vec<NodeOutput>) {
         let Some(t) = self.open_instant.take() else { return };
         self.history.push_back((t, self.filter.clone()));
-        self.broadcast_due(out);
-        let ripe: Vec<u32> = self
-            .epochs
-            .iter()
-            .filter(|(_, e)| e.t.is_some_and(|te| te.0 + self.cfg.epoch_wait_us <= t.0))
-            .map(|(k, _)| *k)
-            .collect();
-        for epoch in ripe {
-            self.run_epoch(epoch, out);
-        }
-        // Forget what is older than the history window (keeping at least one checkpoint).
+        self.advance(out);
         let horizon = t.0.saturating_sub(self.cfg.history_us);
-        while self.history.len() > 1 && self.history[0].0.0 < horizon {
+        let keep_from = self.epochs.values().filter_map(|e| e.t).map(|te| te.0).min().unwrap_or(u64::MAX).min(horizon);
+        while self.history.len() > 1 && self.history[0].0.0 < keep_from {
             self.history.pop_front();
         }
         let oldest = self.history[0].0;
         while self.inputs.front().is_some_and(|i| i.t() <= oldest) {
             self.inputs.pop_front();
         }
-        self.reassembler.expire_before(self.last_applied.map_or(0, |l| l + 1));
     }
 
-    fn run_epoch(&mut self, epoch: u32, out: &mut Vec<NodeOutput>) {
-        let Some(e) = self.epochs.remove(&epoch) else { return };
-        self.last_applied = Some(epoch);
+    fn run_epoch(&mut self, epoch: u32, partial: bool, out: &mut Vec<NodeOutput>) {
+        let Some(e) = self.epochs.get(&epoch) else { return };
         let Some(t) = e.t else { return };
-        let mut snapshots: Vec<Snapshot> = e.records.into_values().collect(); // sorted by platform id
+        let mut snapshots: Vec<Snapshot> = e.records.values().cloned().collect(); // sorted by platform id
         let participants: Vec<PlatformId> = snapshots.iter().map(|s| s.id).collect();
         let ranges: Vec<CoopMeasurement> = e
             .ranges
@@ -358,6 +601,18 @@ impl NodeCore {
             .filter(|r| participants.contains(&r.from) && participants.contains(&r.to))
             .map(|r| CoopMeasurement::Range { from: r.from, to: r.to, range_m: r.range_m, sigma_m: r.sigma_m })
             .collect();
+        self.finish_epoch(epoch);
+        if partial {
+            self.stats.epochs_partial += 1;
+        }
+        let state = if partial { EpochState::COOPLOC_EPOCH_STATE_PARTIAL } else { EpochState::COOPLOC_EPOCH_STATE_APPLIED };
+        self.ran_on.push_back((epoch, participants.clone()));
+        if self.ran_on.len() > EPOCHS_REMEMBERED {
+            self.ran_on.pop_front();
+        }
+        if participants.contains(&self.cfg.id) {
+            self.send_status(epoch, t, participants.clone(), state, out);
+        }
         let own_index = participants.iter().position(|&p| p == self.cfg.id);
         if own_index.is_none() || ranges.is_empty() || self.cfg.method == Method::DeadReckoning {
             self.stats.epochs_skipped += 1;
@@ -427,22 +682,33 @@ impl NodeCore {
     }
 
     /// The vehicle's stream has ended: closes the open instant and broadcasts what is due
-    /// (deliver the result to the peers before [`NodeCore::run_pending`]).
+    /// (deliver the result to the peers; epochs then run as their records arrive, or at
+    /// [`NodeCore::run_pending`]).
     pub fn end_of_input(&mut self) -> Vec<NodeOutput> {
         let mut out = Vec::new();
         if let Some(t) = self.open_instant.take() {
             self.history.push_back((t, self.filter.clone()));
         }
-        self.broadcast_due(&mut out);
+        self.advance(&mut out);
         out
     }
 
-    /// Runs every epoch still waiting, with the records and ranges that have arrived.
+    /// Runs every epoch still open, in order, with the records that have arrived (the end of a
+    /// run: nothing more will come).
     pub fn run_pending(&mut self) -> Vec<NodeOutput> {
         let mut out = Vec::new();
-        let pending: Vec<u32> = self.epochs.keys().copied().collect();
-        for epoch in pending {
-            self.run_epoch(epoch, &mut out);
+        while let Some((&epoch, e)) = self.epochs.first_key_value() {
+            match e.t {
+                Some(t) if e.broadcast_at.is_none() && self.checkpoint_at(t).is_some() => self.broadcast(epoch, t, &mut out),
+                Some(_) if e.broadcast_at.is_some() => {
+                    let complete = self.cfg.team.iter().all(|p| self.absent.contains(p) || e.records.contains_key(p));
+                    self.run_epoch(epoch, !complete, &mut out);
+                }
+                _ => {
+                    self.stats.epochs_skipped += 1;
+                    self.finish_epoch(epoch);
+                }
+            }
         }
         out
     }

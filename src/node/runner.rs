@@ -20,13 +20,43 @@ use std::time::Duration;
 use mavlink_core::{AsyncMavConnection, MavHeader};
 use tokio::net::UdpSocket;
 
-use super::core::{NodeCore, NodeInput, NodeOutput, NodeStats};
+use super::core::{NodeConfig, NodeCore, NodeInput, NodeOutput, NodeStats};
+use crate::estimation::PlatformId;
+use crate::estimation::ins::InsState;
 use crate::protocol::MavMessage;
-use crate::protocol::dialect::cooploc::{HEARTBEAT_DATA, MavAutopilot, MavModeFlag, MavState, MavType};
+use crate::protocol::dialect::cooploc::{HEARTBEAT_DATA, MavAutopilot, MavModeFlag, MavState, MavType, SIM_STATE_DATA};
 use crate::protocol::wire;
+use crate::time::TimeUs;
 
 /// MAVLink component id of a companion computer.
 pub const COMPANION_COMPID: u8 = 191;
+
+/// How the node gets its initial state.
+#[derive(Debug)]
+pub enum NodeInit {
+    /// Already initialised (command-line state).
+    Ready(Box<NodeCore>),
+    /// From the first SIM_STATE the vehicle sends (simulated vehicles): its position (about
+    /// `origin`), NED velocity and attitude, at the time of the last IMU sample before it.
+    FromSimState { config: Box<NodeConfig>, origin: wire::GeoOrigin },
+}
+
+fn state_from_sim_state(m: &SIM_STATE_DATA, origin: &wire::GeoOrigin) -> anyhow::Result<InsState> {
+    let pos_ned_m = wire::sim_state_position_ned(m, origin)?;
+    let v = [m.vn, m.ve, m.vd].map(f64::from);
+    let q = [m.q1, m.q2, m.q3, m.q4].map(f64::from);
+    anyhow::ensure!(v.iter().chain(&q).all(|x| x.is_finite()), "SIM_STATE: velocity or attitude not finite");
+    let quat = nalgebra::Quaternion::new(q[0], q[1], q[2], q[3]);
+    anyhow::ensure!((quat.norm() - 1.0).abs() < 1e-3, "SIM_STATE: attitude quaternion norm {} is not 1", quat.norm());
+    Ok(InsState {
+        pos_ned_m,
+        vel_ned_m_s: nalgebra::Vector3::from(v),
+        att_frd_to_ned: nalgebra::UnitQuaternion::from_quaternion(quat),
+        accel_bias_frd_m_s2: nalgebra::Vector3::zeros(),
+        gyro_bias_frd_rad_s: nalgebra::Vector3::zeros(),
+        odometer_scale_error: 0.0,
+    })
+}
 
 /// Where the node connects.
 #[derive(Debug, Clone)]
@@ -48,9 +78,14 @@ pub struct Links {
 #[derive(Debug, Clone)]
 pub struct NodeSummary {
     pub stats: NodeStats,
-    pub estimate: wire::EstimateReport,
+    /// None when the node never got its initial state.
+    pub estimate: Option<wire::EstimateReport>,
+    /// Vehicle inputs received before the initial state (waiting for SIM_STATE).
+    pub before_init: u64,
     pub vehicle_frames: u64,
     pub vehicle_rejected: u64,
+    /// Vehicle frames lost on the link, from gaps in the vehicle's MAVLink sequence numbers.
+    pub vehicle_lost: u64,
     pub coop_frames: u64,
     pub coop_rejected: u64,
     pub peers: Vec<SocketAddr>,
@@ -92,13 +127,21 @@ fn heartbeat() -> MavMessage {
 /// Runs a node until `shutdown` resolves or the vehicle link fails. `bound` receives the
 /// cooperative socket's local address once it is bound.
 pub async fn run(
-    mut core: NodeCore,
+    init: NodeInit,
     links: Links,
     bound: tokio::sync::oneshot::Sender<SocketAddr>,
     shutdown: impl std::future::Future<Output = ()>,
 ) -> anyhow::Result<NodeSummary> {
     use anyhow::Context as _;
-    let id = core.id();
+    let (id, mut core, mut pending_init) = match init {
+        NodeInit::Ready(core) => (core.id(), Some(*core), None),
+        NodeInit::FromSimState { config, origin } => (config.id, None, Some((*config, origin))),
+    };
+    let mut last_imu_t: Option<TimeUs> = None;
+    let mut before_init = 0u64;
+    let (mut last_vehicle_seq, mut vehicle_lost): (Option<u8>, u64) = (None, 0);
+    let clock = std::time::Instant::now();
+    let wall_us = move || clock.elapsed().as_micros() as u64;
     let vehicle = Arc::new(
         mavlink_core::connect_async::<MavMessage>(&links.vehicle)
             .await
@@ -139,7 +182,7 @@ pub async fn run(
         MavHeader { system_id: u32::from(id), component_id: COMPANION_COMPID, sequence: seq }
     };
     let mut summary_counts = (0u64, 0u64, 0u64, 0u64);
-    let mut tick = tokio::time::interval(Duration::from_millis(250));
+    let mut tick = tokio::time::interval(Duration::from_millis(25));
     let mut beats = 0u32;
     let mut last_vehicle = tokio::time::Instant::now();
     let mut heard_vehicle = false;
@@ -157,17 +200,25 @@ pub async fn run(
                 {
                     tracing::info!(platform = id, "vehicle silent: closing the last instant");
                     ending = Some(tokio::time::Instant::now() + links.grace);
-                    let out = core.end_of_input();
+                    if let Some(core) = core.as_mut() {
+                        let out = core.end_of_input();
+                        send_all(&coop, &peers, &*vehicle, &mut next_header, out).await;
+                    }
+                }
+                if let Some(core) = core.as_mut() {
+                    let out = core.poll(wall_us());
                     send_all(&coop, &peers, &*vehicle, &mut next_header, out).await;
                 }
                 if ending.is_some_and(|end| tokio::time::Instant::now() >= end) {
-                    let out = core.run_pending();
-                    send_all(&coop, &peers, &*vehicle, &mut next_header, out).await;
+                    if let Some(core) = core.as_mut() {
+                        let out = core.run_pending();
+                        send_all(&coop, &peers, &*vehicle, &mut next_header, out).await;
+                    }
                     break;
                 }
                 beats += 1;
-                if beats % 4 != 1 {
-                    continue; // heartbeat at 1 Hz, idle checks at 4 Hz
+                if beats % 40 != 1 {
+                    continue; // heartbeat at 1 Hz, timeouts and idle checks at 40 Hz
                 }
                 let hb = heartbeat();
                 let _ = vehicle.send(&next_header(), &hb).await;
@@ -184,6 +235,37 @@ pub async fn run(
                 heard_vehicle = true;
                 if header.system_id != u32::from(id) {
                     summary_counts.1 += 1;
+                    continue;
+                }
+                if header.component_id == 1 {
+                    if let Some(last) = last_vehicle_seq {
+                        vehicle_lost += u64::from(header.sequence.wrapping_sub(last).wrapping_sub(1));
+                    }
+                    last_vehicle_seq = Some(header.sequence);
+                }
+                if let MavMessage::SIM_STATE(m) = &msg
+                    && let Some((config, origin)) = &pending_init
+                {
+                    match state_from_sim_state(m, origin) {
+                        Ok(state) => {
+                            let t0 = last_imu_t.unwrap_or(TimeUs(0));
+                            let made = NodeCore::new(config.clone(), t0, state).context("node configuration")?;
+                            tracing::info!(platform = id, t0 = %t0, pos = ?made.filter().position_ned_m(), "initialised from SIM_STATE");
+                            core = Some(made);
+                            pending_init = None;
+                        }
+                        Err(e) => {
+                            summary_counts.1 += 1;
+                            tracing::warn!(platform = id, error = %e, "SIM_STATE refused for initialisation");
+                        }
+                    }
+                    continue;
+                }
+                if core.is_none() {
+                    if let MavMessage::HIGHRES_IMU(m) = &msg {
+                        last_imu_t = Some(TimeUs(m.time_usec));
+                    }
+                    before_init += 1;
                     continue;
                 }
                 let input = match &msg {
@@ -218,22 +300,27 @@ pub async fn run(
                     if peers.insert(from) {
                         tracing::info!(platform = id, peer = %from, sysid = header.system_id, "new peer");
                     }
-                    inputs.push(NodeInput::Peer(Box::new(msg)));
+                    let Ok(from) = PlatformId::try_from(header.system_id) else { continue };
+                    inputs.push(NodeInput::Peer { from, msg: Box::new(msg) });
                 }
                 inputs
             }
         };
+        let Some(core) = core.as_mut() else { continue };
+        let mut out = core.poll(wall_us());
         for input in inputs {
-            let out = core.handle(input);
-            send_all(&coop, &peers, &*vehicle, &mut next_header, out).await;
+            out.extend(core.handle(input));
         }
+        send_all(&coop, &peers, &*vehicle, &mut next_header, out).await;
     }
     reader.abort();
     Ok(NodeSummary {
-        stats: core.stats.clone(),
-        estimate: core.estimate(),
+        stats: core.as_ref().map(|c| c.stats.clone()).unwrap_or_default(),
+        estimate: core.as_ref().map(NodeCore::estimate),
+        before_init,
         vehicle_frames: summary_counts.0,
         vehicle_rejected: summary_counts.1,
+        vehicle_lost,
         coop_frames: summary_counts.2,
         coop_rejected: summary_counts.3,
         peers: peers.into_iter().collect(),

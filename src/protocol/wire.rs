@@ -11,8 +11,8 @@ use mavlink_core::{MavHeader, MavlinkVersion, Message};
 use nalgebra::{Matrix3, Vector3};
 
 use super::dialect::cooploc::{
-    COOPLOC_EPOCH_DATA, COOPLOC_ESTIMATE_DATA, COOPLOC_RANGE_DATA, COOPLOC_STATE_FRAGMENT_DATA, CooplocMethod, HIGHRES_IMU_DATA,
-    LOCAL_POSITION_NED_DATA, MavFrame, MavMessage, ODOMETRY_DATA, SIM_STATE_DATA,
+    COOPLOC_EPOCH_DATA, COOPLOC_ESTIMATE_DATA, COOPLOC_RANGE_DATA, COOPLOC_STATE_FRAGMENT_DATA, CooplocEpochState, CooplocMethod,
+    HIGHRES_IMU_DATA, LOCAL_POSITION_NED_DATA, MavFrame, MavMessage, ODOMETRY_DATA, SIM_STATE_DATA,
 };
 use super::fragment::{FRAGMENT_DATA, Fragment};
 use crate::estimation::{ImuSample, Method, OdometerSample, PlatformId, RangeSample};
@@ -144,14 +144,19 @@ pub fn range_as_sent(r: &RangeSample) -> RangeSample {
 
 // ---- epoch announcement ----
 
-/// An epoch and the platforms whose state broadcasts it expects.
-#[derive(Debug, Clone, PartialEq, Eq)]
+/// A node's view of an epoch: the platforms whose complete record it holds (collecting) or used
+/// (applied, partial). See COOPLOC_EPOCH in dialects/cooploc.xml.
+#[derive(Debug, Clone, PartialEq)]
 pub struct EpochAnnouncement {
     pub epoch: u32,
     pub t: TimeUs,
     pub announcer: PlatformId,
     pub participants: Vec<PlatformId>,
+    pub state: EpochState,
 }
+
+/// Where a node is with an epoch (COOPLOC_EPOCH_STATE).
+pub type EpochState = CooplocEpochState;
 
 /// Most participants one COOPLOC_EPOCH can name.
 pub const MAX_PARTICIPANTS: usize = 64;
@@ -168,6 +173,7 @@ pub fn epoch_to_message(a: &EpochAnnouncement) -> Result<MavMessage, WireError> 
         announcer: a.announcer,
         participants,
         count: a.participants.len() as u8,
+        state: a.state,
     }))
 }
 
@@ -182,7 +188,7 @@ pub fn epoch_from_message(m: &COOPLOC_EPOCH_DATA) -> Result<EpochAnnouncement, W
             return Err(bad("COOPLOC_EPOCH", "participants", format!("platform {p} listed twice")));
         }
     }
-    Ok(EpochAnnouncement { epoch: m.epoch, t: TimeUs(m.time_usec), announcer: m.announcer, participants })
+    Ok(EpochAnnouncement { epoch: m.epoch, t: TimeUs(m.time_usec), announcer: m.announcer, participants, state: m.state })
 }
 
 // ---- estimate report ----

@@ -204,7 +204,13 @@ struct UdpLink {
     socket: Arc<UdpSocket>,
     targets: Vec<SocketAddr>,
     heard: Vec<(SocketAddr, std::time::Instant)>,
+    /// Stream frames not sent yet: several frames go in one datagram, as PX4 does, until
+    /// [`BATCH_BYTES`] or until the simulator waits (so batching adds no latency).
+    batch: Vec<u8>,
 }
+
+/// Most bytes of stream frames in one datagram (below an Ethernet MTU).
+const BATCH_BYTES: usize = 1200;
 
 enum Link {
     Udp(UdpLink),
@@ -245,6 +251,24 @@ impl VehicleIo {
         u.heard.push((from, now));
     }
 
+    /// Sends the batched stream frames to every peer.
+    async fn send_batch(&mut self) {
+        let Link::Udp(u) = &mut self.link else { return };
+        if u.batch.is_empty() {
+            return;
+        }
+        for addr in u.targets.iter().chain(u.heard.iter().map(|(a, _)| a)) {
+            match u.socket.send_to(&u.batch, addr).await {
+                Ok(_) => self.counters.writes += 1,
+                Err(e) => {
+                    self.counters.write_errors += 1;
+                    tracing::debug!(platform = self.platform, peer = %addr, error = %e, "send failed");
+                }
+            }
+        }
+        u.batch.clear();
+    }
+
     fn forget_silent_peers(&mut self) {
         let Link::Udp(u) = &mut self.link else { return };
         let platform = self.platform;
@@ -262,11 +286,19 @@ impl VehicleIo {
             Link::Udp(u) => {
                 let peers: Vec<SocketAddr> = match (destination, requester) {
                     (Destination::Requester, Some(addr)) => vec![addr],
-                    _ => u.targets.iter().copied().chain(u.heard.iter().map(|(a, _)| *a)).collect(),
+                    _ => {
+                        if u.targets.is_empty() && u.heard.is_empty() {
+                            self.counters.unrouted += 1;
+                            return;
+                        }
+                        if u.batch.len() + frame.len() > BATCH_BYTES {
+                            self.send_batch().await;
+                        }
+                        let Link::Udp(u) = &mut self.link else { unreachable!("udp") };
+                        u.batch.extend_from_slice(frame);
+                        return;
+                    }
                 };
-                if peers.is_empty() {
-                    self.counters.unrouted += 1;
-                }
                 for addr in peers {
                     match u.socket.send_to(frame, addr).await {
                         Ok(_) => self.counters.writes += 1,
@@ -394,6 +426,9 @@ impl Simulator {
             // Pacing: wait for the event's wall time, serving the links meanwhile.
             if let Speed::Factor(speed) = self.config.speed {
                 let deadline = wall_start + Duration::from_secs_f64(t.as_secs_f64() / speed);
+                if deadline > Instant::now() {
+                    self.send_batches().await;
+                }
                 loop {
                     tokio::select! {
                         biased;
@@ -404,6 +439,7 @@ impl Simulator {
                 }
             }
             if n % 64 == 0 {
+                self.send_batches().await;
                 // Serve the links even when behind schedule or at full speed.
                 while let Ok(msg) = self.inbound.try_recv() {
                     self.handle_inbound(msg, sim_now, &trajectories, &mut out).await;
@@ -415,6 +451,7 @@ impl Simulator {
                 }
             }
             if n % 4096 == 0 {
+                self.send_batches().await;
                 self.io.iter_mut().for_each(VehicleIo::forget_silent_peers);
             }
             sim_now = t;
@@ -487,7 +524,14 @@ impl Simulator {
         }
     }
 
-    async fn finish(self, reason: StopReason, sim_time: TimeUs) -> SimReport {
+    async fn send_batches(&mut self) {
+        for io in &mut self.io {
+            io.send_batch().await;
+        }
+    }
+
+    async fn finish(mut self, reason: StopReason, sim_time: TimeUs) -> SimReport {
+        self.send_batches().await;
         for task in &self.tasks {
             task.abort();
         }
@@ -557,7 +601,7 @@ async fn open_link(
                     }
                 }
             }));
-            let link = UdpLink { socket, targets: targets.clone(), heard: Vec::new() };
+            let link = UdpLink { socket, targets: targets.clone(), heard: Vec::new(), batch: Vec::new() };
             Ok((Link::Udp(link), BoundEndpoint::Udp { local, targets: targets.clone() }))
         }
         Endpoint::Serial { path, baud } => {
