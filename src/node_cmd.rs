@@ -179,6 +179,9 @@ pub fn run_cmd(args: Args) -> anyhow::Result<()> {
         );
         return Ok(());
     };
+    if let Some((t0, p)) = &summary.sim_state_init {
+        println!("node {} initialised from SIM_STATE: t {} pos_ned_m [{:.4}, {:.4}, {:.4}]", e.platform, t0.0, p[0], p[1], p[2]);
+    }
     let st = &summary.stats;
     println!(
         "node {} done: t {} pos_ned_m [{:.4}, {:.4}, {:.4}] yaw_deg {:.5} epochs_applied {} epochs_partial {} epochs_skipped {} dropped_inputs {} vehicle_frames {} vehicle_lost {} vehicle_rejected {} coop_frames {} coop_rejected {} peers {}",

@@ -9,6 +9,8 @@ use std::process::{Child, Command, Stdio};
 use std::sync::mpsc;
 use std::time::Duration;
 
+mod common;
+
 use cooploc::estimation::Method;
 use cooploc::experiment::{initial_state, run_filter};
 use cooploc::protocol::wire;
@@ -144,5 +146,125 @@ fn sitl_and_three_nodes_match_the_experiment() {
         node_err < dr_err,
         "decentralized nodes {node_err:.2} m should beat dead reckoning {dr_err:.2} m (sum over platforms)"
     );
+    drop(children);
+}
+
+/// Bridges two pseudo-terminal pairs (master to master), so that two processes each open a
+/// slave as their serial device: a serial cable between them.
+#[cfg(unix)]
+fn serial_cable() -> (String, String, Vec<std::thread::JoinHandle<()>>) {
+    use serialport::SerialPort;
+    use std::io::{Read, Write};
+    let (a_master, a_slave) = serialport::TTYPort::pair().expect("a pseudo-terminal pair");
+    let (b_master, b_slave) = serialport::TTYPort::pair().expect("a pseudo-terminal pair");
+    let (a_path, b_path) = (a_slave.name().unwrap(), b_slave.name().unwrap());
+    // The slaves stay open in the test (a pty whose slave is closed reads EIO on its master).
+    std::mem::forget(a_slave);
+    std::mem::forget(b_slave);
+    let copy = |mut from: serialport::TTYPort, mut to: serialport::TTYPort| {
+        std::thread::spawn(move || {
+            from.set_timeout(Duration::from_millis(200)).unwrap();
+            let mut buf = [0u8; 4096];
+            loop {
+                match from.read(&mut buf) {
+                    Ok(0) => return,
+                    Ok(n) => {
+                        if to.write_all(&buf[..n]).is_err() {
+                            return;
+                        }
+                    }
+                    Err(e) if e.kind() == std::io::ErrorKind::TimedOut => {}
+                    Err(_) => return,
+                }
+            }
+        })
+    };
+    let threads =
+        vec![copy(a_master.try_clone_native().unwrap(), b_master.try_clone_native().unwrap()), copy(b_master, a_master)];
+    (a_path, b_path, threads)
+}
+
+/// A node whose vehicle is on a serial line (a pseudo-terminal pair), initialised from the
+/// vehicle's SIM_STATE rather than from the command line, dead reckoning the whole scenario.
+#[cfg(unix)]
+#[test]
+fn a_node_on_a_serial_line_initialises_from_sim_state() {
+    let world = World::new(&Scenario::from_toml_str(PAPER_TOML).unwrap()).unwrap();
+    let (vehicle_end, node_end, _threads) = serial_cable();
+    let mut sitl = bin();
+    sitl.args(["sitl", "sitl/scenarios/paper.toml", "--seed", "1", "--run", "0", "--speed", "20", "--base-port", "0"]);
+    sitl.args(["--serial", &format!("1={vehicle_end}:921600"), "--sim-state-hz", "5"]);
+    let mut node = bin();
+    node.args(["node", "--id", "1", "--vehicle", &format!("serial:{node_end}:921600"), "--method", "dr", "--team", "1"]);
+    node.args(["--idle-exit-s", "1.5"]);
+    // The node first: it must be listening when the vehicle's first SIM_STATE goes out.
+    let (node_child, node_out) = spawn_lines(node);
+    let mut children = Kill(vec![node_child]);
+    wait_line(&node_out, "node 1 coop udp ", Duration::from_secs(30));
+    let (sitl_child, _sitl_out) = spawn_lines(sitl);
+    children.0.push(sitl_child);
+    let done = wait_line(&node_out, "node 1 initialised from SIM_STATE", Duration::from_secs(120));
+    let number = |line: &str, key: &str| -> f64 {
+        line.split(&format!(" {key} ")).nth(1).unwrap().split_whitespace().next().unwrap().trim_end_matches(',').parse().unwrap()
+    };
+    let bracket = |line: &str| -> Vec<f64> {
+        let inside = line.split('[').nth(1).unwrap().split(']').next().unwrap();
+        inside.split(',').map(|v| v.trim().parse().unwrap()).collect()
+    };
+    let t0 = number(&done, "t") as u64;
+    let init = bracket(&done);
+    let truth = world.trajectory(1).unwrap().truth_at(cooploc::time::TimeUs(t0)).pos_ned_m;
+    let init_err = ((init[0] - truth[0]).powi(2) + (init[1] - truth[1]).powi(2)).sqrt();
+    eprintln!("{done}\ntruth at t0: {truth:?}, horizontal error {init_err:.3} m");
+    // SIM_STATE has no time field: the node takes the last IMU sample's time (at most one IMU
+    // period, 5 ms, earlier; a few cm at the scenario's speeds) and 1e-7 deg positions.
+    assert!(init_err < 0.1, "initial position {init_err:.3} m from the truth");
+    let line = wait_line(&node_out, "node 1 done:", Duration::from_secs(120));
+    eprintln!("{line}");
+    let count = |name: &str| -> u64 { number(&line, name) as u64 };
+    assert_eq!((count("dropped_inputs"), count("vehicle_lost")), (0, 0), "{line}");
+    let fin = bracket(&line);
+    let truth_end = world.trajectory(1).unwrap().truth_at(world.end()).pos_ned_m;
+    let err = ((fin[0] - truth_end[0]).powi(2) + (fin[1] - truth_end[1]).powi(2)).sqrt();
+    let inputs = world.run_inputs(1, 0);
+    let dr = run_filter(&world, &inputs, &[], Method::DeadReckoning).unwrap().platforms[0].final_error().pos_err_m;
+    eprintln!("final error {err:.2} m; the experiment's dead reckoning (its own initial errors) {dr:.2} m");
+    // Same sensors, a better start: the drift is of the experiment's size, not more.
+    assert!(err < 2.0 * dr, "final error {err:.2} m against {dr:.2} m");
+}
+
+/// MAVProxy (pinned in the test virtualenv) on a simulated vehicle's endpoint and on a node's
+/// cooperative socket: it sees both heartbeats, and its SET_MESSAGE_INTERVAL is acknowledged.
+#[test]
+fn mavproxy_sees_the_vehicle_and_the_node_and_gets_its_command_acknowledged() {
+    let Some(python) = common::python("the MAVProxy test") else { return };
+    let mut sitl = bin();
+    sitl.args(["sitl", "sitl/scenarios/paper.toml", "--speed", "1", "--base-port", "0", "--sim-state-hz", "1"]);
+    let (sitl_child, sitl_out) = spawn_lines(sitl);
+    let mut children = Kill(vec![sitl_child]);
+    let mut vehicle = String::new();
+    for _ in 0..3 {
+        let line = wait_line(&sitl_out, "vehicle ", Duration::from_secs(30));
+        if line.starts_with("vehicle 2 ") {
+            vehicle = line.split_whitespace().last().unwrap().to_string();
+        }
+    }
+    let mut node = bin();
+    node.args(["node", "--id", "2", "--vehicle", &format!("udpout:{vehicle}"), "--init-from-run", "1:0"]);
+    let (node_child, node_out) = spawn_lines(node);
+    children.0.push(node_child);
+    let node_line = wait_line(&node_out, "node 2 coop udp ", Duration::from_secs(30));
+    let node_addr = node_line.split_whitespace().last().unwrap().to_string();
+    let out = Command::new(python)
+        .arg(concat!(env!("CARGO_MANIFEST_DIR"), "/tests/python/mavproxy_check.py"))
+        .args([&vehicle, &node_addr])
+        .output()
+        .expect("running tests/python/mavproxy_check.py");
+    let text = String::from_utf8_lossy(&out.stdout);
+    eprintln!("{text}\n{}", String::from_utf8_lossy(&out.stderr));
+    assert!(out.status.success(), "the MAVProxy check failed");
+    assert!(text.contains("heartbeat 2:1 type 10"), "the vehicle's heartbeat (ground rover)");
+    assert!(text.contains("heartbeat 2:191 type 18"), "the node's heartbeat (onboard controller)");
+    assert!(text.contains("ack 511 result 0 from 2:1"), "SET_MESSAGE_INTERVAL accepted by the vehicle");
     drop(children);
 }

@@ -17,8 +17,8 @@
 //!    team minus members found absent). While it waits it sends, every `retry` of wall time, a
 //!    COOPLOC_EPOCH listing the records it holds; a node that is not listed resends its record
 //!    (lost fragments, or a peer that learned its address late). After `epoch_timeout` of wall
-//!    time it runs without the missing members, marks them absent until their records come
-//!    again, and says so (state PARTIAL, counted): the nodes may then disagree, which they detect
+//!    time it runs without the missing members, marks them absent until a record of theirs
+//!    arrives for an epoch still open, and says so (state PARTIAL, counted): the nodes may then disagree, which they detect
 //!    from each other's APPLIED/PARTIAL messages (`epoch_disagreements`).
 //! 3. **Joint update** (Steps 4-5): the complete records of the epoch and the ranges among those
 //!    platforms, sorted by platform id so that every node builds the same joint problem.
@@ -415,9 +415,10 @@ impl NodeCore {
                     Pushed::Complete(rec) => match record::decode(rec.platform, &rec.bytes) {
                         Ok(snapshot) => {
                             self.stats.records_received += 1;
-                            self.absent.remove(&rec.platform);
                             if let Some(e) = self.learn_epoch(rec.epoch, TimeUs(rec.time_usec)) {
                                 e.records.insert(rec.platform, snapshot);
+                                // Back in step (a record for an epoch still open): waited for again.
+                                self.absent.remove(&rec.platform);
                             }
                         }
                         Err(_) => self.stats.records_undecodable += 1,

@@ -82,6 +82,8 @@ pub struct NodeSummary {
     pub estimate: Option<wire::EstimateReport>,
     /// Vehicle inputs received before the initial state (waiting for SIM_STATE).
     pub before_init: u64,
+    /// Time and position of the initialisation from SIM_STATE, when it happened.
+    pub sim_state_init: Option<(TimeUs, nalgebra::Vector3<f64>)>,
     pub vehicle_frames: u64,
     pub vehicle_rejected: u64,
     /// Vehicle frames lost on the link, from gaps in the vehicle's MAVLink sequence numbers.
@@ -124,6 +126,23 @@ fn heartbeat() -> MavMessage {
     })
 }
 
+/// Receive buffer asked for the cooperative socket: a burst of state records (14 fragments per
+/// platform per epoch) must not overflow it while the node is busy (the kernel caps it at
+/// net.core.rmem_max).
+const COOP_RECV_BUFFER: usize = 4 << 20;
+
+/// Binds the cooperative-network socket with a large receive buffer.
+pub fn bind_coop(addr: SocketAddr) -> std::io::Result<UdpSocket> {
+    use socket2::{Domain, Protocol, Socket, Type};
+    let socket = Socket::new(Domain::for_address(addr), Type::DGRAM, Some(Protocol::UDP))?;
+    if let Err(e) = socket.set_recv_buffer_size(COOP_RECV_BUFFER) {
+        tracing::warn!(error = %e, "could not enlarge the cooperative socket's receive buffer");
+    }
+    socket.set_nonblocking(true)?;
+    socket.bind(&addr.into())?;
+    UdpSocket::from_std(socket.into())
+}
+
 /// Runs a node until `shutdown` resolves or the vehicle link fails. `bound` receives the
 /// cooperative socket's local address once it is bound.
 pub async fn run(
@@ -139,6 +158,7 @@ pub async fn run(
     };
     let mut last_imu_t: Option<TimeUs> = None;
     let mut before_init = 0u64;
+    let mut sim_state_init = None;
     let (mut last_vehicle_seq, mut vehicle_lost): (Option<u8>, u64) = (None, 0);
     let clock = std::time::Instant::now();
     let wall_us = move || clock.elapsed().as_micros() as u64;
@@ -147,8 +167,7 @@ pub async fn run(
             .await
             .with_context(|| format!("connecting to the vehicle at {}", links.vehicle))?,
     );
-    let coop =
-        UdpSocket::bind(links.coop_bind).await.with_context(|| format!("binding the cooperative socket {}", links.coop_bind))?;
+    let coop = bind_coop(links.coop_bind).with_context(|| format!("binding the cooperative socket {}", links.coop_bind))?;
     let local = coop.local_addr()?;
     let _ = bound.send(local);
     tracing::info!(platform = id, vehicle = %links.vehicle, coop = %local, "node started");
@@ -251,6 +270,7 @@ pub async fn run(
                             let t0 = last_imu_t.unwrap_or(TimeUs(0));
                             let made = NodeCore::new(config.clone(), t0, state).context("node configuration")?;
                             tracing::info!(platform = id, t0 = %t0, pos = ?made.filter().position_ned_m(), "initialised from SIM_STATE");
+                            sim_state_init = Some((t0, made.filter().position_ned_m()));
                             core = Some(made);
                             pending_init = None;
                         }
@@ -318,6 +338,7 @@ pub async fn run(
         stats: core.as_ref().map(|c| c.stats.clone()).unwrap_or_default(),
         estimate: core.as_ref().map(NodeCore::estimate),
         before_init,
+        sim_state_init,
         vehicle_frames: summary_counts.0,
         vehicle_rejected: summary_counts.1,
         vehicle_lost,
