@@ -127,9 +127,11 @@ fn options() -> RecorderOptions {
     RecorderOptions { geo_origin: Some(ORIGIN), ..RecorderOptions::default() }
 }
 
-/// A log of `n` frames with a flush every `every` frames; returns its bytes, and for each flush
-/// the file length then and the number of messages written by then.
-fn chunked_log(n: u32, every: u32) -> (Vec<u8>, Vec<(usize, u64)>) {
+/// A log's bytes, and for each flush the file length then and the number of messages written by then.
+type ChunkedLog = (Vec<u8>, Vec<(usize, u64)>);
+
+/// A log of `n` frames with a flush every `every` frames.
+fn chunked_log(n: u32, every: u32) -> ChunkedLog {
     let buf = SharedBuf::default();
     let mut rec = Recorder::new(buf.clone(), RecorderOptions { flush_interval: Duration::from_secs(3600), ..options() }).unwrap();
     let mut flushes = vec![(buf.len(), 0)];
@@ -305,10 +307,10 @@ fn a_write_error_fails_the_recorder_once_without_panicking() {
         if let Err(e) = rec.frame(Link::Coop(1), Direction::Rx, T0_NS, &frame(i, 1)) {
             first_error.get_or_insert(e);
         }
-        if i % 10 == 9 {
-            if let Err(e) = rec.flush() {
-                first_error.get_or_insert(e);
-            }
+        if i % 10 == 9
+            && let Err(e) = rec.flush()
+        {
+            first_error.get_or_insert(e);
         }
     }
     let first_error = first_error.expect("the sink filled up");
@@ -431,8 +433,8 @@ fn a_damaged_chunk_stops_the_read_before_it() {
 
 // ---- never panics ----
 
-fn small_log() -> &'static (Vec<u8>, Vec<(usize, u64)>) {
-    static LOG: std::sync::OnceLock<(Vec<u8>, Vec<(usize, u64)>)> = std::sync::OnceLock::new();
+fn small_log() -> &'static ChunkedLog {
+    static LOG: std::sync::OnceLock<ChunkedLog> = std::sync::OnceLock::new();
     LOG.get_or_init(|| chunked_log(300, 25))
 }
 
