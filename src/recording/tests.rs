@@ -474,6 +474,21 @@ proptest! {
     }
 }
 
+#[test]
+fn a_dropped_recorder_still_finishes_its_file_and_can_move_between_threads() {
+    fn assert_send<T: Send>() {}
+    assert_send::<Recorder>();
+    let dir = tempdir();
+    let path = dir.join("dropped.mcap");
+    let mut rec = Recorder::create(&path, options()).unwrap();
+    rec.frame(Link::Coop(1), Direction::Tx, T0_NS, &frame(0, 1)).unwrap();
+    drop(rec);
+    let log = read_log(&path).unwrap();
+    assert!(log.is_complete(), "{:?}", log.end);
+    assert_eq!(log.messages.len(), 1);
+    assert_eq!(read_index(&path).unwrap().message_count, 1);
+}
+
 // ---- a temporary directory without another dependency ----
 
 struct TempDir(std::path::PathBuf);
