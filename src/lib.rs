@@ -14,11 +14,14 @@
 //!   Its source lives in the top-level `sitl/` folder.
 //! - [`simulator`]: `cooploc sitl`, the world's vehicles as MAVLink systems (a sans-io vehicle
 //!   core and a tokio runner).
+//! - [`recording`]: MCAP logs (raw MAVLink frames, Foxglove views of the estimates, filter
+//!   internals): the recorder and a reader tolerant of truncated files.
 //! - [`time`]: the typed timestamp shared by all of the above.
 pub mod estimation;
 pub mod experiment;
 pub mod node;
 pub mod protocol;
+pub mod recording;
 pub mod simulator;
 #[path = "../sitl/mod.rs"]
 pub mod sitl;
