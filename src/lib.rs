@@ -21,6 +21,7 @@ pub mod estimation;
 pub mod experiment;
 pub mod node;
 pub mod protocol;
+pub mod replay;
 pub mod recording;
 pub mod simulator;
 #[path = "../sitl/mod.rs"]

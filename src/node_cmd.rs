@@ -9,7 +9,8 @@ use cooploc::estimation::Method;
 use cooploc::estimation::ins::InsState;
 use cooploc::experiment::ins_settings;
 use cooploc::node::core::{NodeConfig, NodeCore};
-use cooploc::node::runner::{Links, NodeInit, run};
+use cooploc::node::runner::{Links, NodeInit, metadata_name, node_metadata, run};
+use cooploc::recording::{Link, Recorder, RecorderOptions};
 use cooploc::protocol::record::Encoding;
 use cooploc::protocol::wire::GeoOrigin;
 use cooploc::sitl::scenario::Scenario;
@@ -70,6 +71,9 @@ pub struct Args {
     /// scenario's); the same as `cooploc sitl --origin-lon-deg`.
     #[arg(long, default_value_t = 0.0, allow_negative_numbers = true)]
     origin_lon_deg: f64,
+    /// Record every frame in and out, the estimates and the node's events to this MCAP file.
+    #[arg(long)]
+    log: Option<PathBuf>,
     /// Stop when the vehicle has been silent this long (s); 0: run until Ctrl-C.
     #[arg(long, default_value_t = 0.0)]
     idle_exit_s: f64,
@@ -140,12 +144,27 @@ pub fn run_cmd(args: Args) -> anyhow::Result<()> {
     let mut cfg = NodeConfig::new(args.id, method, ins, initial_sigma, encoding, team);
     cfg.epoch_timeout_us = args.epoch_timeout_ms * 1000;
     cfg.retry_us = args.retry_ms * 1000;
+    let origin = GeoOrigin { lat_deg: scenario.latitude_deg, lon_deg: args.origin_lon_deg, alt_m: 0.0 };
+    let recorder = match &args.log {
+        Some(path) => {
+            let options = RecorderOptions { geo_origin: Some(origin), ..RecorderOptions::default() };
+            let mut rec = Recorder::create(path, options).with_context(|| format!("--log {}", path.display()))?;
+            let mut meta = node_metadata(&cfg, initial.as_ref().map(|(t0, s)| (*t0, s)));
+            meta.insert("origin_lat_deg".into(), origin.lat_deg.to_string());
+            meta.insert("origin_lon_deg".into(), origin.lon_deg.to_string());
+            rec.metadata(&metadata_name(args.id), meta)?;
+            let toml = std::fs::read(&args.scenario).with_context(|| format!("reading {}", args.scenario.display()))?;
+            rec.attachment("scenario.toml", "application/toml", &toml)?;
+            rec.declare_link(Link::Vehicle(args.id as u8), args.vehicle.clone());
+            Some(std::sync::Arc::new(std::sync::Mutex::new(rec)))
+        }
+        None => None,
+    };
     let init = match initial {
         Some((t0, state)) => NodeInit::Ready(Box::new(NodeCore::new(cfg, t0, state).context("node configuration")?)),
         None => {
             // Checked now rather than at the first SIM_STATE.
             NodeCore::new(cfg.clone(), TimeUs(0), InsState::at_rest(UnitQuaternion::identity())).context("node configuration")?;
-            let origin = GeoOrigin { lat_deg: scenario.latitude_deg, lon_deg: args.origin_lon_deg, alt_m: 0.0 };
             NodeInit::FromSimState { config: Box::new(cfg), origin }
         }
     };
@@ -157,6 +176,7 @@ pub fn run_cmd(args: Args) -> anyhow::Result<()> {
         grace: Duration::from_millis(500),
     };
     let rt = tokio::runtime::Builder::new_multi_thread().worker_threads(2).enable_all().build()?;
+    let runner_recorder = recorder.clone();
     let summary = rt.block_on(async move {
         let (tx, rx) = tokio::sync::oneshot::channel();
         let id = args.id;
@@ -168,10 +188,16 @@ pub fn run_cmd(args: Args) -> anyhow::Result<()> {
         let shutdown = async {
             let _ = tokio::signal::ctrl_c().await;
         };
-        let summary = run(init, links, tx, shutdown).await;
+        let summary = run(init, links, runner_recorder, tx, shutdown).await;
         let _ = announce.await;
         summary
     })?;
+    if let Some(rec) = recorder
+        && let Ok(rec) = std::sync::Arc::try_unwrap(rec)
+    {
+        let stats = rec.into_inner().map_err(|_| anyhow::anyhow!("recorder lock poisoned"))?.finish()?;
+        println!("node {} log {} messages", args.id, stats.messages_written);
+    }
     let Some(e) = &summary.estimate else {
         println!(
             "node {} done: never initialised (no SIM_STATE from the vehicle); {} inputs ignored",

@@ -26,10 +26,85 @@ use crate::estimation::ins::InsState;
 use crate::protocol::MavMessage;
 use crate::protocol::dialect::cooploc::{HEARTBEAT_DATA, MavAutopilot, MavModeFlag, MavState, MavType, SIM_STATE_DATA};
 use crate::protocol::wire;
+use crate::recording::{Direction, Link, Recorder, wall_now_ns};
 use crate::time::TimeUs;
 
 /// MAVLink component id of a companion computer.
 pub const COMPANION_COMPID: u8 = 191;
+
+/// A recorder shared by the processes of one log (the demo puts every node and the ground station
+/// in one file).
+pub type SharedRecorder = Arc<std::sync::Mutex<Recorder>>;
+
+/// Topic of the node's own events (clock ticks given to the core, end of input), in JSON: with
+/// the raw frames they let `cooploc replay` call the core exactly as the node did.
+pub fn events_topic(id: PlatformId) -> String {
+    format!("/vehicle_{id}/node/events")
+}
+
+/// Schema name of [`NodeEvent`] records.
+pub const NODE_EVENT_SCHEMA_NAME: &str = "cooploc.NodeEvent";
+/// JSON schema of [`NodeEvent`].
+pub const NODE_EVENT_SCHEMA: &str = r#"{"type":"object","title":"cooploc.NodeEvent","properties":{"kind":{"type":"string","enum":["poll","end_of_input","run_pending","init"]},"wall_us":{"type":"integer"},"t0_us":{"type":"integer"}},"required":["kind"]}"#;
+
+/// One call the runner made on its core other than `handle` (whose inputs are the frames).
+#[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
+#[serde(tag = "kind", rename_all = "snake_case")]
+pub enum NodeEvent {
+    Poll { wall_us: u64 },
+    EndOfInput,
+    RunPending,
+    /// The core was created from the SIM_STATE frame just recorded, at `t0_us`.
+    Init { t0_us: u64 },
+}
+
+fn record_event(rec: &Option<SharedRecorder>, id: PlatformId, event: &NodeEvent) {
+    if let Some(r) = rec
+        && let Ok(mut r) = r.lock()
+    {
+        let _ = r.json_message(&events_topic(id), NODE_EVENT_SCHEMA_NAME, NODE_EVENT_SCHEMA, wall_now_ns(), event);
+        let _ = r.maybe_flush(std::time::Instant::now());
+    }
+}
+
+fn record_frame(rec: &Option<SharedRecorder>, link: Link, dir: Direction, bytes: &[u8]) {
+    if let Some(r) = rec
+        && let Ok(mut r) = r.lock()
+    {
+        let _ = r.frame(link, dir, wall_now_ns(), bytes);
+        let _ = r.maybe_flush(std::time::Instant::now());
+    }
+}
+
+/// Name of the metadata record describing node `id` in a log.
+pub fn metadata_name(id: PlatformId) -> String {
+    format!("cooploc.node.{id}")
+}
+
+/// What a log must hold to rebuild node `cfg`'s core (`cooploc replay`): the configuration and
+/// how it started (the INS settings come from the scenario, attached to the log).
+pub fn node_metadata(cfg: &NodeConfig, init: Option<(TimeUs, &InsState)>) -> std::collections::BTreeMap<String, String> {
+    let mut m = std::collections::BTreeMap::new();
+    m.insert("id".into(), cfg.id.to_string());
+    m.insert("method".into(), cfg.method.short_name().into());
+    m.insert("encoding".into(), format!("{:?}", cfg.encoding).to_lowercase());
+    m.insert("team".into(), cfg.team.iter().map(|p| p.to_string()).collect::<Vec<_>>().join(","));
+    m.insert("epoch_timeout_us".into(), cfg.epoch_timeout_us.to_string());
+    m.insert("retry_us".into(), cfg.retry_us.to_string());
+    m.insert("history_us".into(), cfg.history_us.to_string());
+    m.insert("max_lag_us".into(), cfg.max_lag_us.to_string());
+    match init {
+        Some((t0, state)) => {
+            m.insert("init".into(), "state".into());
+            m.insert("t0_us".into(), t0.0.to_string());
+            m.insert("initial_state".into(), serde_json::to_string(state).unwrap_or_default());
+        }
+        None => {
+            m.insert("init".into(), "sim_state".into());
+        }
+    }
+    m
+}
 
 /// How the node gets its initial state.
 #[derive(Debug)]
@@ -41,7 +116,7 @@ pub enum NodeInit {
     FromSimState { config: Box<NodeConfig>, origin: wire::GeoOrigin },
 }
 
-fn state_from_sim_state(m: &SIM_STATE_DATA, origin: &wire::GeoOrigin) -> anyhow::Result<InsState> {
+pub fn state_from_sim_state(m: &SIM_STATE_DATA, origin: &wire::GeoOrigin) -> anyhow::Result<InsState> {
     let pos_ned_m = wire::sim_state_position_ned(m, origin)?;
     let v = [m.vn, m.ve, m.vd].map(f64::from);
     let q = [m.q1, m.q2, m.q3, m.q4].map(f64::from);
@@ -93,23 +168,42 @@ pub struct NodeSummary {
     pub peers: Vec<SocketAddr>,
 }
 
+#[allow(clippy::too_many_arguments)]
 async fn send_all(
     coop: &UdpSocket,
     peers: &BTreeSet<SocketAddr>,
     vehicle: &impl AsyncMavConnection<MavMessage>,
     next_header: &mut impl FnMut() -> MavHeader,
     outputs: Vec<NodeOutput>,
+    rec: &Option<SharedRecorder>,
+    sysid: u8,
 ) {
     for output in outputs {
         match output {
             NodeOutput::ToPeers(msg) => {
                 let frame = wire::to_frame(next_header(), &msg);
+                record_frame(rec, Link::Coop(sysid), Direction::Tx, &frame);
+                if let (Some(r), MavMessage::COOPLOC_ESTIMATE(m)) = (rec, &msg)
+                    && let Ok(e) = wire::estimate_from_message(m)
+                    && let Ok(mut r) = r.lock()
+                {
+                    let est = crate::recording::PositionEstimate {
+                        t: e.t,
+                        pos_ned_m: e.position_ned_m,
+                        cov_ned_m2: e.position_covariance_m2,
+                        yaw_rad: Some(e.yaw_rad),
+                        vel_ned_m_s: Some(e.velocity_ned_m_s),
+                    };
+                    let _ = r.estimate(e.platform, wall_now_ns(), &est);
+                }
                 for p in peers {
                     let _ = coop.send_to(&frame, p).await;
                 }
             }
             NodeOutput::ToVehicle(msg) => {
-                let _ = vehicle.send(&next_header(), &msg).await;
+                let header = next_header();
+                record_frame(rec, Link::Vehicle(sysid), Direction::Tx, &wire::to_frame(header, &msg));
+                let _ = vehicle.send(&header, &msg).await;
             }
         }
     }
@@ -148,6 +242,7 @@ pub fn bind_coop(addr: SocketAddr) -> std::io::Result<UdpSocket> {
 pub async fn run(
     init: NodeInit,
     links: Links,
+    recorder: Option<SharedRecorder>,
     bound: tokio::sync::oneshot::Sender<SocketAddr>,
     shutdown: impl std::future::Future<Output = ()>,
 ) -> anyhow::Result<NodeSummary> {
@@ -156,6 +251,7 @@ pub async fn run(
         NodeInit::Ready(core) => (core.id(), Some(*core), None),
         NodeInit::FromSimState { config, origin } => (config.id, None, Some((*config, origin))),
     };
+    let sysid = u8::try_from(id).context("a node's platform id is a MAVLink system id (1..=255)")?;
     let mut last_imu_t: Option<TimeUs> = None;
     let mut before_init = 0u64;
     let mut sim_state_init = None;
@@ -174,14 +270,19 @@ pub async fn run(
     let mut peers: BTreeSet<SocketAddr> = links.peers.iter().copied().collect();
 
     // The vehicle link is read on its own task (the mavlink crate's recv has no timeout).
-    let (vtx, mut vrx) = tokio::sync::mpsc::channel::<(MavHeader, MavMessage)>(4096);
+    let (vtx, mut vrx) = tokio::sync::mpsc::channel::<(MavHeader, MavMessage, Vec<u8>)>(4096);
     let reader = {
         let vehicle = vehicle.clone();
         tokio::spawn(async move {
             loop {
-                match vehicle.recv().await {
-                    Ok(frame) => {
-                        if vtx.send(frame).await.is_err() {
+                match vehicle.recv_raw().await {
+                    Ok(raw) => {
+                        let bytes = match &raw {
+                            mavlink_core::MAVLinkMessageRaw::V1(r) => r.raw_bytes().to_vec(),
+                            mavlink_core::MAVLinkMessageRaw::V2(r) => r.raw_bytes().to_vec(),
+                        };
+                        let Ok((header, msg)) = wire::from_any_frame(&bytes) else { continue };
+                        if vtx.send((header, msg, bytes)).await.is_err() {
                             break;
                         }
                     }
@@ -220,18 +321,22 @@ pub async fn run(
                     tracing::info!(platform = id, "vehicle silent: closing the last instant");
                     ending = Some(tokio::time::Instant::now() + links.grace);
                     if let Some(core) = core.as_mut() {
+                        record_event(&recorder, id, &NodeEvent::EndOfInput);
                         let out = core.end_of_input();
-                        send_all(&coop, &peers, &*vehicle, &mut next_header, out).await;
+                        send_all(&coop, &peers, &*vehicle, &mut next_header, out, &recorder, sysid).await;
                     }
                 }
                 if let Some(core) = core.as_mut() {
-                    let out = core.poll(wall_us());
-                    send_all(&coop, &peers, &*vehicle, &mut next_header, out).await;
+                    let now = wall_us();
+                    record_event(&recorder, id, &NodeEvent::Poll { wall_us: now });
+                    let out = core.poll(now);
+                    send_all(&coop, &peers, &*vehicle, &mut next_header, out, &recorder, sysid).await;
                 }
                 if ending.is_some_and(|end| tokio::time::Instant::now() >= end) {
                     if let Some(core) = core.as_mut() {
+                        record_event(&recorder, id, &NodeEvent::RunPending);
                         let out = core.run_pending();
-                        send_all(&coop, &peers, &*vehicle, &mut next_header, out).await;
+                        send_all(&coop, &peers, &*vehicle, &mut next_header, out, &recorder, sysid).await;
                     }
                     break;
                 }
@@ -248,7 +353,8 @@ pub async fn run(
                 continue;
             }
             frame = vrx.recv() => {
-                let Some((header, msg)) = frame else { anyhow::bail!("vehicle link closed") };
+                let Some((header, msg, bytes)) = frame else { anyhow::bail!("vehicle link closed") };
+                record_frame(&recorder, Link::Vehicle(sysid), Direction::Rx, &bytes);
                 summary_counts.0 += 1;
                 last_vehicle = tokio::time::Instant::now();
                 heard_vehicle = true;
@@ -271,6 +377,7 @@ pub async fn run(
                             let made = NodeCore::new(config.clone(), t0, state).context("node configuration")?;
                             tracing::info!(platform = id, t0 = %t0, pos = ?made.filter().position_ned_m(), "initialised from SIM_STATE");
                             sim_state_init = Some((t0, made.filter().position_ned_m()));
+                            record_event(&recorder, id, &NodeEvent::Init { t0_us: t0.0 });
                             core = Some(made);
                             pending_init = None;
                         }
@@ -306,6 +413,13 @@ pub async fn run(
             r = coop.recv_from(&mut buf) => {
                 let Ok((n, from)) = r else { continue };
                 summary_counts.2 += 1;
+                if recorder.is_some() {
+                    let mut rest = &buf[..n];
+                    while let Ok(len) = crate::recording::mavlink_frame_len(rest) {
+                        record_frame(&recorder, Link::Coop(sysid), Direction::Rx, &rest[..len]);
+                        rest = &rest[len..];
+                    }
+                }
                 let frames = wire::frames(&buf[..n]);
                 if frames.is_empty() {
                     summary_counts.3 += 1;
@@ -327,11 +441,12 @@ pub async fn run(
             }
         };
         let Some(core) = core.as_mut() else { continue };
-        let mut out = core.poll(wall_us());
+        // Wall time reaches the core only on the ticks (recorded), so a replay is exact.
+        let mut out = Vec::new();
         for input in inputs {
             out.extend(core.handle(input));
         }
-        send_all(&coop, &peers, &*vehicle, &mut next_header, out).await;
+        send_all(&coop, &peers, &*vehicle, &mut next_header, out, &recorder, sysid).await;
     }
     reader.abort();
     Ok(NodeSummary {

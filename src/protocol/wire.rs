@@ -50,6 +50,13 @@ pub fn from_frame(bytes: &[u8]) -> Result<(MavHeader, MavMessage), WireError> {
     reader.read_message::<MavMessage>(MavlinkVersion::V2).map_err(|e| WireError::Frame(e.to_string()))
 }
 
+/// One MAVLink 1 or 2 frame.
+pub fn from_any_frame(bytes: &[u8]) -> Result<(MavHeader, MavMessage), WireError> {
+    let version = if bytes.first() == Some(&mavlink_core::MAV_STX) { MavlinkVersion::V1 } else { MavlinkVersion::V2 };
+    let mut reader = mavlink_core::MavlinkReader::new(bytes);
+    reader.read_message::<MavMessage>(version).map_err(|e| WireError::Frame(e.to_string()))
+}
+
 /// Every valid MAVLink 2 frame in `bytes` (a datagram may carry several), in order; what is not
 /// a valid frame is skipped.
 pub fn frames(bytes: &[u8]) -> Vec<(MavHeader, MavMessage)> {

@@ -1,0 +1,257 @@
+//! `cooploc replay`: a recorded log (see [`crate::recording`]) fed back through the filters,
+//! with no network and no clock.
+//!
+//! - [`replay_nodes`] rebuilds every node the log describes (metadata `cooploc.node.<id>`, the
+//!   scenario attached as `scenario.toml`) and calls its core exactly as the node did: the frames
+//!   it received from its vehicle and its peers, and its recorded events (clock ticks, end of
+//!   input), in file order. Because the core is deterministic given those calls, the estimates
+//!   it produces are the recorded ones bit for bit; [`NodeReplay::matches`] checks it.
+//! - [`compare_methods`] takes the inputs the vehicles actually sent (IMU, odometry, ranges, as
+//!   logged) and runs any method offline on them, centralized included, when the log says which
+//!   simulated run it is (metadata `cooploc.run`: seed and run), so that the truth is known.
+
+use std::collections::BTreeMap;
+
+use crate::estimation::{Method, PlatformId, RangeSample};
+use crate::experiment::{FilterRun, ins_settings, run_filter};
+use crate::node::core::{NodeConfig, NodeCore, NodeInput, NodeOutput};
+use crate::node::runner::{NodeEvent, events_topic, state_from_sim_state};
+use crate::protocol::record::Encoding;
+use crate::protocol::wire::{self, EstimateReport, GeoOrigin};
+use crate::protocol::MavMessage;
+use crate::recording::{Direction, Link, Log, topics};
+use crate::sitl::{Scenario, World};
+use crate::time::TimeUs;
+
+/// Name of the metadata record that says which simulated run a log holds.
+pub const RUN_METADATA_NAME: &str = "cooploc.run";
+
+/// Why a log cannot be replayed.
+#[derive(Debug, thiserror::Error)]
+pub enum ReplayError {
+    #[error("the log has no scenario attachment (scenario.toml)")]
+    NoScenario,
+    #[error("the log's scenario: {0}")]
+    Scenario(String),
+    #[error("metadata {record}: field {field}: {problem}")]
+    Metadata { record: String, field: String, problem: String },
+    #[error("the log describes no node (no cooploc.node.<id> metadata)")]
+    NoNode,
+    #[error("node {0}: {1}")]
+    Node(PlatformId, String),
+    #[error("the log does not say which simulated run it holds (no cooploc.run metadata): no truth to compare with")]
+    NoRun,
+    #[error("offline run: {0}")]
+    Offline(String),
+}
+
+/// The scenario attached to a log, as a world.
+pub fn world_of(log: &Log) -> Result<World, ReplayError> {
+    let a = log.attachments.iter().find(|a| a.name == "scenario.toml").ok_or(ReplayError::NoScenario)?;
+    let text = std::str::from_utf8(&a.data).map_err(|e| ReplayError::Scenario(e.to_string()))?;
+    let scenario = Scenario::from_toml_str(text).map_err(|e| ReplayError::Scenario(e.to_string()))?;
+    World::new(&scenario).map_err(|e| ReplayError::Scenario(e.to_string()))
+}
+
+fn field<T: std::str::FromStr>(record: &str, m: &BTreeMap<String, String>, name: &str) -> Result<T, ReplayError>
+where
+    T::Err: std::fmt::Display,
+{
+    let bad = |problem: String| ReplayError::Metadata { record: record.into(), field: name.into(), problem };
+    m.get(name).ok_or_else(|| bad("missing".into()))?.parse::<T>().map_err(|e| bad(e.to_string()))
+}
+
+/// One node of the log, replayed.
+#[derive(Debug, Clone)]
+pub struct NodeReplay {
+    pub id: PlatformId,
+    pub method: Method,
+    /// The estimates the node sent (COOPLOC_ESTIMATE on its cooperative link), in order.
+    pub recorded: Vec<EstimateReport>,
+    /// The estimates the replayed core produced.
+    pub replayed: Vec<EstimateReport>,
+    /// The replayed core's estimate at the end of the log.
+    pub last: Option<EstimateReport>,
+}
+
+impl NodeReplay {
+    /// Every estimate equal, bit for bit, and as many.
+    pub fn matches(&self) -> bool {
+        self.recorded.len() == self.replayed.len()
+            && self.recorded.iter().zip(&self.replayed).all(|(a, b)| estimate_bits(a) == estimate_bits(b))
+    }
+}
+
+/// An estimate as the bytes it goes on the wire with (a fixed header): equality of these is
+/// equality of what was sent.
+fn estimate_bits(e: &EstimateReport) -> Vec<u8> {
+    let header = mavlink_core::MavHeader { system_id: 1, component_id: 1, sequence: 0 };
+    wire::to_frame(header, &wire::estimate_to_message(e))
+}
+
+/// The node ids the log describes.
+pub fn node_ids(log: &Log) -> Vec<PlatformId> {
+    let mut ids: Vec<PlatformId> =
+        log.metadata.iter().filter_map(|m| m.name.strip_prefix("cooploc.node.")).filter_map(|s| s.parse().ok()).collect();
+    ids.sort_unstable();
+    ids.dedup();
+    ids
+}
+
+/// Replays every node of the log (see the module documentation).
+pub fn replay_nodes(log: &Log) -> Result<Vec<NodeReplay>, ReplayError> {
+    let ids = node_ids(log);
+    if ids.is_empty() {
+        return Err(ReplayError::NoNode);
+    }
+    let world = world_of(log)?;
+    ids.into_iter().map(|id| replay_node(log, &world, id)).collect()
+}
+
+fn replay_node(log: &Log, world: &World, id: PlatformId) -> Result<NodeReplay, ReplayError> {
+    let record = format!("cooploc.node.{id}");
+    let m = &log.metadata_named(&record).expect("listed").entries;
+    let method_name: String = field(&record, m, "method")?;
+    let method = Method::from_short_name(&method_name)
+        .ok_or_else(|| ReplayError::Metadata { record: record.clone(), field: "method".into(), problem: method_name.clone() })?;
+    let encoding = match field::<String>(&record, m, "encoding")?.as_str() {
+        "f32" => Encoding::F32,
+        _ => Encoding::F64,
+    };
+    let team: Vec<PlatformId> = field::<String>(&record, m, "team")?.split(',').filter_map(|s| s.parse().ok()).collect();
+    let (ins, sigma) = ins_settings(world);
+    let mut cfg = NodeConfig::new(id, method, ins, sigma, encoding, team);
+    cfg.epoch_timeout_us = field(&record, m, "epoch_timeout_us")?;
+    cfg.retry_us = field(&record, m, "retry_us")?;
+    cfg.history_us = field(&record, m, "history_us")?;
+    cfg.max_lag_us = field(&record, m, "max_lag_us")?;
+    let node_err = |e: String| ReplayError::Node(id, e);
+    let mut core = match field::<String>(&record, m, "init")?.as_str() {
+        "state" => {
+            let t0: u64 = field(&record, m, "t0_us")?;
+            let state = serde_json::from_str(&field::<String>(&record, m, "initial_state")?).map_err(|e| node_err(e.to_string()))?;
+            Some(NodeCore::new(cfg.clone(), TimeUs(t0), state).map_err(|e| node_err(e.to_string()))?)
+        }
+        _ => None,
+    };
+    let origin = GeoOrigin { lat_deg: field(&record, m, "origin_lat_deg")?, lon_deg: field(&record, m, "origin_lon_deg")?, alt_m: 0.0 };
+    let sysid = id as u8;
+    let vehicle_rx = topics::frames(Link::Vehicle(sysid), Direction::Rx);
+    let coop_rx = topics::frames(Link::Coop(sysid), Direction::Rx);
+    let coop_tx = topics::frames(Link::Coop(sysid), Direction::Tx);
+    let events = events_topic(id);
+    let mut out = NodeReplay { id, method, recorded: Vec::new(), replayed: Vec::new(), last: None };
+    let mut last_sim_state = None;
+    for msg in &log.messages {
+        let topic = msg.topic();
+        let outputs = if topic == vehicle_rx {
+            let Ok((header, m)) = wire::from_any_frame(&msg.data) else { continue };
+            if header.system_id != u32::from(id) {
+                continue;
+            }
+            if let MavMessage::SIM_STATE(s) = &m {
+                last_sim_state = Some(s.clone());
+            }
+            let Some(core) = core.as_mut() else { continue };
+            let input = match &m {
+                MavMessage::HIGHRES_IMU(m) => wire::imu_from_highres(m).ok().map(NodeInput::Imu),
+                MavMessage::ODOMETRY(m) => wire::odometer_from_odometry(m).ok().map(NodeInput::Odometer),
+                MavMessage::COOPLOC_RANGE(m) => wire::range_from_message(m).ok().map(|(epoch, range)| NodeInput::OwnRange { epoch, range }),
+                _ => None,
+            };
+            match input {
+                Some(i) => core.handle(i),
+                None => continue,
+            }
+        } else if topic == coop_rx {
+            let Ok((header, m)) = wire::from_any_frame(&msg.data) else { continue };
+            let (Some(core), Ok(from)) = (core.as_mut(), PlatformId::try_from(header.system_id)) else { continue };
+            if from == id {
+                continue;
+            }
+            core.handle(NodeInput::Peer { from, msg: Box::new(m) })
+        } else if topic == coop_tx {
+            if let Ok((_, MavMessage::COOPLOC_ESTIMATE(e))) = wire::from_any_frame(&msg.data)
+                && let Ok(r) = wire::estimate_from_message(&e)
+            {
+                out.recorded.push(r);
+            }
+            continue;
+        } else if topic == events {
+            let event: NodeEvent = msg.json().map_err(|e| node_err(format!("event: {e}")))?;
+            match (event, core.as_mut()) {
+                (NodeEvent::Init { t0_us }, None) => {
+                    let s = last_sim_state.as_ref().ok_or_else(|| node_err("Init event before any SIM_STATE".into()))?;
+                    let state = state_from_sim_state(s, &origin).map_err(|e| node_err(e.to_string()))?;
+                    core = Some(NodeCore::new(cfg.clone(), TimeUs(t0_us), state).map_err(|e| node_err(e.to_string()))?);
+                    continue;
+                }
+                (NodeEvent::Poll { wall_us }, Some(c)) => c.poll(wall_us),
+                (NodeEvent::EndOfInput, Some(c)) => c.end_of_input(),
+                (NodeEvent::RunPending, Some(c)) => c.run_pending(),
+                _ => continue,
+            }
+        } else {
+            continue;
+        };
+        for o in outputs {
+            if let NodeOutput::ToPeers(MavMessage::COOPLOC_ESTIMATE(e)) = o
+                && let Ok(r) = wire::estimate_from_message(&e)
+            {
+                out.replayed.push(r);
+            }
+        }
+    }
+    out.last = core.as_ref().map(NodeCore::estimate);
+    Ok(out)
+}
+
+/// Every method's offline run on the inputs the vehicles sent, as logged (see the module
+/// documentation). Needs every platform's vehicle link in the log and the `cooploc.run` metadata.
+pub fn compare_methods(log: &Log, methods: &[Method]) -> Result<Vec<FilterRun>, ReplayError> {
+    let world = world_of(log)?;
+    let run_meta = log.metadata_named(RUN_METADATA_NAME).ok_or(ReplayError::NoRun)?;
+    let seed: u64 = field(RUN_METADATA_NAME, &run_meta.entries, "seed")?;
+    let run: u32 = field(RUN_METADATA_NAME, &run_meta.entries, "run")?;
+    let mut inputs = world.run_inputs(seed, run);
+    let mut ranges: BTreeMap<u64, Vec<RangeSample>> = BTreeMap::new();
+    for p in &mut inputs.platforms {
+        let topic = topics::frames(Link::Vehicle(p.id as u8), Direction::Rx);
+        let (mut imu, mut odometer) = (Vec::new(), Vec::new());
+        for msg in log.topic(&topic) {
+            let Ok((header, m)) = wire::from_any_frame(&msg.data) else { continue };
+            if header.system_id != u32::from(p.id) {
+                continue;
+            }
+            match &m {
+                MavMessage::HIGHRES_IMU(m) => imu.extend(wire::imu_from_highres(m).ok()),
+                MavMessage::ODOMETRY(m) => odometer.extend(wire::odometer_from_odometry(m).ok()),
+                MavMessage::COOPLOC_RANGE(m) => {
+                    if let Ok((_, r)) = wire::range_from_message(m) {
+                        ranges.entry(r.t.0).or_default().push(r);
+                    }
+                }
+                _ => {}
+            }
+        }
+        if imu.is_empty() {
+            return Err(ReplayError::Offline(format!("platform {}: no HIGHRES_IMU on {topic}", p.id)));
+        }
+        p.imu = imu;
+        p.odometer = odometer;
+    }
+    let ranges: Vec<(TimeUs, Vec<RangeSample>)> = ranges
+        .into_iter()
+        .map(|(t, mut rs)| {
+            rs.sort_by_key(|r| (r.from, r.to));
+            (TimeUs(t), rs)
+        })
+        .collect();
+    methods
+        .iter()
+        .map(|&method| {
+            let r = if method == Method::DeadReckoning { &[][..] } else { &ranges[..] };
+            run_filter(&world, &inputs, r, method).map_err(|e| ReplayError::Offline(e.to_string()))
+        })
+        .collect()
+}
