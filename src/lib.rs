@@ -14,9 +14,12 @@
 //!   Its source lives in the top-level `sitl/` folder.
 //! - [`simulator`]: `cooploc sitl`, the world's vehicles as MAVLink systems (a sans-io vehicle
 //!   core and a tokio runner).
+//! - [`gcs`]: `cooploc gcs`, the ground station (a sans-io core, its web page and JSON API, the
+//!   Foxglove live server, and a tokio runner).
 //! - [`time`]: the typed timestamp shared by all of the above.
 pub mod estimation;
 pub mod experiment;
+pub mod gcs;
 pub mod node;
 pub mod protocol;
 pub mod simulator;
