@@ -115,12 +115,12 @@ fn estimate_entities(rx: WallNs, r: &EstimateReport, ellipse: Option<Ellipse95>)
     };
     let mut marker = entity("estimate");
     marker.spheres.push(SpherePrimitive {
-        pose: Some(Pose { position: Some(pos.clone()), orientation: Some(yaw_quat(0.0)) }),
+        pose: Some(Pose { position: Some(pos), orientation: Some(yaw_quat(0.0)) }),
         size: Some(FoxVector3 { x: 4.0, y: 4.0, z: 4.0 }),
         color: Some(color(id, 1.0)),
     });
     marker.texts.push(TextPrimitive {
-        pose: Some(Pose { position: Some(FoxVector3 { z: pos.z + 8.0, ..pos.clone() }), orientation: Some(yaw_quat(0.0)) }),
+        pose: Some(Pose { position: Some(FoxVector3 { z: pos.z + 8.0, ..pos }), orientation: Some(yaw_quat(0.0)) }),
         billboard: true,
         font_size: 14.0,
         scale_invariant: true,

@@ -253,13 +253,11 @@ pub async fn run(
             r = coop.recv_from(&mut buf) => {
                 let Ok((n, from)) = r else { continue };
                 last_heard = Some(Instant::now());
-                let events = lock().on_coop_datagram(clock.now(), from, &buf[..n]);
-                events
+                lock().on_coop_datagram(clock.now(), from, &buf[..n])
             }
             Some((id, bytes)) = vrx.recv() => {
                 last_heard = Some(Instant::now());
-                let events = lock().on_vehicle_frame(clock.now(), id, &bytes);
-                events
+                lock().on_vehicle_frame(clock.now(), id, &bytes)
             }
         };
         dispatch(&mut sinks, &events);

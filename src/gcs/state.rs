@@ -411,16 +411,16 @@ impl GcsState {
     fn on_estimate(&mut self, rx: WallNs, report: EstimateReport, events: &mut Vec<GcsEvent>) {
         let (history, restart_us, max_gap) = (self.config.estimate_history, self.config.restart_us, self.config.max_truth_gap_us);
         let v = self.vehicle(report.platform);
-        if let Some(last) = v.estimates.back().map(|e| e.report.t) {
-            if report.t < last {
-                if last.0 - report.t.0 > restart_us {
-                    v.counts.restarts += 1;
-                    v.estimates.clear();
-                } else {
-                    v.counts.stale_estimates += 1;
-                    self.counters.ignored += 1;
-                    return;
-                }
+        if let Some(last) = v.estimates.back().map(|e| e.report.t)
+            && report.t < last
+        {
+            if last.0 - report.t.0 > restart_us {
+                v.counts.restarts += 1;
+                v.estimates.clear();
+            } else {
+                v.counts.stale_estimates += 1;
+                self.counters.ignored += 1;
+                return;
             }
         }
         let c = &report.position_covariance_m2;
