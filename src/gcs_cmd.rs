@@ -16,7 +16,8 @@ Prints, once bound: `gcs coop udp ADDR`, `gcs http http://ADDR/`, `gcs foxglove 
 A node sends the ground station everything it sends its peers once it has heard from it: give the
 nodes' cooperative addresses with --peer (the ground station's heartbeat introduces it), or give
 the nodes the ground station's address as a --peer.
-Truth of simulated vehicles: --vehicle 1=udpout:127.0.0.1:14541 (SIM_STATE of `cooploc sitl`).")]
+Truth of simulated vehicles: --vehicle 1=udpout:127.0.0.1:14541 (SIM_STATE of `cooploc sitl`).
+With `cooploc sitl --wait-for-peers`, start the ground station after the nodes: its vehicle links count as peers.")]
 pub struct Args {
     /// Local address of the cooperative-network socket.
     #[arg(long, default_value = "127.0.0.1:0")]
