@@ -16,9 +16,12 @@
 //!   core and a tokio runner).
 //! - [`recording`]: MCAP logs (raw MAVLink frames, Foxglove views of the estimates, filter
 //!   internals): the recorder and a reader tolerant of truncated files.
+//! - [`gcs`]: `cooploc gcs`, the ground station (a sans-io core, its web page and JSON API, the
+//!   Foxglove live server, and a tokio runner).
 //! - [`time`]: the typed timestamp shared by all of the above.
 pub mod estimation;
 pub mod experiment;
+pub mod gcs;
 pub mod node;
 pub mod protocol;
 pub mod replay;

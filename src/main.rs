@@ -2,6 +2,7 @@
 //! types, calls the library, prints, and maps errors to an exit code.
 
 mod experiment_cmd;
+mod gcs_cmd;
 mod node_cmd;
 mod sitl_cmd;
 
@@ -20,6 +21,9 @@ struct Cli {
 enum Command {
     /// Monte Carlo reproduction of the paper's experiment: every method on the same simulated inputs.
     Experiment(experiment_cmd::Args),
+    /// The ground station: the team's estimates, 95% ellipses, truth and link health on a web
+    /// page and on Foxglove's live WebSocket protocol.
+    Gcs(gcs_cmd::Args),
     /// The per-vehicle companion: local filter on the vehicle's IMU and odometry, cooperative
     /// protocol with the other nodes, estimate back to the vehicle.
     Node(node_cmd::Args),
@@ -35,6 +39,7 @@ fn main() -> ExitCode {
         .init();
     let result = match cli.command {
         Command::Experiment(args) => experiment_cmd::run(args),
+        Command::Gcs(args) => gcs_cmd::run_cmd(args),
         Command::Node(args) => node_cmd::run_cmd(args),
         Command::Sitl(args) => sitl_cmd::run(args),
     };

@@ -1,6 +1,7 @@
 #!/usr/bin/env bash
 # Runs every test of cooploc, after installing what the tests need beyond cargo:
-# a Python virtualenv (.venv) with the pinned reference tools of tests/requirements.txt.
+# a Python virtualenv (.venv) with the pinned reference tools of tests/requirements.txt, and
+# Debian's headless Chromium.
 # Usage (from anywhere): bash tests/run-all.sh
 set -euo pipefail
 cd "$(dirname "$0")/.."
@@ -16,6 +17,15 @@ if [ ! -x "$venv/bin/python" ] || [ "$(cat "$stamp" 2>/dev/null)" != "$want" ]; 
     echo "$want" > "$stamp"
 fi
 export COOPLOC_PYTHON="$PWD/$venv/bin/python"
+
+# Headless Chromium for the ground station's browser test (tests/gcs.rs), from Debian's packages.
+if ! command -v chromium > /dev/null 2>&1 && ! command -v chromium-browser > /dev/null 2>&1; then
+    echo "==> installing chromium (the ground station's browser test)"
+    sudo=""
+    [ "$(id -u)" = 0 ] || sudo="sudo"
+    { $sudo apt-get update -qq && $sudo env DEBIAN_FRONTEND=noninteractive apt-get install -y -qq chromium > /dev/null; } \
+        || echo "could not install chromium: the browser test fails under CI=true and skips elsewhere"
+fi
 
 echo "==> validating dialects/cooploc.xml with pymavlink's mavgen (wire protocol 2.0)"
 mavgen_out=$(mktemp -d)

@@ -14,3 +14,27 @@ pub fn python(what: &str) -> Option<String> {
         }
     }
 }
+
+/// Headless Chromium (`COOPLOC_CHROMIUM`, or `chromium` / `chromium-browser` on the PATH;
+/// tests/run-all.sh installs Debian's package when it is missing). Under `CI=true` a missing
+/// one fails the test; elsewhere the test says it skipped, naming `what`.
+#[allow(dead_code)]
+pub fn chromium(what: &str) -> Option<std::path::PathBuf> {
+    let candidates = std::env::var_os("COOPLOC_CHROMIUM").map(std::path::PathBuf::from).into_iter().chain(
+        std::env::var_os("PATH").into_iter().flat_map(|paths| {
+            std::env::split_paths(&paths)
+                .flat_map(|dir| ["chromium", "chromium-browser"].map(|name| dir.join(name)))
+                .collect::<Vec<_>>()
+        }),
+    );
+    for c in candidates {
+        if c.is_file() {
+            return Some(c);
+        }
+    }
+    if std::env::var("CI").as_deref() == Ok("true") {
+        panic!("{what} needs Chromium and none was found: tests/run-all.sh installs it (apt-get install chromium)");
+    }
+    eprintln!("SKIPPED: {what} needs Chromium (`apt-get install chromium`, or run tests/run-all.sh)");
+    None
+}

@@ -1,0 +1,282 @@
+//! The ground station's tokio runner: owns the cooperative-network socket, the vehicle links,
+//! the web server, the Foxglove server and the clock; feeds a [`GcsState`] and hands every
+//! [`GcsEvent`] it returns to each [`GcsSink`].
+//!
+//! - **Cooperative network**: one UDP socket. HEARTBEAT (sysid 255, compid 190, MAV_TYPE_GCS,
+//!   MAV_AUTOPILOT_INVALID) at 1 Hz to every peer: those given and every address a valid frame
+//!   came from. A node learns the ground station from that heartbeat and then sends it
+//!   everything it sends its peers.
+//! - **Vehicle links** (optional, simulated vehicles): any MAVLink URL the mavlink crate opens
+//!   (`udpout:HOST:PORT` as MAVProxy would); the ground station sends its HEARTBEAT there too
+//!   (a simulator streams to whoever it heard) and reads raw frames.
+//! - Each link has its own MAVLink sequence counter, as MAVLink expects.
+
+use std::future::Future;
+use std::net::SocketAddr;
+use std::sync::{Arc, Mutex};
+use std::time::{Duration, Instant, SystemTime, UNIX_EPOCH};
+
+use anyhow::Context as _;
+use mavlink_core::{AsyncMavConnection, MAVLinkMessageRaw, MavHeader};
+use tokio::net::UdpSocket;
+
+use super::foxglove_live::FoxglovePublisher;
+use super::state::{GcsConfig, GcsCounters, GcsState};
+use super::{GCS_COMPID, GCS_SYSID, GcsEvent, GcsSink, WallNs};
+use crate::estimation::PlatformId;
+use crate::protocol::MavMessage;
+use crate::protocol::dialect::cooploc::{HEARTBEAT_DATA, MavAutopilot, MavModeFlag, MavState, MavType};
+use crate::protocol::wire;
+
+/// Receive times: a monotonic clock anchored once to the system clock.
+#[derive(Debug, Clone, Copy)]
+pub struct Clock {
+    start: Instant,
+    start_unix_ns: u64,
+}
+
+impl Clock {
+    pub fn new() -> Self {
+        let start_unix_ns = SystemTime::now().duration_since(UNIX_EPOCH).map_or(0, |d| d.as_nanos() as u64);
+        Clock { start: Instant::now(), start_unix_ns }
+    }
+
+    pub fn now(&self) -> WallNs {
+        WallNs(self.start_unix_ns + self.start.elapsed().as_nanos() as u64)
+    }
+}
+
+impl Default for Clock {
+    fn default() -> Self {
+        Self::new()
+    }
+}
+
+/// Where the ground station listens and connects.
+#[derive(Debug, Clone)]
+pub struct GcsLinks {
+    /// Local address of the cooperative-network socket (port 0: ephemeral).
+    pub coop_bind: SocketAddr,
+    /// Nodes known from the start.
+    pub peers: Vec<SocketAddr>,
+    /// Vehicle links: platform id and MAVLink URL.
+    pub vehicles: Vec<(PlatformId, String)>,
+    /// Web server address (port 0: ephemeral).
+    pub http: SocketAddr,
+    /// Foxglove WebSocket server address (port 0: ephemeral); `None`: no server.
+    pub foxglove: Option<SocketAddr>,
+    /// Stop when nothing has been heard for this long (after the first frame).
+    pub idle_exit: Option<Duration>,
+}
+
+/// The addresses actually bound.
+#[derive(Debug, Clone, Copy)]
+pub struct Bound {
+    pub coop: SocketAddr,
+    pub http: SocketAddr,
+    pub foxglove: Option<SocketAddr>,
+}
+
+/// What the ground station saw, when it stops.
+#[derive(Debug, Clone)]
+pub struct GcsSummary {
+    pub counters: GcsCounters,
+    pub vehicles: Vec<PlatformId>,
+    pub peers: Vec<SocketAddr>,
+    pub estimates: u64,
+    pub truth_samples: u64,
+}
+
+/// The ground station's HEARTBEAT.
+pub fn heartbeat() -> MavMessage {
+    MavMessage::HEARTBEAT(HEARTBEAT_DATA {
+        custom_mode: 0,
+        mavtype: MavType::MAV_TYPE_GCS,
+        autopilot: MavAutopilot::MAV_AUTOPILOT_INVALID,
+        base_mode: MavModeFlag::empty(),
+        system_status: MavState::MAV_STATE_ACTIVE,
+        mavlink_version: 3,
+    })
+}
+
+/// One sequence counter per link.
+#[derive(Default)]
+struct Sequence(u8);
+
+impl Sequence {
+    fn next_header(&mut self) -> MavHeader {
+        let header = MavHeader { system_id: u32::from(GCS_SYSID), component_id: GCS_COMPID, sequence: self.0 };
+        self.0 = self.0.wrapping_add(1);
+        header
+    }
+}
+
+fn raw_bytes(raw: &MAVLinkMessageRaw) -> &[u8] {
+    match raw {
+        MAVLinkMessageRaw::V1(m) => m.raw_bytes(),
+        MAVLinkMessageRaw::V2(m) => m.raw_bytes(),
+    }
+}
+
+fn dispatch(sinks: &mut [Box<dyn GcsSink>], events: &[GcsEvent]) {
+    for event in events {
+        if let GcsEvent::Rejected { link, reason, .. } = event {
+            tracing::debug!(%link, %reason, "input dropped");
+        }
+        for sink in sinks.iter_mut() {
+            sink.on_event(event);
+        }
+    }
+}
+
+/// Runs the ground station until `shutdown` resolves (or the idle exit). `extra_sinks` receive
+/// every event besides the Foxglove server (the recorder's hook). `bound` receives the bound
+/// addresses once every server listens; `shared` is the state the web server reads.
+pub async fn run(
+    config: GcsConfig,
+    links: GcsLinks,
+    mut extra_sinks: Vec<Box<dyn GcsSink>>,
+    bound: tokio::sync::oneshot::Sender<Bound>,
+    shutdown: impl Future<Output = ()>,
+) -> anyhow::Result<GcsSummary> {
+    let clock = Clock::new();
+    let origin = config.origin;
+    let state = Arc::new(Mutex::new(GcsState::new(config)));
+    let lock = || state.lock().unwrap_or_else(|e| e.into_inner());
+    lock().start(clock.now());
+    for p in &links.peers {
+        lock().add_peer(*p);
+    }
+
+    let coop =
+        UdpSocket::bind(links.coop_bind).await.with_context(|| format!("binding the cooperative socket {}", links.coop_bind))?;
+    let coop_addr = coop.local_addr()?;
+
+    // Web server.
+    let listener =
+        tokio::net::TcpListener::bind(links.http).await.with_context(|| format!("binding the web server {}", links.http))?;
+    let http_addr = listener.local_addr()?;
+    let (http_stop_tx, http_stop_rx) = tokio::sync::oneshot::channel::<()>();
+    let app = super::http::router(state.clone(), clock);
+    let http_task = tokio::spawn(async move {
+        let serve = axum::serve(listener, app).with_graceful_shutdown(async move {
+            let _ = http_stop_rx.await;
+        });
+        if let Err(e) = serve.await {
+            tracing::warn!(error = %e, "web server stopped");
+        }
+    });
+
+    // Foxglove server, on a context of its own.
+    let mut sinks: Vec<Box<dyn GcsSink>> = Vec::new();
+    let mut foxglove = None;
+    if let Some(addr) = links.foxglove {
+        let ctx = foxglove::Context::new();
+        let publisher = FoxglovePublisher::new(ctx.clone(), origin);
+        let handle = foxglove::WebSocketServer::new()
+            .context(&ctx)
+            .name("cooploc gcs")
+            .bind(addr.ip().to_string(), addr.port())
+            .start()
+            .await
+            .with_context(|| format!("starting the Foxglove server on {addr}"))?;
+        let fox_addr = SocketAddr::new(addr.ip(), handle.port());
+        sinks.push(Box::new(publisher));
+        foxglove = Some((handle, fox_addr));
+    }
+    sinks.append(&mut extra_sinks);
+
+    // Vehicle links, each read on its own task (recv has no timeout).
+    let (vtx, mut vrx) = tokio::sync::mpsc::channel::<(PlatformId, Vec<u8>)>(8192);
+    let mut vehicle_conns = Vec::new();
+    let mut readers = Vec::new();
+    for (id, url) in &links.vehicles {
+        let conn = Arc::new(
+            mavlink_core::connect_async::<MavMessage>(url)
+                .await
+                .with_context(|| format!("connecting to vehicle {id} at {url}"))?,
+        );
+        let (id, reader_conn, vtx) = (*id, conn.clone(), vtx.clone());
+        readers.push(tokio::spawn(async move {
+            loop {
+                match reader_conn.recv_raw().await {
+                    Ok(raw) => {
+                        if vtx.send((id, raw_bytes(&raw).to_vec())).await.is_err() {
+                            break;
+                        }
+                    }
+                    Err(mavlink_core::error::MessageReadError::Io(e)) if e.kind() != std::io::ErrorKind::WouldBlock => {
+                        tracing::warn!(vehicle = id, error = %e, "vehicle link read error");
+                        tokio::time::sleep(Duration::from_millis(100)).await;
+                    }
+                    Err(_) => {}
+                }
+            }
+        }));
+        vehicle_conns.push((id, conn, Sequence::default()));
+    }
+    drop(vtx);
+
+    let _ = bound.send(Bound { coop: coop_addr, http: http_addr, foxglove: foxglove.as_ref().map(|(_, a)| *a) });
+    tracing::info!(coop = %coop_addr, http = %http_addr, "ground station started");
+
+    let mut coop_seq = Sequence::default();
+    let hb = heartbeat();
+    let mut tick = tokio::time::interval(Duration::from_millis(250));
+    let mut ticks = 0u32;
+    let mut last_heard: Option<Instant> = None;
+    let mut buf = vec![0u8; 65536];
+    tokio::pin!(shutdown);
+    loop {
+        let events = tokio::select! {
+            _ = &mut shutdown => break,
+            _ = tick.tick() => {
+                if let (Some(idle), Some(last)) = (links.idle_exit, last_heard)
+                    && last.elapsed() >= idle
+                {
+                    tracing::info!("nothing heard for {idle:?}: stopping");
+                    break;
+                }
+                ticks += 1;
+                if ticks % 4 == 1 {
+                    let frame = wire::to_frame(coop_seq.next_header(), &hb);
+                    let peers: Vec<SocketAddr> = lock().peers().collect();
+                    for p in peers {
+                        let _ = coop.send_to(&frame, p).await;
+                    }
+                    for (_, conn, seq) in &mut vehicle_conns {
+                        let _ = conn.send(&seq.next_header(), &hb).await;
+                    }
+                }
+                continue;
+            }
+            r = coop.recv_from(&mut buf) => {
+                let Ok((n, from)) = r else { continue };
+                last_heard = Some(Instant::now());
+                lock().on_coop_datagram(clock.now(), from, &buf[..n])
+            }
+            Some((id, bytes)) = vrx.recv() => {
+                last_heard = Some(Instant::now());
+                lock().on_vehicle_frame(clock.now(), id, &bytes)
+            }
+        };
+        dispatch(&mut sinks, &events);
+    }
+
+    for r in readers {
+        r.abort();
+    }
+    let _ = http_stop_tx.send(());
+    let _ = tokio::time::timeout(Duration::from_secs(2), http_task).await;
+    if let Some((handle, _)) = foxglove {
+        let _ = tokio::time::timeout(Duration::from_secs(2), handle.stop().wait()).await;
+    }
+    let s = lock();
+    Ok(GcsSummary {
+        counters: s.counters,
+        vehicles: s.vehicles.keys().copied().collect(),
+        peers: s.peers().collect(),
+        estimates: s.vehicles.values().map(|v| v.counts.estimates).sum(),
+        truth_samples: s.vehicles.values().map(|v| v.counts.truth_samples).sum(),
+    })
+}

@@ -1,0 +1,1049 @@
+//! The ground station's sans-io core: bytes and receive times in, tracks, statistics and
+//! [`GcsEvent`]s out. No sockets and no clock; tested without either.
+//!
+//! - **Cooperative network** ([`GcsState::on_coop_datagram`]): every valid MAVLink 2 (or 1) frame
+//!   of a datagram is counted against its source (sysid, compid) and its sender's address
+//!   becomes a peer (as a node learns its peers). COOPLOC_ESTIMATE feeds the vehicle's track;
+//!   COOPLOC_RANGE, COOPLOC_EPOCH and COOPLOC_STATE_FRAGMENT are counted and passed on.
+//! - **Vehicle links** ([`GcsState::on_vehicle_frame`]): SIM_STATE of the vehicle's own system
+//!   id is its truth, converted to the team's NED frame about [`GcsConfig::origin`]. SIM_STATE
+//!   has no timestamp: a sample is stamped with the vehicle time of the next timed frame of the
+//!   same link (HIGHRES_IMU or ODOMETRY), since a simulator sends the clock-driven messages due
+//!   at `t` just before its samples at `t` (`cooploc sitl` does). HIGHRES_IMU is otherwise only
+//!   counted.
+//! - **Error against truth**: the horizontal distance between an estimate and the truth
+//!   interpolated linearly at the estimate's time, and the 3-D position NEES
+//!   `e^T P^-1 e`. Computed once the truth covers that time (bracketing samples at most
+//!   [`GcsConfig::max_truth_gap_us`] apart).
+//! - **Bad input** (a datagram without a valid frame, a message that fails the wire
+//!   validation, an estimate claiming another platform's id) is counted and dropped, never a
+//!   panic. A vehicle time that jumps back by more than [`GcsConfig::restart_us`] is a restarted
+//!   source: its track starts over. A smaller step back is a stale message and is dropped.
+
+use std::collections::{BTreeMap, BTreeSet, VecDeque};
+use std::net::SocketAddr;
+
+use mavlink_core::{MAVLinkMessageRaw, MavlinkReader, Message};
+use nalgebra::{Matrix2, Vector3};
+use serde::Serialize;
+
+use super::link::{LinkStats, SourceKey};
+use super::{GCS_COMPID, GCS_SYSID, GcsEvent, Link, TruthPoint, WallNs};
+use crate::estimation::PlatformId;
+use crate::protocol::MavMessage;
+use crate::protocol::wire::{self, EstimateReport, GeoOrigin};
+use crate::time::TimeUs;
+
+/// 95% quantile of the chi-square distribution with 2 degrees of freedom: `-2 ln(0.05)`.
+pub const CHI2_2DOF_95: f64 = 5.991_464_547_107_979;
+
+/// The 95% confidence ellipse of a horizontal (N, E) position.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize)]
+pub struct Ellipse95 {
+    pub semi_major_m: f64,
+    pub semi_minor_m: f64,
+    /// Direction of the major axis: from north towards east (clockwise seen from above), in
+    /// (-90, 90] degrees.
+    pub major_bearing_deg: f64,
+}
+
+/// The 95% ellipse of a 2x2 N/E covariance (m^2): semi-axes `sqrt(5.991 lambda)` of its
+/// eigenvalues, major axis along the eigenvector of the larger one. `None` for a covariance
+/// with non-finite entries or a negative largest eigenvalue; a slightly negative smaller one
+/// (rounding) gives a zero minor axis.
+pub fn ellipse95(cov_ne_m2: &Matrix2<f64>) -> Option<Ellipse95> {
+    let (a, c) = (cov_ne_m2[(0, 0)], cov_ne_m2[(1, 1)]);
+    let b = 0.5 * (cov_ne_m2[(0, 1)] + cov_ne_m2[(1, 0)]);
+    if !(a.is_finite() && b.is_finite() && c.is_finite()) {
+        return None;
+    }
+    let mean = 0.5 * (a + c);
+    let radius = (0.25 * (a - c) * (a - c) + b * b).sqrt();
+    let (major, minor) = (mean + radius, (mean - radius).max(0.0));
+    if major < 0.0 {
+        return None;
+    }
+    let mut bearing = 0.5 * (2.0 * b).atan2(a - c);
+    if bearing <= -std::f64::consts::FRAC_PI_2 {
+        bearing += std::f64::consts::PI;
+    }
+    Some(Ellipse95 {
+        semi_major_m: (CHI2_2DOF_95 * major).sqrt(),
+        semi_minor_m: (CHI2_2DOF_95 * minor).sqrt(),
+        major_bearing_deg: bearing.to_degrees(),
+    })
+}
+
+/// An estimate's error against the truth at its time.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct TruthError {
+    /// The truth interpolated at the estimate's time, NED.
+    pub truth_ned_m: Vector3<f64>,
+    /// Horizontal (N, E) distance, m.
+    pub horizontal_m: f64,
+    /// Position NEES over N, E, D (`None`: covariance not positive definite).
+    pub nees: Option<f64>,
+}
+
+/// 3-D position NEES `e^T P^-1 e` by Cholesky; `None` unless `P` is positive definite.
+pub fn position_nees(error_ned_m: &Vector3<f64>, cov_m2: &nalgebra::Matrix3<f64>) -> Option<f64> {
+    let chol = cov_m2.cholesky()?;
+    let v = error_ned_m.dot(&chol.solve(error_ned_m));
+    v.is_finite().then_some(v)
+}
+
+/// Tuning of the ground station's memory and checks.
+#[derive(Debug, Clone, PartialEq)]
+pub struct GcsConfig {
+    /// Where the team's NED origin sits (SIM_STATE latitude/longitude to NED).
+    pub origin: GeoOrigin,
+    /// Vehicles with a link of their own (known before they are heard).
+    pub vehicles: Vec<PlatformId>,
+    /// Estimates kept per vehicle.
+    pub estimate_history: usize,
+    /// Timed truth samples kept per vehicle.
+    pub truth_history: usize,
+    /// Window of the byte rates, ns.
+    pub rate_window_ns: u64,
+    /// Largest gap between two truth samples the error interpolates across, us.
+    pub max_truth_gap_us: u64,
+    /// A vehicle time this much earlier than the last is a restarted source, us.
+    pub restart_us: u64,
+}
+
+impl Default for GcsConfig {
+    fn default() -> Self {
+        GcsConfig {
+            origin: GeoOrigin { lat_deg: 34.7, lon_deg: 0.0, alt_m: 0.0 },
+            vehicles: Vec::new(),
+            estimate_history: 4096,
+            truth_history: 8192,
+            rate_window_ns: 5_000_000_000,
+            max_truth_gap_us: 1_000_000,
+            restart_us: 5_000_000,
+        }
+    }
+}
+
+/// Whole-station counters.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Serialize)]
+pub struct GcsCounters {
+    /// Datagrams from the cooperative network and frames read from vehicle links.
+    pub datagrams: u64,
+    pub bytes: u64,
+    /// Valid MAVLink frames.
+    pub frames: u64,
+    /// Datagrams with no valid MAVLink frame.
+    pub bad_datagrams: u64,
+    /// Valid frames whose message failed the wire validation (or claimed another platform).
+    pub rejected: u64,
+    /// Stale messages (vehicle time going back a little) and frames from other systems on a
+    /// vehicle link.
+    pub ignored: u64,
+    /// Our own frames seen again (looped back).
+    pub own: u64,
+}
+
+/// An estimate as kept in a vehicle's history.
+#[derive(Debug, Clone, PartialEq)]
+pub struct EstimatePoint {
+    pub rx: WallNs,
+    pub report: EstimateReport,
+    pub ellipse: Option<Ellipse95>,
+    pub error: ErrorState,
+}
+
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub enum ErrorState {
+    /// The truth does not cover the estimate's time yet.
+    Pending,
+    Known(TruthError),
+    /// No truth at that time (before the truth began, or across a gap).
+    Unavailable,
+}
+
+/// Per-vehicle counters.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Serialize)]
+pub struct VehicleCounts {
+    pub estimates: u64,
+    pub stale_estimates: u64,
+    pub restarts: u64,
+    pub state_fragments: u64,
+    pub ranges: u64,
+    pub epochs: u64,
+    /// Frames of its own vehicle link, all messages.
+    pub link_frames: u64,
+    pub link_imu_frames: u64,
+    pub truth_samples: u64,
+    pub stale_truth: u64,
+}
+
+/// What the ground station knows of one vehicle.
+#[derive(Debug, Clone)]
+pub struct Vehicle {
+    pub id: PlatformId,
+    /// Has a truth link (`--vehicle`).
+    pub has_link: bool,
+    pub estimates: VecDeque<EstimatePoint>,
+    /// Truth samples with a vehicle time, in time order.
+    pub truth: VecDeque<TruthPoint>,
+    /// Truth samples without a time (a link with no timed frames), for the map only.
+    pub truth_untimed: VecDeque<TruthPoint>,
+    pending_truth: Option<TruthPoint>,
+    last_link_time: Option<TimeUs>,
+    pub counts: VehicleCounts,
+}
+
+impl Vehicle {
+    fn new(id: PlatformId) -> Self {
+        Vehicle {
+            id,
+            has_link: false,
+            estimates: VecDeque::new(),
+            truth: VecDeque::new(),
+            truth_untimed: VecDeque::new(),
+            pending_truth: None,
+            last_link_time: None,
+            counts: VehicleCounts::default(),
+        }
+    }
+
+    pub fn latest_estimate(&self) -> Option<&EstimatePoint> {
+        self.estimates.back()
+    }
+
+    /// The truth position at `t`, interpolated linearly between the bracketing samples (at most
+    /// `max_gap_us` apart); `None` outside the truth's span.
+    pub fn truth_at(&self, t: TimeUs, max_gap_us: u64) -> Option<Vector3<f64>> {
+        truth_at(&self.truth, t, max_gap_us)
+    }
+}
+
+/// The ground station's state.
+#[derive(Debug, Clone)]
+pub struct GcsState {
+    config: GcsConfig,
+    started: Option<WallNs>,
+    pub vehicles: BTreeMap<PlatformId, Vehicle>,
+    pub links: BTreeMap<SourceKey, LinkStats>,
+    peers: BTreeSet<SocketAddr>,
+    pub counters: GcsCounters,
+}
+
+/// One frame read from bytes.
+struct Frame<'a> {
+    sysid: u32,
+    compid: u8,
+    seq: u8,
+    message_id: u32,
+    bytes: &'a [u8],
+    message: Result<MavMessage, String>,
+}
+
+fn raw_parts(raw: &MAVLinkMessageRaw) -> (&[u8], mavlink_core::MavlinkVersion) {
+    match raw {
+        MAVLinkMessageRaw::V1(m) => (m.raw_bytes(), mavlink_core::MavlinkVersion::V1),
+        MAVLinkMessageRaw::V2(m) => (m.raw_bytes(), mavlink_core::MavlinkVersion::V2),
+    }
+}
+
+/// Every CRC-valid frame (MAVLink 1 or 2) in `bytes`, in order; garbage between frames is skipped.
+fn read_frames(bytes: &[u8], mut each: impl FnMut(Frame<'_>)) {
+    let mut reader = MavlinkReader::new(bytes);
+    while let Ok(raw) = reader.read_any_raw_message::<MavMessage>() {
+        let (frame_bytes, version) = raw_parts(&raw);
+        let message = MavMessage::parse(version, raw.message_id(), raw.payload()).map_err(|e| e.to_string());
+        each(Frame {
+            sysid: raw.system_id(),
+            compid: raw.component_id(),
+            seq: raw.sequence(),
+            message_id: raw.message_id(),
+            bytes: frame_bytes,
+            message,
+        });
+    }
+}
+
+fn message_name(m: &Result<MavMessage, String>) -> &'static str {
+    match m {
+        Ok(m) => m.message_name(),
+        Err(_) => "UNPARSED",
+    }
+}
+
+impl GcsState {
+    pub fn new(config: GcsConfig) -> Self {
+        let mut vehicles = BTreeMap::new();
+        for &id in &config.vehicles {
+            let mut v = Vehicle::new(id);
+            v.has_link = true;
+            vehicles.insert(id, v);
+        }
+        GcsState {
+            config,
+            started: None,
+            vehicles,
+            links: BTreeMap::new(),
+            peers: BTreeSet::new(),
+            counters: GcsCounters::default(),
+        }
+    }
+
+    pub fn config(&self) -> &GcsConfig {
+        &self.config
+    }
+
+    /// Peers of the cooperative network: given ones and every address a valid frame came from.
+    pub fn peers(&self) -> impl Iterator<Item = SocketAddr> + '_ {
+        self.peers.iter().copied()
+    }
+
+    /// Adds a peer; true if it is new.
+    pub fn add_peer(&mut self, addr: SocketAddr) -> bool {
+        self.peers.insert(addr)
+    }
+
+    /// Marks the start (for the uptime); the first input does it otherwise.
+    pub fn start(&mut self, rx: WallNs) {
+        self.started.get_or_insert(rx);
+    }
+
+    fn vehicle(&mut self, id: PlatformId) -> &mut Vehicle {
+        self.vehicles.entry(id).or_insert_with(|| Vehicle::new(id))
+    }
+
+    /// A datagram from the cooperative network.
+    pub fn on_coop_datagram(&mut self, rx: WallNs, from: SocketAddr, bytes: &[u8]) -> Vec<GcsEvent> {
+        self.on_bytes(rx, Link::Coop, Some(from), bytes)
+    }
+
+    /// A frame (or any bytes) read from the link of vehicle `vehicle`.
+    pub fn on_vehicle_frame(&mut self, rx: WallNs, vehicle: PlatformId, bytes: &[u8]) -> Vec<GcsEvent> {
+        self.on_bytes(rx, Link::Vehicle(vehicle), None, bytes)
+    }
+
+    fn on_bytes(&mut self, rx: WallNs, link: Link, from: Option<SocketAddr>, bytes: &[u8]) -> Vec<GcsEvent> {
+        self.start(rx);
+        self.counters.datagrams += 1;
+        self.counters.bytes += bytes.len() as u64;
+        let mut frames = Vec::new();
+        read_frames(bytes, |f| {
+            frames.push((f.sysid, f.compid, f.seq, f.message_id, f.bytes.to_vec(), f.message));
+        });
+        let mut events = Vec::with_capacity(frames.len() + 1);
+        if frames.is_empty() {
+            self.counters.bad_datagrams += 1;
+            events.push(GcsEvent::Rejected { rx, link, reason: format!("{} bytes without a valid MAVLink frame", bytes.len()) });
+            return events;
+        }
+        for (sysid, compid, seq, message_id, frame_bytes, message) in frames {
+            self.counters.frames += 1;
+            if sysid == u32::from(GCS_SYSID) && compid == GCS_COMPID {
+                self.counters.own += 1;
+                continue;
+            }
+            let window = self.config.rate_window_ns;
+            let stats = self.links.entry(SourceKey { link, sysid, compid }).or_insert_with(|| LinkStats::new(rx, window));
+            stats.observe(rx, seq, frame_bytes.len(), message_name(&message), from);
+            if let (Link::Coop, Some(addr)) = (link, from) {
+                self.peers.insert(addr);
+            }
+            events.push(GcsEvent::Frame { rx, link, from, sysid, compid, message_id, bytes: frame_bytes });
+            let message = match message {
+                Ok(m) => m,
+                Err(e) => {
+                    self.reject(rx, link, format!("message {message_id} from {sysid}/{compid}: {e}"), &mut events);
+                    continue;
+                }
+            };
+            if let MavMessage::HEARTBEAT(hb) = &message
+                && let Some(stats) = self.links.get_mut(&SourceKey { link, sysid, compid })
+            {
+                stats.mav_type = Some(format!("{:?}", hb.mavtype).trim_start_matches("MAV_TYPE_").to_string());
+            }
+            match link {
+                Link::Coop => self.on_coop_message(rx, sysid, message, &mut events),
+                Link::Vehicle(id) => self.on_vehicle_message(rx, id, sysid, message, &mut events),
+            }
+        }
+        events
+    }
+
+    fn reject(&mut self, rx: WallNs, link: Link, reason: String, events: &mut Vec<GcsEvent>) {
+        self.counters.rejected += 1;
+        events.push(GcsEvent::Rejected { rx, link, reason });
+    }
+
+    fn on_coop_message(&mut self, rx: WallNs, sysid: u32, message: MavMessage, events: &mut Vec<GcsEvent>) {
+        match &message {
+            MavMessage::COOPLOC_ESTIMATE(m) => match wire::estimate_from_message(m) {
+                Ok(report) if u32::from(report.platform) != sysid => self.reject(
+                    rx,
+                    Link::Coop,
+                    format!("COOPLOC_ESTIMATE.platform {} from system {sysid}", report.platform),
+                    events,
+                ),
+                Ok(report) => self.on_estimate(rx, report, events),
+                Err(e) => self.reject(rx, Link::Coop, e.to_string(), events),
+            },
+            MavMessage::COOPLOC_RANGE(m) => match wire::range_from_message(m) {
+                Ok((epoch, range)) => {
+                    self.vehicle(range.from).counts.ranges += 1;
+                    events.push(GcsEvent::Range { rx, epoch, range });
+                }
+                Err(e) => self.reject(rx, Link::Coop, e.to_string(), events),
+            },
+            MavMessage::COOPLOC_EPOCH(m) => match wire::epoch_from_message(m) {
+                Ok(announcement) => {
+                    self.vehicle(announcement.announcer).counts.epochs += 1;
+                    events.push(GcsEvent::Epoch { rx, announcement });
+                }
+                Err(e) => self.reject(rx, Link::Coop, e.to_string(), events),
+            },
+            MavMessage::COOPLOC_STATE_FRAGMENT(m) => match wire::fragment_from_message(m) {
+                Ok(f) => self.vehicle(f.platform).counts.state_fragments += 1,
+                Err(e) => self.reject(rx, Link::Coop, e.to_string(), events),
+            },
+            _ => {}
+        }
+    }
+
+    fn on_estimate(&mut self, rx: WallNs, report: EstimateReport, events: &mut Vec<GcsEvent>) {
+        let (history, restart_us, max_gap) = (self.config.estimate_history, self.config.restart_us, self.config.max_truth_gap_us);
+        let v = self.vehicle(report.platform);
+        if let Some(last) = v.estimates.back().map(|e| e.report.t)
+            && report.t < last
+        {
+            if last.0 - report.t.0 > restart_us {
+                v.counts.restarts += 1;
+                v.estimates.clear();
+            } else {
+                v.counts.stale_estimates += 1;
+                self.counters.ignored += 1;
+                return;
+            }
+        }
+        let c = &report.position_covariance_m2;
+        let ellipse = ellipse95(&Matrix2::new(c[(0, 0)], c[(0, 1)], c[(1, 0)], c[(1, 1)]));
+        v.counts.estimates += 1;
+        let vehicle = report.platform;
+        events.push(GcsEvent::Estimate { rx, vehicle, report: report.clone(), ellipse });
+        v.estimates.push_back(EstimatePoint { rx, report, ellipse, error: ErrorState::Pending });
+        while v.estimates.len() > history.max(1) {
+            v.estimates.pop_front();
+        }
+        resolve_errors(v, rx, max_gap, events);
+    }
+
+    fn on_vehicle_message(&mut self, rx: WallNs, id: PlatformId, sysid: u32, message: MavMessage, events: &mut Vec<GcsEvent>) {
+        if sysid != u32::from(id) {
+            self.counters.ignored += 1;
+            return;
+        }
+        let origin = self.config.origin;
+        let v = self.vehicle(id);
+        v.has_link = true;
+        v.counts.link_frames += 1;
+        let timed = match &message {
+            MavMessage::HIGHRES_IMU(m) => {
+                v.counts.link_imu_frames += 1;
+                Some(TimeUs(m.time_usec))
+            }
+            MavMessage::ODOMETRY(m) => Some(TimeUs(m.time_usec)),
+            MavMessage::SIM_STATE(m) => {
+                let pos = match wire::sim_state_position_ned(m, &origin) {
+                    Ok(p) => p,
+                    Err(e) => {
+                        self.reject(rx, Link::Vehicle(id), e.to_string(), events);
+                        return;
+                    }
+                };
+                let vel = Vector3::new(m.vn as f64, m.ve as f64, m.vd as f64);
+                let point = TruthPoint { t: None, rx, pos_ned_m: pos, vel_ned_m_s: vel, yaw_rad: m.yaw as f64 };
+                // A sample still waiting for its time is placed at the last known time.
+                if let Some(mut pending) = v.pending_truth.take() {
+                    pending.t = v.last_link_time;
+                    self.add_truth(rx, id, pending, events);
+                }
+                self.vehicle(id).pending_truth = Some(point);
+                None
+            }
+            _ => None,
+        };
+        if let Some(t) = timed {
+            let v = self.vehicle(id);
+            v.last_link_time = Some(t);
+            if let Some(mut pending) = v.pending_truth.take() {
+                pending.t = Some(t);
+                self.add_truth(rx, id, pending, events);
+            }
+        }
+    }
+
+    fn add_truth(&mut self, rx: WallNs, id: PlatformId, point: TruthPoint, events: &mut Vec<GcsEvent>) {
+        let (history, restart_us, max_gap) = (self.config.truth_history, self.config.restart_us, self.config.max_truth_gap_us);
+        let v = self.vehicle(id);
+        let Some(t) = point.t else {
+            v.counts.truth_samples += 1;
+            v.truth_untimed.push_back(point);
+            while v.truth_untimed.len() > history.max(1) {
+                v.truth_untimed.pop_front();
+            }
+            events.push(GcsEvent::Truth { rx, vehicle: id, point });
+            return;
+        };
+        if let Some(last) = v.truth.back().and_then(|p| p.t) {
+            if t < last {
+                if last.0 - t.0 > restart_us {
+                    v.counts.restarts += 1;
+                    v.truth.clear();
+                } else {
+                    v.counts.stale_truth += 1;
+                    self.counters.ignored += 1;
+                    return;
+                }
+            } else if t == last {
+                v.counts.stale_truth += 1;
+                self.counters.ignored += 1;
+                return;
+            }
+        }
+        v.counts.truth_samples += 1;
+        v.truth.push_back(point);
+        while v.truth.len() > history.max(2) {
+            v.truth.pop_front();
+        }
+        events.push(GcsEvent::Truth { rx, vehicle: id, point });
+        resolve_errors(v, rx, max_gap, events);
+    }
+
+    /// The JSON the web page polls. Series are thinned to at most `max_points` points each.
+    pub fn snapshot(&self, now: WallNs, max_points: usize) -> Snapshot {
+        let since = |t: WallNs| now.0.saturating_sub(t.0) as f64 * 1e-9;
+        let vehicles = self.vehicles.values().map(|v| vehicle_json(v, now, max_points)).collect();
+        let links = self
+            .links
+            .iter()
+            .map(|(k, s)| LinkJson {
+                link: k.link.to_string(),
+                sysid: k.sysid,
+                compid: k.compid,
+                addr: s.last_addr.map(|a| a.to_string()),
+                mav_type: s.mav_type.clone(),
+                packets: s.packets,
+                bytes: s.bytes,
+                bytes_per_s: s.rate.bytes_per_s(now, s.first_heard),
+                lost: s.seq.lost,
+                out_of_order: s.seq.out_of_order,
+                loss_pct: s.seq.loss_fraction().map(|f| f * 100.0),
+                last_heard_s_ago: since(s.last_heard),
+                messages: s.messages.iter().map(|(k, v)| (k.to_string(), *v)).collect(),
+            })
+            .collect();
+        Snapshot {
+            gcs: GcsInfo {
+                sysid: GCS_SYSID,
+                compid: GCS_COMPID,
+                uptime_s: self.started.map_or(0.0, since),
+                peers: self.peers.iter().map(|p| p.to_string()).collect(),
+            },
+            origin: OriginJson {
+                lat_deg: self.config.origin.lat_deg,
+                lon_deg: self.config.origin.lon_deg,
+                alt_m: self.config.origin.alt_m,
+            },
+            counters: self.counters,
+            vehicles,
+            links,
+        }
+    }
+}
+
+/// Computes the errors of the newest estimates that the truth now covers.
+fn resolve_errors(v: &mut Vehicle, rx: WallNs, max_gap_us: u64, events: &mut Vec<GcsEvent>) {
+    let Some(truth_end) = v.truth.back().and_then(|p| p.t) else { return };
+    let mut found = Vec::new();
+    for e in v.estimates.iter_mut().rev() {
+        if !matches!(e.error, ErrorState::Pending) {
+            break;
+        }
+        let t = e.report.t;
+        if t > truth_end {
+            continue;
+        }
+        let Some(truth) = truth_at(&v.truth, t, max_gap_us) else {
+            e.error = ErrorState::Unavailable;
+            if v.truth.front().and_then(|p| p.t).is_some_and(|t0| t < t0) {
+                break; // older estimates are before the truth too
+            }
+            continue;
+        };
+        let diff = truth - e.report.position_ned_m;
+        let error = TruthError {
+            truth_ned_m: truth,
+            horizontal_m: diff.fixed_rows::<2>(0).norm(),
+            nees: position_nees(&diff, &e.report.position_covariance_m2),
+        };
+        e.error = ErrorState::Known(error);
+        found.push((t, error));
+    }
+    for (t, error) in found.into_iter().rev() {
+        events.push(GcsEvent::Error { rx, vehicle: v.id, t, error });
+    }
+}
+
+fn truth_at(truth: &VecDeque<TruthPoint>, t: TimeUs, max_gap_us: u64) -> Option<Vector3<f64>> {
+    let idx = truth.partition_point(|p| p.t.is_some_and(|pt| pt < t));
+    let after = truth.get(idx)?;
+    let ta = after.t?;
+    if ta == t {
+        return Some(after.pos_ned_m);
+    }
+    let before = truth.get(idx.checked_sub(1)?)?;
+    let tb = before.t?;
+    if ta.0 - tb.0 > max_gap_us {
+        return None;
+    }
+    let f = (t.0 - tb.0) as f64 / (ta.0 - tb.0) as f64;
+    Some(before.pos_ned_m + (after.pos_ned_m - before.pos_ned_m) * f)
+}
+
+/// At most `max` items of `items`, evenly spaced, the last one always included.
+fn thin<T>(items: Vec<T>, max: usize) -> Vec<T> {
+    let n = items.len();
+    if n <= max.max(2) {
+        return items;
+    }
+    let step = n.div_ceil(max.max(2) - 1);
+    items.into_iter().enumerate().filter(|(i, _)| i % step == 0 || *i == n - 1).map(|(_, x)| x).collect()
+}
+
+fn vehicle_json(v: &Vehicle, now: WallNs, max_points: usize) -> VehicleJson {
+    let estimate = v.latest_estimate().map(|e| {
+        let r = &e.report;
+        let c = &r.position_covariance_m2;
+        EstimateJson {
+            t_s: r.t.as_secs_f64(),
+            epoch: r.epoch,
+            method: r.method.short_name(),
+            pos_ned_m: [r.position_ned_m[0], r.position_ned_m[1], r.position_ned_m[2]],
+            vel_ned_m_s: [r.velocity_ned_m_s[0], r.velocity_ned_m_s[1], r.velocity_ned_m_s[2]],
+            yaw_deg: r.yaw_rad.to_degrees(),
+            cov_ne_m2: [c[(0, 0)], c[(0, 1)], c[(1, 1)]],
+            sigma_d_m: c[(2, 2)].max(0.0).sqrt(),
+            nis: r.nis,
+            participants: r.participants,
+            ranges: r.ranges,
+            ellipse95: e.ellipse,
+            age_s: now.0.saturating_sub(e.rx.0) as f64 * 1e-9,
+        }
+    });
+    let latest_error = v.estimates.iter().rev().find_map(|e| match e.error {
+        ErrorState::Known(err) => Some(ErrorJson {
+            t_s: e.report.t.as_secs_f64(),
+            horizontal_m: err.horizontal_m,
+            nees: err.nees,
+            truth_ned_m: [err.truth_ned_m[0], err.truth_ned_m[1], err.truth_ned_m[2]],
+        }),
+        _ => None,
+    });
+    let track = v.estimates.iter().map(|e| [e.report.t.as_secs_f64(), e.report.position_ned_m[0], e.report.position_ned_m[1]]);
+    let errors = v
+        .estimates
+        .iter()
+        .filter_map(|e| match e.error {
+            ErrorState::Known(err) => Some([e.report.t.as_secs_f64(), err.horizontal_m, err.nees.unwrap_or(f64::NAN)]),
+            _ => None,
+        })
+        .collect();
+    let sigma = v.estimates.iter().filter_map(|e| e.ellipse.map(|el| [e.report.t.as_secs_f64(), el.semi_major_m])).collect();
+    let truth_src = if v.truth.is_empty() { &v.truth_untimed } else { &v.truth };
+    let truth_track =
+        truth_src.iter().map(|p| [p.t.map_or(f64::NAN, |t| t.as_secs_f64()), p.pos_ned_m[0], p.pos_ned_m[1]]).collect();
+    let truth = truth_src.back().map(|p| TruthJson {
+        t_s: p.t.map(|t| t.as_secs_f64()),
+        pos_ned_m: [p.pos_ned_m[0], p.pos_ned_m[1], p.pos_ned_m[2]],
+        yaw_deg: p.yaw_rad.to_degrees(),
+        speed_m_s: p.vel_ned_m_s.norm(),
+    });
+    VehicleJson {
+        id: v.id,
+        has_link: v.has_link,
+        estimate,
+        error: latest_error,
+        truth,
+        track: thin(track.collect(), max_points),
+        truth_track: thin(truth_track, max_points),
+        errors: thin(errors, max_points),
+        sigma95: thin(sigma, max_points),
+        counts: v.counts,
+    }
+}
+
+// ---- the JSON of `GET /api/state` ----
+
+#[derive(Debug, Clone, Serialize)]
+pub struct Snapshot {
+    pub gcs: GcsInfo,
+    pub origin: OriginJson,
+    pub counters: GcsCounters,
+    pub vehicles: Vec<VehicleJson>,
+    pub links: Vec<LinkJson>,
+}
+
+#[derive(Debug, Clone, Serialize)]
+pub struct GcsInfo {
+    pub sysid: u8,
+    pub compid: u8,
+    pub uptime_s: f64,
+    pub peers: Vec<String>,
+}
+
+#[derive(Debug, Clone, Serialize)]
+pub struct OriginJson {
+    pub lat_deg: f64,
+    pub lon_deg: f64,
+    pub alt_m: f64,
+}
+
+#[derive(Debug, Clone, Serialize)]
+pub struct VehicleJson {
+    pub id: PlatformId,
+    pub has_link: bool,
+    pub estimate: Option<EstimateJson>,
+    /// Error of the newest estimate the truth covers.
+    pub error: Option<ErrorJson>,
+    /// Newest truth sample.
+    pub truth: Option<TruthJson>,
+    /// Estimates: `[t_s, north_m, east_m]`.
+    pub track: Vec<[f64; 3]>,
+    /// Truth: `[t_s (null if unknown), north_m, east_m]`.
+    pub truth_track: Vec<[f64; 3]>,
+    /// `[t_s, horizontal_error_m, position_nees (null if unknown)]`.
+    pub errors: Vec<[f64; 3]>,
+    /// `[t_s, semi_major_95_m]`.
+    pub sigma95: Vec<[f64; 2]>,
+    pub counts: VehicleCounts,
+}
+
+#[derive(Debug, Clone, Serialize)]
+pub struct EstimateJson {
+    pub t_s: f64,
+    pub epoch: u32,
+    pub method: &'static str,
+    pub pos_ned_m: [f64; 3],
+    pub vel_ned_m_s: [f64; 3],
+    pub yaw_deg: f64,
+    /// NN, NE, EE.
+    pub cov_ne_m2: [f64; 3],
+    pub sigma_d_m: f64,
+    /// NaN (none yet) is null.
+    pub nis: f64,
+    pub participants: u8,
+    pub ranges: u8,
+    pub ellipse95: Option<Ellipse95>,
+    /// Seconds since it was received.
+    pub age_s: f64,
+}
+
+#[derive(Debug, Clone, Serialize)]
+pub struct ErrorJson {
+    pub t_s: f64,
+    pub horizontal_m: f64,
+    pub nees: Option<f64>,
+    pub truth_ned_m: [f64; 3],
+}
+
+#[derive(Debug, Clone, Serialize)]
+pub struct TruthJson {
+    pub t_s: Option<f64>,
+    pub pos_ned_m: [f64; 3],
+    pub yaw_deg: f64,
+    pub speed_m_s: f64,
+}
+
+#[derive(Debug, Clone, Serialize)]
+pub struct LinkJson {
+    /// `coop` or `vehicle ID`.
+    pub link: String,
+    pub sysid: u32,
+    pub compid: u8,
+    pub addr: Option<String>,
+    pub mav_type: Option<String>,
+    pub packets: u64,
+    pub bytes: u64,
+    pub bytes_per_s: f64,
+    pub lost: u64,
+    pub out_of_order: u64,
+    pub loss_pct: Option<f64>,
+    pub last_heard_s_ago: f64,
+    pub messages: BTreeMap<String, u64>,
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::estimation::Method;
+    use crate::protocol::dialect::cooploc::{HIGHRES_IMU_DATA, SIM_STATE_DATA};
+    use mavlink_core::MavHeader;
+    use nalgebra::Matrix3;
+
+    const NODE_COMPID: u8 = 191;
+
+    fn s(x: f64) -> WallNs {
+        WallNs((1_700_000_000.0e9 + x * 1e9) as u64)
+    }
+
+    fn addr(port: u16) -> SocketAddr {
+        SocketAddr::from(([127, 0, 0, 1], port))
+    }
+
+    fn report(platform: PlatformId, t_us: u64, n: f64, e: f64, cov: Matrix3<f64>) -> EstimateReport {
+        EstimateReport {
+            platform,
+            t: TimeUs(t_us),
+            epoch: 1,
+            method: Method::Decentralized,
+            position_ned_m: Vector3::new(n, e, 0.0),
+            velocity_ned_m_s: Vector3::new(1.0, 0.0, 0.0),
+            yaw_rad: 0.1,
+            position_covariance_m2: cov,
+            yaw_variance_rad2: 1e-4,
+            nis: f64::NAN,
+            participants: 3,
+            ranges: 2,
+        }
+    }
+
+    fn frame(sysid: u8, compid: u8, seq: u8, msg: &MavMessage) -> Vec<u8> {
+        wire::to_frame(MavHeader { system_id: u32::from(sysid), component_id: compid, sequence: seq }, msg)
+    }
+
+    fn estimate_frame(seq: u8, r: &EstimateReport) -> Vec<u8> {
+        frame(r.platform as u8, NODE_COMPID, seq, &wire::estimate_to_message(r))
+    }
+
+    fn close(a: f64, b: f64, tol: f64) -> bool {
+        (a - b).abs() <= tol
+    }
+
+    #[test]
+    fn ellipse_axes_match_a_hand_computation() {
+        // [[5, 2], [2, 2]]: eigenvalues (7 +- sqrt(9 + 16)) / 2 = 6 and 1; the major axis is the
+        // eigenvector (2, 1) (N, E): atan(1/2) = 26.565 deg east of north.
+        let e = ellipse95(&Matrix2::new(5.0, 2.0, 2.0, 2.0)).unwrap();
+        assert!(close(e.semi_major_m, (5.991_464_547 * 6.0f64).sqrt(), 1e-8), "{e:?}");
+        assert!(close(e.semi_major_m, 5.995_731, 1e-5));
+        assert!(close(e.semi_minor_m, 2.447_747, 1e-5));
+        assert!(close(e.major_bearing_deg, 26.565_051, 1e-5));
+        // Uncorrelated, larger east variance: major axis east (90 deg), axes 2.4477 * (2, 1).
+        let e = ellipse95(&Matrix2::new(1.0, 0.0, 0.0, 4.0)).unwrap();
+        assert!(close(e.major_bearing_deg, 90.0, 1e-9) && close(e.semi_major_m, 2.0 * 2.447_746_83, 1e-6));
+        // Negative correlation: major axis north-west (-45 deg); eigenvalues 4 and 2.
+        let e = ellipse95(&Matrix2::new(3.0, -1.0, -1.0, 3.0)).unwrap();
+        assert!(close(e.major_bearing_deg, -45.0, 1e-9));
+        assert!(close(e.semi_major_m, (CHI2_2DOF_95 * 4.0).sqrt(), 1e-12));
+        assert!(close(e.semi_minor_m, (CHI2_2DOF_95 * 2.0).sqrt(), 1e-12));
+        // A circle, a degenerate line, and garbage.
+        let e = ellipse95(&Matrix2::new(2.0, 0.0, 0.0, 2.0)).unwrap();
+        assert!(close(e.semi_major_m, e.semi_minor_m, 1e-12) && close(e.major_bearing_deg, 0.0, 1e-12));
+        assert_eq!(ellipse95(&Matrix2::new(1.0, 1.0, 1.0, 1.0)).unwrap().semi_minor_m, 0.0);
+        assert!(ellipse95(&Matrix2::new(f64::NAN, 0.0, 0.0, 1.0)).is_none());
+        assert!(ellipse95(&Matrix2::new(-1.0, 0.0, 0.0, -1.0)).is_none());
+        assert!(close(CHI2_2DOF_95, -2.0 * 0.05f64.ln(), 1e-12));
+    }
+
+    #[test]
+    fn estimates_make_vehicles_and_links_count_loss_from_sequence_gaps() {
+        let mut gcs = GcsState::new(GcsConfig::default());
+        let cov = Matrix3::from_diagonal(&Vector3::new(4.0, 1.0, 9.0));
+        // Vehicle 1: sequence 250..=255, 0..=3 with 253 and 1 missing (2 lost of 10, across the wrap).
+        let seqs: Vec<u8> = (250u8..=255).chain(0..=3).filter(|&q| q != 253 && q != 1).collect();
+        for (k, &q) in seqs.iter().enumerate() {
+            let r = report(1, 1_000_000 * (k as u64 + 1), 10.0 + k as f64, -5.0, cov);
+            let events = gcs.on_coop_datagram(s(k as f64 * 0.1), addr(5001), &estimate_frame(q, &r));
+            assert!(events.iter().any(|e| matches!(e, GcsEvent::Estimate { vehicle: 1, .. })));
+            assert!(events.iter().any(|e| matches!(e, GcsEvent::Frame { message_id: 61002, .. })));
+        }
+        // Vehicle 2: two frames in one datagram, no loss.
+        let mut both = estimate_frame(7, &report(2, 1_000_000, 1.0, 2.0, cov));
+        both.extend(estimate_frame(8, &report(2, 2_000_000, 3.0, 4.0, cov)));
+        gcs.on_coop_datagram(s(1.0), addr(5002), &both);
+
+        let v1 = &gcs.vehicles[&1];
+        assert_eq!(v1.counts.estimates, 8);
+        let last = v1.latest_estimate().unwrap();
+        assert_eq!(last.report.position_ned_m[0], 17.0);
+        let el = last.ellipse.unwrap();
+        assert!(close(el.semi_major_m, (CHI2_2DOF_95 * 4.0).sqrt(), 1e-6) && close(el.major_bearing_deg, 0.0, 1e-9));
+        let l1 = &gcs.links[&SourceKey { link: Link::Coop, sysid: 1, compid: NODE_COMPID }];
+        assert_eq!((l1.packets, l1.seq.lost, l1.seq.out_of_order), (8, 2, 0));
+        assert!(close(l1.seq.loss_fraction().unwrap(), 0.2, 1e-12));
+        assert_eq!(l1.last_addr, Some(addr(5001)));
+        let l2 = &gcs.links[&SourceKey { link: Link::Coop, sysid: 2, compid: NODE_COMPID }];
+        assert_eq!((l2.packets, l2.seq.lost), (2, 0));
+        assert_eq!(gcs.peers().collect::<Vec<_>>(), vec![addr(5001), addr(5002)]);
+
+        let snap = gcs.snapshot(s(1.5), 100);
+        assert_eq!(snap.vehicles.iter().map(|v| v.id).collect::<Vec<_>>(), vec![1, 2]);
+        assert_eq!(snap.vehicles[1].estimate.as_ref().unwrap().pos_ned_m, [3.0, 4.0, 0.0]);
+        let link1 = snap.links.iter().find(|l| l.sysid == 1).unwrap();
+        assert!(close(link1.loss_pct.unwrap(), 20.0, 1e-9));
+        assert_eq!(link1.messages["COOPLOC_ESTIMATE"], 8);
+        let json = serde_json::to_string(&snap).unwrap();
+        assert!(json.contains("\"nis\":null"), "NaN NIS is null in the JSON");
+    }
+
+    fn sim_state(origin: &GeoOrigin, pos: Vector3<f64>) -> MavMessage {
+        let g = wire::ned_to_geodetic(origin, &pos);
+        MavMessage::SIM_STATE(SIM_STATE_DATA {
+            lat: g.lat_deg as f32,
+            lon: g.lon_deg as f32,
+            alt: g.alt_m as f32,
+            lat_int: wire::deg_to_e7(g.lat_deg),
+            lon_int: wire::deg_to_e7(g.lon_deg),
+            vn: 10.0,
+            q1: 1.0,
+            ..Default::default()
+        })
+    }
+
+    fn imu(t_us: u64) -> MavMessage {
+        MavMessage::HIGHRES_IMU(HIGHRES_IMU_DATA { time_usec: t_us, zacc: -9.8, ..Default::default() })
+    }
+
+    #[test]
+    fn error_interpolates_the_truth_at_the_estimate_time() {
+        let cfg = GcsConfig { vehicles: vec![3], ..GcsConfig::default() };
+        let origin = cfg.origin;
+        let mut gcs = GcsState::new(cfg);
+        let link = |gcs: &mut GcsState, seq: u8, msg: &MavMessage| gcs.on_vehicle_frame(s(seq as f64), 3, &frame(3, 1, seq, msg));
+        // Truth at 1.0 s: (100, 200, 0); at 1.1 s: (101, 202, 0). SIM_STATE comes just before
+        // the IMU sample of its time, which stamps it.
+        link(&mut gcs, 0, &sim_state(&origin, Vector3::new(100.0, 200.0, 0.0)));
+        assert!(gcs.vehicles[&3].truth.is_empty(), "no time yet");
+        link(&mut gcs, 1, &imu(1_000_000));
+        // An estimate at 1.05 s arrives before the truth covers it: error pending.
+        let cov = Matrix3::from_diagonal(&Vector3::new(4.0, 1.0, 1.0));
+        let r = report(3, 1_050_000, 100.5 + 3.0, 201.0 - 4.0, cov);
+        let events = gcs.on_coop_datagram(s(2.0), addr(6000), &estimate_frame(0, &r));
+        assert!(!events.iter().any(|e| matches!(e, GcsEvent::Error { .. })));
+        link(&mut gcs, 2, &imu(1_005_000));
+        link(&mut gcs, 3, &sim_state(&origin, Vector3::new(101.0, 202.0, 0.0)));
+        let events = link(&mut gcs, 4, &imu(1_100_000));
+        let truth: Vec<_> =
+            events.iter().filter_map(|e| if let GcsEvent::Truth { point, .. } = e { Some(*point) } else { None }).collect();
+        assert_eq!(truth.len(), 1);
+        assert_eq!(truth[0].t, Some(TimeUs(1_100_000)));
+        let errors: Vec<_> = events
+            .iter()
+            .filter_map(|e| if let GcsEvent::Error { t, error, .. } = e { Some((*t, *error)) } else { None })
+            .collect();
+        assert_eq!(errors.len(), 1, "{events:?}");
+        let (t, err) = errors[0];
+        assert_eq!(t, TimeUs(1_050_000));
+        // Truth at 1.05 s is the midpoint (100.5, 201); the estimate is 3 m north and 4 m west of it
+        // (degE7 quantisation of SIM_STATE: about 1 cm).
+        assert!(close(err.truth_ned_m[0], 100.5, 0.02) && close(err.truth_ned_m[1], 201.0, 0.02), "{err:?}");
+        assert!(close(err.horizontal_m, 5.0, 0.02), "{err:?}");
+        // NEES = 3^2/4 + 4^2/1 + 0 = 18.25.
+        assert!(close(err.nees.unwrap(), 18.25, 0.1), "{err:?}");
+        let snap = gcs.snapshot(s(5.0), 100);
+        let v = &snap.vehicles[0];
+        assert!(v.has_link && v.error.is_some() && v.errors.len() == 1 && v.truth_track.len() == 2);
+        assert_eq!(gcs.vehicles[&3].counts.link_imu_frames, 3);
+        // Outside the truth's span: no error; across a gap longer than max_truth_gap_us: none.
+        assert!(gcs.vehicles[&3].truth_at(TimeUs(900_000), 1_000_000).is_none());
+        assert!(gcs.vehicles[&3].truth_at(TimeUs(1_200_000), 1_000_000).is_none());
+        assert!(gcs.vehicles[&3].truth_at(TimeUs(1_050_000), 50_000).is_none());
+        assert!(gcs.vehicles[&3].truth_at(TimeUs(1_100_000), 0).is_some(), "an exact sample needs no bracket");
+    }
+
+    #[test]
+    fn nees_by_cholesky() {
+        let p = Matrix3::new(4.0, 1.0, 0.0, 1.0, 2.0, 0.0, 0.0, 0.0, 1.0);
+        let e = Vector3::new(1.0, -1.0, 2.0);
+        let direct = (e.transpose() * p.try_inverse().unwrap() * e)[0];
+        assert!(close(position_nees(&e, &p).unwrap(), direct, 1e-12));
+        assert!(position_nees(&e, &Matrix3::from_diagonal(&Vector3::new(1.0, 1.0, 0.0))).is_none());
+    }
+
+    #[test]
+    fn bad_frames_are_counted_and_dropped() {
+        let mut gcs = GcsState::new(GcsConfig::default());
+        let cov = Matrix3::identity();
+        // Garbage, an empty datagram, a truncated frame, a frame with a flipped bit.
+        let good = estimate_frame(0, &report(1, 1_000_000, 1.0, 1.0, cov));
+        let mut flipped = good.clone();
+        flipped[20] ^= 0x10;
+        for bad in [&b"hello, not mavlink"[..], &[], &good[..good.len() - 3], &flipped] {
+            let events = gcs.on_coop_datagram(s(0.0), addr(7000), bad);
+            assert!(matches!(events.as_slice(), [GcsEvent::Rejected { .. }]), "{events:?}");
+        }
+        assert_eq!(gcs.counters.bad_datagrams, 4);
+        assert!(gcs.vehicles.is_empty() && gcs.peers().next().is_none(), "nothing learned from garbage");
+        // A valid frame carrying a NaN position, and an estimate claiming another platform.
+        let nan = estimate_frame(1, &report(1, 1_000_000, f64::NAN, 1.0, cov));
+        gcs.on_coop_datagram(s(0.1), addr(7000), &nan);
+        let mut spoof = report(2, 1_000_000, 1.0, 1.0, cov);
+        spoof.platform = 2;
+        let spoofed = frame(9, NODE_COMPID, 0, &wire::estimate_to_message(&spoof));
+        gcs.on_coop_datagram(s(0.2), addr(7000), &spoofed);
+        assert_eq!(gcs.counters.rejected, 2);
+        assert!(gcs.vehicles.is_empty());
+        // Garbage around a good frame: the frame is used.
+        let mut wrapped = b"xx".to_vec();
+        wrapped.extend(&good);
+        wrapped.extend(b"yy");
+        gcs.on_coop_datagram(s(0.3), addr(7000), &wrapped);
+        assert_eq!(gcs.vehicles[&1].counts.estimates, 1);
+        // Our own heartbeat, looped back, is not a source.
+        gcs.on_coop_datagram(s(0.4), addr(7001), &frame(GCS_SYSID, GCS_COMPID, 0, &crate::gcs::runner::heartbeat()));
+        assert_eq!(gcs.counters.own, 1);
+        assert!(!gcs.links.keys().any(|k| k.sysid == u32::from(GCS_SYSID)));
+        // Pseudo-random bytes and mutilated frames never panic.
+        let mut x: u64 = 0x9e37_79b9_7f4a_7c15;
+        for i in 0..2000 {
+            let mut d = good.clone();
+            d.extend(frame(1, 1, i as u8, &sim_state(&GcsConfig::default().origin, Vector3::new(1.0, 2.0, 3.0))));
+            for _ in 0..(i % 7) {
+                x ^= x << 13;
+                x ^= x >> 7;
+                x ^= x << 17;
+                let k = (x as usize) % d.len();
+                d[k] = (x >> 32) as u8;
+            }
+            d.truncate(((x >> 20) as usize) % (d.len() + 1));
+            gcs.on_coop_datagram(s(1.0), addr(7002), &d);
+            gcs.on_vehicle_frame(s(1.0), 1, &d);
+        }
+    }
+
+    #[test]
+    fn stale_estimates_are_dropped_and_a_restart_starts_over() {
+        let mut gcs = GcsState::new(GcsConfig::default());
+        let cov = Matrix3::identity();
+        for (q, t) in [(0u8, 10_000_000u64), (1, 11_000_000), (2, 10_500_000), (3, 1_000_000)] {
+            gcs.on_coop_datagram(s(q as f64), addr(7100), &estimate_frame(q, &report(4, t, 0.0, 0.0, cov)));
+        }
+        let v = &gcs.vehicles[&4];
+        assert_eq!((v.counts.estimates, v.counts.stale_estimates, v.counts.restarts), (3, 1, 1));
+        assert_eq!(v.estimates.len(), 1, "the restart cleared the history");
+        assert_eq!(v.latest_estimate().unwrap().report.t, TimeUs(1_000_000));
+    }
+
+    #[test]
+    fn histories_are_bounded_and_series_thinned() {
+        let mut gcs = GcsState::new(GcsConfig { estimate_history: 50, ..GcsConfig::default() });
+        for k in 0..200u64 {
+            let r = report(1, 1_000_000 * (k + 1), k as f64, 0.0, Matrix3::identity());
+            gcs.on_coop_datagram(s(k as f64), addr(7200), &estimate_frame(k as u8, &r));
+        }
+        assert_eq!(gcs.vehicles[&1].estimates.len(), 50);
+        let snap = gcs.snapshot(s(300.0), 20);
+        let track = &snap.vehicles[0].track;
+        assert!(track.len() <= 20 && track.len() >= 10, "{}", track.len());
+        assert_eq!(track.last().unwrap()[1], 199.0, "the newest point is kept");
+        assert_eq!(thin((0..5).collect(), 10), vec![0, 1, 2, 3, 4]);
+    }
+}

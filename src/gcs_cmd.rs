@@ -1,0 +1,175 @@
+//! `cooploc gcs`: arguments validated into a [`GcsConfig`] and [`GcsLinks`] before any I/O, then
+//! the runner.
+
+use std::net::{SocketAddr, ToSocketAddrs};
+use std::time::Duration;
+
+use anyhow::{Context, bail};
+use cooploc::estimation::PlatformId;
+use cooploc::gcs::runner::{GcsLinks, run};
+use cooploc::gcs::state::GcsConfig;
+use cooploc::protocol::wire::GeoOrigin;
+
+#[derive(clap::Args)]
+#[command(after_help = "\
+Prints, once bound: `gcs coop udp ADDR`, `gcs http http://ADDR/`, `gcs foxglove ws://ADDR`.
+A node sends the ground station everything it sends its peers once it has heard from it: give the
+nodes' cooperative addresses with --peer (the ground station's heartbeat introduces it), or give
+the nodes the ground station's address as a --peer.
+Truth of simulated vehicles: --vehicle 1=udpout:127.0.0.1:14541 (SIM_STATE of `cooploc sitl`).
+With `cooploc sitl --wait-for-peers`, start the ground station after the nodes: its vehicle links count as peers.")]
+pub struct Args {
+    /// Local address of the cooperative-network socket.
+    #[arg(long, default_value = "127.0.0.1:0")]
+    coop: SocketAddr,
+    /// A node's cooperative address, repeatable (more are learned from their traffic).
+    #[arg(long = "peer", value_name = "ADDR", value_parser = parse_addr)]
+    peers: Vec<SocketAddr>,
+    /// A simulated vehicle's MAVLink link for truth (SIM_STATE), repeatable: ID=URL, e.g.
+    /// 1=udpout:127.0.0.1:14541.
+    #[arg(long = "vehicle", value_name = "ID=URL", value_parser = parse_vehicle)]
+    vehicles: Vec<(PlatformId, String)>,
+    /// Web page and JSON API address (port 0: ephemeral).
+    #[arg(long, default_value = "127.0.0.1:8080", value_parser = parse_addr)]
+    http: SocketAddr,
+    /// Foxglove live WebSocket address (port 0: ephemeral).
+    #[arg(long, default_value = "127.0.0.1:8765", value_parser = parse_addr)]
+    foxglove: SocketAddr,
+    /// Do not start the Foxglove server.
+    #[arg(long)]
+    no_foxglove: bool,
+    /// Latitude of the team's NED origin, deg (default: the paper scenario's).
+    #[arg(long, default_value_t = 34.7, allow_negative_numbers = true)]
+    origin_lat_deg: f64,
+    /// Longitude of the NED origin, deg (as `cooploc sitl --origin-lon-deg`).
+    #[arg(long, default_value_t = 0.0, allow_negative_numbers = true)]
+    origin_lon_deg: f64,
+    /// Altitude of the NED origin, m.
+    #[arg(long, default_value_t = 0.0, allow_negative_numbers = true)]
+    origin_alt_m: f64,
+    /// Estimates kept per vehicle.
+    #[arg(long, default_value_t = 4096)]
+    history: usize,
+    /// Stop when nothing has been heard for this long (s, after the first frame); 0: run until Ctrl-C.
+    #[arg(long, default_value_t = 0.0)]
+    idle_exit_s: f64,
+}
+
+fn parse_addr(s: &str) -> Result<SocketAddr, String> {
+    s.to_socket_addrs()
+        .map_err(|e| format!("{s:?} is not HOST:PORT ({e})"))?
+        .next()
+        .ok_or_else(|| format!("{s:?} resolves to no address"))
+}
+
+fn parse_vehicle(s: &str) -> Result<(PlatformId, String), String> {
+    let (id, url) = s.split_once('=').ok_or_else(|| format!("{s:?} is not ID=URL"))?;
+    let id: PlatformId = id.parse().map_err(|_| format!("platform id {id:?} is not a number"))?;
+    if id == 0 || id > 255 {
+        return Err(format!("platform id {id}: a MAVLink system id is 1..=255"));
+    }
+    let known = ["udpin:", "udpout:", "udpbcast:", "tcpin:", "tcpout:", "serial:"];
+    if !known.iter().any(|p| url.starts_with(p)) {
+        return Err(format!("{url:?}: expected a MAVLink URL ({})", known.join(", ")));
+    }
+    Ok((id, url.to_string()))
+}
+
+struct Validated {
+    config: GcsConfig,
+    links: GcsLinks,
+}
+
+fn validate(args: Args) -> anyhow::Result<Validated> {
+    if !(args.origin_lat_deg.is_finite() && (-89.0..=89.0).contains(&args.origin_lat_deg)) {
+        bail!("--origin-lat-deg must be in [-89, 89], got {}", args.origin_lat_deg);
+    }
+    if !(args.origin_lon_deg.is_finite() && (-180.0..=180.0).contains(&args.origin_lon_deg)) {
+        bail!("--origin-lon-deg must be in [-180, 180], got {}", args.origin_lon_deg);
+    }
+    if !args.origin_alt_m.is_finite() {
+        bail!("--origin-alt-m must be finite");
+    }
+    if !args.idle_exit_s.is_finite() || args.idle_exit_s < 0.0 {
+        bail!("--idle-exit-s {}: must be a non-negative number of seconds", args.idle_exit_s);
+    }
+    if args.history == 0 {
+        bail!("--history must be at least 1");
+    }
+    let mut ids: Vec<PlatformId> = args.vehicles.iter().map(|(id, _)| *id).collect();
+    ids.sort_unstable();
+    if let Some(w) = ids.windows(2).find(|w| w[0] == w[1]) {
+        bail!("--vehicle: platform {} given twice", w[0]);
+    }
+    let config = GcsConfig {
+        origin: GeoOrigin { lat_deg: args.origin_lat_deg, lon_deg: args.origin_lon_deg, alt_m: args.origin_alt_m },
+        vehicles: ids,
+        estimate_history: args.history,
+        ..GcsConfig::default()
+    };
+    let links = GcsLinks {
+        coop_bind: args.coop,
+        peers: args.peers,
+        vehicles: args.vehicles,
+        http: args.http,
+        foxglove: (!args.no_foxglove).then_some(args.foxglove),
+        idle_exit: (args.idle_exit_s > 0.0).then(|| Duration::from_secs_f64(args.idle_exit_s)),
+    };
+    Ok(Validated { config, links })
+}
+
+async fn shutdown_signal() {
+    #[cfg(unix)]
+    {
+        let term = async {
+            match tokio::signal::unix::signal(tokio::signal::unix::SignalKind::terminate()) {
+                Ok(mut s) => {
+                    s.recv().await;
+                }
+                Err(_) => std::future::pending::<()>().await,
+            }
+        };
+        tokio::select! {
+            _ = tokio::signal::ctrl_c() => {}
+            _ = term => {}
+        }
+    }
+    #[cfg(not(unix))]
+    {
+        let _ = tokio::signal::ctrl_c().await;
+    }
+}
+
+pub fn run_cmd(args: Args) -> anyhow::Result<()> {
+    let Validated { config, links } = validate(args)?;
+    let rt = tokio::runtime::Builder::new_multi_thread().worker_threads(2).enable_all().build().context("starting tokio")?;
+    let summary = rt.block_on(async move {
+        let (tx, rx) = tokio::sync::oneshot::channel::<cooploc::gcs::runner::Bound>();
+        let announce = tokio::spawn(async move {
+            if let Ok(b) = rx.await {
+                println!("gcs coop udp {}", b.coop);
+                println!("gcs http http://{}/", b.http);
+                if let Some(f) = b.foxglove {
+                    println!("gcs foxglove ws://{f}");
+                }
+            }
+        });
+        let summary = run(config, links, Vec::new(), tx, shutdown_signal()).await;
+        let _ = announce.await;
+        summary
+    })?;
+    let c = &summary.counters;
+    println!(
+        "gcs done: vehicles {:?} estimates {} truth_samples {} datagrams {} frames {} bad_datagrams {} rejected {} ignored {} peers {}",
+        summary.vehicles,
+        summary.estimates,
+        summary.truth_samples,
+        c.datagrams,
+        c.frames,
+        c.bad_datagrams,
+        c.rejected,
+        c.ignored,
+        summary.peers.len()
+    );
+    Ok(())
+}
