@@ -19,13 +19,14 @@
 //! - [`gcs`]: `cooploc gcs`, the ground station (a sans-io core, its web page and JSON API, the
 //!   Foxglove live server, and a tokio runner).
 //! - [`time`]: the typed timestamp shared by all of the above.
+pub mod demo;
 pub mod estimation;
 pub mod experiment;
 pub mod gcs;
 pub mod node;
 pub mod protocol;
-pub mod replay;
 pub mod recording;
+pub mod replay;
 pub mod simulator;
 #[path = "../sitl/mod.rs"]
 pub mod sitl;

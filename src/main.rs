@@ -1,10 +1,13 @@
 //! The `cooploc` command line. Thin: parses and validates arguments into the library's config
 //! types, calls the library, prints, and maps errors to an exit code.
 
+mod demo_cmd;
 mod experiment_cmd;
 mod gcs_cmd;
 mod node_cmd;
+mod replay_cmd;
 mod sitl_cmd;
+mod table;
 
 use std::process::ExitCode;
 
@@ -19,6 +22,9 @@ struct Cli {
 
 #[derive(Subcommand)]
 enum Command {
+    /// The paper scenario end to end on loopback: simulator, one node per vehicle, ground station
+    /// (web page and Foxglove), one MCAP log under logs/, and the final error table per method.
+    Demo(demo_cmd::Args),
     /// Monte Carlo reproduction of the paper's experiment: every method on the same simulated inputs.
     Experiment(experiment_cmd::Args),
     /// The ground station: the team's estimates, 95% ellipses, truth and link health on a web
@@ -27,6 +33,9 @@ enum Command {
     /// The per-vehicle companion: local filter on the vehicle's IMU and odometry, cooperative
     /// protocol with the other nodes, estimate back to the vehicle.
     Node(node_cmd::Args),
+    /// Feeds a recorded log back through the filters: the recorded nodes bit for bit, or another
+    /// method on the same inputs.
+    Replay(replay_cmd::Args),
     /// Runs a scenario's vehicles as MAVLink systems (one UDP or serial link each), in simulated time.
     Sitl(sitl_cmd::Args),
 }
@@ -38,7 +47,9 @@ fn main() -> ExitCode {
         .with_env_filter(tracing_subscriber::EnvFilter::try_from_default_env().unwrap_or_else(|_| "warn".into()))
         .init();
     let result = match cli.command {
+        Command::Demo(args) => demo_cmd::run(args),
         Command::Experiment(args) => experiment_cmd::run(args),
+        Command::Replay(args) => replay_cmd::run(args),
         Command::Gcs(args) => gcs_cmd::run_cmd(args),
         Command::Node(args) => node_cmd::run_cmd(args),
         Command::Sitl(args) => sitl_cmd::run(args),

@@ -16,9 +16,9 @@ use crate::estimation::{Method, PlatformId, RangeSample};
 use crate::experiment::{FilterRun, ins_settings, run_filter};
 use crate::node::core::{NodeConfig, NodeCore, NodeInput, NodeOutput};
 use crate::node::runner::{NodeEvent, events_topic, state_from_sim_state};
+use crate::protocol::MavMessage;
 use crate::protocol::record::Encoding;
 use crate::protocol::wire::{self, EstimateReport, GeoOrigin};
-use crate::protocol::MavMessage;
 use crate::recording::{Direction, Link, Log, topics};
 use crate::sitl::{Scenario, World};
 use crate::time::TimeUs;
@@ -72,6 +72,8 @@ pub struct NodeReplay {
     pub replayed: Vec<EstimateReport>,
     /// The replayed core's estimate at the end of the log.
     pub last: Option<EstimateReport>,
+    /// IMU samples the replayed core took.
+    pub imu_replayed: u64,
 }
 
 impl NodeReplay {
@@ -112,8 +114,11 @@ fn replay_node(log: &Log, world: &World, id: PlatformId) -> Result<NodeReplay, R
     let record = format!("cooploc.node.{id}");
     let m = &log.metadata_named(&record).expect("listed").entries;
     let method_name: String = field(&record, m, "method")?;
-    let method = Method::from_short_name(&method_name)
-        .ok_or_else(|| ReplayError::Metadata { record: record.clone(), field: "method".into(), problem: method_name.clone() })?;
+    let method = Method::from_short_name(&method_name).ok_or_else(|| ReplayError::Metadata {
+        record: record.clone(),
+        field: "method".into(),
+        problem: method_name.clone(),
+    })?;
     let encoding = match field::<String>(&record, m, "encoding")?.as_str() {
         "f32" => Encoding::F32,
         _ => Encoding::F64,
@@ -129,18 +134,20 @@ fn replay_node(log: &Log, world: &World, id: PlatformId) -> Result<NodeReplay, R
     let mut core = match field::<String>(&record, m, "init")?.as_str() {
         "state" => {
             let t0: u64 = field(&record, m, "t0_us")?;
-            let state = serde_json::from_str(&field::<String>(&record, m, "initial_state")?).map_err(|e| node_err(e.to_string()))?;
+            let state =
+                serde_json::from_str(&field::<String>(&record, m, "initial_state")?).map_err(|e| node_err(e.to_string()))?;
             Some(NodeCore::new(cfg.clone(), TimeUs(t0), state).map_err(|e| node_err(e.to_string()))?)
         }
         _ => None,
     };
-    let origin = GeoOrigin { lat_deg: field(&record, m, "origin_lat_deg")?, lon_deg: field(&record, m, "origin_lon_deg")?, alt_m: 0.0 };
+    let origin =
+        GeoOrigin { lat_deg: field(&record, m, "origin_lat_deg")?, lon_deg: field(&record, m, "origin_lon_deg")?, alt_m: 0.0 };
     let sysid = id as u8;
     let vehicle_rx = topics::frames(Link::Vehicle(sysid), Direction::Rx);
     let coop_rx = topics::frames(Link::Coop(sysid), Direction::Rx);
     let coop_tx = topics::frames(Link::Coop(sysid), Direction::Tx);
     let events = events_topic(id);
-    let mut out = NodeReplay { id, method, recorded: Vec::new(), replayed: Vec::new(), last: None };
+    let mut out = NodeReplay { id, method, recorded: Vec::new(), replayed: Vec::new(), last: None, imu_replayed: 0 };
     let mut last_sim_state = None;
     for msg in &log.messages {
         let topic = msg.topic();
@@ -156,7 +163,9 @@ fn replay_node(log: &Log, world: &World, id: PlatformId) -> Result<NodeReplay, R
             let input = match &m {
                 MavMessage::HIGHRES_IMU(m) => wire::imu_from_highres(m).ok().map(NodeInput::Imu),
                 MavMessage::ODOMETRY(m) => wire::odometer_from_odometry(m).ok().map(NodeInput::Odometer),
-                MavMessage::COOPLOC_RANGE(m) => wire::range_from_message(m).ok().map(|(epoch, range)| NodeInput::OwnRange { epoch, range }),
+                MavMessage::COOPLOC_RANGE(m) => {
+                    wire::range_from_message(m).ok().map(|(epoch, range)| NodeInput::OwnRange { epoch, range })
+                }
                 _ => None,
             };
             match input {
@@ -203,6 +212,7 @@ fn replay_node(log: &Log, world: &World, id: PlatformId) -> Result<NodeReplay, R
         }
     }
     out.last = core.as_ref().map(NodeCore::estimate);
+    out.imu_replayed = core.as_ref().map_or(0, |c| c.stats.imu);
     Ok(out)
 }
 

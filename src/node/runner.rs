@@ -51,11 +51,15 @@ pub const NODE_EVENT_SCHEMA: &str = r#"{"type":"object","title":"cooploc.NodeEve
 #[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
 #[serde(tag = "kind", rename_all = "snake_case")]
 pub enum NodeEvent {
-    Poll { wall_us: u64 },
+    Poll {
+        wall_us: u64,
+    },
     EndOfInput,
     RunPending,
     /// The core was created from the SIM_STATE frame just recorded, at `t0_us`.
-    Init { t0_us: u64 },
+    Init {
+        t0_us: u64,
+    },
 }
 
 fn record_event(rec: &Option<SharedRecorder>, id: PlatformId, event: &NodeEvent) {
@@ -168,12 +172,30 @@ pub struct NodeSummary {
     pub peers: Vec<SocketAddr>,
 }
 
+struct Sequences {
+    sysid: u32,
+    coop: u8,
+    vehicle: u8,
+}
+
+impl Sequences {
+    fn coop(&mut self) -> MavHeader {
+        self.coop = self.coop.wrapping_add(1);
+        MavHeader { system_id: self.sysid, component_id: COMPANION_COMPID, sequence: self.coop }
+    }
+
+    fn vehicle(&mut self) -> MavHeader {
+        self.vehicle = self.vehicle.wrapping_add(1);
+        MavHeader { system_id: self.sysid, component_id: COMPANION_COMPID, sequence: self.vehicle }
+    }
+}
+
 #[allow(clippy::too_many_arguments)]
 async fn send_all(
     coop: &UdpSocket,
     peers: &BTreeSet<SocketAddr>,
     vehicle: &impl AsyncMavConnection<MavMessage>,
-    next_header: &mut impl FnMut() -> MavHeader,
+    seqs: &mut Sequences,
     outputs: Vec<NodeOutput>,
     rec: &Option<SharedRecorder>,
     sysid: u8,
@@ -181,7 +203,7 @@ async fn send_all(
     for output in outputs {
         match output {
             NodeOutput::ToPeers(msg) => {
-                let frame = wire::to_frame(next_header(), &msg);
+                let frame = wire::to_frame(seqs.coop(), &msg);
                 record_frame(rec, Link::Coop(sysid), Direction::Tx, &frame);
                 if let (Some(r), MavMessage::COOPLOC_ESTIMATE(m)) = (rec, &msg)
                     && let Ok(e) = wire::estimate_from_message(m)
@@ -201,7 +223,7 @@ async fn send_all(
                 }
             }
             NodeOutput::ToVehicle(msg) => {
-                let header = next_header();
+                let header = seqs.vehicle();
                 record_frame(rec, Link::Vehicle(sysid), Direction::Tx, &wire::to_frame(header, &msg));
                 let _ = vehicle.send(&header, &msg).await;
             }
@@ -296,11 +318,8 @@ pub async fn run(
         })
     };
 
-    let mut seq: u8 = 0;
-    let mut next_header = || {
-        seq = seq.wrapping_add(1);
-        MavHeader { system_id: u32::from(id), component_id: COMPANION_COMPID, sequence: seq }
-    };
+    // MAVLink numbers each link on its own: one sequence counter per link.
+    let mut seqs = Sequences { sysid: u32::from(id), coop: 0, vehicle: 0 };
     let mut summary_counts = (0u64, 0u64, 0u64, 0u64);
     let mut tick = tokio::time::interval(Duration::from_millis(25));
     let mut beats = 0u32;
@@ -310,7 +329,7 @@ pub async fn run(
     let mut buf = vec![0u8; 2048];
     tokio::pin!(shutdown);
     // Announce ourselves to the vehicle at once (a udpin peer learns our address from it).
-    let _ = vehicle.send(&next_header(), &heartbeat()).await;
+    let _ = vehicle.send(&seqs.vehicle(), &heartbeat()).await;
     loop {
         let inputs: Vec<NodeInput> = tokio::select! {
             _ = &mut shutdown => break,
@@ -323,20 +342,20 @@ pub async fn run(
                     if let Some(core) = core.as_mut() {
                         record_event(&recorder, id, &NodeEvent::EndOfInput);
                         let out = core.end_of_input();
-                        send_all(&coop, &peers, &*vehicle, &mut next_header, out, &recorder, sysid).await;
+                        send_all(&coop, &peers, &*vehicle, &mut seqs, out, &recorder, sysid).await;
                     }
                 }
                 if let Some(core) = core.as_mut() {
                     let now = wall_us();
                     record_event(&recorder, id, &NodeEvent::Poll { wall_us: now });
                     let out = core.poll(now);
-                    send_all(&coop, &peers, &*vehicle, &mut next_header, out, &recorder, sysid).await;
+                    send_all(&coop, &peers, &*vehicle, &mut seqs, out, &recorder, sysid).await;
                 }
                 if ending.is_some_and(|end| tokio::time::Instant::now() >= end) {
                     if let Some(core) = core.as_mut() {
                         record_event(&recorder, id, &NodeEvent::RunPending);
                         let out = core.run_pending();
-                        send_all(&coop, &peers, &*vehicle, &mut next_header, out, &recorder, sysid).await;
+                        send_all(&coop, &peers, &*vehicle, &mut seqs, out, &recorder, sysid).await;
                     }
                     break;
                 }
@@ -345,8 +364,8 @@ pub async fn run(
                     continue; // heartbeat at 1 Hz, timeouts and idle checks at 40 Hz
                 }
                 let hb = heartbeat();
-                let _ = vehicle.send(&next_header(), &hb).await;
-                let frame = wire::to_frame(next_header(), &hb);
+                let _ = vehicle.send(&seqs.vehicle(), &hb).await;
+                let frame = wire::to_frame(seqs.coop(), &hb);
                 for p in &peers {
                     let _ = coop.send_to(&frame, p).await;
                 }
@@ -446,7 +465,7 @@ pub async fn run(
         for input in inputs {
             out.extend(core.handle(input));
         }
-        send_all(&coop, &peers, &*vehicle, &mut next_header, out, &recorder, sysid).await;
+        send_all(&coop, &peers, &*vehicle, &mut seqs, out, &recorder, sysid).await;
     }
     reader.abort();
     Ok(NodeSummary {

@@ -1,3 +1,5 @@
+#![allow(dead_code)] // each test binary uses some of the helpers
+
 //! Helpers shared by the integration tests.
 
 /// The Python of the test virtualenv (`COOPLOC_PYTHON`, set by tests/run-all.sh). Under

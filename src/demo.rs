@@ -1,0 +1,246 @@
+//! `cooploc demo`: the paper scenario end to end on loopback, in one process: the simulator,
+//! one node per vehicle and the ground station, each on its own sockets exactly as the separate
+//! commands would be, sharing one MCAP log. At the end the log is read back: every node is
+//! replayed (its estimates must come out bit for bit) and every method is run offline on the
+//! inputs the vehicles sent, for the final error table.
+
+use std::net::SocketAddr;
+use std::path::PathBuf;
+use std::sync::{Arc, Mutex};
+use std::time::Duration;
+
+use anyhow::Context;
+
+use crate::estimation::{Method, PlatformId};
+use crate::experiment::{FilterRun, initial_state, ins_settings};
+use crate::gcs::runner::{GcsLinks, run as run_gcs};
+use crate::gcs::state::GcsConfig;
+use crate::gcs::{GcsEvent, GcsSink};
+use crate::node::core::{NodeConfig, NodeCore};
+use crate::node::runner::{Links, NodeInit, NodeSummary, SharedRecorder, metadata_name, node_metadata, run as run_node};
+use crate::protocol::record::Encoding;
+use crate::protocol::wire::GeoOrigin;
+use crate::recording::{Direction, Link, Recorder, RecorderOptions, TruthSample, read_log};
+use crate::replay::{NodeReplay, RUN_METADATA_NAME, compare_methods, replay_nodes};
+use crate::simulator::{BoundEndpoint, Interval, Simulator, SitlConfig, Speed, StreamDefaults, default_endpoints};
+use crate::sitl::{Scenario, World};
+
+/// What to run.
+#[derive(Debug, Clone)]
+pub struct DemoConfig {
+    pub scenario: PathBuf,
+    pub seed: u64,
+    pub run: u32,
+    pub schedule: Option<String>,
+    pub speed: f64,
+    pub method: Method,
+    pub log: PathBuf,
+    pub http: SocketAddr,
+    pub foxglove: Option<SocketAddr>,
+    /// Stop the simulation at this simulated time, s (a short log); None: the whole scenario.
+    pub duration_s: Option<f64>,
+}
+
+/// Where the live views are, once everything listens.
+#[derive(Debug, Clone)]
+pub struct DemoAddresses {
+    pub http: SocketAddr,
+    pub foxglove: Option<SocketAddr>,
+    pub vehicles: Vec<(PlatformId, SocketAddr)>,
+    pub nodes: Vec<(PlatformId, SocketAddr)>,
+}
+
+/// The outcome.
+#[derive(Debug, Clone)]
+pub struct DemoReport {
+    pub nodes: Vec<NodeSummary>,
+    pub replays: Vec<NodeReplay>,
+    /// Every method offline on the logged inputs.
+    pub methods: Vec<FilterRun>,
+    pub log: PathBuf,
+    pub log_messages: u64,
+}
+
+/// Records what the ground station receives on the cooperative network and the truth it sees.
+struct RecorderSink(SharedRecorder);
+
+impl GcsSink for RecorderSink {
+    fn on_event(&mut self, event: &GcsEvent) {
+        let Ok(mut r) = self.0.lock() else { return };
+        match event {
+            GcsEvent::Frame { rx, link: crate::gcs::Link::Coop, bytes, .. } => {
+                let _ = r.frame(Link::Coop(crate::gcs::GCS_SYSID), Direction::Rx, rx.0, bytes);
+            }
+            GcsEvent::Truth { rx, vehicle, point } => {
+                if let Some(t) = point.t {
+                    let _ = r.truth(*vehicle, rx.0, &TruthSample { t, pos_ned_m: point.pos_ned_m, yaw_rad: Some(point.yaw_rad) });
+                }
+            }
+            _ => {}
+        }
+        let _ = r.maybe_flush(std::time::Instant::now());
+    }
+}
+
+/// Runs the demo; `ready` is called once every server listens.
+pub async fn run_demo(cfg: DemoConfig, ready: impl FnOnce(&DemoAddresses)) -> anyhow::Result<DemoReport> {
+    let toml = std::fs::read(&cfg.scenario).with_context(|| format!("reading {}", cfg.scenario.display()))?;
+    let mut scenario = Scenario::from_toml_str(std::str::from_utf8(&toml).context("the scenario is not UTF-8")?)?;
+    if let Some(d) = cfg.duration_s {
+        anyhow::ensure!(d.is_finite() && d > 0.0, "--duration-s must be a positive number of seconds, got {d}");
+        scenario.duration_s = scenario.duration_s.min(d);
+        for schedule in &mut scenario.ranging.schedules {
+            if let Some(at) = &mut schedule.at_s {
+                at.retain(|&t| t <= d);
+            }
+        }
+    }
+    let scenario_text = toml::to_string(&scenario).context("re-encoding the scenario")?;
+    let world = World::new(&scenario)?;
+    let schedule = match cfg.schedule.clone() {
+        Some(s) => {
+            scenario.range_epochs(&s).context("--schedule")?;
+            s
+        }
+        None => scenario.ranging.schedules.first().map(|s| s.name.clone()).context("the scenario has no ranging schedule")?,
+    };
+    let origin = GeoOrigin { lat_deg: scenario.latitude_deg, lon_deg: 0.0, alt_m: 0.0 };
+    if let Some(dir) = cfg.log.parent() {
+        std::fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))?;
+    }
+    let mut rec = Recorder::create(&cfg.log, RecorderOptions { geo_origin: Some(origin), ..RecorderOptions::default() })
+        .with_context(|| format!("creating the log {}", cfg.log.display()))?;
+    rec.metadata(
+        RUN_METADATA_NAME,
+        [
+            ("seed".to_string(), cfg.seed.to_string()),
+            ("run".to_string(), cfg.run.to_string()),
+            ("schedule".to_string(), schedule.clone()),
+            ("speed".to_string(), cfg.speed.to_string()),
+            ("command".to_string(), std::env::args().collect::<Vec<_>>().join(" ")),
+        ]
+        .into(),
+    )?;
+    rec.attachment("scenario.toml", "application/toml", scenario_text.as_bytes())?;
+    let recorder: SharedRecorder = Arc::new(Mutex::new(rec));
+
+    // The simulator, on ephemeral ports, holding its clock until every vehicle has a node.
+    let ids = world.platform_ids();
+    let endpoints = default_endpoints(&ids, "127.0.0.1".parse().expect("an address"), 0)?;
+    let sitl = SitlConfig {
+        schedule: schedule.clone(),
+        seed: cfg.seed,
+        run: cfg.run,
+        speed: Speed::Factor(cfg.speed),
+        endpoints,
+        wait_for_peers: true,
+        streams: StreamDefaults { sim_state: Interval::Every(500_000), ..StreamDefaults::default() },
+        origin_lon_deg: origin.lon_deg,
+    };
+    let sim = Simulator::bind(world.clone(), sitl).await?;
+    let vehicles: Vec<(PlatformId, SocketAddr)> = sim
+        .endpoints()
+        .into_iter()
+        .filter_map(|(id, e)| match e {
+            BoundEndpoint::Udp { local, .. } => Some((id, local)),
+            BoundEndpoint::Serial { .. } => None,
+        })
+        .collect();
+
+    // One node per vehicle, each knowing the nodes started before it.
+    let (ins, sigma) = ins_settings(&world);
+    let mut node_addrs: Vec<(PlatformId, SocketAddr)> = Vec::new();
+    let mut node_tasks = Vec::new();
+    let (stop_tx, stop_rx) = tokio::sync::watch::channel(false);
+    for &(id, addr) in &vehicles {
+        let (t0, state) = initial_state(&world, cfg.seed, cfg.run, id)?;
+        let node_cfg = NodeConfig::new(id, cfg.method, ins, sigma, Encoding::F64, ids.clone());
+        let mut meta = node_metadata(&node_cfg, Some((t0, &state)));
+        meta.insert("origin_lat_deg".into(), origin.lat_deg.to_string());
+        meta.insert("origin_lon_deg".into(), origin.lon_deg.to_string());
+        {
+            let mut r = recorder.lock().map_err(|_| anyhow::anyhow!("recorder lock poisoned"))?;
+            r.metadata(&metadata_name(id), meta)?;
+            r.declare_link(Link::Vehicle(id as u8), format!("udpout:{addr}"));
+        }
+        let core = NodeCore::new(node_cfg, t0, state).context("node configuration")?;
+        let links = Links {
+            vehicle: format!("udpout:{addr}"),
+            coop_bind: "127.0.0.1:0".parse().expect("an address"),
+            peers: node_addrs.iter().map(|(_, a)| *a).collect(),
+            idle_exit: Some(Duration::from_millis(1500)),
+            grace: Duration::from_millis(500),
+        };
+        let (bound_tx, bound_rx) = tokio::sync::oneshot::channel();
+        let mut stop = stop_rx.clone();
+        let shutdown = async move {
+            let _ = stop.wait_for(|s| *s).await;
+        };
+        node_tasks.push(tokio::spawn(run_node(
+            NodeInit::Ready(Box::new(core)),
+            links,
+            Some(recorder.clone()),
+            bound_tx,
+            shutdown,
+        )));
+        node_addrs.push((id, bound_rx.await.context("a node did not start")?));
+    }
+
+    // The ground station, after the nodes (its vehicle links would start the clock).
+    let gcs_cfg = GcsConfig { origin, vehicles: ids.clone(), ..GcsConfig::default() };
+    let gcs_links = GcsLinks {
+        coop_bind: "127.0.0.1:0".parse().expect("an address"),
+        peers: node_addrs.iter().map(|(_, a)| *a).collect(),
+        vehicles: vehicles.iter().map(|(id, a)| (*id, format!("udpout:{a}"))).collect(),
+        http: cfg.http,
+        foxglove: cfg.foxglove,
+        idle_exit: None,
+    };
+    let (gcs_bound_tx, gcs_bound_rx) = tokio::sync::oneshot::channel();
+    let (gcs_stop_tx, gcs_stop_rx) = tokio::sync::oneshot::channel::<()>();
+    let sink: Box<dyn GcsSink> = Box::new(RecorderSink(recorder.clone()));
+    let gcs_task = tokio::spawn(run_gcs(gcs_cfg, gcs_links, vec![sink], gcs_bound_tx, async move {
+        let _ = gcs_stop_rx.await;
+    }));
+    let gcs_bound = gcs_bound_rx.await.context("the ground station did not start")?;
+    ready(&DemoAddresses {
+        http: gcs_bound.http,
+        foxglove: gcs_bound.foxglove,
+        vehicles: vehicles.clone(),
+        nodes: node_addrs.clone(),
+    });
+
+    let sim_report = sim.run(std::future::pending::<()>()).await?;
+    tracing::info!(reason = ?sim_report.reason, "simulation finished");
+    let mut nodes = Vec::new();
+    for task in node_tasks {
+        // Every node stops by itself once its vehicle is silent (idle exit).
+        match tokio::time::timeout(Duration::from_secs(30), task).await {
+            Ok(joined) => nodes.push(joined.context("a node task panicked")??),
+            Err(_) => {
+                let _ = stop_tx.send(true);
+                anyhow::bail!("a node did not stop within 30 s of the end of the simulation");
+            }
+        }
+    }
+    tokio::time::sleep(Duration::from_millis(700)).await; // the ground station's last page refresh
+    let _ = gcs_stop_tx.send(());
+    let _ = gcs_task.await;
+    let rec = Arc::try_unwrap(recorder).map_err(|_| anyhow::anyhow!("the log is still in use"))?;
+    let stats = rec.into_inner().map_err(|_| anyhow::anyhow!("recorder lock poisoned"))?.finish()?;
+
+    // Read the log back: replay every node, run every method on what the vehicles sent.
+    let log = read_log(&cfg.log).with_context(|| format!("reading back {}", cfg.log.display()))?;
+    let replays = replay_nodes(&log)?;
+    let methods = compare_methods(
+        &log,
+        &[
+            Method::DeadReckoning,
+            Method::NoPropagation,
+            Method::Decentralized,
+            Method::Centralized,
+            Method::CovarianceIntersection,
+        ],
+    )?;
+    Ok(DemoReport { nodes, replays, methods, log: cfg.log.clone(), log_messages: stats.messages_written })
+}

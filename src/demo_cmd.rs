@@ -1,0 +1,109 @@
+//! `cooploc demo`: arguments and printing around [`cooploc::demo`].
+
+use std::net::SocketAddr;
+use std::path::PathBuf;
+
+use anyhow::{Context, bail};
+use cooploc::demo::{DemoConfig, run_demo};
+use cooploc::estimation::Method;
+
+#[derive(clap::Args)]
+pub struct Args {
+    #[arg(default_value = "sitl/scenarios/paper.toml")]
+    scenario: PathBuf,
+    #[arg(long, default_value_t = 1)]
+    seed: u64,
+    #[arg(long, default_value_t = 0)]
+    run: u32,
+    /// Ranging schedule (default: the scenario's first).
+    #[arg(long)]
+    schedule: Option<String>,
+    /// Times real time.
+    #[arg(long, default_value_t = 20.0)]
+    speed: f64,
+    /// The nodes' method: dr, naive, dcl or ci.
+    #[arg(long, default_value = "dcl")]
+    method: String,
+    /// The log (default: logs/demo-<seed>-<run>.mcap).
+    #[arg(long)]
+    log: Option<PathBuf>,
+    /// The ground station's web page.
+    #[arg(long, default_value = "127.0.0.1:8080")]
+    http: SocketAddr,
+    /// The ground station's Foxglove WebSocket server.
+    #[arg(long, default_value = "127.0.0.1:8765")]
+    foxglove: SocketAddr,
+    /// Simulate only this many seconds (small logs).
+    #[arg(long)]
+    duration_s: Option<f64>,
+}
+
+pub fn run(args: Args) -> anyhow::Result<()> {
+    let method = match Method::from_short_name(&args.method) {
+        Some(m @ (Method::DeadReckoning | Method::NoPropagation | Method::Decentralized | Method::CovarianceIntersection)) => m,
+        _ => bail!("--method {:?}: the nodes run dr, naive, dcl or ci", args.method),
+    };
+    if !(args.speed.is_finite() && args.speed > 0.0) {
+        bail!("--speed must be a positive number, got {}", args.speed);
+    }
+    let log = args.log.clone().unwrap_or_else(|| PathBuf::from(format!("logs/demo-{}-{}.mcap", args.seed, args.run)));
+    let cfg = DemoConfig {
+        scenario: args.scenario.clone(),
+        seed: args.seed,
+        run: args.run,
+        schedule: args.schedule.clone(),
+        speed: args.speed,
+        method,
+        log,
+        http: args.http,
+        foxglove: Some(args.foxglove),
+        duration_s: args.duration_s,
+    };
+    let rt = tokio::runtime::Builder::new_multi_thread().enable_all().build().context("starting the tokio runtime")?;
+    let start = std::time::Instant::now();
+    let report = rt.block_on(run_demo(cfg, |a| {
+        println!(
+            "cooploc demo: scenario {}, seed {}, run {}, {}x real time",
+            args.scenario.display(),
+            args.seed,
+            args.run,
+            args.speed
+        );
+        println!("dashboard: http://{}/", a.http);
+        if let Some(f) = a.foxglove {
+            println!("foxglove:  ws://{f}");
+        }
+        for (id, v) in &a.vehicles {
+            let node = a.nodes.iter().find(|(n, _)| n == id).map(|(_, n)| n.to_string()).unwrap_or_default();
+            println!("vehicle {id}: udp {v}, node coop udp {node}");
+        }
+    }))?;
+    println!(
+        "finished in {:.1} s; log {} ({} messages)",
+        start.elapsed().as_secs_f64(),
+        report.log.display(),
+        report.log_messages
+    );
+    for n in &report.nodes {
+        let st = &n.stats;
+        println!(
+            "node {}: {} epochs applied, {} partial, {} dropped inputs, {} vehicle frames lost",
+            n.estimate.as_ref().map_or(0, |e| e.platform),
+            st.epochs_applied,
+            st.epochs_partial,
+            st.dropped_inputs(),
+            n.vehicle_lost
+        );
+    }
+    for r in &report.replays {
+        println!(
+            "replay of node {}: {} estimates, {}",
+            r.id,
+            r.recorded.len(),
+            if r.matches() { "identical bit for bit" } else { "DIFFERENT" }
+        );
+    }
+    println!("final errors per method (offline on the inputs the vehicles sent; the nodes ran {}):", args.method);
+    crate::table::print_methods(&report.methods);
+    Ok(())
+}
