@@ -162,13 +162,23 @@ fn a_node_killed_with_sigkill_leaves_a_log_that_replays() {
     eprintln!("{} messages, the last {lost_s:.2} s before the kill, end {:?}", log.messages.len(), log.end);
     assert!(lost_s < 1.5, "{lost_s:.2} s lost (the recorder flushes every second)");
     let replays = replay_nodes(&log).unwrap();
+    // The node initialised from the vehicle's SIM_STATE: the IMU samples after that instant.
+    let t0 = log
+        .topic("/vehicle_1/node/events")
+        .find_map(|m| match m.json::<cooploc::node::runner::NodeEvent>() {
+            Ok(cooploc::node::runner::NodeEvent::Init { t0_us }) => Some(t0_us),
+            _ => None,
+        })
+        .expect("the node initialised");
     let imu_logged = log
         .topic("/vehicle_1/mavlink/rx")
-        .filter(|m| {
-            matches!(cooploc::protocol::wire::from_any_frame(&m.data), Ok((_, cooploc::protocol::MavMessage::HIGHRES_IMU(_))))
+        .filter(|m| match cooploc::protocol::wire::from_any_frame(&m.data) {
+            Ok((_, cooploc::protocol::MavMessage::HIGHRES_IMU(i))) => i.time_usec > t0,
+            _ => false,
         })
         .count() as u64;
-    eprintln!("IMU samples logged {imu_logged}, replayed {}", replays[0].imu_replayed);
-    assert!(replays[0].imu_replayed > 1000 && replays[0].imu_replayed + 10 >= imu_logged, "{imu_logged} logged");
+    eprintln!("IMU samples logged after the initialisation {imu_logged}, replayed {}", replays[0].imu_replayed);
+    assert!(imu_logged > 1000);
+    assert_eq!(replays[0].imu_replayed, imu_logged);
     let _ = std::fs::remove_dir_all(&dir);
 }

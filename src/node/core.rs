@@ -41,6 +41,7 @@ use crate::protocol::MavMessage;
 use crate::protocol::fragment::{Pushed, Reassembler, fragment};
 use crate::protocol::record::{self, Encoding};
 use crate::protocol::wire::{self, EpochState};
+use crate::recording::{CoopUpdateRecord, RangeRecord};
 use crate::time::TimeUs;
 
 /// How a node runs.
@@ -128,6 +129,8 @@ pub enum NodeInput {
 pub enum NodeOutput {
     ToPeers(MavMessage),
     ToVehicle(MavMessage),
+    /// The internals of a joint update just run (for logs).
+    Update(Box<CoopUpdateRecord>),
 }
 
 /// Counters of everything the node did and dropped.
@@ -619,15 +622,16 @@ impl NodeCore {
             self.stats.epochs_skipped += 1;
             return;
         }
-        let result: Result<(Vec<Correction>, f64), EstimationError> = match self.cfg.method {
+        type Diag = Option<crate::estimation::kalman::UpdateDiagnostics>;
+        let result: Result<(Vec<Correction>, Diag), EstimationError> = match self.cfg.method {
             Method::NoPropagation => cooperative_update(&mut CrossCovariances::new(), &snapshots, &ranges, CrossMode::Ignore)
-                .map(|o| (o.corrections, o.diagnostics.nis)),
+                .map(|o| (o.corrections, Some(o.diagnostics))),
             Method::Decentralized => cooperative_update(&mut self.cross, &snapshots, &ranges, CrossMode::Propagate)
-                .map(|o| (o.corrections, o.diagnostics.nis)),
-            Method::CovarianceIntersection => ci_update(&snapshots, &ranges).map(|c| (c, f64::NAN)),
+                .map(|o| (o.corrections, Some(o.diagnostics))),
+            Method::CovarianceIntersection => ci_update(&snapshots, &ranges).map(|c| (c, None)),
             Method::DeadReckoning | Method::Centralized => unreachable!("refused at construction"),
         };
-        let Ok((corrections, nis)) = result else {
+        let Ok((corrections, diag)) = result else {
             self.stats.epochs_skipped += 1;
             return;
         };
@@ -638,7 +642,32 @@ impl NodeCore {
             return;
         }
         self.stats.epochs_applied += 1;
+        let nis = diag.as_ref().map_or(f64::NAN, |d| d.nis);
         self.last_event = Some((epoch, nis, participants.len() as u8, ranges.len() as u8));
+        out.push(NodeOutput::Update(Box::new(CoopUpdateRecord {
+            vehicle: self.cfg.id,
+            epoch,
+            t_us: t.0,
+            participants: participants.clone(),
+            ranges: ranges
+                .iter()
+                .filter_map(|r| match r {
+                    CoopMeasurement::Range { from, to, range_m, sigma_m } => {
+                        Some(RangeRecord { from: *from, to: *to, range_m: *range_m, sigma_m: *sigma_m })
+                    }
+                    _ => None,
+                })
+                .collect(),
+            innovation: diag.as_ref().map(|d| d.innovation.iter().copied().collect()).unwrap_or_default(),
+            innovation_sigma: diag
+                .as_ref()
+                .map(|d| d.innovation_cov.diagonal().iter().map(|v| v.sqrt()).collect())
+                .unwrap_or_default(),
+            nis,
+            nis_dof: ranges.len() as u32,
+            nees: None,
+            nees_dof: None,
+        })));
         let report = self.estimate();
         out.push(NodeOutput::ToPeers(wire::estimate_to_message(&report)));
         out.push(NodeOutput::ToVehicle(wire::estimate_to_local_position(&report)));

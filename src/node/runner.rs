@@ -222,6 +222,13 @@ async fn send_all(
                     let _ = coop.send_to(&frame, p).await;
                 }
             }
+            NodeOutput::Update(u) => {
+                if let Some(r) = rec
+                    && let Ok(mut r) = r.lock()
+                {
+                    let _ = r.coop_update(wall_now_ns(), &u);
+                }
+            }
             NodeOutput::ToVehicle(msg) => {
                 let header = seqs.vehicle();
                 record_frame(rec, Link::Vehicle(sysid), Direction::Tx, &wire::to_frame(header, &msg));

@@ -46,6 +46,7 @@ with open(path, "rb") as f:
         expect(f"/vehicle_{n}/ellipse", "protobuf", "foxglove.SceneUpdate")
         expect(f"/vehicle_{n}/truth", "protobuf", "foxglove.LocationFix")
         expect(f"/vehicle_{n}/node/events", "json", "cooploc.NodeEvent")
+        expect(f"/vehicle_{n}/internals", "json", "cooploc.CoopUpdate")
     expect("/coop/255/rx", "mavlink.frame")
 
     counts = {}
@@ -59,6 +60,10 @@ with open(path, "rb") as f:
             decoded = factory.decoder_for("protobuf", schema)(message.data)
             assert 34.0 < decoded.latitude < 35.5, decoded.latitude
             fixes += 1
+        elif channel.topic.endswith("/internals"):
+            u = json.loads(message.data)
+            assert len(u["participants"]) == 3 and len(u["innovation"]) == u["nis_dof"] == len(u["ranges"]), u
+            assert u["nis"] >= 0, u
         elif channel.message_encoding == "json":
             json.loads(message.data)
     assert fixes > 0
