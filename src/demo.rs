@@ -13,14 +13,14 @@ use anyhow::Context;
 
 use crate::estimation::{Method, PlatformId};
 use crate::experiment::{FilterRun, initial_state, ins_settings};
+use crate::gcs::GcsSink;
 use crate::gcs::runner::{GcsLinks, run as run_gcs};
 use crate::gcs::state::GcsConfig;
-use crate::gcs::{GcsEvent, GcsSink};
 use crate::node::core::{NodeConfig, NodeCore};
 use crate::node::runner::{Links, NodeInit, NodeSummary, SharedRecorder, metadata_name, node_metadata, run as run_node};
 use crate::protocol::record::Encoding;
 use crate::protocol::wire::GeoOrigin;
-use crate::recording::{Direction, Link, Recorder, RecorderOptions, TruthSample, read_log};
+use crate::recording::{Link, Recorder, RecorderOptions, read_log};
 use crate::replay::{NodeReplay, RUN_METADATA_NAME, compare_methods, replay_nodes};
 use crate::simulator::{BoundEndpoint, Interval, Simulator, SitlConfig, Speed, StreamDefaults, default_endpoints};
 use crate::sitl::{Scenario, World};
@@ -59,27 +59,6 @@ pub struct DemoReport {
     pub methods: Vec<FilterRun>,
     pub log: PathBuf,
     pub log_messages: u64,
-}
-
-/// Records what the ground station receives on the cooperative network and the truth it sees.
-struct RecorderSink(SharedRecorder);
-
-impl GcsSink for RecorderSink {
-    fn on_event(&mut self, event: &GcsEvent) {
-        let Ok(mut r) = self.0.lock() else { return };
-        match event {
-            GcsEvent::Frame { rx, link: crate::gcs::Link::Coop, bytes, .. } => {
-                let _ = r.frame(Link::Coop(crate::gcs::GCS_SYSID), Direction::Rx, rx.0, bytes);
-            }
-            GcsEvent::Truth { rx, vehicle, point } => {
-                if let Some(t) = point.t {
-                    let _ = r.truth(*vehicle, rx.0, &TruthSample { t, pos_ned_m: point.pos_ned_m, yaw_rad: Some(point.yaw_rad) });
-                }
-            }
-            _ => {}
-        }
-        let _ = r.maybe_flush(std::time::Instant::now());
-    }
 }
 
 /// Runs the demo; `ready` is called once every server listens.
@@ -198,7 +177,7 @@ pub async fn run_demo(cfg: DemoConfig, ready: impl FnOnce(&DemoAddresses)) -> an
     };
     let (gcs_bound_tx, gcs_bound_rx) = tokio::sync::oneshot::channel();
     let (gcs_stop_tx, gcs_stop_rx) = tokio::sync::oneshot::channel::<()>();
-    let sink: Box<dyn GcsSink> = Box::new(RecorderSink(recorder.clone()));
+    let sink: Box<dyn GcsSink> = Box::new(crate::gcs::RecorderSink(recorder.clone()));
     let gcs_task = tokio::spawn(run_gcs(gcs_cfg, gcs_links, vec![sink], gcs_bound_tx, async move {
         let _ = gcs_stop_rx.await;
     }));

@@ -19,6 +19,9 @@ the nodes the ground station's address as a --peer.
 Truth of simulated vehicles: --vehicle 1=udpout:127.0.0.1:14541 (SIM_STATE of `cooploc sitl`).
 With `cooploc sitl --wait-for-peers`, start the ground station after the nodes: its vehicle links count as peers.")]
 pub struct Args {
+    /// Record what the ground station receives (raw frames, truth) to this MCAP file.
+    #[arg(long)]
+    log: Option<std::path::PathBuf>,
     /// Local address of the cooperative-network socket.
     #[arg(long, default_value = "127.0.0.1:0")]
     coop: SocketAddr,
@@ -118,30 +121,18 @@ fn validate(args: Args) -> anyhow::Result<Validated> {
     Ok(Validated { config, links })
 }
 
-async fn shutdown_signal() {
-    #[cfg(unix)]
-    {
-        let term = async {
-            match tokio::signal::unix::signal(tokio::signal::unix::SignalKind::terminate()) {
-                Ok(mut s) => {
-                    s.recv().await;
-                }
-                Err(_) => std::future::pending::<()>().await,
-            }
-        };
-        tokio::select! {
-            _ = tokio::signal::ctrl_c() => {}
-            _ = term => {}
-        }
-    }
-    #[cfg(not(unix))]
-    {
-        let _ = tokio::signal::ctrl_c().await;
-    }
-}
-
 pub fn run_cmd(args: Args) -> anyhow::Result<()> {
+    let log = args.log.clone();
     let Validated { config, links } = validate(args)?;
+    let recorder = match &log {
+        Some(path) => {
+            let options = cooploc::recording::RecorderOptions { geo_origin: Some(config.origin), ..Default::default() };
+            let rec = cooploc::recording::Recorder::create(path, options).with_context(|| format!("--log {}", path.display()))?;
+            Some(std::sync::Arc::new(std::sync::Mutex::new(rec)))
+        }
+        None => None,
+    };
+    let run_recorder = recorder.clone();
     let rt = tokio::runtime::Builder::new_multi_thread().worker_threads(2).enable_all().build().context("starting tokio")?;
     let summary = rt.block_on(async move {
         let (tx, rx) = tokio::sync::oneshot::channel::<cooploc::gcs::runner::Bound>();
@@ -154,10 +145,21 @@ pub fn run_cmd(args: Args) -> anyhow::Result<()> {
                 }
             }
         });
-        let summary = run(config, links, Vec::new(), tx, shutdown_signal()).await;
+        let mut sinks: Vec<Box<dyn cooploc::gcs::GcsSink>> = Vec::new();
+        if let Some(r) = &run_recorder {
+            sinks.push(Box::new(cooploc::gcs::RecorderSink(r.clone())));
+        }
+        let summary = run(config, links, sinks, tx, crate::signal::shutdown_signal()).await;
         let _ = announce.await;
         summary
     })?;
+    if let Some(rec) = recorder
+        && let Ok(rec) = std::sync::Arc::try_unwrap(rec)
+        && let Ok(rec) = rec.into_inner()
+    {
+        let stats = rec.finish()?;
+        println!("gcs log {} messages", stats.messages_written);
+    }
     let c = &summary.counters;
     println!(
         "gcs done: vehicles {:?} estimates {} truth_samples {} datagrams {} frames {} bad_datagrams {} rejected {} ignored {} peers {}",

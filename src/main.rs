@@ -6,6 +6,7 @@ mod experiment_cmd;
 mod gcs_cmd;
 mod node_cmd;
 mod replay_cmd;
+mod signal;
 mod sitl_cmd;
 mod table;
 

@@ -185,9 +185,7 @@ pub fn run_cmd(args: Args) -> anyhow::Result<()> {
                 println!("node {id} coop udp {addr}");
             }
         });
-        let shutdown = async {
-            let _ = tokio::signal::ctrl_c().await;
-        };
+        let shutdown = crate::signal::shutdown_signal();
         let summary = run(init, links, runner_recorder, tx, shutdown).await;
         let _ = announce.await;
         summary

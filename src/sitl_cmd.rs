@@ -180,28 +180,6 @@ fn validate(args: Args) -> anyhow::Result<Validated> {
     Ok(Validated { world, config })
 }
 
-async fn shutdown_signal() {
-    #[cfg(unix)]
-    {
-        let term = async {
-            match tokio::signal::unix::signal(tokio::signal::unix::SignalKind::terminate()) {
-                Ok(mut s) => {
-                    s.recv().await;
-                }
-                Err(_) => std::future::pending::<()>().await,
-            }
-        };
-        tokio::select! {
-            _ = tokio::signal::ctrl_c() => {}
-            _ = term => {}
-        }
-    }
-    #[cfg(not(unix))]
-    {
-        let _ = tokio::signal::ctrl_c().await;
-    }
-}
-
 pub fn run(args: Args) -> anyhow::Result<()> {
     let scenario_path = args.scenario.clone();
     let Validated { world, config } = validate(args)?;
@@ -223,7 +201,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         for (id, endpoint) in sim.endpoints() {
             println!("vehicle {id} {endpoint}");
         }
-        let report = sim.run(shutdown_signal()).await?;
+        let report = sim.run(crate::signal::shutdown_signal()).await?;
         println!("stopped: {:?} at simulated {}", report.reason, report.sim_time);
         for v in &report.vehicles {
             let c = &v.counters;

@@ -18,6 +18,7 @@
 pub mod foxglove_live;
 pub mod http;
 pub mod link;
+pub mod record;
 pub mod runner;
 pub mod state;
 
@@ -30,6 +31,7 @@ use crate::estimation::RangeSample;
 use crate::protocol::wire::{EpochAnnouncement, EstimateReport};
 use crate::time::TimeUs;
 pub use link::Link;
+pub use record::RecorderSink;
 use state::{Ellipse95, TruthError};
 
 /// MAVLink system id of the ground station (254 when another GCS already uses 255).
