@@ -18,9 +18,7 @@ use std::time::{Duration, Instant};
 
 use cooploc::estimation::Method;
 use cooploc::protocol::MavMessage;
-use cooploc::protocol::dialect::cooploc::{
-    HEARTBEAT_DATA, HIGHRES_IMU_DATA, MavAutopilot, MavModeFlag, MavState, MavType, SIM_STATE_DATA,
-};
+use cooploc::protocol::dialect::cooploc::{HIGHRES_IMU_DATA, MavAutopilot, MavType, SIM_STATE_DATA};
 use cooploc::protocol::wire::{self, EstimateReport, GeoOrigin};
 use cooploc::time::TimeUs;
 use mavlink_core::MavHeader;
@@ -149,14 +147,7 @@ fn frame(sysid: u8, compid: u8, seq: u8, msg: &MavMessage) -> Vec<u8> {
 }
 
 fn node_heartbeat() -> MavMessage {
-    MavMessage::HEARTBEAT(HEARTBEAT_DATA {
-        custom_mode: 0,
-        mavtype: MavType::MAV_TYPE_ONBOARD_CONTROLLER,
-        autopilot: MavAutopilot::MAV_AUTOPILOT_INVALID,
-        base_mode: MavModeFlag::empty(),
-        system_status: MavState::MAV_STATE_ACTIVE,
-        mavlink_version: 3,
-    })
+    wire::heartbeat(MavType::MAV_TYPE_ONBOARD_CONTROLLER, MavAutopilot::MAV_AUTOPILOT_INVALID)
 }
 
 fn udp() -> UdpSocket {

@@ -7,8 +7,7 @@ mod common;
 use std::collections::BTreeMap;
 use std::process::Command;
 
-use cooploc::protocol::MavMessage;
-use cooploc::protocol::dialect::cooploc::{HEARTBEAT_DATA, MavAutopilot, MavModeFlag, MavState, MavType};
+use cooploc::protocol::dialect::cooploc::{MavAutopilot, MavType};
 use cooploc::protocol::wire::{self, GeoOrigin};
 use cooploc::recording::{
     CoopUpdateRecord, Direction, LinkStatsRecord, PeerLinkStats, PositionEstimate, RangeRecord, Recorder, RecorderOptions,
@@ -20,14 +19,7 @@ use nalgebra::{Matrix3, Vector3};
 use serde_json::json;
 
 fn heartbeat(sysid: u8, seq: u8) -> Vec<u8> {
-    let msg = MavMessage::HEARTBEAT(HEARTBEAT_DATA {
-        custom_mode: 0,
-        mavtype: MavType::MAV_TYPE_ONBOARD_CONTROLLER,
-        autopilot: MavAutopilot::MAV_AUTOPILOT_INVALID,
-        base_mode: MavModeFlag::empty(),
-        system_status: MavState::MAV_STATE_ACTIVE,
-        mavlink_version: 3,
-    });
+    let msg = wire::heartbeat(MavType::MAV_TYPE_ONBOARD_CONTROLLER, MavAutopilot::MAV_AUTOPILOT_INVALID);
     wire::to_frame(MavHeader { system_id: u32::from(sysid), component_id: 191, sequence: seq }, &msg)
 }
 

@@ -25,7 +25,7 @@ use super::state::{GcsConfig, GcsCounters, GcsState};
 use super::{GCS_COMPID, GCS_SYSID, GcsEvent, GcsSink, WallNs};
 use crate::estimation::PlatformId;
 use crate::protocol::MavMessage;
-use crate::protocol::dialect::cooploc::{HEARTBEAT_DATA, MavAutopilot, MavModeFlag, MavState, MavType};
+use crate::protocol::dialect::cooploc::{MavAutopilot, MavType};
 use crate::protocol::wire;
 
 /// Receive times: a monotonic clock anchored once to the system clock.
@@ -89,14 +89,7 @@ pub struct GcsSummary {
 
 /// The ground station's HEARTBEAT.
 pub fn heartbeat() -> MavMessage {
-    MavMessage::HEARTBEAT(HEARTBEAT_DATA {
-        custom_mode: 0,
-        mavtype: MavType::MAV_TYPE_GCS,
-        autopilot: MavAutopilot::MAV_AUTOPILOT_INVALID,
-        base_mode: MavModeFlag::empty(),
-        system_status: MavState::MAV_STATE_ACTIVE,
-        mavlink_version: 3,
-    })
+    wire::heartbeat(MavType::MAV_TYPE_GCS, MavAutopilot::MAV_AUTOPILOT_INVALID)
 }
 
 /// One sequence counter per link.

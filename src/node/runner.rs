@@ -24,7 +24,7 @@ use super::core::{NodeConfig, NodeCore, NodeInput, NodeOutput, NodeStats};
 use crate::estimation::PlatformId;
 use crate::estimation::ins::InsState;
 use crate::protocol::MavMessage;
-use crate::protocol::dialect::cooploc::{HEARTBEAT_DATA, MavAutopilot, MavModeFlag, MavState, MavType, SIM_STATE_DATA};
+use crate::protocol::dialect::cooploc::{MavAutopilot, MavType, SIM_STATE_DATA};
 use crate::protocol::wire;
 use crate::recording::{Direction, Link, Recorder, wall_now_ns};
 use crate::time::TimeUs;
@@ -239,14 +239,7 @@ async fn send_all(
 }
 
 fn heartbeat() -> MavMessage {
-    MavMessage::HEARTBEAT(HEARTBEAT_DATA {
-        custom_mode: 0,
-        mavtype: MavType::MAV_TYPE_ONBOARD_CONTROLLER,
-        autopilot: MavAutopilot::MAV_AUTOPILOT_INVALID,
-        base_mode: MavModeFlag::empty(),
-        system_status: MavState::MAV_STATE_ACTIVE,
-        mavlink_version: 3,
-    })
+    wire::heartbeat(MavType::MAV_TYPE_ONBOARD_CONTROLLER, MavAutopilot::MAV_AUTOPILOT_INVALID)
 }
 
 /// Receive buffer asked for the cooperative socket: a burst of state records (14 fragments per

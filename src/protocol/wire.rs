@@ -12,7 +12,8 @@ use nalgebra::{Matrix3, Vector3};
 
 use super::dialect::cooploc::{
     COOPLOC_EPOCH_DATA, COOPLOC_ESTIMATE_DATA, COOPLOC_RANGE_DATA, COOPLOC_STATE_FRAGMENT_DATA, CooplocEpochState, CooplocMethod,
-    HIGHRES_IMU_DATA, LOCAL_POSITION_NED_DATA, MavFrame, MavMessage, ODOMETRY_DATA, SIM_STATE_DATA,
+    HEARTBEAT_DATA, HIGHRES_IMU_DATA, LOCAL_POSITION_NED_DATA, MavAutopilot, MavFrame, MavMessage, MavModeFlag, MavState,
+    MavType, ODOMETRY_DATA, SIM_STATE_DATA,
 };
 use super::fragment::{FRAGMENT_DATA, Fragment};
 use crate::estimation::{ImuSample, Method, OdometerSample, PlatformId, RangeSample};
@@ -55,6 +56,18 @@ pub fn from_any_frame(bytes: &[u8]) -> Result<(MavHeader, MavMessage), WireError
     let version = if bytes.first() == Some(&mavlink_core::MAV_STX) { MavlinkVersion::V1 } else { MavlinkVersion::V2 };
     let mut reader = mavlink_core::MavlinkReader::new(bytes);
     reader.read_message::<MavMessage>(version).map_err(|e| WireError::Frame(e.to_string()))
+}
+
+/// A HEARTBEAT of an active system of type `mavtype` (vehicle, companion, ground station).
+pub fn heartbeat(mavtype: MavType, autopilot: MavAutopilot) -> MavMessage {
+    MavMessage::HEARTBEAT(HEARTBEAT_DATA {
+        custom_mode: 0,
+        mavtype,
+        autopilot,
+        base_mode: MavModeFlag::empty(),
+        system_status: MavState::MAV_STATE_ACTIVE,
+        mavlink_version: 3,
+    })
 }
 
 /// Every valid MAVLink 2 frame in `bytes` (a datagram may carry several), in order; what is not

@@ -11,8 +11,8 @@ use mavlink_core::MavHeader;
 use crate::estimation::{ImuSample, OdometerSample, PlatformId, RangeSample};
 use crate::protocol::MavMessage;
 use crate::protocol::dialect::cooploc::{
-    AUTOPILOT_VERSION_DATA, COMMAND_ACK_DATA, HEARTBEAT_DATA, MESSAGE_INTERVAL_DATA, MavAutopilot, MavCmd, MavModeFlag,
-    MavProtocolCapability, MavResult, MavState, MavType,
+    AUTOPILOT_VERSION_DATA, COMMAND_ACK_DATA, MESSAGE_INTERVAL_DATA, MavAutopilot, MavCmd, MavProtocolCapability, MavResult,
+    MavType,
 };
 use crate::protocol::wire::{self, GeoOrigin};
 use crate::sitl::Trajectory;
@@ -246,14 +246,7 @@ impl VehicleCore {
     }
 
     fn heartbeat() -> MavMessage {
-        MavMessage::HEARTBEAT(HEARTBEAT_DATA {
-            custom_mode: 0,
-            mavtype: MavType::MAV_TYPE_GROUND_ROVER,
-            autopilot: MavAutopilot::MAV_AUTOPILOT_GENERIC,
-            base_mode: MavModeFlag::empty(),
-            system_status: MavState::MAV_STATE_ACTIVE,
-            mavlink_version: 3,
-        })
+        wire::heartbeat(MavType::MAV_TYPE_GROUND_ROVER, MavAutopilot::MAV_AUTOPILOT_GENERIC)
     }
 
     fn sim_state(&self, t: TimeUs, truth: &Trajectory) -> MavMessage {
