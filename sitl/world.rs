@@ -199,9 +199,34 @@ impl World {
 
     /// The initial estimate a filter on platform `id` starts from in run `run`.
     pub fn initial_estimate(&self, seed: u64, run: u32, id: PlatformId) -> Result<InitialEstimate, ScenarioError> {
-        let truth = self.trajectory(id)?.truth_at(TimeUs(0));
+        self.estimate_drawn(seed, run, id, TimeUs(0), &[u64::from(id)])
+    }
+
+    /// An independent estimate of platform `id` at time `t` with the `[initial]` errors (a node
+    /// started or restarted at `t` from the vehicle's own fix); `draw` tells apart several
+    /// draws of one run.
+    pub fn estimate_at(
+        &self,
+        seed: u64,
+        run: u32,
+        id: PlatformId,
+        t: TimeUs,
+        draw: u64,
+    ) -> Result<InitialEstimate, ScenarioError> {
+        self.estimate_drawn(seed, run, id, t, &[u64::from(id), t.0, draw])
+    }
+
+    fn estimate_drawn(
+        &self,
+        seed: u64,
+        run: u32,
+        id: PlatformId,
+        t: TimeUs,
+        key: &[u64],
+    ) -> Result<InitialEstimate, ScenarioError> {
+        let truth = self.trajectory(id)?.truth_at(t);
         let init = &self.scenario.initial;
-        let mut rng = sensors::stream_rng(seed, run, Stream::Initial, &[u64::from(id)]);
+        let mut rng = sensors::stream_rng(seed, run, Stream::Initial, key);
         let mut draw3 = |sigma: [f64; 3]| Vector3::from_fn(|k, _| sigma[k] * sensors::normal(&mut rng));
         let pos_error_ned_m = draw3([init.position_sigma_m; 3]);
         let vel_error_ned_m_s = draw3([init.velocity_sigma_m_s; 3]);

@@ -3,6 +3,7 @@
 
 mod demo_cmd;
 mod experiment_cmd;
+mod faults_cmd;
 mod gcs_cmd;
 mod node_cmd;
 mod replay_cmd;
@@ -28,6 +29,10 @@ enum Command {
     Demo(demo_cmd::Args),
     /// Monte Carlo reproduction of the paper's experiment: every method on the same simulated inputs.
     Experiment(experiment_cmd::Args),
+    /// Fault injection on the node cores (deterministic, seeded): lost, delayed and reordered
+    /// datagrams, lost vehicle frames, stalls, restarts, late joins and leaves; one table row per
+    /// case (final error, NEES, disagreements detected and healed).
+    Faults(faults_cmd::Args),
     /// The ground station: the team's estimates, 95% ellipses, truth and link health on a web
     /// page and on Foxglove's live WebSocket protocol.
     Gcs(gcs_cmd::Args),
@@ -50,6 +55,7 @@ fn main() -> ExitCode {
     let result = match cli.command {
         Command::Demo(args) => demo_cmd::run(args),
         Command::Experiment(args) => experiment_cmd::run(args),
+        Command::Faults(args) => faults_cmd::run(args),
         Command::Replay(args) => replay_cmd::run(args),
         Command::Gcs(args) => gcs_cmd::run_cmd(args),
         Command::Node(args) => node_cmd::run_cmd(args),

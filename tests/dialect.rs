@@ -87,8 +87,10 @@ fn cases() -> Vec<(&'static str, MavMessage, Value)> {
                 participants,
                 count: 3,
                 state: CooplocEpochState::COOPLOC_EPOCH_STATE_APPLIED,
+                digest: 0x0123_4567_89ab_cdef,
             }),
-            json!({"time_usec": 200_000_000u64, "epoch": 200, "announcer": 1, "count": 3, "participants": participants.to_vec(), "state": 1}),
+            json!({"time_usec": 200_000_000u64, "epoch": 200, "announcer": 1, "count": 3, "participants": participants.to_vec(), "state": 1,
+                   "digest": 0x0123_4567_89ab_cdefu64}),
         ),
     ]
 }

@@ -5,7 +5,7 @@
 
 use std::collections::VecDeque;
 
-use cooploc::estimation::{Method, RangeSample};
+use cooploc::estimation::{ImuSample, Method, RangeSample};
 use cooploc::experiment::{initial_state, ins_settings, run_filter};
 use cooploc::node::core::{NodeConfig, NodeCore, NodeInput, NodeOutput};
 use cooploc::protocol::MavMessage;
@@ -199,7 +199,8 @@ fn a_dead_node_costs_one_timeout_and_the_others_stay_in_agreement() {
     }
 }
 
-/// Messages from a platform outside the team, and IMU gaps, are counted; a gap is bridged.
+/// Messages from a platform outside the team, and IMU gaps, are counted; a gap the stream
+/// confirms is bridged, a lone sample that jumps the clock is refused.
 #[test]
 fn unknown_platforms_are_dropped_and_imu_gaps_bridged() {
     let world = World::new(&Scenario::from_toml_str(PAPER_TOML).unwrap()).unwrap();
@@ -212,9 +213,17 @@ fn unknown_platforms_are_dropped_and_imu_gaps_bridged() {
     assert_eq!(node.stats.unknown_platforms, 1);
     let imu = world.run_inputs(1, 0).platforms[0].imu.clone();
     node.handle(NodeInput::Imu(imu[0]));
-    node.handle(NodeInput::Imu(imu[400])); // 2 s later: beyond the filter's 0.5 s
+    // One sample 30 s ahead, then the stream goes on: the jump is refused.
+    let future = ImuSample { t: TimeUs(imu[1].t.0 + 30_000_000), ..imu[1] };
+    node.handle(NodeInput::Imu(future));
+    node.handle(NodeInput::Imu(imu[1]));
+    assert_eq!((node.stats.imu_clock_jumps_refused, node.filter().time()), (1, imu[1].t));
+    // 2 s lost (beyond the filter's 0.5 s), and the stream continues from there: bridged.
+    for s in &imu[400..403] {
+        node.handle(NodeInput::Imu(*s));
+    }
     assert_eq!((node.stats.imu_gaps_bridged, node.stats.imu_rejected), (1, 0));
-    assert_eq!(node.filter().time(), imu[400].t);
+    assert_eq!(node.filter().time(), imu[402].t);
     node.handle(NodeInput::Imu(imu[399]));
     assert_eq!(node.stats.imu_rejected, 1, "time going backwards is refused");
 }

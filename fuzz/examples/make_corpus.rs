@@ -101,6 +101,7 @@ fn main() {
         announcer: 1,
         participants: vec![1, 2, 3, 5],
         state: wire::EpochState::COOPLOC_EPOCH_STATE_COLLECTING,
+        digest: 0x0123_4567_89ab_cdef,
     })
     .expect("epoch message");
     let estimate_msg = wire::estimate_to_message(&EstimateReport {

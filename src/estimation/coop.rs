@@ -40,6 +40,36 @@
 //! `i` with such a platform `k` must stay in `k`'s reference, so it is carried through the
 //! update as a passive column `X_ik = Psi_i C_ik` and stored as `(I - K H) X`. The invariant
 //! `P_ik(now) = Psi_i C_ik Psi_k^T` holds for every pair at all times.
+//!
+//! # When the stores differ: the covariance-intersection bound
+//!
+//! The exact method needs every node to hold the same store. When they do not (a node missed an
+//! epoch, ran it on other records, restarted), no node knows the true cross-covariances any
+//! more. [`JointPrior::Bound`] then replaces the joint prior of the participants by
+//!
+//! ```text
+//! P_bound = blockdiag(P_11 / w_1, ..., P_NN / w_N),   w_i > 0,  sum w_i = 1
+//! ```
+//!
+//! which bounds every joint covariance with those diagonal blocks whatever its cross blocks:
+//! for any vector `x = (x_1..x_N)`, `x^T P x = E[(sum x_i^T e_i)^2] <= (sum_i x_i^T P_ii x_i / w_i)
+//! (sum_i w_i)` by Cauchy-Schwarz. A participant known to be uncorrelated with everyone (a fresh
+//! joiner) needs no weight: its block enters as it is and the others' weights sum to 1. A Kalman
+//! update from an upper bound, in Joseph form with the gain that bound gives, keeps an upper bound
+//! of the true error covariance, and so does every later step (time updates, local updates and
+//! exact joint updates all map `P_computed - P_true >= 0` to a congruent, still PSD, difference):
+//! the filter stays consistent, at the cost of the inflation. The weights minimise the sum of the
+//! inflated position variances, `w_i ~ sqrt(tr P_ii,pos)`, computed from the broadcasts alone,
+//! so every node picks the same. After a bound update the store keeps only the participants'
+//! new cross blocks, and the exact method resumes at the next epoch.
+//!
+//! # Gating
+//!
+//! With [`UpdateOptions::gate_chi2`], each measurement's own innovation is tested against its
+//! predicted covariance from the joint prior (`r^T S_mm^-1 r` against a chi-square quantile);
+//! those that fail (a non-line-of-sight range, a forged one) are left out of the update and
+//! reported. The test depends only on the broadcasts and the store, so every node leaves out
+//! the same ones.
 
 use std::collections::BTreeMap;
 
@@ -241,6 +271,35 @@ impl CrossCovariances {
         self.blocks.retain(|(a, b), _| *a != id && *b != id);
     }
 
+    /// Forgets everything.
+    pub fn clear(&mut self) {
+        self.blocks.clear();
+    }
+
+    /// A 64-bit digest (FNV-1a) of every stored block, its platform pair and the bits of every
+    /// value: two stores have the same digest when they are equal, and different ones otherwise
+    /// except with probability about 2^-64. Never 0 (0 means "no store" on the wire).
+    pub fn digest(&self) -> u64 {
+        const PRIME: u64 = 0x0000_0100_0000_01b3;
+        let mut h: u64 = 0xcbf2_9ce4_8422_2325;
+        let mut eat = |bytes: &[u8]| {
+            for b in bytes {
+                h ^= u64::from(*b);
+                h = h.wrapping_mul(PRIME);
+            }
+        };
+        for ((a, b), m) in &self.blocks {
+            eat(&a.to_le_bytes());
+            eat(&b.to_le_bytes());
+            eat(&(m.nrows() as u32).to_le_bytes());
+            eat(&(m.ncols() as u32).to_le_bytes());
+            for v in m.iter() {
+                eat(&v.to_bits().to_le_bytes());
+            }
+        }
+        h.max(1)
+    }
+
     /// Number of stored blocks.
     pub fn len(&self) -> usize {
         self.blocks.len()
@@ -271,6 +330,59 @@ pub enum CrossMode {
     Ignore,
 }
 
+/// How the joint prior covariance of the participants is built.
+#[derive(Debug, Clone, PartialEq, Default)]
+pub enum JointPrior {
+    /// From the broadcasts and the store (the paper's exact method).
+    #[default]
+    Exact,
+    /// The covariance-intersection bound (module docs): cross blocks zero, each participant's
+    /// own block inflated by its weight (see [`BoundScope`]), except those listed as known to be
+    /// uncorrelated with everyone (fresh joiners), which enter as they are.
+    Bound { independent: Vec<PlatformId>, scope: BoundScope },
+}
+
+/// What a bound prior inflates.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub enum BoundScope {
+    /// The whole state: `P_ii / w_i`. Provably an upper bound, whatever the cross-covariances.
+    Full,
+    /// The position sub-state and what regresses on it: `P_ii + (1/w_i - 1) P_i,p P_pp^-1 P_p,i`
+    /// (`p`: the position indices). An upper bound when the cross-covariances reach a platform's
+    /// other states only through their correlation with its position, which is how joint range
+    /// updates create them (their gain is `P_i,p (..)`); the part of a state uncorrelated with
+    /// position (a bias the ranges never saw) is not inflated, so repeated heals do not compound
+    /// where ranges cannot shrink the covariance back.
+    #[default]
+    Position,
+}
+
+/// Options of [`cooperative_update_with`].
+#[derive(Debug, Clone, PartialEq)]
+pub struct UpdateOptions {
+    pub mode: CrossMode,
+    pub prior: JointPrior,
+    /// Chi-square quantile per degree of freedom count (index 1 for one scalar, 2 for two) a
+    /// measurement's own innovation must stay under; `None`: no gate.
+    pub gate_chi2: Option<[f64; 3]>,
+}
+
+impl UpdateOptions {
+    pub fn new(mode: CrossMode) -> Self {
+        Self { mode, prior: JointPrior::Exact, gate_chi2: None }
+    }
+
+    /// The gate for a false-rejection probability `p` of a consistent filter, per measurement.
+    pub fn gate_for_probability(p: f64) -> Option<[f64; 3]> {
+        use statrs::distribution::{ChiSquared, ContinuousCDF};
+        if !(p > 0.0 && p < 1.0) {
+            return None;
+        }
+        let q = |k: f64| ChiSquared::new(k).map(|d| d.inverse_cdf(1.0 - p)).unwrap_or(f64::INFINITY);
+        Some([0.0, q(1.0), q(2.0)])
+    }
+}
+
 /// One participant's share of a joint update: what its own filter writes back.
 #[derive(Debug, Clone, PartialEq)]
 pub struct Correction {
@@ -290,6 +402,11 @@ pub struct EventOutcome {
     pub diagnostics: UpdateDiagnostics,
     /// The joint prior covariance that was used (participants in broadcast order).
     pub prior_covariance: DMatrix<f64>,
+    /// Indices into the measurements of those left out by the gate.
+    pub gated: Vec<usize>,
+    /// The weights of the bound prior, per participant in broadcast order (1 for those not
+    /// inflated); empty for the exact prior.
+    pub weights: Vec<f64>,
 }
 
 /// The paper's joint update at a ranging epoch, as every node runs it.
@@ -304,6 +421,55 @@ pub fn cooperative_update(
     measurements: &[CoopMeasurement],
     mode: CrossMode,
 ) -> Result<EventOutcome, EstimationError> {
+    cooperative_update_with(cross, snapshots, measurements, &UpdateOptions::new(mode))
+}
+
+/// The weights of the bound prior: 1 for the independent participants, `sqrt(tr P_ii,pos)`
+/// normalised over the others (or 1 when only one other is left).
+fn bound_weights(snapshots: &[Snapshot], independent: &[PlatformId]) -> Vec<f64> {
+    let pos_trace = |s: &Snapshot| {
+        let t: f64 = s.geometry.position_index.iter().flatten().map(|&i| s.covariance[(i, i)].max(0.0)).sum();
+        if t > 0.0 { t.sqrt() } else { 1.0 }
+    };
+    let group: Vec<usize> = (0..snapshots.len()).filter(|&k| !independent.contains(&snapshots[k].id)).collect();
+    let total: f64 = group.iter().map(|&k| pos_trace(&snapshots[k])).sum();
+    let mut w = vec![1.0; snapshots.len()];
+    if group.len() > 1 {
+        for &k in &group {
+            w[k] = pos_trace(&snapshots[k]) / total;
+        }
+    }
+    w
+}
+
+/// A participant's block of the bound prior for weight `w` (see [`BoundScope`]).
+fn inflate(s: &Snapshot, w: f64, scope: BoundScope) -> Result<DMatrix<f64>, EstimationError> {
+    let pos: Vec<usize> = s.geometry.position_index.iter().flatten().copied().collect();
+    if scope == BoundScope::Full || pos.is_empty() {
+        return Ok(&s.covariance / w);
+    }
+    let p = &s.covariance;
+    let cols = p.select_columns(&pos); // n x k: P_i,p
+    let pp = cols.select_rows(&pos); // k x k: P_pp
+    let chol = pp.cholesky().ok_or(EstimationError::NotPositiveDefinite { what: "a participant's position covariance" })?;
+    let g = chol.solve(&cols.transpose()); // P_pp^-1 P_p,i
+    let mut out = p + (1.0 / w - 1.0) * &cols * g;
+    kalman::symmetrize(&mut out);
+    Ok(out)
+}
+
+/// [`cooperative_update`] with the prior and the gate chosen (see the module docs).
+/// With every measurement gated out (or none given, with the bound prior) the update still
+/// "applies": the corrections are zero and the posterior is the prior, so that the nodes' stores
+/// stay (or become) equal.
+pub fn cooperative_update_with(
+    cross: &mut CrossCovariances,
+    snapshots: &[Snapshot],
+    measurements: &[CoopMeasurement],
+    opts: &UpdateOptions,
+) -> Result<EventOutcome, EstimationError> {
+    let mode = opts.mode;
+    let bound = matches!(opts.prior, JointPrior::Bound { .. });
     // Layout of the joint state: participants in broadcast order.
     let mut offset = BTreeMap::new();
     let mut n = 0;
@@ -316,37 +482,32 @@ pub fn cooperative_update(
     }
     let find = |id: PlatformId| snapshots.iter().find(|s| s.id == id);
 
-    // Stacked measurement.
-    let m: usize = measurements.iter().map(CoopMeasurement::len).sum();
-    if m == 0 {
+    // Linearised measurements (stacked once the prior is known and the gate has run).
+    if measurements.is_empty() && !bound {
         return Err(EstimationError::NotApplicable("a cooperative update needs at least one measurement"));
     }
-    let mut h = DMatrix::zeros(m, n);
-    let mut residual = DVector::zeros(m);
-    let mut r = DMatrix::zeros(m, m);
-    let mut row = 0;
+    let mut linearized = Vec::with_capacity(measurements.len());
     for meas in measurements {
-        let parts = meas.linearize(find)?;
-        let k = meas.len();
-        for (id, lin) in &parts {
-            let (off, dim) = offset[id];
-            h.view_mut((row, off), (k, dim)).copy_from(&lin.h);
-        }
-        let first = &parts[0].1;
-        residual.rows_mut(row, k).copy_from(&first.residual);
-        r.view_mut((row, row), (k, k)).copy_from(&first.r);
-        row += k;
+        linearized.push(meas.linearize(find)?);
     }
 
     // Joint prior covariance (paper Step 4).
+    let weights = match &opts.prior {
+        JointPrior::Exact => Vec::new(),
+        JointPrior::Bound { independent, .. } => bound_weights(snapshots, independent),
+    };
     let mut p = DMatrix::zeros(n, n);
-    for s in snapshots {
+    for (k, s) in snapshots.iter().enumerate() {
         let (o, d) = offset[&s.id];
-        p.view_mut((o, o), (d, d)).copy_from(&s.covariance);
+        let block = match (&opts.prior, weights.get(k)) {
+            (JointPrior::Bound { scope, .. }, Some(&w)) if w < 1.0 => inflate(s, w, *scope)?,
+            _ => s.covariance.clone(),
+        };
+        p.view_mut((o, o), (d, d)).copy_from(&block);
     }
     let mut passive_ids = Vec::new();
     let mut passive = None;
-    if mode == CrossMode::Propagate {
+    if mode == CrossMode::Propagate && !bound {
         for (a, sa) in snapshots.iter().enumerate() {
             for sb in &snapshots[a + 1..] {
                 if let Some(c) = cross.get(sa.id, sb.id) {
@@ -379,10 +540,79 @@ pub fn cooperative_update(
     }
     let prior = p.clone();
 
-    let meas = LinearizedMeasurement { h, residual, r };
-    let up = kalman::joint_update(&p, &meas, passive.as_ref())?;
+    // The gate: each measurement's own innovation against its predicted covariance.
+    let mut gated = Vec::new();
+    if let Some(q) = opts.gate_chi2 {
+        for (index, parts) in linearized.iter().enumerate() {
+            let first = &parts[0].1;
+            let k = first.len();
+            let mut s = first.r.clone();
+            for (ia, (a, la)) in parts.iter().enumerate() {
+                for (b, lb) in &parts[ia..] {
+                    let ((oa, da), (ob, db)) = (offset[a], offset[b]);
+                    let block = &la.h * p.view((oa, ob), (da, db)) * lb.h.transpose();
+                    if a == b {
+                        s += block;
+                    } else {
+                        s += &block + block.transpose();
+                    }
+                }
+            }
+            let nis = s.clone().cholesky().and_then(|c| {
+                let white = c.l().solve_lower_triangular(&first.residual)?;
+                Some(white.norm_squared())
+            });
+            let limit = q.get(k).copied().unwrap_or(f64::INFINITY);
+            if nis.is_none_or(|v| v.is_nan() || v > limit) {
+                gated.push(index);
+            }
+        }
+    }
+    let kept: Vec<&Vec<(PlatformId, LinearizedMeasurement)>> =
+        linearized.iter().enumerate().filter(|(i, _)| !gated.contains(i)).map(|(_, l)| l).collect();
+    // With every measurement gated out the update still runs, as an update by nothing: the
+    // joint prior becomes the posterior and the store is re-anchored on it (Psi back to the
+    // reset), which every node does alike.
+    let m: usize = kept.iter().map(|parts| parts[0].1.len()).sum();
+    let mut h = DMatrix::zeros(m, n);
+    let mut residual = DVector::zeros(m);
+    let mut r = DMatrix::zeros(m, m);
+    let mut row = 0;
+    for parts in kept {
+        let k = parts[0].1.len();
+        for (id, lin) in parts {
+            let (off, dim) = offset[id];
+            h.view_mut((row, off), (k, dim)).copy_from(&lin.h);
+        }
+        let first = &parts[0].1;
+        residual.rows_mut(row, k).copy_from(&first.residual);
+        r.view_mut((row, row), (k, k)).copy_from(&first.r);
+        row += k;
+    }
+
+    let up = if m == 0 {
+        // Nothing to update with: the prior (the bound, or the exact one) is the new joint state.
+        kalman::JointUpdate {
+            dx: DVector::zeros(n),
+            p: p.clone(),
+            passive: passive.clone(),
+            diagnostics: UpdateDiagnostics { innovation: DVector::zeros(0), innovation_cov: DMatrix::zeros(0, 0), nis: 0.0 },
+        }
+    } else {
+        kalman::joint_update(&p, &LinearizedMeasurement { h, residual, r }, passive.as_ref())?
+    };
+    // Never hand back a participant's covariance that is not positive definite.
+    for s in snapshots {
+        let (o, d) = offset[&s.id];
+        if !kalman::is_psd(&up.p.view((o, o), (d, d)).into_owned(), 1e-9) {
+            return Err(EstimationError::NotPositiveDefinite { what: "a participant's posterior covariance" });
+        }
+    }
 
     // Step 5: store the new cross blocks (only now that nothing can fail).
+    if bound {
+        cross.clear();
+    }
     if mode == CrossMode::Propagate {
         for (a, sa) in snapshots.iter().enumerate() {
             for sb in &snapshots[a + 1..] {
@@ -406,5 +636,5 @@ pub fn cooperative_update(
             Correction { id: s.id, dx: up.dx.rows(o, d).into_owned(), p: up.p.view((o, o), (d, d)).into_owned() }
         })
         .collect();
-    Ok(EventOutcome { corrections, diagnostics: up.diagnostics, prior_covariance: prior })
+    Ok(EventOutcome { corrections, diagnostics: up.diagnostics, prior_covariance: prior, gated, weights })
 }

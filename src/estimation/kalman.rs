@@ -272,6 +272,21 @@ pub fn propagate(
     Ok(())
 }
 
+/// Whether a symmetric matrix is positive semi-definite to a relative tolerance: no negative
+/// diagonal entry and `P + rel_tol * max(diag) * I` has a Cholesky factor (its smallest
+/// eigenvalue is above `-rel_tol * max(diag)`). Cheap enough for every broadcast.
+pub fn is_psd(p: &DMatrix<f64>, rel_tol: f64) -> bool {
+    if p.nrows() != p.ncols() || p.iter().any(|v| !v.is_finite()) || p.diagonal().iter().any(|v| *v < 0.0) {
+        return false;
+    }
+    let scale = p.diagonal().max().max(f64::MIN_POSITIVE);
+    let mut shifted = p.clone();
+    for i in 0..p.nrows() {
+        shifted[(i, i)] += rel_tol * scale;
+    }
+    shifted.cholesky().is_some()
+}
+
 /// Smallest eigenvalue of a symmetric matrix (for PSD checks in tests and diagnostics).
 pub fn min_eigenvalue(p: &DMatrix<f64>) -> f64 {
     p.clone().symmetric_eigen().eigenvalues.iter().copied().fold(f64::INFINITY, f64::min)

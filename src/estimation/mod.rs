@@ -27,7 +27,10 @@ pub mod platform;
 pub mod team;
 pub mod unicycle;
 
-pub use coop::{CoopMeasurement, Correction, CrossCovariances, CrossMode, EventOutcome, cooperative_update};
+pub use coop::{
+    BoundScope, CoopMeasurement, Correction, CrossCovariances, CrossMode, EventOutcome, JointPrior, UpdateOptions,
+    cooperative_update, cooperative_update_with,
+};
 pub use error::EstimationError;
 pub use inputs::{ImuSample, OdometerSample, RangeSample};
 pub use kalman::{LinearizedMeasurement, UpdateDiagnostics};

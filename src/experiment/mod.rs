@@ -7,6 +7,7 @@
 //! four-event schedule are the 1 Hz ranges at those epochs). Dead reckoning ignores ranges, so it
 //! runs once per run and serves both schedules.
 
+pub mod faults;
 mod plots;
 pub mod report;
 
@@ -16,7 +17,7 @@ use serde::Serialize;
 use crate::estimation::consistency::nees;
 use crate::estimation::ins::{self, InsConfig, InsFilter, InsInitialSigma, InsState};
 use crate::estimation::unicycle::wrap_angle;
-use crate::estimation::{CoopMeasurement, EstimationError, Method, PlatformFilter, PlatformId, RangeSample, Team};
+use crate::estimation::{CoopMeasurement, EstimationError, ImuSample, Method, PlatformFilter, PlatformId, RangeSample, Team};
 use crate::sitl::scenario::{Scenario, ScenarioError};
 use crate::sitl::world::{PlatformRun, RunInputs, World};
 use crate::time::TimeUs;
@@ -66,7 +67,11 @@ pub fn ins_settings(world: &World) -> (InsConfig, InsInitialSigma) {
 /// A platform's initial filter state in run `run` (truth at time zero plus the errors the
 /// scenario's `[initial]` sigmas draw; zero biases and scale error), and its time.
 pub fn initial_state(world: &World, seed: u64, run: u32, id: PlatformId) -> Result<(TimeUs, InsState), ScenarioError> {
-    let init = world.initial_estimate(seed, run, id)?;
+    state_from(world.initial_estimate(seed, run, id)?)
+}
+
+/// The filter state of an initial estimate drawn at any time (see [`World::estimate_at`]).
+pub fn state_from(init: crate::sitl::world::InitialEstimate) -> Result<(TimeUs, InsState), ScenarioError> {
     let state = InsState {
         pos_ned_m: init.pos_ned_m(),
         vel_ned_m_s: init.vel_ned_m_s(),
@@ -183,11 +188,18 @@ pub fn run_filter(
         if t == TimeUs(u64::MAX) {
             break;
         }
-        // IMU, then odometer, then ranges, then the truth comparison: all of one instant.
+        // IMU, then odometer, then ranges, then the truth comparison: all of one instant. A
+        // platform with a measurement at `t` between two IMU samples is propagated to `t` first,
+        // holding the next sample's rates over the cut (as a node does).
+        let epoch_now = ranges.get(epoch).is_some_and(|(te, _)| *te == t);
         for (i, p) in inputs.platforms.iter().enumerate() {
-            if let Some(s) = p.imu.get(imu[i]).filter(|s| s.t == t) {
-                team.filter_mut(p.id).expect("member").propagate(s).map_err(|e| fail(p.id, t, e))?;
+            let Some(s) = p.imu.get(imu[i]) else { continue };
+            let f = team.filter_mut(p.id).expect("member");
+            if s.t == t {
+                f.propagate(s).map_err(|e| fail(p.id, t, e))?;
                 imu[i] += 1;
+            } else if f.time() < t && (epoch_now || p.odometer.get(odo[i]).is_some_and(|o| o.t == t)) {
+                f.propagate(&ImuSample { t, ..*s }).map_err(|e| fail(p.id, t, e))?;
             }
         }
         let mut batch = Vec::new();

@@ -1,30 +1,60 @@
-//! The node's protocol (paper section 3.3) as a sans-io state machine.
+//! The node's protocol (paper section 3.3) as a sans-io state machine, made to survive the real
+//! world: lost and late frames, sensors that are not synchronised with the IMU, stalls,
+//! restarts, late joiners and hostile input.
 //!
-//! Time is the vehicle's: the timestamps of its IMU samples. The core keeps a checkpoint of its
-//! filter at the end of every instant (after the IMU sample and any odometer sample of that
-//! time) for the last `history_s` seconds, the checkpoints at the times of the epochs still open,
-//! and every input since the oldest checkpoint.
+//! # Time
 //!
-//! A ranging epoch `e` at time `t_e` becomes known to the node from its own vehicle's ranges,
-//! from peers' ranges, fragments or epoch messages. Epochs are run strictly in order. Then:
+//! Time is the vehicle's: the timestamps of its samples. The core keeps every vehicle input
+//! (IMU and odometer samples, in time order) since its oldest checkpoint, and a checkpoint of its
+//! filter at the end of every *instant* for the last `history_us`. An instant ends at an IMU
+//! sample's time, at an odometer sample's time and at every ranging epoch's time: an IMU
+//! interval `(t_prev, t]` that contains such a time is split there (its rates held over both
+//! pieces), so measurements are applied at their own instants whatever the IMU rate. A sample
+//! that arrives late (an odometer sample older than the filter, an epoch learned after the
+//! vehicle passed its time) is inserted and the filter rebuilt from the checkpoint before it: the
+//! result is the same as if it had come in order. Gaps in the IMU stream (lost frames) are
+//! bridged by propagating in steps the filter takes, holding the next sample; a node therefore
+//! never misses an epoch because of its own vehicle link.
 //!
-//! 1. **Broadcast** (Step 3): once the filter has finished instant `t_e` and every earlier epoch
-//!    is resolved (so the record carries their updates), the node encodes its checkpoint at `t_e`
-//!    as a state record, fragments it to its peers, and keeps the *decoded* record as its own
-//!    broadcast (quantisation rule). Ranges its own vehicle measured are forwarded, as sent.
-//! 2. **Agreement**: the paper's update is exact only if every node runs it on the same records,
-//!    so the node waits until it holds the complete record of every expected team member (the
-//!    team minus members found absent). While it waits it sends, every `retry` of wall time, a
-//!    COOPLOC_EPOCH listing the records it holds; a node that is not listed resends its record
-//!    (lost fragments, or a peer that learned its address late). After `epoch_timeout` of wall
-//!    time it runs without the missing members, marks them absent until a record of theirs
-//!    arrives for an epoch still open, and says so (state PARTIAL, counted): the nodes may then disagree, which they detect
-//!    from each other's APPLIED/PARTIAL messages (`epoch_disagreements`).
-//! 3. **Joint update** (Steps 4-5): the complete records of the epoch and the ranges among those
-//!    platforms, sorted by platform id so that every node builds the same joint problem.
-//! 4. **Back to the present**: it restores its checkpoint at `t_e`, writes back its own share of
-//!    the update, and re-propagates every IMU and odometer input buffered since `t_e`. The result
-//!    is exactly what a filter that had the update at `t_e` would hold now.
+//! # An epoch
+//!
+//! A ranging epoch `e` at time `t_e` becomes known from the node's own ranges or from peers.
+//! Epochs run strictly in order. Then:
+//!
+//! 1. **Broadcast** (Step 3): once the filter has passed `t_e` by `range_grace_us` (so that the
+//!    vehicle's ranges of the epoch are in) and every earlier epoch is resolved, the node sends
+//!    its *record*: its checkpoint at `t_e`, the digest of its cross-covariance store, whether it
+//!    is fresh (independent of every teammate), and the ranges its radio measured. It keeps the
+//!    decoded record as its own (quantisation rule). A record is the sender's whole share of the
+//!    joint problem: nodes that hold the same records solve the same problem.
+//! 2. **Agreement**: the node waits for the record of every expected team member, sending a
+//!    COOPLOC_EPOCH (COLLECTING, the records it holds) every `retry_us` of wall time; a member
+//!    not listed resends its record. After `epoch_timeout_us` it runs without the missing
+//!    members, marks them absent until a record of theirs arrives for an epoch still open, and
+//!    says so (PARTIAL).
+//! 3. **Joint update** (Steps 4-5), on the records sorted by platform id. If every record carries
+//!    the same store digest, the exact method runs (the store and the Psi of each record). If
+//!    not, the stores have diverged (a node missed an epoch, ran it on other records, restarted):
+//!    every node sees the same records, so every node *heals* the same way, with the
+//!    covariance-intersection bound of [`crate::estimation::coop`] (cross blocks dropped, each
+//!    correlated participant's covariance divided by its weight), which is consistent whatever
+//!    the true cross-covariances were; after it the stores agree again and the exact method
+//!    resumes. Ranges whose innovation fails a chi-square gate are left out (every node leaves
+//!    out the same ones). An update that fails is retried with the bound; one that fails again
+//!    is not applied, and said so (FAILED).
+//! 4. **Back to the present**: the node restores its checkpoint at `t_e`, writes back its own
+//!    share, and replays every input since.
+//! 5. **Report**: a COOPLOC_EPOCH (APPLIED, PARTIAL or FAILED) with the participants and the
+//!    digest of the store after the epoch. A peer that ran the same epoch with another set or
+//!    another digest counts a disagreement; the next epoch's records heal it.
+//!
+//! # Guards
+//!
+//! Nothing one message says is obeyed blindly: IMU samples that jump the clock are held until
+//! the stream confirms the jump; odometer samples and epochs far ahead of the filter, epochs
+//! whose id does not fit their time, records with a covariance that is not positive
+//! semi-definite are refused and counted. A wall-clock jump (the node was frozen) does not time
+//! out the epochs that were waiting.
 //!
 //! Wall time enters only through [`NodeCore::poll`] (timeouts and retries); a run whose
 //! messages all arrive is therefore deterministic and independent of timing.
@@ -34,12 +64,12 @@ use std::collections::{BTreeMap, BTreeSet, VecDeque};
 use crate::estimation::ci::ci_update;
 use crate::estimation::ins::{InsConfig, InsFilter, InsInitialSigma, InsState};
 use crate::estimation::{
-    CoopMeasurement, Correction, CrossCovariances, CrossMode, EstimationError, ImuSample, Method, OdometerSample, PlatformFilter,
-    PlatformId, RangeSample, Snapshot, cooperative_update,
+    BoundScope, CoopMeasurement, Correction, CrossCovariances, CrossMode, EstimationError, ImuSample, JointPrior, Method,
+    OdometerSample, PlatformFilter, PlatformId, RangeSample, UpdateOptions, cooperative_update_with,
 };
 use crate::protocol::MavMessage;
 use crate::protocol::fragment::{Pushed, Reassembler, fragment};
-use crate::protocol::record::{self, Encoding};
+use crate::protocol::record::{self, Encoding, FLAG_FRESH, StateRecord};
 use crate::protocol::wire::{self, EpochState};
 use crate::recording::{CoopUpdateRecord, RangeRecord};
 use crate::time::TimeUs;
@@ -66,11 +96,22 @@ pub struct NodeConfig {
     /// An epoch still open this long (vehicle time) after its instant is run with what is
     /// there, so that memory stays bounded whatever the network does, us.
     pub max_lag_us: u64,
+    /// Vehicle time the node waits after an epoch's instant before it broadcasts, so that the
+    /// ranges its vehicle measured at the epoch have arrived, us.
+    pub range_grace_us: u64,
+    /// Epochs and odometer samples further ahead of the filter than this are refused, us.
+    pub max_lead_us: u64,
+    /// Probability that the range gate rejects a range of a consistent filter (0: no gate).
+    pub gate_probability: f64,
+    /// The initial state is independent of every teammate's error (initialised from the vehicle,
+    /// a survey or a scenario, not from a teammate's estimate).
+    pub independent_start: bool,
 }
 
 impl NodeConfig {
     /// A configuration with the defaults of `cooploc node`: 2 s timeout, 100 ms retries, 4 s of
-    /// history, 120 s of maximum lag.
+    /// history, 120 s of maximum lag, 100 ms range grace, 30 s maximum lead, a range gate at
+    /// one false rejection in a million.
     pub fn new(
         id: PlatformId,
         method: Method,
@@ -90,6 +131,10 @@ impl NodeConfig {
             retry_us: 100_000,
             history_us: 4_000_000,
             max_lag_us: 120_000_000,
+            range_grace_us: 100_000,
+            max_lead_us: 30_000_000,
+            gate_probability: 1e-6,
+            independent_start: true,
         }
     }
 }
@@ -103,6 +148,10 @@ pub enum NodeConfigError {
     Team { id: PlatformId, team: Vec<PlatformId>, max: usize },
     #[error("the retry interval ({retry_us} us) must be positive and shorter than the epoch timeout ({timeout_us} us)")]
     Timing { retry_us: u64, timeout_us: u64 },
+    #[error("the range grace ({grace_us} us) must be shorter than the history kept ({history_us} us)")]
+    Grace { grace_us: u64, history_us: u64 },
+    #[error("the gate probability {0} must be in [0, 1)")]
+    Gate(f64),
     #[error(transparent)]
     Filter(#[from] EstimationError),
 }
@@ -133,7 +182,7 @@ pub enum NodeOutput {
     Update(Box<CoopUpdateRecord>),
 }
 
-/// Counters of everything the node did and dropped.
+/// Counters of everything the node did, refused and dropped.
 #[derive(Debug, Clone, Default, PartialEq, Eq)]
 pub struct NodeStats {
     pub imu: u64,
@@ -142,34 +191,63 @@ pub struct NodeStats {
     pub imu_rejected: u64,
     /// Gaps in the IMU stream longer than the filter takes, bridged by holding the next sample.
     pub imu_gaps_bridged: u64,
-    /// Odometer samples without an IMU sample of the same time (lost or reordered input).
+    /// IMU samples that jumped the clock and were not confirmed by the samples after them.
+    pub imu_clock_jumps_refused: u64,
+    /// The filter's clock moved to the first IMU sample (a start long after the initial time).
+    pub clock_restarts: u64,
+    /// Odometer samples that arrived after the filter had passed their time, applied by replay.
+    pub odometer_late: u64,
+    /// Odometer samples older than the history, or implausibly far ahead of the IMU.
     pub odometer_unmatched: u64,
     /// Odometer samples the filter refused (gated or invalid).
     pub odometer_rejected: u64,
     pub records_sent: u64,
     pub records_resent: u64,
     pub records_received: u64,
+    /// Records refused: not decodable, or a covariance that is not positive semi-definite.
+    pub records_implausible: u64,
     pub fragments_rejected: u64,
     pub records_incomplete: u64,
     pub records_undecodable: u64,
     pub ranges_rejected: u64,
+    /// Ranges left out of a joint update by the chi-square gate.
+    pub ranges_gated: u64,
+    /// Own ranges that came after the node had broadcast that epoch's record.
+    pub ranges_late: u64,
     /// Messages from platforms outside the team.
     pub unknown_platforms: u64,
     pub late_messages: u64,
+    /// Epoch claims refused: too far ahead, an id that does not fit its time, a conflicting time.
+    pub epochs_implausible: u64,
     pub epoch_messages_sent: u64,
     pub epochs_applied: u64,
     /// Epochs run without every expected member (timeout, lag bound or end of input).
     pub epochs_partial: u64,
+    /// Epochs with nothing to apply (no range among the participants, dead reckoning), or from
+    /// before the node's start.
     pub epochs_skipped: u64,
-    /// Epochs a peer ran on another set of records than this node.
+    /// Joint updates refused twice (exact and bound): nothing applied.
+    pub epochs_failed: u64,
+    /// Epochs a peer reported with another set of records or another store digest.
     pub epoch_disagreements: u64,
+    /// Epochs whose records carried different store digests: the stores had diverged.
+    pub store_mismatches: u64,
+    /// Joint updates run with the covariance-intersection bound (store mismatch or a failed
+    /// exact update).
+    pub heals: u64,
+    /// Wall-clock jumps (the node was frozen) credited to the waiting epochs.
+    pub freezes: u64,
     pub replayed_inputs: u64,
 }
 
 impl NodeStats {
     /// Inputs from the vehicle that did not reach the filter.
     pub fn dropped_inputs(&self) -> u64 {
-        self.imu_rejected + self.odometer_unmatched + self.odometer_rejected + self.imu_gaps_bridged
+        self.imu_rejected
+            + self.odometer_unmatched
+            + self.odometer_rejected
+            + self.imu_gaps_bridged
+            + self.imu_clock_jumps_refused
     }
 }
 
@@ -186,25 +264,74 @@ impl Stamped {
             Stamped::Odometer(s) => s.t,
         }
     }
+
+    /// Order within one instant: the IMU sample, then the odometer.
+    fn key(&self) -> (TimeUs, u8) {
+        match self {
+            Stamped::Imu(s) => (s.t, 0),
+            Stamped::Odometer(s) => (s.t, 1),
+        }
+    }
 }
 
-#[derive(Debug, Default)]
+#[derive(Debug)]
 struct Epoch {
-    t: Option<TimeUs>,
+    t: TimeUs,
     /// Wall time of our broadcast, once sent.
     broadcast_at: Option<u64>,
+    /// Wall time a fragment of a record we lack last arrived (the wait is making progress).
+    progress_at: u64,
     last_status_at: u64,
     last_resend_at: Option<u64>,
     early_request_sent: bool,
-    ranges: BTreeMap<(PlatformId, PlatformId), RangeSample>,
-    records: BTreeMap<PlatformId, Snapshot>,
+    /// Ranges our vehicle measured at this epoch (they go into our record).
+    own_ranges: Vec<RangeSample>,
+    records: BTreeMap<PlatformId, StateRecord>,
+}
+
+impl Epoch {
+    fn new(t: TimeUs) -> Self {
+        Self {
+            t,
+            broadcast_at: None,
+            progress_at: 0,
+            last_status_at: 0,
+            last_resend_at: None,
+            early_request_sent: false,
+            own_ranges: Vec::new(),
+            records: BTreeMap::new(),
+        }
+    }
 }
 
 /// Longest IMU gap the node bridges (a longer one is refused: the navigation is lost).
 const MAX_BRIDGED_GAP_US: u64 = 60_000_000;
 
+/// IMU samples after a clock jump that must continue from it before it is believed.
+const JUMP_CONFIRMATIONS: usize = 3;
+
+/// A wall-clock step between two polls longer than this is a freeze of the node itself.
+const FREEZE_US: u64 = 1_000_000;
+
 /// Epochs remembered after they are run (resends and agreement checks).
 const EPOCHS_REMEMBERED: usize = 32;
+
+/// The longest wait for missing records, in epoch timeouts, while fragments keep arriving.
+const MAX_WAIT_FACTOR: u64 = 5;
+
+/// A record this many epochs behind the last one run still shows its sender is in step.
+const RECENT_EPOCHS: u32 = 3;
+
+/// Most epochs per second of vehicle time an epoch id may run ahead of the last one run.
+const MAX_EPOCH_RATE_HZ: u64 = 100;
+
+/// An epoch that was run: its time, the records it ran on and the store digest after it.
+#[derive(Debug, Clone)]
+struct RanOn {
+    epoch: u32,
+    participants: Vec<PlatformId>,
+    digest: u64,
+}
 
 /// The node's state machine.
 #[derive(Debug)]
@@ -213,21 +340,37 @@ pub struct NodeCore {
     filter: InsFilter,
     /// Checkpoints at the end of instants, oldest first.
     history: VecDeque<(TimeUs, InsFilter)>,
-    /// Inputs after the oldest checkpoint, in order.
+    /// Vehicle inputs after the oldest checkpoint, in time order (odometer samples ahead of the
+    /// filter included: they wait for the IMU sample that covers them).
     inputs: VecDeque<Stamped>,
+    /// Instants the filter must stop at (epoch times), newer than the oldest checkpoint.
+    marks: BTreeSet<TimeUs>,
     /// The instant being filled (IMU sample seen, odometer may follow), not yet checkpointed.
     open_instant: Option<TimeUs>,
+    /// The vehicle's stream has ended.
+    ended: bool,
+    /// IMU samples after a clock jump, waiting for confirmation.
+    jump: Vec<ImuSample>,
     epochs: BTreeMap<u32, Epoch>,
-    last_applied: Option<u32>,
+    /// Id and time of the last epoch resolved.
+    last_applied: Option<(u32, TimeUs)>,
     /// Our fragments of recent epochs, for resends.
     sent: VecDeque<(u32, Vec<MavMessage>)>,
-    /// The record sets recent epochs ran on.
-    ran_on: VecDeque<(u32, Vec<PlatformId>)>,
+    /// What recent epochs ran on.
+    ran_on: VecDeque<RanOn>,
     absent: BTreeSet<PlatformId>,
+    /// Wall time of the last message heard from each member.
+    heard_at: BTreeMap<PlatformId, u64>,
+    /// Since when (wall time) the lowest epoch known is not the one after the last resolved:
+    /// an epoch in between that we have not heard of yet.
+    gap_since: Option<u64>,
     /// Wall clock, us, as last given to [`NodeCore::poll`].
     wall_us: u64,
     reassembler: Reassembler,
     cross: CrossCovariances,
+    /// Independent of every teammate and no epoch applied yet.
+    fresh: bool,
+    gate: Option<[f64; 3]>,
     last_event: Option<(u32, f64, u8, u8)>,
     pub stats: NodeStats,
 }
@@ -249,23 +392,37 @@ impl NodeCore {
         if cfg.retry_us == 0 || cfg.retry_us >= cfg.epoch_timeout_us {
             return Err(NodeConfigError::Timing { retry_us: cfg.retry_us, timeout_us: cfg.epoch_timeout_us });
         }
+        if cfg.range_grace_us >= cfg.history_us {
+            return Err(NodeConfigError::Grace { grace_us: cfg.range_grace_us, history_us: cfg.history_us });
+        }
+        if !(0.0..1.0).contains(&cfg.gate_probability) {
+            return Err(NodeConfigError::Gate(cfg.gate_probability));
+        }
         let mut filter = InsFilter::new(cfg.ins, t0, initial, cfg.initial_sigma)?;
         filter.set_track_psi(cfg.method.needs_psi());
         let history = VecDeque::from([(t0, filter.clone())]);
+        let gate = UpdateOptions::gate_for_probability(cfg.gate_probability);
         Ok(Self {
+            fresh: cfg.independent_start,
             cfg,
             filter,
             history,
             inputs: VecDeque::new(),
+            marks: BTreeSet::new(),
             open_instant: None,
+            ended: false,
+            jump: Vec::new(),
             epochs: BTreeMap::new(),
             last_applied: None,
             sent: VecDeque::new(),
             ran_on: VecDeque::new(),
             absent: BTreeSet::new(),
+            heard_at: BTreeMap::new(),
+            gap_since: None,
             wall_us: 0,
             reassembler: Reassembler::new(256),
             cross: CrossCovariances::new(),
+            gate,
             last_event: None,
             stats: NodeStats::default(),
         })
@@ -290,51 +447,44 @@ impl NodeCore {
         self.absent.iter().copied()
     }
 
+    /// The digest of the cross-covariance store (0 for methods that keep none): equal on every
+    /// node that ran the same epochs on the same records.
+    pub fn store_digest(&self) -> u64 {
+        if self.cfg.method == Method::Decentralized { self.cross.digest() } else { 0 }
+    }
+
+    /// The last epoch resolved (run, or passed over), if any.
+    pub fn last_epoch(&self) -> Option<u32> {
+        self.last_applied.map(|(e, _)| e)
+    }
+
     /// Takes one input; returns what to send.
     pub fn handle(&mut self, input: NodeInput) -> Vec<NodeOutput> {
         let mut out = Vec::new();
         match input {
-            NodeInput::Imu(s) => {
-                if s.t <= self.filter.time() {
-                    self.stats.imu_rejected += 1;
-                    return out;
-                }
-                // A gap the filter refuses (lost samples): bridge it holding this sample's
-                // measurements, in steps the filter takes, rather than stop navigating.
-                let gap_us = s.t.0 - self.filter.time().0;
-                let step_us = ((self.cfg.ins.max_imu_gap_s * 1e6) as u64 / 2).max(1);
-                if gap_us > 2 * step_us && gap_us <= MAX_BRIDGED_GAP_US {
-                    self.stats.imu_gaps_bridged += 1;
-                    let mut t = self.filter.time().0 + step_us;
-                    while t < s.t.0 {
-                        self.imu(ImuSample { t: TimeUs(t), ..s }, &mut out);
-                        t += step_us;
-                    }
-                }
-                self.imu(s, &mut out);
-            }
-            NodeInput::Odometer(s) => {
-                // Applied at the filter's current time, which the odometer sample must match.
-                if self.open_instant != Some(s.t) {
-                    self.stats.odometer_unmatched += 1;
-                    return out;
-                }
-                match self.filter.update_odometer(&s) {
-                    Ok(_) => {
-                        self.stats.odometer += 1;
-                        self.inputs.push_back(Stamped::Odometer(s));
-                    }
-                    Err(_) => self.stats.odometer_rejected += 1,
-                }
-            }
+            NodeInput::Imu(s) => self.vehicle_imu(s, &mut out),
+            NodeInput::Odometer(s) => self.vehicle_odometer(s, &mut out),
             NodeInput::OwnRange { epoch, range } => {
                 if range.from != self.cfg.id || range.to == self.cfg.id || !self.in_team(range.to) {
                     self.stats.ranges_rejected += 1;
                     return out;
                 }
                 let sent = wire::range_as_sent(&range);
-                out.push(NodeOutput::ToPeers(wire::range_to_message(&sent, epoch)));
-                self.add_range(epoch, sent);
+                if !(sent.range_m.is_finite() && sent.range_m >= 0.0 && sent.sigma_m.is_finite() && sent.sigma_m > 0.0) {
+                    self.stats.ranges_rejected += 1;
+                    return out;
+                }
+                if let Some(e) = self.learn_epoch(epoch, sent.t) {
+                    if e.broadcast_at.is_some() {
+                        self.stats.ranges_late += 1;
+                    } else if e.own_ranges.len() < record::MAX_RANGES {
+                        e.own_ranges.push(sent);
+                        // For ground stations and logs: the joint problem takes it from our record.
+                        out.push(NodeOutput::ToPeers(wire::range_to_message(&sent, epoch)));
+                    } else {
+                        self.stats.ranges_rejected += 1;
+                    }
+                }
                 self.advance(&mut out);
             }
             NodeInput::Peer { from, msg } => {
@@ -345,21 +495,227 @@ impl NodeCore {
         out
     }
 
-    fn imu(&mut self, s: ImuSample, out: &mut Vec<NodeOutput>) {
-        self.close_instant(out);
-        match self.filter.propagate(&s) {
+    // ---- the vehicle's inputs ----
+
+    fn vehicle_imu(&mut self, s: ImuSample, out: &mut Vec<NodeOutput>) {
+        let now = self.filter.time();
+        if s.t <= now {
+            self.stats.imu_rejected += 1;
+            return;
+        }
+        let max_gap_us = (self.cfg.ins.max_imu_gap_s * 1e6) as u64;
+        let gap = s.t.0 - now.0;
+        if gap > max_gap_us {
+            if self.stats.imu == 0 {
+                // A start long before the vehicle's clock: the initial state is for "now".
+                self.filter.restart_clock(s.t);
+                self.history = VecDeque::from([(s.t, self.filter.clone())]);
+                self.inputs.clear();
+                self.marks.clear();
+                self.stats.clock_restarts += 1;
+                self.stats.imu += 1;
+                return;
+            }
+            // A jump: believed once the samples after it continue from it.
+            let continues = self.jump.last().is_some_and(|last| s.t > last.t && s.t.0 - last.t.0 <= max_gap_us);
+            if !continues {
+                self.stats.imu_clock_jumps_refused += self.jump.len() as u64;
+                self.jump.clear();
+            }
+            self.jump.push(s);
+            if self.jump.len() < JUMP_CONFIRMATIONS {
+                return;
+            }
+            if gap > MAX_BRIDGED_GAP_US {
+                // Too long to bridge: the navigation is lost; refuse and say so.
+                self.stats.imu_rejected += self.jump.len() as u64;
+                self.jump.clear();
+                return;
+            }
+            self.stats.imu_gaps_bridged += 1;
+            for s in std::mem::take(&mut self.jump) {
+                self.take_imu(s);
+            }
+            self.after_input(out);
+            return;
+        }
+        self.stats.imu_clock_jumps_refused += self.jump.len() as u64;
+        self.jump.clear();
+        self.take_imu(s);
+        self.after_input(out);
+    }
+
+    fn take_imu(&mut self, s: ImuSample) {
+        let backup = (self.filter.clone(), self.history.len(), self.open_instant);
+        match self.integrate(&s, true) {
             Ok(()) => {
                 self.stats.imu += 1;
-                self.inputs.push_back(Stamped::Imu(s));
-                self.open_instant = Some(s.t);
+                self.insert_input(Stamped::Imu(s));
             }
-            Err(_) => self.stats.imu_rejected += 1,
+            Err(_) => {
+                self.stats.imu_rejected += 1;
+                (self.filter, self.open_instant) = (backup.0, backup.2);
+                self.history.truncate(backup.1);
+            }
         }
     }
 
+    fn vehicle_odometer(&mut self, s: OdometerSample, out: &mut Vec<NodeOutput>) {
+        let now = self.filter.time();
+        if s.t.0 > now.0.saturating_add(self.cfg.max_lead_us.min(1_000_000)) || s.t <= self.history[0].0 {
+            // Far ahead of its own vehicle's IMU, or older than anything kept.
+            self.stats.odometer_unmatched += 1;
+            return;
+        }
+        if self.open_instant == Some(s.t) {
+            match self.filter.update_odometer(&s) {
+                Ok(_) => {
+                    self.stats.odometer += 1;
+                    self.insert_input(Stamped::Odometer(s));
+                }
+                Err(_) => self.stats.odometer_rejected += 1,
+            }
+        } else if s.t > now {
+            // Waits for the IMU sample that covers it.
+            self.stats.odometer += 1;
+            self.insert_input(Stamped::Odometer(s));
+        } else {
+            self.stats.odometer += 1;
+            self.stats.odometer_late += 1;
+            self.insert_input(Stamped::Odometer(s));
+            self.rebuild_from_before(s.t);
+        }
+        self.after_input(out);
+    }
+
+    fn insert_input(&mut self, item: Stamped) {
+        let key = item.key();
+        if self.inputs.back().is_none_or(|last| last.key() <= key) {
+            self.inputs.push_back(item);
+        } else {
+            let at = self.inputs.partition_point(|i| i.key() <= key);
+            self.inputs.insert(at, item);
+        }
+    }
+
+    /// One IMU sample through the filter: the interval up to it is cut at every mark, every
+    /// odometer sample and, for a gap, every step the filter takes; each piece holds the sample's
+    /// rates; the odometer samples of each instant are applied at its end. Checkpoints every
+    /// instant it closes. On error the caller restores.
+    fn integrate(&mut self, s: &ImuSample, live: bool) -> Result<(), EstimationError> {
+        let t0 = self.filter.time();
+        let from = self.inputs.partition_point(|i| i.t() <= t0);
+        let odometers: Vec<OdometerSample> = self
+            .inputs
+            .range(from..)
+            .take_while(|i| i.t() <= s.t)
+            .filter_map(|i| match i {
+                Stamped::Odometer(o) => Some(*o),
+                Stamped::Imu(_) => None,
+            })
+            .collect();
+        let mut cuts: Vec<TimeUs> = self.marks.range(TimeUs(t0.0 + 1)..s.t).copied().collect();
+        cuts.extend(odometers.iter().map(|o| o.t).filter(|t| *t < s.t));
+        let step_us = ((self.cfg.ins.max_imu_gap_s * 1e6) as u64 / 2).max(1);
+        if s.t.0 - t0.0 > 2 * step_us {
+            let mut t = t0.0 + step_us;
+            while t < s.t.0 {
+                cuts.push(TimeUs(t));
+                t += step_us;
+            }
+        }
+        cuts.sort_unstable();
+        cuts.dedup();
+        cuts.push(s.t);
+        for t in cuts {
+            self.checkpoint_open();
+            self.filter.propagate(&ImuSample { t, ..*s })?;
+            self.open_instant = Some(t);
+            for o in odometers.iter().filter(|o| o.t == t) {
+                if self.filter.update_odometer(o).is_err() && live {
+                    self.stats.odometer_rejected += 1;
+                }
+            }
+        }
+        Ok(())
+    }
+
+    /// Closes the open instant: its checkpoint.
+    fn checkpoint_open(&mut self) {
+        if let Some(t) = self.open_instant.take() {
+            self.history.push_back((t, self.filter.clone()));
+        }
+    }
+
+    /// After a vehicle input: broadcast and run what is due, forget what is older than the
+    /// history (except what open epochs need).
+    fn after_input(&mut self, out: &mut Vec<NodeOutput>) {
+        self.advance(out);
+        let horizon = self.filter.time().0.saturating_sub(self.cfg.history_us);
+        let keep_from = self.epochs.values().map(|e| e.t.0).min().unwrap_or(u64::MAX).min(horizon);
+        while self.history.len() > 1 && self.history[0].0.0 < keep_from && self.history[1].0.0 <= keep_from {
+            self.history.pop_front();
+        }
+        let oldest = self.history[0].0;
+        while self.inputs.front().is_some_and(|i| i.t() <= oldest) {
+            self.inputs.pop_front();
+        }
+        while self.marks.first().is_some_and(|m| *m <= oldest) {
+            self.marks.pop_first();
+        }
+    }
+
+    /// Rebuilds the filter from the last checkpoint strictly before `t` (a late input or a new
+    /// mark at `t`). Nothing changes when there is none or the replay fails.
+    fn rebuild_from_before(&mut self, t: TimeUs) {
+        let Some(pos) = self.history.iter().rposition(|(tc, _)| *tc < t) else { return };
+        let _ = self.replay_from(pos, None);
+    }
+
+    /// Restores checkpoint `pos`, applies `correction` to it, and replays every input after it,
+    /// rebuilding the checkpoints on the way. On error nothing changes.
+    fn replay_from(&mut self, pos: usize, correction: Option<&Correction>) -> Result<(), EstimationError> {
+        let (tc, mut f) = self.history[pos].clone();
+        if let Some(c) = correction {
+            f.apply_joint(&c.dx, &c.p)?;
+        }
+        let saved = (std::mem::replace(&mut self.filter, f.clone()), self.history.clone(), self.open_instant);
+        self.history.truncate(pos);
+        self.history.push_back((tc, f));
+        self.open_instant = None;
+        let replay: Vec<ImuSample> = self
+            .inputs
+            .iter()
+            .filter_map(|i| match i {
+                Stamped::Imu(s) if s.t > tc => Some(*s),
+                _ => None,
+            })
+            .collect();
+        for s in &replay {
+            if let Err(e) = self.integrate(s, false) {
+                (self.filter, self.history, self.open_instant) = saved;
+                return Err(e);
+            }
+            self.stats.replayed_inputs += 1;
+        }
+        if self.ended {
+            self.checkpoint_open();
+        }
+        Ok(())
+    }
+
     /// Gives the core the wall clock (us, any monotonic origin): runs the timeouts and sends the
-    /// retransmission requests that are due. Call it every few tens of milliseconds.
+    /// retransmission requests that are due. Call it every few tens of milliseconds. A step of
+    /// more than a second is the node's own freeze: the epochs that were waiting do not count it.
     pub fn poll(&mut self, wall_us: u64) -> Vec<NodeOutput> {
+        let step = wall_us.saturating_sub(self.wall_us);
+        if self.wall_us > 0 && step > FREEZE_US {
+            self.stats.freezes += 1;
+            for e in self.epochs.values_mut() {
+                e.broadcast_at = e.broadcast_at.map(|b| b + step);
+                e.progress_at = e.progress_at.saturating_add(step);
+            }
+        }
         self.wall_us = self.wall_us.max(wall_us);
         let mut out = Vec::new();
         self.advance(&mut out);
@@ -370,28 +726,57 @@ impl NodeCore {
         self.cfg.team.binary_search(&p).is_ok()
     }
 
+    /// Not resolved yet, and not older than an epoch we have broadcast already (our record of
+    /// that one does not carry an update at this one: we cannot take part in both).
     fn is_open(&self, epoch: u32) -> bool {
-        self.last_applied.is_none_or(|last| epoch > last)
+        self.last_applied.is_none_or(|(last, _)| epoch > last) && self.sent.back().is_none_or(|(last, _)| epoch >= *last)
     }
 
+    /// Registers epoch `epoch` at `t` if the claim is plausible: not resolved yet, not far ahead
+    /// of the filter, an id that fits its time among the epochs known, and no other time
+    /// already known for it. A new epoch's instant becomes a mark (the filter is rebuilt when it
+    /// has passed it already).
     fn learn_epoch(&mut self, epoch: u32, t: TimeUs) -> Option<&mut Epoch> {
-        if !self.is_open(epoch) {
+        if !self.is_open(epoch) || self.stats.imu == 0 {
+            // Resolved already, or the vehicle's clock is not known yet.
             self.stats.late_messages += 1;
             return None;
         }
-        let e = self.epochs.entry(epoch).or_default();
-        match e.t {
-            None => e.t = Some(t),
-            Some(known) if known != t => return None,
-            Some(_) => {}
+        if let Some(known) = self.epochs.get(&epoch) {
+            if known.t != t {
+                self.stats.epochs_implausible += 1;
+                return None;
+            }
+            return self.epochs.get_mut(&epoch);
         }
-        Some(e)
+        let ahead = t.0 > self.filter.time().0.saturating_add(self.cfg.max_lead_us);
+        let fits = |e: u32, te: TimeUs| {
+            // Later ids at later times, and no faster than MAX_EPOCH_RATE_HZ.
+            let (lo, hi, tlo, thi) = if e < epoch { (e, epoch, te, t) } else { (epoch, e, t, te) };
+            thi > tlo && u64::from(hi - lo) <= (thi.0 - tlo.0) * MAX_EPOCH_RATE_HZ / 1_000_000 + 1
+        };
+        let consistent = self.last_applied.is_none_or(|(e, te)| fits(e, te))
+            && self.epochs.range(..epoch).next_back().is_none_or(|(&e, x)| fits(e, x.t))
+            && self.epochs.range(epoch + 1..).next().is_none_or(|(&e, x)| fits(e, x.t));
+        if ahead || !consistent {
+            self.stats.epochs_implausible += 1;
+            return None;
+        }
+        self.epochs.insert(epoch, Epoch::new(t));
+        if t > self.history[0].0
+            && self.marks.insert(t)
+            && t <= self.filter.time()
+            && self.open_instant != Some(t)
+            && self.checkpoint_at(t).is_none()
+        {
+            self.rebuild_from_before(t);
+        }
+        self.epochs.get_mut(&epoch)
     }
 
-    fn add_range(&mut self, epoch: u32, r: RangeSample) {
-        if let Some(e) = self.learn_epoch(epoch, r.t) {
-            e.ranges.insert((r.from, r.to), r);
-        }
+    /// A record's covariance must be positive semi-definite (to the rounding of its encoding).
+    fn plausible(rec: &StateRecord) -> bool {
+        rec.snapshot.validate().is_ok() && crate::estimation::kalman::is_psd(&rec.snapshot.covariance, 1e-6)
     }
 
     fn peer_message(&mut self, from: PlatformId, msg: MavMessage, out: &mut Vec<NodeOutput>) {
@@ -404,6 +789,7 @@ impl NodeCore {
             self.stats.unknown_platforms += 1;
             return;
         }
+        self.heard_at.insert(from, self.wall_us);
         match msg {
             MavMessage::COOPLOC_STATE_FRAGMENT(m) => {
                 let Ok(f) = wire::fragment_from_message(&m) else {
@@ -415,24 +801,41 @@ impl NodeCore {
                     return;
                 }
                 match self.reassembler.push(&f) {
-                    Pushed::Complete(rec) => match record::decode(rec.platform, &rec.bytes) {
-                        Ok(snapshot) => {
+                    Pushed::Complete(rec) => match record::decode_record(rec.platform, TimeUs(rec.time_usec), &rec.bytes) {
+                        Ok(r) if Self::plausible(&r) && r.ranges.iter().all(|x| self.in_team(x.to)) => {
                             self.stats.records_received += 1;
+                            // A record of a recent epoch shows the member is back in step: it is
+                            // waited for again from the next epoch on, whether or not this one
+                            // was still open (the same rule on every node, so that they agree
+                            // on the team again after a stall, a restart or a late join).
+                            let recent = self.last_applied.is_none_or(|(last, _)| rec.epoch.saturating_add(RECENT_EPOCHS) > last);
                             if let Some(e) = self.learn_epoch(rec.epoch, TimeUs(rec.time_usec)) {
-                                e.records.insert(rec.platform, snapshot);
-                                // Back in step (a record for an epoch still open): waited for again.
+                                e.records.insert(rec.platform, r);
+                                self.absent.remove(&rec.platform);
+                            } else if recent {
                                 self.absent.remove(&rec.platform);
                             }
                         }
+                        Ok(_) => self.stats.records_implausible += 1,
                         Err(_) => self.stats.records_undecodable += 1,
                     },
                     Pushed::Rejected(_) => self.stats.fragments_rejected += 1,
-                    Pushed::Stored | Pushed::Duplicate => {}
+                    Pushed::Stored => {
+                        let wall = self.wall_us;
+                        if let Some(e) = self.epochs.get_mut(&f.epoch) {
+                            e.progress_at = wall;
+                        }
+                    }
+                    Pushed::Duplicate => {}
                 }
                 self.stats.records_incomplete += self.reassembler.take_dropped().len() as u64;
             }
             MavMessage::COOPLOC_RANGE(m) => match wire::range_from_message(&m) {
-                Ok((epoch, r)) if r.from == from && self.in_team(r.to) => self.add_range(epoch, r),
+                // The joint problem takes ranges from records; a peer's range only makes the
+                // epoch known early.
+                Ok((epoch, r)) if r.from == from && self.in_team(r.to) => {
+                    self.learn_epoch(epoch, r.t);
+                }
                 Ok(_) | Err(_) => self.stats.ranges_rejected += 1,
             },
             MavMessage::COOPLOC_EPOCH(m) => {
@@ -442,8 +845,8 @@ impl NodeCore {
                 }
                 if a.state == EpochState::COOPLOC_EPOCH_STATE_COLLECTING {
                     self.learn_epoch(a.epoch, a.t);
-                } else if let Some((_, ours)) = self.ran_on.iter().find(|(e, _)| *e == a.epoch) {
-                    if *ours != a.participants {
+                } else if let Some(ours) = self.ran_on.iter().find(|r| r.epoch == a.epoch) {
+                    if ours.participants != a.participants || ours.digest != a.digest {
                         self.stats.epoch_disagreements += 1;
                     }
                 } else if let Some(e) = self.epochs.get_mut(&a.epoch)
@@ -455,8 +858,9 @@ impl NodeCore {
                     // at the next retry.
                     e.early_request_sent = true;
                     e.last_status_at = self.wall_us;
-                    let (t, held) = (e.t.unwrap_or(a.t), e.records.keys().copied().collect());
-                    self.send_status(a.epoch, t, held, EpochState::COOPLOC_EPOCH_STATE_COLLECTING, out);
+                    let (t, held) = (e.t, e.records.keys().copied().collect());
+                    let digest = self.store_digest();
+                    self.send_status(a.epoch, t, held, EpochState::COOPLOC_EPOCH_STATE_COLLECTING, digest, out);
                 }
                 if !a.participants.contains(&self.cfg.id) && a.state == EpochState::COOPLOC_EPOCH_STATE_COLLECTING {
                     self.resend(a.epoch, out);
@@ -487,22 +891,29 @@ impl NodeCore {
     /// in order: only the lowest open epoch is broadcast or run.
     fn advance(&mut self, out: &mut Vec<NodeOutput>) {
         while let Some((&epoch, e)) = self.epochs.first_key_value() {
-            let Some(t) = e.t else {
-                self.epochs.remove(&epoch);
-                continue;
-            };
+            let t = e.t;
             if e.broadcast_at.is_none() {
-                if t < self.history[0].0 {
+                // Epoch ids are consecutive: one we have not heard of lies before this one. Our
+                // record of this one would not carry its update, so wait (a timeout at most)
+                // for it to become known rather than broadcast too early.
+                let gap = self.last_applied.is_some_and(|(last, _)| epoch > last.saturating_add(1));
+                if gap {
+                    let since = *self.gap_since.get_or_insert(self.wall_us);
+                    if self.wall_us < since + self.cfg.epoch_timeout_us {
+                        return;
+                    }
+                }
+                self.gap_since = None;
+                if t <= self.history[0].0 && self.checkpoint_at(t).is_none() {
                     // Before our start or beyond our history: we cannot take part.
                     self.stats.epochs_skipped += 1;
                     self.finish_epoch(epoch);
                     continue;
                 }
-                if self.checkpoint_at(t).is_none() {
-                    // Not there yet (wait), or passed without an instant at `t` (a lost IMU
-                    // sample): we cannot take part; the peers time out on us.
-                    let passed = self.history.back().is_some_and(|(tc, _)| *tc > t);
-                    if passed {
+                let due = self.ended || self.filter.time().0 >= t.0.saturating_add(self.cfg.range_grace_us);
+                if !due || self.checkpoint_at(t).is_none() {
+                    if due {
+                        // Passed and no instant at `t` (the rebuild failed): cannot take part.
                         self.stats.epochs_skipped += 1;
                         self.finish_epoch(epoch);
                         continue;
@@ -512,21 +923,34 @@ impl NodeCore {
                 self.broadcast(epoch, t, out);
                 continue;
             }
-            let expected: Vec<PlatformId> = self.cfg.team.iter().copied().filter(|p| !self.absent.contains(p)).collect();
-            let complete = expected.iter().all(|p| e.records.contains_key(p));
-            let waited = self.wall_us.saturating_sub(e.broadcast_at.unwrap_or(0));
+            // Members found absent are not waited for until a recent record of theirs arrives
+            // (waiting for them briefly was tried: it makes nodes race on the set they run).
+            let missing: Vec<PlatformId> =
+                self.cfg.team.iter().copied().filter(|p| !self.absent.contains(p) && !e.records.contains_key(p)).collect();
+            let complete = missing.is_empty();
+            // The timeout runs from our broadcast, or from the last fragment of a missing
+            // record (a lossy link still delivering), up to MAX_WAIT_FACTOR timeouts in all.
+            let since = e.broadcast_at.unwrap_or(0);
+            let waited = self.wall_us.saturating_sub(since.max(e.progress_at));
+            let waited_in_all = self.wall_us.saturating_sub(since);
             let lagging = self.filter.time().0.saturating_sub(t.0) >= self.cfg.max_lag_us;
             if complete {
                 self.run_epoch(epoch, false, out);
-            } else if waited >= self.cfg.epoch_timeout_us || lagging {
-                let missing: Vec<PlatformId> = expected.into_iter().filter(|p| !e.records.contains_key(p)).collect();
-                self.absent.extend(missing);
+            } else if waited >= self.cfg.epoch_timeout_us
+                || waited_in_all >= MAX_WAIT_FACTOR * self.cfg.epoch_timeout_us
+                || lagging
+            {
+                // Absent: the members we have not heard from at all while we waited. One still
+                // talking is alive on a lossy link: it is waited for again at the next epoch.
+                let silent = missing.into_iter().filter(|p| self.heard_at.get(p).is_none_or(|&h| h < since));
+                self.absent.extend(silent);
                 self.run_epoch(epoch, true, out);
             } else {
                 if self.wall_us >= e.last_status_at + self.cfg.retry_us {
                     let held: Vec<PlatformId> = e.records.keys().copied().collect();
                     self.epochs.get_mut(&epoch).expect("first").last_status_at = self.wall_us;
-                    self.send_status(epoch, t, held, EpochState::COOPLOC_EPOCH_STATE_COLLECTING, out);
+                    let digest = self.store_digest();
+                    self.send_status(epoch, t, held, EpochState::COOPLOC_EPOCH_STATE_COLLECTING, digest, out);
                 }
                 return;
             }
@@ -539,25 +963,32 @@ impl NodeCore {
         t: TimeUs,
         participants: Vec<PlatformId>,
         state: EpochState,
+        digest: u64,
         out: &mut Vec<NodeOutput>,
     ) {
-        let a = wire::EpochAnnouncement { epoch, t, announcer: self.cfg.id, participants, state };
+        let a = wire::EpochAnnouncement { epoch, t, announcer: self.cfg.id, participants, state, digest };
         if let Ok(m) = wire::epoch_to_message(&a) {
             out.push(NodeOutput::ToPeers(m));
             self.stats.epoch_messages_sent += 1;
         }
     }
 
-    /// Broadcasts our record of `epoch` (our checkpoint at `t`).
+    /// Broadcasts our record of `epoch` (our checkpoint at `t`, our store digest, our ranges).
     fn broadcast(&mut self, epoch: u32, t: TimeUs, out: &mut Vec<NodeOutput>) {
         let snapshot = self.checkpoint_at(t).expect("checked").snapshot(self.cfg.id);
-        let sent = record::encode(&snapshot, self.cfg.encoding).ok().and_then(|bytes| {
+        let e = self.epochs.get_mut(&epoch).expect("open");
+        let ours = StateRecord {
+            snapshot,
+            digest: if self.cfg.method == Method::Decentralized { self.cross.digest() } else { 0 },
+            flags: if self.fresh { FLAG_FRESH } else { 0 },
+            ranges: std::mem::take(&mut e.own_ranges),
+        };
+        let sent = record::encode_record(&ours, self.cfg.encoding).ok().and_then(|bytes| {
             let frags = fragment(self.cfg.id, epoch, t.0, &bytes).ok()?;
             let msgs: Vec<MavMessage> = frags.iter().filter_map(|f| wire::fragment_to_message(f).ok()).collect();
-            Some((record::decode(self.cfg.id, &bytes).ok()?, msgs))
+            Some((record::decode_record(self.cfg.id, t, &bytes).ok()?, msgs))
         });
         let wall = self.wall_us;
-        let e = self.epochs.get_mut(&epoch).expect("open");
         e.broadcast_at = Some(wall);
         e.last_status_at = wall;
         if let Some((own, msgs)) = sent {
@@ -572,99 +1003,148 @@ impl NodeCore {
     }
 
     fn finish_epoch(&mut self, epoch: u32) {
-        self.epochs.remove(&epoch);
-        self.last_applied = Some(self.last_applied.map_or(epoch, |l| l.max(epoch)));
-        self.reassembler.expire_before(epoch + 1);
+        if let Some(e) = self.epochs.remove(&epoch) {
+            let t = self.last_applied.map_or(e.t, |(_, tl)| tl.max(e.t));
+            self.last_applied = Some((self.last_applied.map_or(epoch, |(l, _)| l.max(epoch)), t));
+        }
+        self.reassembler.expire_before(epoch.saturating_add(1));
     }
 
-    /// The open instant is complete: checkpoint it, broadcast and run what is due, forget what
-    /// is older than the history (except the checkpoints of open epochs).
-    fn close_instant(&mut self, out: &mut Vec<NodeOutput>) {
-        let Some(t) = self.open_instant.take() else { return };
-        self.history.push_back((t, self.filter.clone()));
-        self.advance(out);
-        let horizon = t.0.saturating_sub(self.cfg.history_us);
-        let keep_from = self.epochs.values().filter_map(|e| e.t).map(|te| te.0).min().unwrap_or(u64::MAX).min(horizon);
-        while self.history.len() > 1 && self.history[0].0.0 < keep_from {
-            self.history.pop_front();
-        }
-        let oldest = self.history[0].0;
-        while self.inputs.front().is_some_and(|i| i.t() <= oldest) {
-            self.inputs.pop_front();
-        }
-    }
-
+    /// The joint update of `epoch` on the records held (see the module docs), then the report.
     fn run_epoch(&mut self, epoch: u32, partial: bool, out: &mut Vec<NodeOutput>) {
         let Some(e) = self.epochs.get(&epoch) else { return };
-        let Some(t) = e.t else { return };
-        let mut snapshots: Vec<Snapshot> = e.records.values().cloned().collect(); // sorted by platform id
-        let participants: Vec<PlatformId> = snapshots.iter().map(|s| s.id).collect();
-        let ranges: Vec<CoopMeasurement> = e
-            .ranges
-            .values()
-            .filter(|r| participants.contains(&r.from) && participants.contains(&r.to))
+        let t = e.t;
+        let records: Vec<StateRecord> = e.records.values().cloned().collect(); // sorted by platform id
+        let participants: Vec<PlatformId> = records.iter().map(|r| r.snapshot.id).collect();
+        let ranges: Vec<RangeSample> =
+            records.iter().flat_map(|r| r.ranges.iter().filter(|x| participants.contains(&x.to)).copied()).collect();
+        let measurements: Vec<CoopMeasurement> = ranges
+            .iter()
             .map(|r| CoopMeasurement::Range { from: r.from, to: r.to, range_m: r.range_m, sigma_m: r.sigma_m })
             .collect();
         self.finish_epoch(epoch);
         if partial {
             self.stats.epochs_partial += 1;
         }
-        let state = if partial { EpochState::COOPLOC_EPOCH_STATE_PARTIAL } else { EpochState::COOPLOC_EPOCH_STATE_APPLIED };
-        self.ran_on.push_back((epoch, participants.clone()));
+        let own_index = participants.iter().position(|&p| p == self.cfg.id);
+        let dcl = self.cfg.method == Method::Decentralized;
+        let agree = records.windows(2).all(|w| w[0].digest == w[1].digest);
+        if dcl && !agree {
+            self.stats.store_mismatches += 1;
+        }
+        let nothing_to_do =
+            own_index.is_none() || self.cfg.method == Method::DeadReckoning || (measurements.is_empty() && (agree || !dcl));
+        let mut state = if partial { EpochState::COOPLOC_EPOCH_STATE_PARTIAL } else { EpochState::COOPLOC_EPOCH_STATE_APPLIED };
+        let mut applied = None;
+        if nothing_to_do {
+            self.stats.epochs_skipped += 1;
+        } else {
+            let snapshots: Vec<_> = records.iter().map(|r| r.snapshot.clone()).collect();
+            // Every participant takes a weight: a member that has never applied an epoch may
+            // still be correlated with those that used its record (nodes that ran an epoch on
+            // different sets), so its FRESH flag is no proof of independence.
+            match self.joint_update(&snapshots, &measurements, agree, Vec::new()) {
+                Ok(result) => applied = Some(result),
+                Err(_) => {
+                    self.stats.epochs_failed += 1;
+                    state = EpochState::COOPLOC_EPOCH_STATE_FAILED;
+                }
+            }
+        }
+        if let Some((own, diag, gated)) = applied {
+            self.stats.ranges_gated += gated.len() as u64;
+            if self.replay_from_epoch(t, &own).is_err() {
+                // Our filter could not take its share: the store no longer matches it. Dropping
+                // the store makes the next epoch's digests differ, and the team heals.
+                self.cross.clear();
+                self.stats.epochs_failed += 1;
+                state = EpochState::COOPLOC_EPOCH_STATE_FAILED;
+            } else {
+                self.stats.epochs_applied += 1;
+                self.fresh = false;
+                self.report_update(epoch, t, &participants, &ranges, &gated, diag, out);
+            }
+        }
+        let digest = self.store_digest();
+        self.ran_on.push_back(RanOn { epoch, participants: participants.clone(), digest });
         if self.ran_on.len() > EPOCHS_REMEMBERED {
             self.ran_on.pop_front();
         }
-        if participants.contains(&self.cfg.id) {
-            self.send_status(epoch, t, participants.clone(), state, out);
+        if own_index.is_some() {
+            self.send_status(epoch, t, participants, state, digest, out);
         }
-        let own_index = participants.iter().position(|&p| p == self.cfg.id);
-        if own_index.is_none() || ranges.is_empty() || self.cfg.method == Method::DeadReckoning {
-            self.stats.epochs_skipped += 1;
-            return;
+    }
+
+    /// The method's joint update: exact when the stores agree, else (or when the exact one
+    /// fails) the bound. Returns our correction, the diagnostics and the gated measurements.
+    #[allow(clippy::type_complexity)]
+    fn joint_update(
+        &mut self,
+        snapshots: &[crate::estimation::Snapshot],
+        measurements: &[CoopMeasurement],
+        agree: bool,
+        independent: Vec<PlatformId>,
+    ) -> Result<(Correction, Option<crate::estimation::UpdateDiagnostics>, Vec<usize>), EstimationError> {
+        let own = |corrections: Vec<Correction>, id| corrections.into_iter().find(|c| c.id == id);
+        let id = self.cfg.id;
+        match self.cfg.method {
+            Method::NoPropagation => {
+                let opts = UpdateOptions { gate_chi2: self.gate, ..UpdateOptions::new(CrossMode::Ignore) };
+                let o = cooperative_update_with(&mut CrossCovariances::new(), snapshots, measurements, &opts)?;
+                let c = own(o.corrections, id).ok_or(EstimationError::UnknownPlatform(id))?;
+                Ok((c, Some(o.diagnostics), o.gated))
+            }
+            Method::Decentralized => {
+                let exact = UpdateOptions { gate_chi2: self.gate, ..UpdateOptions::new(CrossMode::Propagate) };
+                let bound =
+                    UpdateOptions { prior: JointPrior::Bound { independent, scope: BoundScope::Position }, ..exact.clone() };
+                let first = if agree { &exact } else { &bound };
+                let o = match cooperative_update_with(&mut self.cross, snapshots, measurements, first) {
+                    Ok(o) => o,
+                    Err(_) if agree => cooperative_update_with(&mut self.cross, snapshots, measurements, &bound)?,
+                    Err(e) => return Err(e),
+                };
+                if !o.weights.is_empty() {
+                    self.stats.heals += 1;
+                }
+                let c = own(o.corrections, id).ok_or(EstimationError::UnknownPlatform(id))?;
+                Ok((c, Some(o.diagnostics), o.gated))
+            }
+            Method::CovarianceIntersection => {
+                let c = own(ci_update(snapshots, measurements)?, id).ok_or(EstimationError::UnknownPlatform(id))?;
+                Ok((c, None, Vec::new()))
+            }
+            Method::DeadReckoning | Method::Centralized => Err(EstimationError::NotApplicable("no joint update")),
         }
-        type Diag = Option<crate::estimation::kalman::UpdateDiagnostics>;
-        let result: Result<(Vec<Correction>, Diag), EstimationError> = match self.cfg.method {
-            Method::NoPropagation => cooperative_update(&mut CrossCovariances::new(), &snapshots, &ranges, CrossMode::Ignore)
-                .map(|o| (o.corrections, Some(o.diagnostics))),
-            Method::Decentralized => cooperative_update(&mut self.cross, &snapshots, &ranges, CrossMode::Propagate)
-                .map(|o| (o.corrections, Some(o.diagnostics))),
-            Method::CovarianceIntersection => ci_update(&snapshots, &ranges).map(|c| (c, None)),
-            Method::DeadReckoning | Method::Centralized => unreachable!("refused at construction"),
-        };
-        let Ok((corrections, diag)) = result else {
-            self.stats.epochs_skipped += 1;
-            return;
-        };
-        snapshots.clear();
-        let own = corrections.into_iter().find(|c| c.id == self.cfg.id).expect("own record took part");
-        if self.rewind_and_replay(t, &own).is_err() {
-            self.stats.epochs_skipped += 1;
-            return;
-        }
-        self.stats.epochs_applied += 1;
+    }
+
+    #[allow(clippy::too_many_arguments)]
+    fn report_update(
+        &mut self,
+        epoch: u32,
+        t: TimeUs,
+        participants: &[PlatformId],
+        ranges: &[RangeSample],
+        gated: &[usize],
+        diag: Option<crate::estimation::UpdateDiagnostics>,
+        out: &mut Vec<NodeOutput>,
+    ) {
+        let used: Vec<&RangeSample> = ranges.iter().enumerate().filter(|(i, _)| !gated.contains(i)).map(|(_, r)| r).collect();
         let nis = diag.as_ref().map_or(f64::NAN, |d| d.nis);
-        self.last_event = Some((epoch, nis, participants.len() as u8, ranges.len() as u8));
+        self.last_event = Some((epoch, nis, participants.len() as u8, used.len() as u8));
         out.push(NodeOutput::Update(Box::new(CoopUpdateRecord {
             vehicle: self.cfg.id,
             epoch,
             t_us: t.0,
-            participants: participants.clone(),
-            ranges: ranges
-                .iter()
-                .filter_map(|r| match r {
-                    CoopMeasurement::Range { from, to, range_m, sigma_m } => {
-                        Some(RangeRecord { from: *from, to: *to, range_m: *range_m, sigma_m: *sigma_m })
-                    }
-                    _ => None,
-                })
-                .collect(),
+            participants: participants.to_vec(),
+            ranges: used.iter().map(|r| RangeRecord { from: r.from, to: r.to, range_m: r.range_m, sigma_m: r.sigma_m }).collect(),
             innovation: diag.as_ref().map(|d| d.innovation.iter().copied().collect()).unwrap_or_default(),
             innovation_sigma: diag
                 .as_ref()
                 .map(|d| d.innovation_cov.diagonal().iter().map(|v| v.sqrt()).collect())
                 .unwrap_or_default(),
             nis,
-            nis_dof: ranges.len() as u32,
+            nis_dof: used.len() as u32,
             nees: None,
             nees_dof: None,
         })));
@@ -675,40 +1155,11 @@ impl NodeCore {
 
     /// Restores the checkpoint at `t`, writes back the correction, and replays the inputs after
     /// `t`, rebuilding the checkpoints on the way.
-    fn rewind_and_replay(&mut self, t: TimeUs, own: &Correction) -> Result<(), EstimationError> {
+    fn replay_from_epoch(&mut self, t: TimeUs, own: &Correction) -> Result<(), EstimationError> {
         let Some(pos) = self.history.iter().position(|(tc, _)| *tc == t) else {
             return Err(EstimationError::NotApplicable("no checkpoint at the epoch's time"));
         };
-        let mut f = self.history[pos].1.clone();
-        f.apply_joint(&own.dx, &own.p)?;
-        let mut history: VecDeque<(TimeUs, InsFilter)> = self.history.drain(..pos).collect();
-        history.push_back((t, f.clone()));
-        let mut open: Option<TimeUs> = None;
-        let replay: Vec<Stamped> = self.inputs.iter().filter(|i| i.t() > t).cloned().collect();
-        for input in &replay {
-            match input {
-                Stamped::Imu(s) => {
-                    if let Some(tc) = open.take() {
-                        history.push_back((tc, f.clone()));
-                    }
-                    f.propagate(s)?;
-                    open = Some(s.t);
-                }
-                Stamped::Odometer(s) => {
-                    f.update_odometer(s)?;
-                }
-            }
-            self.stats.replayed_inputs += 1;
-        }
-        // The instant still open stays open (it is checkpointed when it closes).
-        if let (Some(tc), Some(now)) = (open, self.open_instant) {
-            debug_assert_eq!(tc, now);
-        } else if let Some(tc) = open {
-            history.push_back((tc, f.clone()));
-        }
-        self.history = history;
-        self.filter = f;
-        Ok(())
+        self.replay_from(pos, Some(own))
     }
 
     /// The vehicle's stream has ended: closes the open instant and broadcasts what is due
@@ -716,9 +1167,8 @@ impl NodeCore {
     /// [`NodeCore::run_pending`]).
     pub fn end_of_input(&mut self) -> Vec<NodeOutput> {
         let mut out = Vec::new();
-        if let Some(t) = self.open_instant.take() {
-            self.history.push_back((t, self.filter.clone()));
-        }
+        self.ended = true;
+        self.checkpoint_open();
         self.advance(&mut out);
         out
     }
@@ -728,16 +1178,14 @@ impl NodeCore {
     pub fn run_pending(&mut self) -> Vec<NodeOutput> {
         let mut out = Vec::new();
         while let Some((&epoch, e)) = self.epochs.first_key_value() {
-            match e.t {
-                Some(t) if e.broadcast_at.is_none() && self.checkpoint_at(t).is_some() => self.broadcast(epoch, t, &mut out),
-                Some(_) if e.broadcast_at.is_some() => {
-                    let complete = self.cfg.team.iter().all(|p| self.absent.contains(p) || e.records.contains_key(p));
-                    self.run_epoch(epoch, !complete, &mut out);
-                }
-                _ => {
-                    self.stats.epochs_skipped += 1;
-                    self.finish_epoch(epoch);
-                }
+            if e.broadcast_at.is_none() && self.checkpoint_at(e.t).is_some() {
+                self.broadcast(epoch, e.t, &mut out);
+            } else if e.broadcast_at.is_some() {
+                let complete = self.cfg.team.iter().all(|p| self.absent.contains(p) || e.records.contains_key(p));
+                self.run_epoch(epoch, !complete, &mut out);
+            } else {
+                self.stats.epochs_skipped += 1;
+                self.finish_epoch(epoch);
             }
         }
         out

@@ -247,6 +247,9 @@ fn heartbeat() -> MavMessage {
 /// net.core.rmem_max).
 const COOP_RECV_BUFFER: usize = 4 << 20;
 
+/// Ticks come every 25 ms; a gap this long between two means the process itself was frozen.
+const FROZEN_TICK_GAP: Duration = Duration::from_millis(500);
+
 /// Binds the cooperative-network socket with a large receive buffer.
 pub fn bind_coop(addr: SocketAddr) -> std::io::Result<UdpSocket> {
     use socket2::{Domain, Protocol, Socket, Type};
@@ -324,6 +327,7 @@ pub async fn run(
     let mut tick = tokio::time::interval(Duration::from_millis(25));
     let mut beats = 0u32;
     let mut last_vehicle = tokio::time::Instant::now();
+    let mut last_tick = tokio::time::Instant::now();
     let mut heard_vehicle = false;
     let mut ending: Option<tokio::time::Instant> = None;
     let mut buf = vec![0u8; 2048];
@@ -334,6 +338,14 @@ pub async fn run(
         let inputs: Vec<NodeInput> = tokio::select! {
             _ = &mut shutdown => break,
             _ = tick.tick() => {
+                // A tick long after the last one: this process was frozen (SIGSTOP, a stalled
+                // machine). The silence was ours, not the vehicle's: start its idle clock again.
+                let now_tick = tokio::time::Instant::now();
+                if now_tick.duration_since(last_tick) > FROZEN_TICK_GAP {
+                    tracing::warn!(platform = id, gap_ms = now_tick.duration_since(last_tick).as_millis() as u64, "node was frozen");
+                    last_vehicle = now_tick;
+                }
+                last_tick = now_tick;
                 if let (Some(idle), true, None) = (links.idle_exit, heard_vehicle, ending)
                     && last_vehicle.elapsed() >= idle
                 {

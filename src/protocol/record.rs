@@ -15,6 +15,15 @@
 //! | 32 | f64 | nominal yaw, rad (0 when there is no heading) |
 //! | 40 | n(n+1)/2 values | covariance, upper triangle, row major |
 //! | .. | n*n values | recursive coefficient matrix Psi, row major |
+//! | .. | u64 | digest of the sender's cross-covariance store before this epoch (0: none kept) |
+//! | .. | u8 | flags: bit 0 `FRESH` (initialised independently of every teammate, no epoch run yet) |
+//! | .. | u8 | number `k` of ranges the sender's radio measured at this epoch (0..=32) |
+//! | .. | k x (u16, f32, f32) | each range: platform ranged to, distance m, sigma m |
+//!
+//! The trailer makes a record the sender's whole contribution to the epoch's joint problem: its
+//! state, its ranges and the digest every receiver compares with its own store. A node that holds
+//! a platform's record therefore holds that platform's ranges too, resends included, and nodes
+//! that hold the same records solve the same problem.
 //!
 //! **Quantisation rule.** Every node, the sender included, runs the joint update on the snapshot
 //! that [`decode`] returns for the bytes that went on the wire, never on its own unrounded
@@ -24,10 +33,19 @@
 
 use nalgebra::{DMatrix, Vector3};
 
-use crate::estimation::{Geometry, Heading, PlatformId, Snapshot};
+use crate::estimation::{Geometry, Heading, PlatformId, RangeSample, Snapshot};
+use crate::time::TimeUs;
 
 /// Record format version.
-pub const RECORD_VERSION: u8 = 1;
+pub const RECORD_VERSION: u8 = 2;
+/// Most ranges one record carries.
+pub const MAX_RANGES: usize = 32;
+/// Trailer bytes before the ranges: digest, flags, count.
+const TRAILER_LEN: usize = 10;
+const RANGE_LEN: usize = 10;
+/// Record flag: the sender was initialised independently of every teammate and has run no
+/// epoch since (a fresh or late joiner): its error is uncorrelated with everyone's.
+pub const FLAG_FRESH: u8 = 1;
 /// Largest error-state dimension a record may carry.
 pub const MAX_DIM: usize = 64;
 const HEADER_LEN: usize = 40;
@@ -65,10 +83,31 @@ pub enum RecordError {
     Index { index: i8, dim: usize },
     #[error("non-finite value in the state record ({0})")]
     NonFinite(&'static str),
+    #[error("state record carries {0} ranges, at most {MAX_RANGES}")]
+    TooManyRanges(usize),
+    #[error("state record range {index} is not usable: {why}")]
+    Range { index: usize, why: &'static str },
+    #[error("state record has unknown flags {0:#04x}")]
+    Flags(u8),
 }
 
-/// Bytes of a record of dimension `n` in `encoding`.
+/// One platform's contribution to an epoch: its state, the digest of its cross-covariance
+/// store before the epoch, its flags and the ranges its radio measured.
+#[derive(Debug, Clone, PartialEq)]
+pub struct StateRecord {
+    pub snapshot: Snapshot,
+    pub digest: u64,
+    pub flags: u8,
+    /// Ranges measured by this platform (`from` = its id), at the epoch's time.
+    pub ranges: Vec<RangeSample>,
+}
+
+/// Bytes of a record of dimension `n` in `encoding` carrying no range.
 pub fn record_len(n: usize, encoding: Encoding) -> usize {
+    matrices_end(n, encoding) + TRAILER_LEN
+}
+
+fn matrices_end(n: usize, encoding: Encoding) -> usize {
     HEADER_LEN + (n * (n + 1) / 2 + n * n) * encoding.width()
 }
 
@@ -76,9 +115,29 @@ fn index_byte(i: Option<usize>) -> i8 {
     i.map_or(-1, |v| v as i8)
 }
 
-/// Serialises a snapshot. Fails on a dimension above [`MAX_DIM`] or a non-finite value.
+/// Serialises a snapshot alone (no digest, no flag, no range).
 pub fn encode(s: &Snapshot, encoding: Encoding) -> Result<Vec<u8>, RecordError> {
+    encode_record(&StateRecord { snapshot: s.clone(), digest: 0, flags: 0, ranges: Vec::new() }, encoding)
+}
+
+/// Serialises a record. Fails on a dimension above [`MAX_DIM`], a non-finite value, more than
+/// [`MAX_RANGES`] ranges or a range that does not start at the record's platform. Ranges are
+/// written as f32 (see [`crate::protocol::wire::range_as_sent`]).
+pub fn encode_record(rec: &StateRecord, encoding: Encoding) -> Result<Vec<u8>, RecordError> {
+    let s = &rec.snapshot;
     let n = s.dim();
+    if rec.ranges.len() > MAX_RANGES {
+        return Err(RecordError::TooManyRanges(rec.ranges.len()));
+    }
+    if rec.flags & !FLAG_FRESH != 0 {
+        return Err(RecordError::Flags(rec.flags));
+    }
+    for (index, r) in rec.ranges.iter().enumerate() {
+        check_range(index, s.id, r.to, r.range_m, r.sigma_m)?;
+        if r.from != s.id {
+            return Err(RecordError::Range { index, why: "measured by another platform" });
+        }
+    }
     if n == 0 || n > MAX_DIM {
         return Err(RecordError::Dimension(n));
     }
@@ -117,12 +176,39 @@ pub fn encode(s: &Snapshot, encoding: Encoding) -> Result<Vec<u8>, RecordError> 
             put(s.psi[(r, c)]);
         }
     }
+    out.extend_from_slice(&rec.digest.to_le_bytes());
+    out.push(rec.flags);
+    out.push(rec.ranges.len() as u8);
+    for r in &rec.ranges {
+        out.extend_from_slice(&r.to.to_le_bytes());
+        out.extend_from_slice(&(r.range_m as f32).to_le_bytes());
+        out.extend_from_slice(&(r.sigma_m as f32).to_le_bytes());
+    }
     Ok(out)
 }
 
-/// Reads a record back into the snapshot of platform `id`: exactly the values that went on the
-/// wire. Any malformed input is an error, never a panic.
+fn check_range(index: usize, from: PlatformId, to: PlatformId, range_m: f64, sigma_m: f64) -> Result<(), RecordError> {
+    let why = if to == from {
+        "a range to the sender itself"
+    } else if !(range_m.is_finite() && range_m >= 0.0) {
+        "distance not finite and non-negative"
+    } else if !(sigma_m.is_finite() && sigma_m > 0.0) {
+        "sigma not finite and positive"
+    } else {
+        return Ok(());
+    };
+    Err(RecordError::Range { index, why })
+}
+
+/// Reads a record back into the snapshot of platform `id` (see [`decode_record`]).
 pub fn decode(id: PlatformId, bytes: &[u8]) -> Result<Snapshot, RecordError> {
+    decode_record(id, TimeUs(0), bytes).map(|r| r.snapshot)
+}
+
+/// Reads a record of platform `id` back: exactly the values that went on the wire; its ranges
+/// are stamped `t` (the epoch's time, carried by the fragments). Any malformed input is an
+/// error, never a panic.
+pub fn decode_record(id: PlatformId, t: TimeUs, bytes: &[u8]) -> Result<StateRecord, RecordError> {
     if bytes.len() < HEADER_LEN {
         return Err(RecordError::TooShort { got: bytes.len(), need: HEADER_LEN });
     }
@@ -138,9 +224,31 @@ pub fn decode(id: PlatformId, bytes: &[u8]) -> Result<Snapshot, RecordError> {
     if n == 0 || n > MAX_DIM {
         return Err(RecordError::Dimension(n));
     }
-    let expected = record_len(n, encoding);
+    let end = matrices_end(n, encoding);
+    if bytes.len() < end + TRAILER_LEN {
+        return Err(RecordError::LengthMismatch { got: bytes.len(), expected: end + TRAILER_LEN });
+    }
+    let digest = u64::from_le_bytes(bytes[end..end + 8].try_into().expect("8 bytes"));
+    let flags = bytes[end + 8];
+    if flags & !FLAG_FRESH != 0 {
+        return Err(RecordError::Flags(flags));
+    }
+    let k = bytes[end + 9] as usize;
+    if k > MAX_RANGES {
+        return Err(RecordError::TooManyRanges(k));
+    }
+    let expected = end + TRAILER_LEN + k * RANGE_LEN;
     if bytes.len() != expected {
         return Err(RecordError::LengthMismatch { got: bytes.len(), expected });
+    }
+    let mut ranges = Vec::with_capacity(k);
+    for index in 0..k {
+        let o = end + TRAILER_LEN + index * RANGE_LEN;
+        let to = u16::from_le_bytes([bytes[o], bytes[o + 1]]);
+        let range_m = f32::from_le_bytes(bytes[o + 2..o + 6].try_into().expect("4 bytes")) as f64;
+        let sigma_m = f32::from_le_bytes(bytes[o + 6..o + 10].try_into().expect("4 bytes")) as f64;
+        check_range(index, id, to, range_m, sigma_m)?;
+        ranges.push(RangeSample { t, from: id, to, range_m, sigma_m });
     }
     let index = |b: u8| -> Result<Option<usize>, RecordError> {
         match b as i8 {
@@ -185,7 +293,7 @@ pub fn decode(id: PlatformId, bytes: &[u8]) -> Result<Snapshot, RecordError> {
     if !covariance.iter().chain(psi.iter()).all(|v| v.is_finite()) {
         return Err(RecordError::NonFinite("covariance or Psi"));
     }
-    Ok(Snapshot {
+    let snapshot = Snapshot {
         id,
         geometry: Geometry {
             position_ned_m: position,
@@ -194,5 +302,6 @@ pub fn decode(id: PlatformId, bytes: &[u8]) -> Result<Snapshot, RecordError> {
         },
         covariance,
         psi,
-    })
+    };
+    Ok(StateRecord { snapshot, digest, flags, ranges })
 }

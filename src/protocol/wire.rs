@@ -173,6 +173,8 @@ pub struct EpochAnnouncement {
     pub announcer: PlatformId,
     pub participants: Vec<PlatformId>,
     pub state: EpochState,
+    /// The announcer's store digest (see COOPLOC_EPOCH.digest); 0 when it keeps none.
+    pub digest: u64,
 }
 
 /// Where a node is with an epoch (COOPLOC_EPOCH_STATE).
@@ -194,6 +196,7 @@ pub fn epoch_to_message(a: &EpochAnnouncement) -> Result<MavMessage, WireError> 
         participants,
         count: a.participants.len() as u8,
         state: a.state,
+        digest: a.digest,
     }))
 }
 
@@ -208,7 +211,14 @@ pub fn epoch_from_message(m: &COOPLOC_EPOCH_DATA) -> Result<EpochAnnouncement, W
             return Err(bad("COOPLOC_EPOCH", "participants", format!("platform {p} listed twice")));
         }
     }
-    Ok(EpochAnnouncement { epoch: m.epoch, t: TimeUs(m.time_usec), announcer: m.announcer, participants, state: m.state })
+    Ok(EpochAnnouncement {
+        epoch: m.epoch,
+        t: TimeUs(m.time_usec),
+        announcer: m.announcer,
+        participants,
+        state: m.state,
+        digest: m.digest,
+    })
 }
 
 // ---- estimate report ----

@@ -657,6 +657,15 @@ impl InsFilter {
         self.t
     }
 
+    /// Moves the filter's clock to `t` without propagating: for a filter initialised at a time
+    /// that turns out not to be the vehicle's (a node started late with an initial state meant
+    /// for "now"). The state and covariance are kept; the previous IMU increments are forgotten.
+    pub fn restart_clock(&mut self, t: TimeUs) {
+        self.t = t;
+        self.prev_dtheta = Vector3::zeros();
+        self.prev_dv = Vector3::zeros();
+    }
+
     /// The nominal state.
     pub fn state(&self) -> &InsState {
         &self.x

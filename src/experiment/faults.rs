@@ -1,0 +1,492 @@
+//! Fault injection: a team of node cores ([`crate::node::core`]) run over a simulated network and
+//! simulated vehicle links that lose, delay and reorder, with nodes that stall, die and restart,
+//! join late and leave. Deterministic: every random choice comes from the seed, and wall time is
+//! the vehicle's time (real-time operation), so a case and a seed always give the same numbers.
+//!
+//! What a run measures, per node: the horizontal error and its 2-D NEES against the truth at the
+//! end of the fault window and at the end of the run, the dead-reckoning error of the same inputs,
+//! the node's counters; for the team: the epochs at which the nodes that ran them hold different
+//! store digests (a disagreement, seen from outside), the detections the nodes counted
+//! themselves, and the last epoch at which they still disagreed.
+
+use std::cmp::Reverse;
+use std::collections::{BTreeMap, BinaryHeap};
+
+use rand::{Rng, SeedableRng};
+use rand_chacha::ChaCha8Rng;
+use serde::Serialize;
+
+use super::{ExperimentError, ins_settings, run_filter, state_from};
+use crate::estimation::{Method, PlatformId};
+use crate::node::core::{NodeConfig, NodeCore, NodeInput, NodeOutput, NodeStats};
+use crate::protocol::MavMessage;
+use crate::protocol::record::Encoding;
+use crate::sitl::world::{SimEvent, World};
+use crate::time::TimeUs;
+
+/// A window of vehicle time during which one node (index into the team) is affected.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize)]
+pub struct Outage {
+    pub node: usize,
+    pub from_s: f64,
+    pub until_s: f64,
+}
+
+impl Outage {
+    fn covers(&self, node: usize, t: TimeUs) -> bool {
+        node == self.node && t.as_secs_f64() >= self.from_s && t.as_secs_f64() < self.until_s
+    }
+}
+
+/// What goes wrong in one case. Link faults apply from 0 s to `links_until_s`.
+#[derive(Debug, Clone, PartialEq, Serialize, Default)]
+pub struct Faults {
+    /// Probability that a datagram on the cooperative network is lost (per receiver).
+    pub coop_loss: f64,
+    /// Probability that a frame on a vehicle link (IMU, odometer, range) is lost.
+    pub vehicle_loss: f64,
+    /// Latency of each cooperative datagram, uniform in this range, ms (random latencies
+    /// reorder datagrams).
+    pub delay_ms: (u64, u64),
+    /// The end of the link faults (loss, delay), s of vehicle time.
+    pub links_until_s: f64,
+    /// The IMU frame at this epoch's instant never reaches this node: (node, epoch).
+    pub drop_imu_at_epoch: Option<(usize, u32)>,
+    /// The node is frozen (SIGSTOP): what it would have received waits in its sockets.
+    pub stall: Option<Outage>,
+    /// The node is dead: what is sent to it is lost; it restarts from an independent fix.
+    pub kill: Option<Outage>,
+    /// The node starts only at this time, s.
+    pub join: Option<(usize, f64)>,
+    /// The node's cooperative radio is out of range (both ways); its vehicle link is not.
+    pub leave: Option<Outage>,
+}
+
+impl Faults {
+    /// When the last fault ends (0 for none), s.
+    pub fn end_s(&self) -> f64 {
+        let link = if self.coop_loss > 0.0 || self.vehicle_loss > 0.0 || self.delay_ms.1 > 0 { self.links_until_s } else { 0.0 };
+        [self.stall, self.kill, self.leave]
+            .iter()
+            .flatten()
+            .map(|o| o.until_s)
+            .chain(self.join.map(|(_, t)| t))
+            .fold(link, f64::max)
+    }
+}
+
+/// A named case.
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct FaultCase {
+    pub name: &'static str,
+    pub faults: Faults,
+}
+
+/// The cases of issue 10's fault-injection table, on the paper scenario (380 s, 1 Hz ranging).
+/// Link faults last until 340 s so that recovery can be seen before the end.
+pub fn standard_cases() -> Vec<FaultCase> {
+    let links = |coop_loss, vehicle_loss, delay_ms| Faults {
+        coop_loss,
+        vehicle_loss,
+        delay_ms,
+        links_until_s: 340.0,
+        ..Faults::default()
+    };
+    let node3 = |from_s, until_s| Some(Outage { node: 2, from_s, until_s });
+    vec![
+        FaultCase { name: "fault-free", faults: Faults::default() },
+        FaultCase { name: "coop loss 1%", faults: links(0.01, 0.0, (0, 0)) },
+        FaultCase { name: "coop loss 10%", faults: links(0.10, 0.0, (0, 0)) },
+        FaultCase { name: "coop loss 30%", faults: links(0.30, 0.0, (0, 0)) },
+        FaultCase { name: "coop loss 50%", faults: links(0.50, 0.0, (0, 0)) },
+        FaultCase { name: "vehicle loss 0.5%", faults: links(0.0, 0.005, (0, 0)) },
+        FaultCase { name: "vehicle loss 5%", faults: links(0.0, 0.05, (0, 0)) },
+        FaultCase {
+            name: "IMU frame lost at an epoch",
+            faults: Faults { drop_imu_at_epoch: Some((0, 50)), ..Faults::default() },
+        },
+        FaultCase { name: "delay 0-300 ms, reordered", faults: links(0.0, 0.0, (0, 300)) },
+        FaultCase { name: "node 3 stalled 3 s", faults: Faults { stall: node3(150.0, 153.0), ..Faults::default() } },
+        FaultCase { name: "node 3 stalled 10 s", faults: Faults { stall: node3(150.0, 160.0), ..Faults::default() } },
+        FaultCase { name: "node 3 killed, back after 20 s", faults: Faults { kill: node3(114.0, 134.0), ..Faults::default() } },
+        FaultCase { name: "node 3 joins at 100 s", faults: Faults { join: Some((2, 100.0)), ..Faults::default() } },
+        FaultCase { name: "node 3 leaves for 60 s", faults: Faults { leave: node3(150.0, 210.0), ..Faults::default() } },
+    ]
+}
+
+/// One node's outcome.
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct NodeOutcome {
+    pub id: PlatformId,
+    /// Horizontal error at the end of the fault window (the end of the run when there is no
+    /// window), m, and its 2-D NEES.
+    pub fault_end_err_m: f64,
+    pub fault_end_nees: f64,
+    /// Horizontal error and 2-D NEES at the end of the run.
+    pub final_err_m: f64,
+    pub final_nees: f64,
+    /// Square root of the trace of the final horizontal covariance, m.
+    pub final_sigma_m: f64,
+    /// Dead reckoning's final horizontal error on the same inputs, m.
+    pub dr_final_err_m: f64,
+    #[serde(skip)]
+    pub stats: NodeStats,
+}
+
+/// One run of one case.
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct RunOutcome {
+    pub nodes: Vec<NodeOutcome>,
+    /// Epochs after which the nodes that resolved them held different store digests.
+    pub divergent_epochs: u32,
+    /// The last such epoch.
+    pub last_divergent_epoch: Option<u32>,
+    /// The last epoch at or before the end of the faults (0: none).
+    pub fault_end_epoch: u32,
+    /// Disagreements the nodes detected themselves (reported disagreements plus store
+    /// mismatches, summed over nodes).
+    pub detections: u64,
+}
+
+struct Node {
+    core: Option<NodeCore>,
+    /// Inputs waiting while the node is frozen.
+    backlog: Vec<NodeInput>,
+    /// Epoch -> store digest, recorded when the node resolves it.
+    digests: BTreeMap<u32, u64>,
+    last_seen: Option<u32>,
+}
+
+/// The team, its network and the fault schedule.
+struct Sim<'a> {
+    case: &'a Faults,
+    ids: Vec<PlatformId>,
+    nodes: Vec<Node>,
+    rng: ChaCha8Rng,
+    /// (deliver at, sequence, receiver): the datagram in `in_flight` under that sequence.
+    net: BinaryHeap<Reverse<(u64, u64, usize)>>,
+    in_flight: BTreeMap<u64, (PlatformId, MavMessage)>,
+    seq: u64,
+}
+
+impl Sim<'_> {
+    fn links_active(&self, t: TimeUs) -> bool {
+        t.as_secs_f64() < self.case.links_until_s
+    }
+
+    fn cut(&self, k: usize, t: TimeUs) -> bool {
+        self.case.leave.is_some_and(|o| o.covers(k, t))
+    }
+
+    fn stalled(&self, k: usize, t: TimeUs) -> bool {
+        self.case.stall.is_some_and(|o| o.covers(k, t))
+    }
+
+    /// Puts what node `k` sent at `now` on the network, one datagram per receiver.
+    fn send(&mut self, k: usize, out: Vec<NodeOutput>, now: TimeUs) {
+        for o in out {
+            let NodeOutput::ToPeers(msg) = o else { continue };
+            for j in (0..self.ids.len()).filter(|&j| j != k) {
+                if self.cut(k, now) || self.cut(j, now) {
+                    continue;
+                }
+                let mut at = now.0;
+                if self.links_active(now) {
+                    if self.case.coop_loss > 0.0 && self.rng.random::<f64>() < self.case.coop_loss {
+                        continue;
+                    }
+                    let (lo, hi) = self.case.delay_ms;
+                    if hi > 0 {
+                        at += self.rng.random_range(lo..=hi) * 1000;
+                    }
+                }
+                self.seq += 1;
+                self.in_flight.insert(self.seq, (self.ids[k], msg.clone()));
+                self.net.push(Reverse((at, self.seq, j)));
+            }
+        }
+    }
+
+    /// Hands `input` to node `k` at `now`: lost if it is dead, queued if it is frozen.
+    fn deliver(&mut self, k: usize, input: NodeInput, now: TimeUs) {
+        if self.stalled(k, now) {
+            if self.nodes[k].core.is_some() {
+                self.nodes[k].backlog.push(input);
+            }
+            return;
+        }
+        let Some(core) = self.nodes[k].core.as_mut() else { return };
+        let out = core.handle(input);
+        self.send(k, out, now);
+    }
+
+    fn poll(&mut self, k: usize, now: TimeUs) {
+        if let Some(core) = self.nodes[k].core.as_mut() {
+            let out = core.poll(now.0);
+            self.send(k, out, now);
+        }
+    }
+
+    /// Delivers every datagram due by `now`.
+    fn network(&mut self, now: TimeUs) {
+        while let Some(Reverse((at, s, j))) = self.net.peek().copied() {
+            if at > now.0 {
+                break;
+            }
+            self.net.pop();
+            if let Some((from, msg)) = self.in_flight.remove(&s) {
+                self.deliver(j, NodeInput::Peer { from, msg: Box::new(msg) }, TimeUs(at));
+            }
+        }
+    }
+
+    fn lose_vehicle_frame(&mut self, t: TimeUs) -> bool {
+        self.links_active(t) && self.case.vehicle_loss > 0.0 && self.rng.random::<f64>() < self.case.vehicle_loss
+    }
+}
+
+/// Horizontal error (truth minus estimate) and its 2-D NEES.
+fn horizontal_error(world: &World, id: PlatformId, core: &NodeCore) -> (f64, f64) {
+    let f = core.filter();
+    let truth = world.trajectory(id).expect("team member").truth_at(f.time());
+    let e = truth.pos_ned_m - f.position_ned_m();
+    let p = f.covariance16();
+    let (a, b, c) = (p[(0, 0)], p[(0, 1)], p[(1, 1)]);
+    let det = a * c - b * b;
+    let nees = if det > 0.0 { (c * e[0] * e[0] - 2.0 * b * e[0] * e[1] + a * e[1] * e[1]) / det } else { f64::INFINITY };
+    (e.xy().norm(), nees)
+}
+
+/// Runs one case once (`seed`, `run`) with method `method` on `schedule`.
+pub fn run_case(
+    world: &World,
+    case: &Faults,
+    method: Method,
+    schedule: &str,
+    seed: u64,
+    run: u32,
+) -> Result<RunOutcome, ExperimentError> {
+    let ids = world.platform_ids();
+    let (ins, sigma) = ins_settings(world);
+    let make = |id: PlatformId, at: Option<TimeUs>| -> Result<NodeCore, ExperimentError> {
+        let init = match at {
+            None => world.initial_estimate(seed, run, id)?,
+            Some(t) => world.estimate_at(seed, run, id, t, 1)?,
+        };
+        let (t0, state) = state_from(init)?;
+        let cfg = NodeConfig::new(id, method, ins, sigma, Encoding::F64, ids.clone());
+        NodeCore::new(cfg, t0, state).map_err(|e| ExperimentError::Settings(format!("node {id}: {e}")))
+    };
+    let mut nodes = Vec::new();
+    for (k, &id) in ids.iter().enumerate() {
+        let late = case.join.is_some_and(|(n, _)| n == k);
+        let core = if late { None } else { Some(make(id, None)?) };
+        nodes.push(Node { core, backlog: Vec::new(), digests: BTreeMap::new(), last_seen: None });
+    }
+    let epoch_times: Vec<TimeUs> = world.ranges(schedule, seed, run)?.into_iter().map(|(t, _)| t).collect();
+    let dropped_imu = case.drop_imu_at_epoch.and_then(|(k, e)| Some((k, *epoch_times.get((e as usize).checked_sub(1)?)?)));
+    let mut sim = Sim {
+        case,
+        ids: ids.clone(),
+        nodes,
+        rng: ChaCha8Rng::seed_from_u64(seed ^ (u64::from(run) << 32) ^ 0x5eed_fa17),
+        net: BinaryHeap::new(),
+        in_flight: BTreeMap::new(),
+        seq: 0,
+    };
+    let index = |id: PlatformId| ids.iter().position(|&p| p == id).expect("team member");
+    let fault_end = TimeUs((case.end_s() * 1e6) as u64);
+    let mut at_fault_end: Vec<Option<(f64, f64)>> = vec![None; ids.len()];
+    let (mut epoch, mut last_poll, mut next_second, mut restarted) = (0u32, 0u64, 1u64, false);
+
+    for event in world.events(schedule, seed, run)? {
+        let now = event.time();
+        sim.network(now);
+        // Membership: kills, restarts, joins, wake-ups.
+        for (k, &id) in ids.iter().enumerate() {
+            if case.kill.is_some_and(|o| o.covers(k, now)) {
+                sim.nodes[k].core = None;
+            }
+            let restart = case.kill.is_some_and(|o| o.node == k && !restarted && now.as_secs_f64() >= o.until_s);
+            let join = case.join.is_some_and(|(n, t)| n == k && sim.nodes[k].core.is_none() && now.as_secs_f64() >= t);
+            if restart || join {
+                restarted |= restart;
+                sim.nodes[k].core = Some(make(id, Some(now))?);
+                sim.nodes[k].last_seen = None;
+            }
+            if !sim.stalled(k, now) && !sim.nodes[k].backlog.is_empty() {
+                // Awake: the timers fire first, then what waited in the sockets.
+                sim.poll(k, now);
+                for input in std::mem::take(&mut sim.nodes[k].backlog) {
+                    sim.deliver(k, input, now);
+                }
+            }
+        }
+        if now.0 >= last_poll + 10_000 {
+            last_poll = now.0;
+            for k in 0..ids.len() {
+                if !sim.stalled(k, now) {
+                    sim.poll(k, now);
+                }
+            }
+        }
+        if now.0 >= next_second * 1_000_000 {
+            next_second += 1;
+            if now >= fault_end {
+                for k in 0..ids.len() {
+                    if at_fault_end[k].is_none()
+                        && let Some(core) = &sim.nodes[k].core
+                    {
+                        at_fault_end[k] = Some(horizontal_error(world, ids[k], core));
+                    }
+                }
+            }
+        }
+        match event {
+            SimEvent::Imu(id, s) => {
+                let k = index(id);
+                if dropped_imu != Some((k, s.t)) && !sim.lose_vehicle_frame(s.t) {
+                    sim.deliver(k, NodeInput::Imu(s), now);
+                }
+            }
+            SimEvent::Odometer(id, s) => {
+                if !sim.lose_vehicle_frame(s.t) {
+                    sim.deliver(index(id), NodeInput::Odometer(s), now);
+                }
+            }
+            SimEvent::Ranges(t, samples) => {
+                epoch += 1;
+                for r in samples {
+                    if !sim.lose_vehicle_frame(t) {
+                        sim.deliver(index(r.from), NodeInput::OwnRange { epoch, range: r }, now);
+                    }
+                }
+            }
+        }
+        for node in sim.nodes.iter_mut() {
+            if let Some(core) = &node.core
+                && core.last_epoch() != node.last_seen
+            {
+                node.last_seen = core.last_epoch();
+                if let Some(e) = node.last_seen {
+                    node.digests.insert(e, core.store_digest());
+                }
+            }
+        }
+    }
+    // The end of the run: close every node, deliver, run what is still open.
+    let end = world.end();
+    for k in 0..ids.len() {
+        if let Some(core) = sim.nodes[k].core.as_mut() {
+            let out = core.end_of_input();
+            sim.send(k, out, end);
+        }
+    }
+    sim.network(TimeUs(u64::MAX));
+    for node in sim.nodes.iter_mut() {
+        if let Some(core) = node.core.as_mut() {
+            core.run_pending();
+            if let Some(e) = core.last_epoch() {
+                node.digests.insert(e, core.store_digest());
+            }
+        }
+    }
+
+    let inputs = world.run_inputs(seed, run);
+    let dr = run_filter(world, &inputs, &[], Method::DeadReckoning)?;
+    let mut outcomes = Vec::new();
+    let mut detections = 0;
+    for (k, node) in sim.nodes.iter().enumerate() {
+        let Some(core) = &node.core else {
+            return Err(ExperimentError::Settings(format!("node {} never ran", ids[k])));
+        };
+        let (final_err_m, final_nees) = horizontal_error(world, ids[k], core);
+        let (fault_end_err_m, fault_end_nees) = at_fault_end[k].unwrap_or((final_err_m, final_nees));
+        let p = core.filter().covariance16();
+        detections += core.stats.epoch_disagreements + core.stats.store_mismatches;
+        outcomes.push(NodeOutcome {
+            id: ids[k],
+            fault_end_err_m,
+            fault_end_nees,
+            final_err_m,
+            final_nees,
+            final_sigma_m: (p[(0, 0)] + p[(1, 1)]).sqrt(),
+            dr_final_err_m: dr.platforms[k].final_error().pos_err_m,
+            stats: core.stats.clone(),
+        });
+    }
+    // Disagreements seen from outside: epochs whose digests differ between the nodes that
+    // resolved them.
+    let mut all: BTreeMap<u32, Vec<u64>> = BTreeMap::new();
+    for node in &sim.nodes {
+        for (e, d) in &node.digests {
+            all.entry(*e).or_default().push(*d);
+        }
+    }
+    let divergent: Vec<u32> = all.iter().filter(|(_, d)| d.windows(2).any(|w| w[0] != w[1])).map(|(e, _)| *e).collect();
+    let fault_end_epoch = epoch_times.iter().filter(|t| **t <= fault_end).count() as u32;
+    Ok(RunOutcome {
+        nodes: outcomes,
+        divergent_epochs: divergent.len() as u32,
+        last_divergent_epoch: divergent.last().copied(),
+        fault_end_epoch,
+        detections,
+    })
+}
+
+/// A case over many runs: what the README table shows and the tests check.
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct CaseSummary {
+    pub name: String,
+    pub runs: usize,
+    /// RMS over runs and nodes of the final horizontal error, m.
+    pub final_rms_m: f64,
+    /// RMS over runs and nodes of the horizontal error at the end of the faults, m.
+    pub fault_end_rms_m: f64,
+    /// RMS of dead reckoning's final error on the same inputs, m.
+    pub dr_rms_m: f64,
+    /// Average final 2-D NEES over runs and nodes, and its 95% band for a consistent filter.
+    pub avg_nees: f64,
+    pub nees_band: (f64, f64),
+    /// Nodes (over all runs) that ended worse than dead reckoning by more than their own 3-sigma.
+    pub worse_than_dr: usize,
+    /// Runs in which the nodes' stores diverged at some epoch, and those among them in which the
+    /// nodes detected it themselves.
+    pub runs_diverged: usize,
+    pub runs_detected: usize,
+    /// Runs still diverged more than 3 epochs after the faults ended.
+    pub runs_not_recovered: usize,
+    /// Sums over runs and nodes.
+    pub heals: u64,
+    pub partial: u64,
+    pub applied: u64,
+    pub failed: u64,
+    pub gated: u64,
+}
+
+/// Sums up runs of one case.
+pub fn summarize(name: &str, runs: &[RunOutcome]) -> CaseSummary {
+    let nodes: Vec<&NodeOutcome> = runs.iter().flat_map(|r| &r.nodes).collect();
+    let rms =
+        |f: &dyn Fn(&NodeOutcome) -> f64| (nodes.iter().map(|n| f(n).powi(2)).sum::<f64>() / nodes.len().max(1) as f64).sqrt();
+    let sum = |f: &dyn Fn(&NodeStats) -> u64| nodes.iter().map(|n| f(&n.stats)).sum::<u64>();
+    let diverged: Vec<&RunOutcome> = runs.iter().filter(|r| r.divergent_epochs > 0).collect();
+    CaseSummary {
+        name: name.to_string(),
+        runs: runs.len(),
+        final_rms_m: rms(&|n| n.final_err_m),
+        fault_end_rms_m: rms(&|n| n.fault_end_err_m),
+        dr_rms_m: rms(&|n| n.dr_final_err_m),
+        avg_nees: nodes.iter().map(|n| n.final_nees).sum::<f64>() / nodes.len().max(1) as f64,
+        nees_band: crate::estimation::consistency::average_nees_band(2, nodes.len(), 0.95),
+        worse_than_dr: nodes.iter().filter(|n| n.final_err_m > n.dr_final_err_m + 3.0 * n.final_sigma_m).count(),
+        runs_diverged: diverged.len(),
+        runs_detected: diverged.iter().filter(|r| r.detections > 0).count(),
+        runs_not_recovered: runs.iter().filter(|r| r.last_divergent_epoch.is_some_and(|e| e > r.fault_end_epoch + 3)).count(),
+        heals: sum(&|s| s.heals),
+        partial: sum(&|s| s.epochs_partial),
+        applied: sum(&|s| s.epochs_applied),
+        failed: sum(&|s| s.epochs_failed),
+        gated: sum(&|s| s.ranges_gated),
+    }
+}

@@ -1,0 +1,101 @@
+//! `cooploc faults`: the fault-injection table (see [`cooploc::experiment::faults`]).
+
+use std::path::PathBuf;
+use std::time::Instant;
+
+use anyhow::{Context, bail};
+use cooploc::estimation::Method;
+use cooploc::experiment::faults::{CaseSummary, run_case, standard_cases, summarize};
+use cooploc::sitl::scenario::Scenario;
+use cooploc::sitl::world::World;
+use rayon::prelude::*;
+
+#[derive(clap::Args)]
+pub struct Args {
+    /// Scenario file.
+    #[arg(default_value = "sitl/scenarios/paper.toml")]
+    scenario: PathBuf,
+    /// Seeded runs per case.
+    #[arg(long, default_value_t = 20)]
+    runs: u32,
+    /// Seed (run k uses seed and k).
+    #[arg(long, default_value_t = 1)]
+    seed: u64,
+    /// The nodes' method: dcl, naive, ci or dr.
+    #[arg(long, default_value = "dcl")]
+    method: String,
+    /// Ranging schedule of the scenario.
+    #[arg(long, default_value = "1hz")]
+    schedule: String,
+    /// Only the cases whose name contains this text.
+    #[arg(long)]
+    only: Option<String>,
+    /// Also write every case's summary as JSON here.
+    #[arg(long)]
+    json: Option<PathBuf>,
+}
+
+pub fn run(args: Args) -> anyhow::Result<()> {
+    let method = Method::from_short_name(&args.method)
+        .filter(|m| *m != Method::Centralized)
+        .with_context(|| format!("unknown node method {:?}: expected dcl, naive, ci or dr", args.method))?;
+    if args.runs == 0 {
+        bail!("--runs must be at least 1");
+    }
+    let world = World::new(&Scenario::from_path(&args.scenario)?)?;
+    let cases: Vec<_> =
+        standard_cases().into_iter().filter(|c| args.only.as_ref().is_none_or(|o| c.name.contains(o.as_str()))).collect();
+    if cases.is_empty() {
+        bail!("no case matches --only");
+    }
+    let started = Instant::now();
+    let mut summaries: Vec<CaseSummary> = Vec::new();
+    for case in &cases {
+        let runs: Vec<_> = (0..args.runs)
+            .into_par_iter()
+            .map(|run| run_case(&world, &case.faults, method, &args.schedule, args.seed, run))
+            .collect::<Result<_, _>>()
+            .with_context(|| format!("case {:?}", case.name))?;
+        summaries.push(summarize(case.name, &runs));
+    }
+    println!(
+        "cooploc faults: {} cases x {} runs, method {}, schedule {}, seed {} ({:.1} s)",
+        cases.len(),
+        args.runs,
+        method.short_name(),
+        args.schedule,
+        args.seed,
+        started.elapsed().as_secs_f64()
+    );
+    let base = summaries.iter().find(|s| s.name == "fault-free").map(|s| s.final_rms_m);
+    println!(
+        "| case | final RMS m | vs fault-free | at fault end m | dead reckoning m | NEES (95% band) | worse than DR | diverged / detected / not recovered | heals | partial | failed | gated |"
+    );
+    println!("|---|---|---|---|---|---|---|---|---|---|---|---|");
+    for s in &summaries {
+        let rel = base.map_or("".into(), |b| format!("{:+.0}%", 100.0 * (s.final_rms_m / b - 1.0)));
+        println!(
+            "| {} | {:.2} | {} | {:.2} | {:.2} | {:.2} ({:.2}-{:.2}) | {} | {} / {} / {} | {} | {} | {} | {} |",
+            s.name,
+            s.final_rms_m,
+            rel,
+            s.fault_end_rms_m,
+            s.dr_rms_m,
+            s.avg_nees,
+            s.nees_band.0,
+            s.nees_band.1,
+            s.worse_than_dr,
+            s.runs_diverged,
+            s.runs_detected,
+            s.runs_not_recovered,
+            s.heals,
+            s.partial,
+            s.failed,
+            s.gated
+        );
+    }
+    if let Some(path) = &args.json {
+        std::fs::write(path, serde_json::to_string_pretty(&summaries)?).with_context(|| format!("writing {}", path.display()))?;
+    }
+    Ok(())
+}
