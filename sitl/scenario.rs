@@ -121,6 +121,11 @@ pub struct RangeSchedule {
     /// Explicit epochs, s, strictly increasing.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub at_s: Option<Vec<f64>>,
+    /// A periodic schedule's radio timing jitter, s: epoch `k` moves by a fixed pseudo-random
+    /// offset in `[-jitter_s, jitter_s]` (whole microseconds, the same in every run), so epochs
+    /// fall between IMU samples as real ranging rounds do. Less than half the period.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub jitter_s: Option<f64>,
 }
 
 /// Standard deviations of the filters' initial estimate errors; the world draws each run's
@@ -208,7 +213,10 @@ impl Scenario {
         }
         let s = &self.sensors;
         let imu_period_us = period_us("sensors.imu_rate_hz", s.imu_rate_hz)?;
-        period_us("sensors.odometer_rate_hz", s.odometer_rate_hz)?;
+        positive("sensors.odometer_rate_hz", s.odometer_rate_hz)?;
+        if s.odometer_rate_hz > 1e4 {
+            return Err(invalid("sensors.odometer_rate_hz", format!("must be at most 10 kHz, got {}", s.odometer_rate_hz)));
+        }
         period_us("truth_rate_hz", self.truth_rate_hz)?;
         let duration_us = whole_us("duration_s", self.duration_s)?;
         if duration_us == 0 {
@@ -322,6 +330,9 @@ impl RangeSchedule {
                 return Err(invalid(field, "give exactly one of `every_s` (periodic) or `at_s` (explicit epochs)"));
             }
             (None, Some(at)) => {
+                if self.jitter_s.is_some() {
+                    return Err(invalid(format!("{field}.jitter_s"), "only a periodic schedule (`every_s`) has a jitter"));
+                }
                 if self.start_s.is_some() {
                     return Err(invalid(format!("{field}.start_s"), "only a periodic schedule (`every_s`) has a start"));
                 }
@@ -349,18 +360,39 @@ impl RangeSchedule {
                 if every_us == 0 {
                     return Err(invalid(f_every, format!("must be positive, got {every}")));
                 }
-                on_grid(&f_every, every_us, imu_period_us)?;
+                let jitter_us = match self.jitter_s {
+                    None => 0,
+                    Some(j) => {
+                        let f = format!("{field}.jitter_s");
+                        let us = whole_us(&f, j)?;
+                        if us == 0 || 2 * us >= every_us {
+                            return Err(invalid(f, format!("must be positive and under half the period, got {j}")));
+                        }
+                        us
+                    }
+                };
+                if jitter_us == 0 {
+                    on_grid(&f_every, every_us, imu_period_us)?;
+                }
                 let start_us = match self.start_s {
                     Some(s) => {
                         let f = format!("{field}.start_s");
                         let us = whole_us(&f, s)?;
-                        on_grid(&f, us, imu_period_us)?;
+                        if jitter_us == 0 {
+                            on_grid(&f, us, imu_period_us)?;
+                        }
                         within(&f, us, duration_us)?;
+                        if us <= jitter_us {
+                            return Err(invalid(f, "must be later than the jitter"));
+                        }
                         us
                     }
                     None => every_us,
                 };
-                (0..).map(|k| start_us + k * every_us).take_while(|&t| t <= duration_us).collect()
+                (0..)
+                    .map(|k| (start_us + k * every_us + jitter_offset_us(k, jitter_us)).saturating_sub(jitter_us))
+                    .take_while(|&t| t <= duration_us)
+                    .collect()
             }
         };
         Ok(epochs_us.into_iter().map(TimeUs).collect())
@@ -446,6 +478,18 @@ fn rate_to_period_us(rate_hz: f64) -> u64 {
     (1e6 / rate_hz).round() as u64
 }
 
+/// A fixed pseudo-random offset in `[0, 2 * jitter_us]` for epoch `k` (splitmix64 of `k`).
+fn jitter_offset_us(k: u64, jitter_us: u64) -> u64 {
+    if jitter_us == 0 {
+        return 0;
+    }
+    let mut z = k.wrapping_add(0x9e37_79b9_7f4a_7c15);
+    z = (z ^ (z >> 30)).wrapping_mul(0xbf58_476d_1ce4_e5b9);
+    z = (z ^ (z >> 27)).wrapping_mul(0x94d0_49bb_1331_11eb);
+    z ^= z >> 31;
+    z % (2 * jitter_us + 1)
+}
+
 fn on_grid(field: &str, us: u64, imu_period_us: u64) -> Result<(), ScenarioError> {
     if us.is_multiple_of(imu_period_us) {
         Ok(())
@@ -468,6 +512,10 @@ fn within(field: &str, us: u64, duration_us: u64) -> Result<(), ScenarioError> {
 /// The scenario of the paper's experiment (section 4, Table 1), as shipped in
 /// `sitl/scenarios/paper.toml`.
 pub const PAPER_TOML: &str = include_str!("scenarios/paper.toml");
+
+/// The paper scenario with unsynchronised sensors (100 Hz IMU, 15 Hz odometer, ranging jitter),
+/// as shipped in `sitl/scenarios/async.toml`.
+pub const ASYNC_TOML: &str = include_str!("scenarios/async.toml");
 
 #[cfg(test)]
 pub(crate) mod tests {

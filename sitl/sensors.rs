@@ -42,6 +42,9 @@ pub const DEG_PER_SQRT_H_RAD_PER_SQRT_S: f64 = std::f64::consts::PI / 180.0 / 60
 pub struct SensorModel {
     pub imu_period_us: u64,
     pub odometer_period_us: u64,
+    /// Odometer rate, Hz: sample `m` is at `round(m * 1e6 / rate)` us, so a rate whose period
+    /// is not a whole number of microseconds (15 Hz) keeps its average rate exactly.
+    pub odometer_rate_hz: f64,
     pub end: TimeUs,
     /// Per-axis standard deviation of the constant accelerometer bias, m/s^2.
     pub accel_bias_sigma_m_s2: f64,
@@ -73,6 +76,7 @@ impl SensorModel {
         SensorModel {
             imu_period_us: scenario.imu_period_us(),
             odometer_period_us: scenario.odometer_period_us(),
+            odometer_rate_hz: scenario.sensors.odometer_rate_hz,
             end: scenario.end(),
             accel_bias_sigma_m_s2: s.accel_bias_ug * MICRO_G_M_S2,
             accel_noise_density_m_s2_per_sqrt_hz: s.accel_noise_ug_per_sqrt_hz * MICRO_G_M_S2,
@@ -229,12 +233,13 @@ impl Iterator for ImuStream<'_> {
     }
 }
 
-/// One platform's odometer samples for one run, lazily: at `m * period`, `m = 1..`, up to the
-/// end of the run.
+/// One platform's odometer samples for one run, lazily: at `round(m / rate)`, `m = 1..`, up to
+/// the end of the run.
 #[derive(Debug, Clone)]
 pub struct OdometerStream<'a> {
     traj: &'a Trajectory,
     model: SensorModel,
+    m: u64,
     next_us: u64,
     scale: f64,
     noise: ChaCha8Rng,
@@ -246,7 +251,8 @@ impl<'a> OdometerStream<'a> {
         OdometerStream {
             traj,
             model: *model,
-            next_us: model.odometer_period_us,
+            m: 1,
+            next_us: odometer_time_us(model.odometer_rate_hz, 1),
             scale: 1.0 + errors.odometer_scale_error,
             noise: stream_rng(seed, run, Stream::OdometerNoise, &[u64::from(traj.id())]),
         }
@@ -264,9 +270,15 @@ impl Iterator for OdometerStream<'_> {
     fn next(&mut self) -> Option<OdometerSample> {
         let t = self.peek_time()?;
         let speed = self.traj.truth_at(t).speed_m_s;
-        self.next_us += self.model.odometer_period_us;
+        self.m += 1;
+        self.next_us = odometer_time_us(self.model.odometer_rate_hz, self.m);
         Some(OdometerSample { t, speed_m_s: self.scale * speed + self.model.odometer_sigma_m_s * normal(&mut self.noise) })
     }
+}
+
+/// Time of odometer sample `m` at `rate_hz`, us.
+fn odometer_time_us(rate_hz: f64, m: u64) -> u64 {
+    (m as f64 * 1e6 / rate_hz).round() as u64
 }
 
 /// The ranges measured at `t` among `trajs`: one per unordered pair, `from` the lower id, in

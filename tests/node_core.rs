@@ -12,7 +12,7 @@ use cooploc::protocol::MavMessage;
 use cooploc::protocol::record::Encoding;
 use cooploc::protocol::wire::{self, from_frame, to_frame};
 use cooploc::sitl::world::SimEvent;
-use cooploc::sitl::{PAPER_TOML, Scenario, World};
+use cooploc::sitl::{ASYNC_TOML, PAPER_TOML, Scenario, World};
 use cooploc::time::TimeUs;
 use mavlink_core::MavHeader;
 
@@ -157,6 +157,31 @@ fn three_nodes_reproduce_the_experiment_bit_for_bit() {
     }
 }
 
+/// Unsynchronised sensors (sitl/scenarios/async.toml): a 100 Hz IMU, a 15 Hz odometer whose
+/// samples fall between IMU samples, ranging epochs with up to 40 ms of jitter. Each node cuts
+/// its IMU intervals at the measurements' own instants, and still equals the offline filter on
+/// the same inputs bit for bit.
+#[test]
+fn unsynchronised_sensors_are_applied_at_their_own_instants() {
+    let world = World::new(&Scenario::from_toml_str(ASYNC_TOML).unwrap()).unwrap();
+    let epochs = world.ranges("jitter", 1, 0).unwrap();
+    let off_grid = epochs.iter().filter(|(t, _)| t.0 % 10_000 != 0).count();
+    assert!(off_grid > epochs.len() * 9 / 10, "the scenario puts epochs between IMU samples");
+    let inputs = world.run_inputs(1, 0);
+    assert!(inputs.platforms[0].odometer.iter().filter(|o| o.t.0 % 10_000 != 0).count() > 3000);
+    let (nodes, sent_ranges) = run_network(&world, Method::Decentralized, "jitter", 1, 0);
+    let reference = run_filter(&world, &inputs, &sent_ranges, Method::Decentralized).unwrap();
+    let dr = run_filter(&world, &inputs, &[], Method::DeadReckoning).unwrap();
+    for (k, (node, (p, outcome))) in nodes.iter().zip(inputs.platforms.iter().zip(&reference.platforms)).enumerate() {
+        let st = &node.stats;
+        assert_eq!(st.epochs_applied, epochs.len() as u64, "node {}: {st:?}", node.id());
+        assert_eq!(st.dropped_inputs() + st.odometer_late + st.epochs_partial + st.epoch_disagreements, 0, "{st:?}");
+        let err = p.truth.last().unwrap().pos_ned_m - node.filter().position_ned_m();
+        assert_eq!([err[0], err[1]], outcome.final_error().pos_err_ne_m, "node {}: differs from the offline filter", node.id());
+        assert!(outcome.final_error().pos_err_m < dr.platforms[k].final_error().pos_err_m);
+    }
+}
+
 /// Drops the first copy of one fragment of every record node 2 sends to node 1: node 1 asks
 /// (COOPLOC_EPOCH), node 2 resends, and nothing changes in the result.
 #[test]
@@ -226,4 +251,79 @@ fn unknown_platforms_are_dropped_and_imu_gaps_bridged() {
     assert_eq!(node.filter().time(), imu[402].t);
     node.handle(NodeInput::Imu(imu[399]));
     assert_eq!(node.stats.imu_rejected, 1, "time going backwards is refused");
+}
+
+/// Well-formed but wrong input does not steer a node: a forged epoch with a far id or a far
+/// time, a record whose covariance has a negative variance, a range to itself. Each is refused
+/// and counted, and the real epochs still run.
+#[test]
+fn hostile_epochs_and_records_are_refused_and_counted() {
+    use cooploc::protocol::fragment::fragment;
+    use cooploc::protocol::record::{StateRecord, encode_record};
+    use cooploc::protocol::wire::{EpochAnnouncement, EpochState, epoch_to_message, fragment_to_message};
+    let world = World::new(&Scenario::from_toml_str(PAPER_TOML).unwrap()).unwrap();
+    let forge_epoch = |epoch: u32, t: TimeUs| {
+        let a = EpochAnnouncement {
+            epoch,
+            t,
+            announcer: 2,
+            participants: vec![2],
+            state: EpochState::COOPLOC_EPOCH_STATE_COLLECTING,
+            digest: 0,
+        };
+        NodeInput::Peer { from: 2, msg: Box::new(epoch_to_message(&a).unwrap()) }
+    };
+    let mut forged_once = false;
+    let mut bad_record = Vec::new();
+    {
+        // A record for epoch 5 from platform 2 whose first variance is negative.
+        let (ins, sigma) = ins_settings(&world);
+        let (t0, state) = initial_state(&world, 1, 0, 2).unwrap();
+        let f = cooploc::estimation::ins::InsFilter::new(ins, t0, state, sigma).unwrap();
+        let mut snap = cooploc::estimation::PlatformFilter::snapshot(&f, 2);
+        snap.covariance[(0, 0)] = -1.0;
+        let rec = StateRecord { snapshot: snap, digest: 1, flags: 0, ranges: Vec::new() };
+        let bytes = encode_record(&rec, Encoding::F64).unwrap();
+        for fr in fragment(2, 5, 5_000_000, &bytes).unwrap() {
+            bad_record.push(fragment_to_message(&fr).unwrap());
+        }
+    }
+    let mut injected: Vec<NodeInput> = Vec::new();
+    injected.push(forge_epoch(u32::MAX, TimeUs(1_500_000)));
+    injected.push(forge_epoch(4_000_000_000, TimeUs(20_000_000)));
+    injected.push(forge_epoch(9, TimeUs(1_000_000_000_000_000)));
+    injected.extend(bad_record.into_iter().map(|m| NodeInput::Peer { from: 2, msg: Box::new(m) }));
+    // A clean three-node run refuses nothing.
+    let (nodes, _) = run_network(&world, Method::Decentralized, "1hz", 1, 0);
+    // One node gets the forged input once its filter has passed 1.2 s.
+    let (ins, initial_sigma) = ins_settings(&world);
+    let (t0, state) = initial_state(&world, 1, 0, 1).unwrap();
+    let cfg = NodeConfig::new(1, Method::Decentralized, ins, initial_sigma, Encoding::F64, vec![1, 2, 3]);
+    let mut node = NodeCore::new(cfg, t0, state).unwrap();
+    let imu = world.run_inputs(1, 0).platforms[0].imu.clone();
+    for s in &imu[..300] {
+        node.handle(NodeInput::Imu(*s));
+        if s.t.0 >= 1_200_000 && !forged_once {
+            forged_once = true;
+            for i in injected.drain(..) {
+                node.handle(i);
+            }
+        }
+    }
+    let st = &node.stats;
+    assert!(st.epochs_implausible >= 1, "{st:?}");
+    assert_eq!(st.records_implausible, 1, "{st:?}");
+    // A real epoch after the forgery is still learned and broadcast.
+    let range = RangeSample { t: TimeUs(1_300_000), from: 1, to: 2, range_m: 200.0, sigma_m: 0.1 };
+    let before = node.stats.records_sent;
+    node.handle(NodeInput::OwnRange { epoch: 2, range });
+    for s in &imu[300..340] {
+        node.handle(NodeInput::Imu(*s));
+    }
+    assert_eq!(node.stats.records_sent, before + 1, "epoch 2 was broadcast: {:?}", node.stats);
+    assert!(node.last_epoch().is_none_or(|e| e < 1000), "no forged epoch closed the later ones");
+    let self_range = RangeSample { t: TimeUs(1_700_000), from: 1, to: 1, range_m: 0.0, sigma_m: 0.1 };
+    node.handle(NodeInput::OwnRange { epoch: 3, range: self_range });
+    assert_eq!(node.stats.ranges_rejected, 1);
+    assert!(nodes.iter().all(|n| n.stats.epochs_implausible == 0), "a clean run refuses nothing");
 }

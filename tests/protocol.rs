@@ -216,3 +216,45 @@ fn wire_budget() {
     assert!(f32_bytes < f64_bytes * 6 / 10, "f32 roughly halves the broadcast");
     assert!(f64_bytes + 2 * range_bytes < raw_per_s, "one event per second costs less than streaming raw sensors");
 }
+
+/// A record carries the sender's store digest, its flags and the ranges its radio measured;
+/// all come back exactly (ranges as f32, what every node uses), and malformed trailers are
+/// errors that name the problem.
+#[test]
+fn records_carry_digest_flags_and_ranges() {
+    use cooploc::estimation::RangeSample;
+    use cooploc::protocol::record::{FLAG_FRESH, MAX_RANGES, StateRecord, decode_record, encode_record};
+    use cooploc::time::TimeUs;
+    let t = TimeUs(7_000_000);
+    let ranges: Vec<RangeSample> = (2..5u16)
+        .map(|to| RangeSample { t, from: 1, to, range_m: 100.0 + f64::from(to) / 3.0, sigma_m: 0.1 })
+        .map(|r| cooploc::protocol::wire::range_as_sent(&r))
+        .collect();
+    let rec = StateRecord { snapshot: snapshot(1, 16, 12.5), digest: 0xdead_beef_0123_4567, flags: FLAG_FRESH, ranges };
+    for enc in [Encoding::F64, Encoding::F32] {
+        let bytes = encode_record(&rec, enc).unwrap();
+        assert_eq!(bytes.len(), record::record_len(16, enc) + 3 * 10);
+        let back = decode_record(1, t, &bytes).unwrap();
+        assert_eq!((back.digest, back.flags, &back.ranges), (rec.digest, rec.flags, &rec.ranges));
+        // Cut inside the ranges, or a count that promises more: a length error.
+        assert!(matches!(decode_record(1, t, &bytes[..bytes.len() - 1]), Err(RecordError::LengthMismatch { .. })));
+        let mut more = bytes.clone();
+        let count_at = record::record_len(16, enc) - 1;
+        more[count_at] = 4;
+        assert!(matches!(decode_record(1, t, &more), Err(RecordError::LengthMismatch { .. })));
+        let mut flags = bytes.clone();
+        flags[count_at - 1] = 0x80;
+        assert_eq!(decode_record(1, t, &flags), Err(RecordError::Flags(0x80)));
+        // A range to the sender itself, or a negative sigma, is refused.
+        let mut selfie = bytes.clone();
+        selfie[count_at + 1..count_at + 3].copy_from_slice(&1u16.to_le_bytes());
+        assert!(matches!(decode_record(1, t, &selfie), Err(RecordError::Range { index: 0, .. })));
+        let mut sigma = bytes.clone();
+        sigma[count_at + 7..count_at + 11].copy_from_slice(&(-0.1f32).to_le_bytes());
+        assert!(matches!(decode_record(1, t, &sigma), Err(RecordError::Range { index: 0, .. })));
+    }
+    let too_many = StateRecord { ranges: vec![rec.ranges[0]; MAX_RANGES + 1], ..rec.clone() };
+    assert_eq!(encode_record(&too_many, Encoding::F32), Err(RecordError::TooManyRanges(MAX_RANGES + 1)));
+    let foreign = StateRecord { ranges: vec![RangeSample { from: 2, ..rec.ranges[0] }], ..rec };
+    assert!(matches!(encode_record(&foreign, Encoding::F32), Err(RecordError::Range { index: 0, .. })));
+}

@@ -638,3 +638,152 @@ pub fn cooperative_update_with(
         .collect();
     Ok(EventOutcome { corrections, diagnostics: up.diagnostics, prior_covariance: prior, gated, weights })
 }
+
+#[cfg(test)]
+mod tests {
+    use nalgebra::Vector3;
+    use rand::{Rng, SeedableRng};
+    use rand_chacha::ChaCha8Rng;
+
+    use super::*;
+    use crate::estimation::kalman::min_eigenvalue;
+    use crate::estimation::{Geometry, Heading};
+
+    /// A random joint covariance over `n` platforms of dimension `d` (positions first), with
+    /// strong cross-correlations, and each platform's snapshot of its own block.
+    fn joint(rng: &mut ChaCha8Rng, n: usize, d: usize) -> (DMatrix<f64>, Vec<Snapshot>) {
+        let a = DMatrix::from_fn(n * d, n * d + 2, |_, _| rng.random_range(-1.0..1.0));
+        let p = &a * a.transpose() + DMatrix::identity(n * d, n * d) * 0.05;
+        let snaps = (0..n)
+            .map(|i| Snapshot {
+                id: i as PlatformId + 1,
+                geometry: Geometry {
+                    position_ned_m: Vector3::new(100.0 * i as f64, 30.0 * (i % 2) as f64, 0.0),
+                    position_index: [Some(0), Some(1), Some(2)],
+                    heading: Some(Heading { yaw_rad: 0.1, index: d - 1 }),
+                },
+                covariance: p.view((i * d, i * d), (d, d)).into_owned(),
+                psi: DMatrix::identity(d, d),
+            })
+            .collect();
+        (p, snaps)
+    }
+
+    fn bound_prior(snaps: &[Snapshot], scope: BoundScope) -> DMatrix<f64> {
+        let ranges = [CoopMeasurement::Range { from: 1, to: 2, range_m: 1e9, sigma_m: 1.0 }];
+        let opts = UpdateOptions {
+            prior: JointPrior::Bound { independent: Vec::new(), scope },
+            gate_chi2: UpdateOptions::gate_for_probability(1e-6),
+            ..UpdateOptions::new(CrossMode::Propagate)
+        };
+        // The absurd range is gated out: the outcome's prior is the bound itself.
+        let out = cooperative_update_with(&mut CrossCovariances::new(), snaps, &ranges, &opts).unwrap();
+        assert_eq!(out.gated, vec![0]);
+        assert!((out.weights.iter().sum::<f64>() - 1.0).abs() < 1e-12);
+        out.prior_covariance
+    }
+
+    /// The full-state bound is an upper bound of every joint covariance with those diagonal
+    /// blocks, whatever its cross blocks (random joint covariances, 2 to 5 platforms).
+    #[test]
+    fn the_full_bound_bounds_any_cross_covariance() {
+        let mut rng = ChaCha8Rng::seed_from_u64(7);
+        for trial in 0..200 {
+            let n = 2 + trial % 4;
+            let (p, snaps) = joint(&mut rng, n, 6);
+            let bound = bound_prior(&snaps, BoundScope::Full);
+            let gap = min_eigenvalue(&(&bound - &p));
+            assert!(gap >= -1e-9, "trial {trial}: bound - P has eigenvalue {gap}");
+        }
+    }
+
+    /// The position-scoped bound is an upper bound when the cross-covariances reach the other
+    /// states through their regression on position (joint range updates create them so), and
+    /// leaves alone what is uncorrelated with position.
+    #[test]
+    fn the_position_bound_bounds_cross_covariances_made_through_position() {
+        let mut rng = ChaCha8Rng::seed_from_u64(11);
+        for trial in 0..200 {
+            let n = 2 + trial % 4;
+            let d = 6;
+            // e_i = G_i p_i + r_i with p jointly correlated across platforms, r_i independent.
+            let (pp, _) = joint(&mut rng, n, 3);
+            let mut g = DMatrix::zeros(n * d, n * 3);
+            let mut r = DMatrix::zeros(n * d, n * d);
+            for i in 0..n {
+                g.view_mut((i * d, i * 3), (3, 3)).fill_with_identity();
+                for row in 3..d {
+                    for c in 0..3 {
+                        g[(i * d + row, i * 3 + c)] = rng.random_range(-0.5..0.5);
+                    }
+                }
+                let a = DMatrix::from_fn(d - 3, d - 3, |_, _| rng.random_range(-1.0..1.0));
+                r.view_mut((i * d + 3, i * d + 3), (d - 3, d - 3)).copy_from(&(&a * a.transpose()));
+            }
+            let p = &g * pp * g.transpose() + r;
+            let snaps: Vec<Snapshot> = (0..n)
+                .map(|i| Snapshot {
+                    id: i as PlatformId + 1,
+                    geometry: Geometry {
+                        position_ned_m: Vector3::new(100.0 * i as f64, 30.0 * (i % 2) as f64, 0.0),
+                        position_index: [Some(0), Some(1), Some(2)],
+                        heading: None,
+                    },
+                    covariance: p.view((i * d, i * d), (d, d)).into_owned(),
+                    psi: DMatrix::identity(d, d),
+                })
+                .collect();
+            let bound = bound_prior(&snaps, BoundScope::Position);
+            let gap = min_eigenvalue(&(&bound - &p));
+            assert!(gap >= -1e-9, "trial {trial}: bound - P has eigenvalue {gap}");
+            // Tighter than the full bound.
+            let full = bound_prior(&snaps, BoundScope::Full);
+            assert!(full.trace() >= bound.trace());
+        }
+    }
+
+    /// A gross outlier is gated out and the rest is used; every node gates the same one.
+    #[test]
+    fn the_gate_leaves_out_a_forged_range() {
+        let mut rng = ChaCha8Rng::seed_from_u64(3);
+        let (_, snaps) = joint(&mut rng, 3, 6);
+        let d12 = (snaps[0].geometry.position_ned_m - snaps[1].geometry.position_ned_m).norm();
+        let d13 = (snaps[0].geometry.position_ned_m - snaps[2].geometry.position_ned_m).norm();
+        let ranges = [
+            CoopMeasurement::Range { from: 1, to: 2, range_m: d12 + 0.3, sigma_m: 0.5 },
+            CoopMeasurement::Range { from: 1, to: 3, range_m: d13 + 50.0, sigma_m: 0.5 },
+        ];
+        let opts =
+            UpdateOptions { gate_chi2: UpdateOptions::gate_for_probability(1e-6), ..UpdateOptions::new(CrossMode::Propagate) };
+        let a = cooperative_update_with(&mut CrossCovariances::new(), &snaps, &ranges, &opts).unwrap();
+        let b = cooperative_update_with(&mut CrossCovariances::new(), &snaps, &ranges, &opts).unwrap();
+        assert_eq!(a.gated, vec![1]);
+        assert_eq!(a.corrections, b.corrections);
+        assert_eq!(a.diagnostics.innovation.len(), 1);
+        // Without the gate the forged range pulls platform 1 by metres.
+        let ungated = cooperative_update(&mut CrossCovariances::new(), &snaps, &ranges, CrossMode::Propagate).unwrap();
+        assert!(ungated.corrections[0].dx.rows(0, 3).norm() > 10.0 * a.corrections[0].dx.rows(0, 3).norm());
+    }
+
+    /// Equal stores have equal digests; any change of a block, or of its pair, changes it.
+    #[test]
+    fn the_store_digest_tells_stores_apart() {
+        let mut rng = ChaCha8Rng::seed_from_u64(5);
+        let (_, snaps) = joint(&mut rng, 3, 4);
+        let ranges = [CoopMeasurement::Range { from: 1, to: 2, range_m: 100.0, sigma_m: 0.1 }];
+        let mut a = CrossCovariances::new();
+        let empty = a.digest();
+        assert_ne!(empty, 0);
+        cooperative_update(&mut a, &snaps, &ranges, CrossMode::Propagate).unwrap();
+        let mut b = a.clone();
+        assert_eq!(a.digest(), b.digest());
+        assert_ne!(a.digest(), empty);
+        let mut c = b.get(1, 2).unwrap();
+        c[(0, 0)] = f64::from_bits(c[(0, 0)].to_bits() ^ 1);
+        b.set(1, 2, c);
+        assert_ne!(a.digest(), b.digest(), "one bit of one value");
+        b = a.clone();
+        b.forget(3);
+        assert_ne!(a.digest(), b.digest());
+    }
+}

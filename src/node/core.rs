@@ -325,6 +325,13 @@ const RECENT_EPOCHS: u32 = 3;
 /// Most epochs per second of vehicle time an epoch id may run ahead of the last one run.
 const MAX_EPOCH_RATE_HZ: u64 = 100;
 
+/// Whether two epochs (id, time) can both be true: the later id at the later time, and ids
+/// advancing no faster than [`MAX_EPOCH_RATE_HZ`].
+fn epochs_fit(a: (u32, TimeUs), b: (u32, TimeUs)) -> bool {
+    let ((lo, tlo), (hi, thi)) = if a.0 <= b.0 { (a, b) } else { (b, a) };
+    lo == hi && tlo == thi || thi > tlo && u64::from(hi - lo) <= (thi.0 - tlo.0) * MAX_EPOCH_RATE_HZ / 1_000_000 + 1
+}
+
 /// An epoch that was run: its time, the records it ran on and the store digest after it.
 #[derive(Debug, Clone)]
 struct RanOn {
@@ -750,14 +757,13 @@ impl NodeCore {
             return self.epochs.get_mut(&epoch);
         }
         let ahead = t.0 > self.filter.time().0.saturating_add(self.cfg.max_lead_us);
-        let fits = |e: u32, te: TimeUs| {
-            // Later ids at later times, and no faster than MAX_EPOCH_RATE_HZ.
-            let (lo, hi, tlo, thi) = if e < epoch { (e, epoch, te, t) } else { (epoch, e, t, te) };
-            thi > tlo && u64::from(hi - lo) <= (thi.0 - tlo.0) * MAX_EPOCH_RATE_HZ / 1_000_000 + 1
-        };
+        // Against the last epoch run, and the nearest open epochs that hold a record (a bare
+        // claim, which anyone can make, is no evidence against another).
+        let fits = |e: u32, te: TimeUs| epochs_fit((e, te), (epoch, t));
+        let backed = |x: &&Epoch| !x.records.is_empty();
         let consistent = self.last_applied.is_none_or(|(e, te)| fits(e, te))
-            && self.epochs.range(..epoch).next_back().is_none_or(|(&e, x)| fits(e, x.t))
-            && self.epochs.range(epoch + 1..).next().is_none_or(|(&e, x)| fits(e, x.t));
+            && self.epochs.range(..epoch).rev().find(|(_, x)| backed(x)).is_none_or(|(&e, x)| fits(e, x.t))
+            && self.epochs.range(epoch + 1..).find(|(_, x)| backed(x)).is_none_or(|(&e, x)| fits(e, x.t));
         if ahead || !consistent {
             self.stats.epochs_implausible += 1;
             return None;
@@ -1002,12 +1008,17 @@ impl NodeCore {
         }
     }
 
+    /// Forgets an epoch that was run or passed over. It becomes the last one resolved only if its
+    /// id fits its time after the previous one: a claim nobody backed (a forged far epoch id
+    /// that came up only because nothing contradicted it) cannot close every later epoch.
     fn finish_epoch(&mut self, epoch: u32) {
-        if let Some(e) = self.epochs.remove(&epoch) {
-            let t = self.last_applied.map_or(e.t, |(_, tl)| tl.max(e.t));
-            self.last_applied = Some((self.last_applied.map_or(epoch, |(l, _)| l.max(epoch)), t));
+        let Some(e) = self.epochs.remove(&epoch) else { return };
+        if self.last_applied.is_none_or(|last| epochs_fit(last, (epoch, e.t))) {
+            self.last_applied = Some((epoch, e.t));
+            self.reassembler.expire_before(epoch.saturating_add(1));
+        } else {
+            self.stats.epochs_implausible += 1;
         }
-        self.reassembler.expire_before(epoch.saturating_add(1));
     }
 
     /// The joint update of `epoch` on the records held (see the module docs), then the report.
