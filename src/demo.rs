@@ -115,6 +115,7 @@ pub async fn run_demo(cfg: DemoConfig, ready: impl FnOnce(&DemoAddresses)) -> an
         wait_for_peers: true,
         streams: StreamDefaults { sim_state: Interval::Every(500_000), ..StreamDefaults::default() },
         origin_lon_deg: origin.lon_deg,
+        link_loss: 0.0,
     };
     let sim = Simulator::bind(world.clone(), sitl).await?;
     let vehicles: Vec<(PlatformId, SocketAddr)> = sim

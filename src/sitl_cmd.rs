@@ -56,6 +56,10 @@ pub struct Args {
     /// Longitude of the local NED origin for SIM_STATE, deg (its latitude is the scenario's).
     #[arg(long, default_value_t = 0.0, allow_negative_numbers = true)]
     origin_lon_deg: f64,
+    /// Probability that a frame a vehicle sends is lost (a lossy radio; seeded by --seed, --run
+    /// and the platform, so a run is repeatable).
+    #[arg(long, default_value_t = 0.0)]
+    link_loss: f64,
 }
 
 #[derive(Debug, Clone, PartialEq)]
@@ -176,6 +180,7 @@ fn validate(args: Args) -> anyhow::Result<Validated> {
         wait_for_peers: args.wait_for_peers,
         streams: StreamDefaults { sim_state, ..StreamDefaults::default() },
         origin_lon_deg: args.origin_lon_deg,
+        link_loss: args.link_loss,
     };
     Ok(Validated { world, config })
 }

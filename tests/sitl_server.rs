@@ -97,6 +97,7 @@ fn config(world: &World, speed: Speed) -> SitlConfig {
         wait_for_peers: true,
         streams: StreamDefaults::default(),
         origin_lon_deg: 10.0,
+        link_loss: 0.0,
     }
 }
 

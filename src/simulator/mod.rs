@@ -123,6 +123,9 @@ pub struct SitlConfig {
     pub streams: StreamDefaults,
     /// Longitude of the NED origin, deg (its latitude is the scenario's).
     pub origin_lon_deg: f64,
+    /// Probability that a frame a vehicle sends is lost on its link (a lossy radio), drawn from
+    /// a generator seeded by the run's seed and the platform; 0 for a perfect link.
+    pub link_loss: f64,
 }
 
 /// What can stop a simulator.
@@ -153,6 +156,8 @@ pub struct LinkCounters {
     pub unrouted: u64,
     /// Frames dropped because the serial writer was behind.
     pub dropped: u64,
+    /// Frames dropped on purpose (`link_loss`).
+    pub lost: u64,
     pub datagrams_received: u64,
 }
 
@@ -222,6 +227,8 @@ struct VehicleIo {
     endpoint: BoundEndpoint,
     link: Link,
     counters: LinkCounters,
+    /// The simulated radio's loss: probability and its generator.
+    loss: Option<(f64, rand_chacha::ChaCha8Rng)>,
 }
 
 impl VehicleIo {
@@ -282,6 +289,12 @@ impl VehicleIo {
     }
 
     async fn send(&mut self, frame: &[u8], destination: Destination, requester: Option<SocketAddr>) {
+        if let Some((p, rng)) = &mut self.loss
+            && rand::Rng::random::<f64>(rng) < *p
+        {
+            self.counters.lost += 1;
+            return;
+        }
         match &mut self.link {
             Link::Udp(u) => {
                 let peers: Vec<SocketAddr> = match (destination, requester) {
@@ -341,6 +354,9 @@ impl Simulator {
         {
             return Err(SimError::Config(format!("speed must be a positive number or max, got {s}")));
         }
+        if !(0.0..1.0).contains(&config.link_loss) {
+            return Err(SimError::Config(format!("link loss must be in [0, 1), got {}", config.link_loss)));
+        }
         for (id, _) in &config.endpoints {
             if !ids.contains(id) {
                 return Err(SimError::Config(format!("endpoint for platform {id}, which the scenario does not have")));
@@ -382,7 +398,11 @@ impl Simulator {
             };
             let (link, bound) = open_link(index, id, &endpoint, tx.clone(), &mut tasks, &mut writers).await?;
             cores.push(core);
-            io.push(VehicleIo { platform: id, endpoint: bound, link, counters: LinkCounters::default() });
+            let loss = (config.link_loss > 0.0).then(|| {
+                let seed = config.seed ^ (u64::from(config.run) << 32) ^ (u64::from(id) << 48) ^ 0x1055;
+                (config.link_loss, <rand_chacha::ChaCha8Rng as rand::SeedableRng>::seed_from_u64(seed))
+            });
+            io.push(VehicleIo { platform: id, endpoint: bound, link, counters: LinkCounters::default(), loss });
         }
         Ok(Simulator { world, config, cores, io, inbound, tasks, writers })
     }
