@@ -332,7 +332,7 @@ pub fn run_case(
         }
         if now.0 >= next_second * 1_000_000 {
             next_second += 1;
-            if now >= fault_end {
+            if fault_end.0 > 0 && now >= fault_end {
                 for k in 0..ids.len() {
                     if at_fault_end[k].is_none()
                         && let Some(core) = &sim.nodes[k].core
