@@ -50,6 +50,14 @@ pub struct Args {
     /// Interval (wall time) between retransmission requests while an epoch waits, ms.
     #[arg(long, default_value_t = 100)]
     retry_ms: u64,
+    /// Vehicle time the node waits after an epoch's instant for its radio's ranges of that
+    /// epoch before it broadcasts its record, ms (raise it when ranges reach the node late).
+    #[arg(long, default_value_t = 100)]
+    range_grace_ms: u64,
+    /// Probability that the range gate rejects a good range (chi-square gate on each range's
+    /// innovation); 0 turns the gate off.
+    #[arg(long, default_value_t = 1e-6)]
+    gate_probability: f64,
     /// Initial position N,E,D (m), with the other --init-* flags. Without it or --init-from-run,
     /// the node initialises from the vehicle's first SIM_STATE (simulated vehicles).
     #[arg(long, value_delimiter = ',', conflicts_with = "init_from_run")]
@@ -144,6 +152,8 @@ pub fn run_cmd(args: Args) -> anyhow::Result<()> {
     let mut cfg = NodeConfig::new(args.id, method, ins, initial_sigma, encoding, team);
     cfg.epoch_timeout_us = args.epoch_timeout_ms * 1000;
     cfg.retry_us = args.retry_ms * 1000;
+    cfg.range_grace_us = args.range_grace_ms * 1000;
+    cfg.gate_probability = args.gate_probability;
     let origin = GeoOrigin { lat_deg: scenario.latitude_deg, lon_deg: args.origin_lon_deg, alt_m: 0.0 };
     let recorder = match &args.log {
         Some(path) => {

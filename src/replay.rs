@@ -130,6 +130,13 @@ fn replay_node(log: &Log, world: &World, id: PlatformId) -> Result<NodeReplay, R
     cfg.retry_us = field(&record, m, "retry_us")?;
     cfg.history_us = field(&record, m, "history_us")?;
     cfg.max_lag_us = field(&record, m, "max_lag_us")?;
+    // Logs written before these settings existed ran with the defaults.
+    if m.contains_key("range_grace_us") {
+        cfg.range_grace_us = field(&record, m, "range_grace_us")?;
+        cfg.max_lead_us = field(&record, m, "max_lead_us")?;
+        cfg.gate_probability = field(&record, m, "gate_probability")?;
+        cfg.independent_start = field(&record, m, "independent_start")?;
+    }
     let node_err = |e: String| ReplayError::Node(id, e);
     let mut core = match field::<String>(&record, m, "init")?.as_str() {
         "state" => {

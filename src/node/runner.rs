@@ -97,6 +97,10 @@ pub fn node_metadata(cfg: &NodeConfig, init: Option<(TimeUs, &InsState)>) -> std
     m.insert("retry_us".into(), cfg.retry_us.to_string());
     m.insert("history_us".into(), cfg.history_us.to_string());
     m.insert("max_lag_us".into(), cfg.max_lag_us.to_string());
+    m.insert("range_grace_us".into(), cfg.range_grace_us.to_string());
+    m.insert("max_lead_us".into(), cfg.max_lead_us.to_string());
+    m.insert("gate_probability".into(), format!("{:e}", cfg.gate_probability));
+    m.insert("independent_start".into(), cfg.independent_start.to_string());
     match init {
         Some((t0, state)) => {
             m.insert("init".into(), "state".into());
