@@ -57,21 +57,34 @@ impl Drop for Kill {
     }
 }
 
+/// `cooploc sitl` on the paper scenario (seed 1, run 0) at 20x real time on ephemeral ports,
+/// holding its clock until every vehicle has a peer, with `extra` arguments; the vehicles'
+/// addresses by platform, and its output (kept open until the test ends).
+fn start_sitl(
+    world: &World,
+    schedule: &str,
+    extra: &[&str],
+) -> (Child, mpsc::Receiver<String>, std::collections::BTreeMap<u16, String>) {
+    let mut sitl = bin();
+    sitl.args(["sitl", "sitl/scenarios/paper.toml", "--seed", "1", "--run", "0", "--schedule", schedule, "--speed", "20"]);
+    sitl.args(["--base-port", "0", "--wait-for-peers", "--sim-state-hz", "1"]);
+    sitl.args(extra);
+    let (child, out) = spawn_lines(sitl);
+    let mut vehicle_addr = std::collections::BTreeMap::new();
+    for _ in world.platform_ids() {
+        let line = wait_line(&out, "vehicle ", Duration::from_secs(30));
+        let words: Vec<&str> = line.split_whitespace().collect();
+        vehicle_addr.insert(words[1].parse::<u16>().unwrap(), words.last().unwrap().to_string());
+    }
+    (child, out, vehicle_addr)
+}
+
 #[test]
 fn sitl_and_three_nodes_match_the_experiment() {
     let world = World::new(&Scenario::from_toml_str(PAPER_TOML).unwrap()).unwrap();
     let (seed, run, schedule) = (1u64, 0u32, "1hz");
-    let mut sitl = bin();
-    sitl.args(["sitl", "sitl/scenarios/paper.toml", "--seed", "1", "--run", "0", "--schedule", schedule, "--speed", "20"]);
-    sitl.args(["--base-port", "0", "--wait-for-peers", "--sim-state-hz", "1"]);
-    let (sitl_child, sitl_out) = spawn_lines(sitl);
+    let (sitl_child, _sitl_out, vehicle_addr) = start_sitl(&world, schedule, &[]);
     let mut children = Kill(vec![sitl_child]);
-    let mut vehicle_addr = std::collections::BTreeMap::new();
-    for _ in world.platform_ids() {
-        let line = wait_line(&sitl_out, "vehicle ", Duration::from_secs(30));
-        let words: Vec<&str> = line.split_whitespace().collect();
-        vehicle_addr.insert(words[1].parse::<u16>().unwrap(), words.last().unwrap().to_string());
-    }
     let mut node_outputs = Vec::new();
     let mut coop_addrs: Vec<String> = Vec::new();
     for id in world.platform_ids() {
@@ -338,17 +351,8 @@ impl Drop for LossyNet {
 fn lossy_links_and_a_restarted_node_do_not_break_the_team() {
     let world = World::new(&Scenario::from_toml_str(PAPER_TOML).unwrap()).unwrap();
     let (seed, run, schedule, speed) = (1u64, 0u32, "1hz", 20.0);
-    let mut sitl = bin();
-    sitl.args(["sitl", "sitl/scenarios/paper.toml", "--seed", "1", "--run", "0", "--schedule", schedule, "--speed", "20"]);
-    sitl.args(["--base-port", "0", "--wait-for-peers", "--sim-state-hz", "1", "--link-loss", "0.01"]);
-    let (sitl_child, sitl_out) = spawn_lines(sitl);
+    let (sitl_child, _sitl_out, vehicle_addr) = start_sitl(&world, schedule, &["--link-loss", "0.01"]);
     let mut children = Kill(vec![sitl_child]);
-    let mut vehicle_addr = std::collections::BTreeMap::new();
-    for _ in world.platform_ids() {
-        let line = wait_line(&sitl_out, "vehicle ", Duration::from_secs(30));
-        let words: Vec<&str> = line.split_whitespace().collect();
-        vehicle_addr.insert(words[1].parse::<u16>().unwrap(), words.last().unwrap().to_string());
-    }
     let ids = world.platform_ids();
     let net = LossyNet::new(ids.len(), 0.10, 7);
     let node_cmd = |k: usize, id: u16| {

@@ -670,16 +670,21 @@ mod tests {
     }
 
     fn bound_prior(snaps: &[Snapshot], scope: BoundScope) -> DMatrix<f64> {
+        bound_prior_with(snaps, scope, Vec::new())
+    }
+
+    fn bound_prior_with(snaps: &[Snapshot], scope: BoundScope, independent: Vec<PlatformId>) -> DMatrix<f64> {
         let ranges = [CoopMeasurement::Range { from: 1, to: 2, range_m: 1e9, sigma_m: 1.0 }];
         let opts = UpdateOptions {
-            prior: JointPrior::Bound { independent: Vec::new(), scope },
+            prior: JointPrior::Bound { independent: independent.clone(), scope },
             gate_chi2: UpdateOptions::gate_for_probability(1e-6),
             ..UpdateOptions::new(CrossMode::Propagate)
         };
         // The absurd range is gated out: the outcome's prior is the bound itself.
         let out = cooperative_update_with(&mut CrossCovariances::new(), snaps, &ranges, &opts).unwrap();
         assert_eq!(out.gated, vec![0]);
-        assert!((out.weights.iter().sum::<f64>() - 1.0).abs() < 1e-12);
+        let correlated: f64 = out.weights.iter().zip(snaps).filter(|(_, s)| !independent.contains(&s.id)).map(|(w, _)| w).sum();
+        assert!((correlated - 1.0).abs() < 1e-12, "the weights of the correlated members sum to 1");
         out.prior_covariance
     }
 
@@ -694,6 +699,15 @@ mod tests {
             let bound = bound_prior(&snaps, BoundScope::Full);
             let gap = min_eigenvalue(&(&bound - &p));
             assert!(gap >= -1e-9, "trial {trial}: bound - P has eigenvalue {gap}");
+            // A platform truly uncorrelated with the others needs no weight: left as it is, the
+            // bound still holds.
+            let (mut q, last) = (p.clone(), (n - 1) * 6);
+            q.view_mut((0, last), (last, 6)).fill(0.0);
+            q.view_mut((last, 0), (6, last)).fill(0.0);
+            let bound = bound_prior_with(&snaps, BoundScope::Full, vec![n as PlatformId]);
+            assert_eq!(bound.view((last, last), (6, 6)), snaps[n - 1].covariance.view((0, 0), (6, 6)));
+            let gap = min_eigenvalue(&(&bound - &q));
+            assert!(gap >= -1e-9, "trial {trial}: bound with an independent member - P has eigenvalue {gap}");
         }
     }
 

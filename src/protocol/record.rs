@@ -16,7 +16,7 @@
 //! | 40 | n(n+1)/2 values | covariance, upper triangle, row major |
 //! | .. | n*n values | recursive coefficient matrix Psi, row major |
 //! | .. | u64 | digest of the sender's cross-covariance store before this epoch (0: none kept) |
-//! | .. | u8 | flags: bit 0 `FRESH` (initialised independently of every teammate, no epoch run yet) |
+//! | .. | u8 | flags: bit 0 `FRESH` (initialised independently of every teammate, no epoch applied yet; informational: the heal does not rely on it, see `node::core`) |
 //! | .. | u8 | number `k` of ranges the sender's radio measured at this epoch (0..=32) |
 //! | .. | k x (u16, f32, f32) | each range: platform ranged to, distance m, sigma m |
 //!
