@@ -553,17 +553,12 @@ impl NodeCore {
     }
 
     fn take_imu(&mut self, s: ImuSample) {
-        let backup = (self.filter.clone(), self.history.len(), self.open_instant);
         match self.integrate(&s, true) {
             Ok(()) => {
                 self.stats.imu += 1;
                 self.insert_input(Stamped::Imu(s));
             }
-            Err(_) => {
-                self.stats.imu_rejected += 1;
-                (self.filter, self.open_instant) = (backup.0, backup.2);
-                self.history.truncate(backup.1);
-            }
+            Err(_) => self.stats.imu_rejected += 1,
         }
     }
 
@@ -608,8 +603,24 @@ impl NodeCore {
     /// One IMU sample through the filter: the interval up to it is cut at every mark, every
     /// odometer sample and, for a gap, every step the filter takes; each piece holds the sample's
     /// rates; the odometer samples of each instant are applied at its end. Checkpoints every
-    /// instant it closes. On error the caller restores.
+    /// instant it closes. On error the filter, its checkpoints and its open instant are as they
+    /// were (the filter is copied only when the interval is cut: one propagation that fails
+    /// changes nothing by itself).
     fn integrate(&mut self, s: &ImuSample, live: bool) -> Result<(), EstimationError> {
+        let (history_len, open) = (self.history.len(), self.open_instant);
+        let cut = self.integrate_pieces(s, live);
+        let Err((e, before)) = cut else { return Ok(()) };
+        if let Some(f) = before {
+            self.filter = *f;
+        }
+        self.history.truncate(history_len);
+        self.open_instant = open;
+        Err(e)
+    }
+
+    /// [`Self::integrate`]'s work; on error, the filter from before the first piece when there
+    /// were several.
+    fn integrate_pieces(&mut self, s: &ImuSample, live: bool) -> Result<(), (EstimationError, Option<Box<InsFilter>>)> {
         let t0 = self.filter.time();
         let from = self.inputs.partition_point(|i| i.t() <= t0);
         let odometers: Vec<OdometerSample> = self
@@ -634,9 +645,12 @@ impl NodeCore {
         cuts.sort_unstable();
         cuts.dedup();
         cuts.push(s.t);
+        let before = (cuts.len() > 1).then(|| Box::new(self.filter.clone()));
         for t in cuts {
             self.checkpoint_open();
-            self.filter.propagate(&ImuSample { t, ..*s })?;
+            if let Err(e) = self.filter.propagate(&ImuSample { t, ..*s }) {
+                return Err((e, before));
+            }
             self.open_instant = Some(t);
             for o in odometers.iter().filter(|o| o.t == t) {
                 if self.filter.update_odometer(o).is_err() && live {
