@@ -251,10 +251,9 @@ fn horizontal_error(world: &World, id: PlatformId, core: &NodeCore) -> (f64, f64
     let truth = world.trajectory(id).expect("team member").truth_at(f.time());
     let e = truth.pos_ned_m - f.position_ned_m();
     let p = f.covariance16();
-    let (a, b, c) = (p[(0, 0)], p[(0, 1)], p[(1, 1)]);
-    let det = a * c - b * b;
-    let nees = if det > 0.0 { (c * e[0] * e[0] - 2.0 * b * e[0] * e[1] + a * e[1] * e[1]) / det } else { f64::INFINITY };
-    (e.xy().norm(), nees)
+    let cov = nalgebra::DMatrix::from_fn(2, 2, |r, c| p[(r, c)]);
+    let nees = crate::estimation::consistency::nees(&nalgebra::DVector::from_column_slice(e.xy().as_slice()), &cov);
+    (e.xy().norm(), nees.unwrap_or(f64::INFINITY))
 }
 
 /// Runs one case once (`seed`, `run`) with method `method` on `schedule`.

@@ -1028,8 +1028,14 @@ impl NodeCore {
     fn finish_epoch(&mut self, epoch: u32) {
         let Some(e) = self.epochs.remove(&epoch) else { return };
         if self.last_applied.is_none_or(|last| epochs_fit(last, (epoch, e.t))) {
-            self.last_applied = Some((epoch, e.t));
+            let last = (epoch, e.t);
+            self.last_applied = Some(last);
             self.reassembler.expire_before(epoch.saturating_add(1));
+            // Claims that cannot follow this epoch are forgotten now: left open, a forged far
+            // epoch would pin the history (and memory) at its time for ever.
+            let open = self.epochs.len();
+            self.epochs.retain(|&id, x| epochs_fit(last, (id, x.t)));
+            self.stats.epochs_implausible += (open - self.epochs.len()) as u64;
         } else {
             self.stats.epochs_implausible += 1;
         }
