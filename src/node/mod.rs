@@ -2,3 +2,4 @@
 //! in, messages out, no sockets, no clocks); the tokio runner that owns the sockets comes on top.
 pub mod core;
 pub mod runner;
+pub mod vehicle_link;

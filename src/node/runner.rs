@@ -1,8 +1,9 @@
 //! The node's tokio runner: owns the vehicle link, the cooperative-network socket and the
 //! clock, converts messages with [`crate::protocol::wire`], and feeds a [`NodeCore`].
 //!
-//! - **Vehicle**: any MAVLink connection URL the mavlink crate opens (`udpout:HOST:PORT`,
-//!   `udpin:HOST:PORT`, `tcpout:`, `tcpin:`, `serial:/dev/ttyX:BAUD`). Only messages from the
+//! - **Vehicle**: a MAVLink connection URL (`udpout:HOST:PORT`, `udpin:HOST:PORT`, `tcpout:`,
+//!   `tcpin:`, `serial:/dev/ttyX:BAUD`; see [`super::vehicle_link`]: UDP links get a large
+//!   receive buffer, and lost frames are counted from sequence gaps). Only messages from the
 //!   vehicle's own system id are used: HIGHRES_IMU, ODOMETRY (body velocity) and the cooploc
 //!   ranges its radio measured. The node sends HEARTBEAT (compid 191, ONBOARD_CONTROLLER) at 1 Hz
 //!   and, after every cooperative update, its estimate as LOCAL_POSITION_NED.
@@ -17,10 +18,11 @@ use std::net::SocketAddr;
 use std::sync::Arc;
 use std::time::Duration;
 
-use mavlink_core::{AsyncMavConnection, MavHeader};
+use mavlink_core::MavHeader;
 use tokio::net::UdpSocket;
 
 use super::core::{NodeConfig, NodeCore, NodeInput, NodeOutput, NodeStats};
+use super::vehicle_link::{Received, VehicleLink};
 use crate::estimation::PlatformId;
 use crate::estimation::ins::InsState;
 use crate::protocol::MavMessage;
@@ -198,7 +200,7 @@ impl Sequences {
 async fn send_all(
     coop: &UdpSocket,
     peers: &BTreeSet<SocketAddr>,
-    vehicle: &impl AsyncMavConnection<MavMessage>,
+    vehicle: &VehicleLink,
     seqs: &mut Sequences,
     outputs: Vec<NodeOutput>,
     rec: &Option<SharedRecorder>,
@@ -236,7 +238,7 @@ async fn send_all(
             NodeOutput::ToVehicle(msg) => {
                 let header = seqs.vehicle();
                 record_frame(rec, Link::Vehicle(sysid), Direction::Tx, &wire::to_frame(header, &msg));
-                let _ = vehicle.send(&header, &msg).await;
+                vehicle.send(&header, &msg).await;
             }
         }
     }
@@ -256,14 +258,7 @@ const FROZEN_TICK_GAP: Duration = Duration::from_millis(500);
 
 /// Binds the cooperative-network socket with a large receive buffer.
 pub fn bind_coop(addr: SocketAddr) -> std::io::Result<UdpSocket> {
-    use socket2::{Domain, Protocol, Socket, Type};
-    let socket = Socket::new(Domain::for_address(addr), Type::DGRAM, Some(Protocol::UDP))?;
-    if let Err(e) = socket.set_recv_buffer_size(COOP_RECV_BUFFER) {
-        tracing::warn!(error = %e, "could not enlarge the cooperative socket's receive buffer");
-    }
-    socket.set_nonblocking(true)?;
-    socket.bind(&addr.into())?;
-    UdpSocket::from_std(socket.into())
+    super::vehicle_link::bind_udp(addr, COOP_RECV_BUFFER)
 }
 
 /// Runs a node until `shutdown` resolves or the vehicle link fails. `bound` receives the
@@ -288,38 +283,36 @@ pub async fn run(
     let clock = std::time::Instant::now();
     let wall_us = move || clock.elapsed().as_micros() as u64;
     let vehicle = Arc::new(
-        mavlink_core::connect_async::<MavMessage>(&links.vehicle)
-            .await
-            .with_context(|| format!("connecting to the vehicle at {}", links.vehicle))?,
+        VehicleLink::open(&links.vehicle).await.with_context(|| format!("connecting to the vehicle at {}", links.vehicle))?,
     );
+    if let Some(granted) = vehicle.recv_buffer() {
+        tracing::info!(platform = id, bytes = granted, "vehicle socket receive buffer");
+    }
     let coop = bind_coop(links.coop_bind).with_context(|| format!("binding the cooperative socket {}", links.coop_bind))?;
     let local = coop.local_addr()?;
     let _ = bound.send(local);
     tracing::info!(platform = id, vehicle = %links.vehicle, coop = %local, "node started");
     let mut peers: BTreeSet<SocketAddr> = links.peers.iter().copied().collect();
 
-    // The vehicle link is read on its own task (the mavlink crate's recv has no timeout).
-    let (vtx, mut vrx) = tokio::sync::mpsc::channel::<(MavHeader, MavMessage, Vec<u8>)>(4096);
+    // The vehicle link is read on its own task (a serial or TCP read has no timeout).
+    let (vtx, mut vrx) = tokio::sync::mpsc::channel::<Received>(4096);
     let reader = {
         let vehicle = vehicle.clone();
         tokio::spawn(async move {
+            let mut buf = vec![0u8; 65_536];
             loop {
-                match vehicle.recv_raw().await {
-                    Ok(raw) => {
-                        let bytes = match &raw {
-                            mavlink_core::MAVLinkMessageRaw::V1(r) => r.raw_bytes().to_vec(),
-                            mavlink_core::MAVLinkMessageRaw::V2(r) => r.raw_bytes().to_vec(),
-                        };
-                        let Ok((header, msg)) = wire::from_any_frame(&bytes) else { continue };
-                        if vtx.send((header, msg, bytes)).await.is_err() {
-                            break;
+                match vehicle.recv(&mut buf).await {
+                    Ok(frames) => {
+                        for frame in frames {
+                            if vtx.send(frame).await.is_err() {
+                                return;
+                            }
                         }
                     }
-                    Err(mavlink_core::error::MessageReadError::Io(e)) if e.kind() != std::io::ErrorKind::WouldBlock => {
+                    Err(e) => {
                         tracing::warn!(error = %e, "vehicle link read error");
                         tokio::time::sleep(Duration::from_millis(10)).await;
                     }
-                    Err(_) => {}
                 }
             }
         })
@@ -337,7 +330,7 @@ pub async fn run(
     let mut buf = vec![0u8; 2048];
     tokio::pin!(shutdown);
     // Announce ourselves to the vehicle at once (a udpin peer learns our address from it).
-    let _ = vehicle.send(&seqs.vehicle(), &heartbeat()).await;
+    vehicle.send(&seqs.vehicle(), &heartbeat()).await;
     loop {
         let inputs: Vec<NodeInput> = tokio::select! {
             _ = &mut shutdown => break,
@@ -358,20 +351,20 @@ pub async fn run(
                     if let Some(core) = core.as_mut() {
                         record_event(&recorder, id, &NodeEvent::EndOfInput);
                         let out = core.end_of_input();
-                        send_all(&coop, &peers, &*vehicle, &mut seqs, out, &recorder, sysid).await;
+                        send_all(&coop, &peers, &vehicle, &mut seqs, out, &recorder, sysid).await;
                     }
                 }
                 if let Some(core) = core.as_mut() {
                     let now = wall_us();
                     record_event(&recorder, id, &NodeEvent::Poll { wall_us: now });
                     let out = core.poll(now);
-                    send_all(&coop, &peers, &*vehicle, &mut seqs, out, &recorder, sysid).await;
+                    send_all(&coop, &peers, &vehicle, &mut seqs, out, &recorder, sysid).await;
                 }
                 if ending.is_some_and(|end| tokio::time::Instant::now() >= end) {
                     if let Some(core) = core.as_mut() {
                         record_event(&recorder, id, &NodeEvent::RunPending);
                         let out = core.run_pending();
-                        send_all(&coop, &peers, &*vehicle, &mut seqs, out, &recorder, sysid).await;
+                        send_all(&coop, &peers, &vehicle, &mut seqs, out, &recorder, sysid).await;
                     }
                     break;
                 }
@@ -380,7 +373,7 @@ pub async fn run(
                     continue; // heartbeat at 1 Hz, timeouts and idle checks at 40 Hz
                 }
                 let hb = heartbeat();
-                let _ = vehicle.send(&seqs.vehicle(), &hb).await;
+                vehicle.send(&seqs.vehicle(), &hb).await;
                 let frame = wire::to_frame(seqs.coop(), &hb);
                 for p in &peers {
                     let _ = coop.send_to(&frame, p).await;
@@ -481,7 +474,7 @@ pub async fn run(
         for input in inputs {
             out.extend(core.handle(input));
         }
-        send_all(&coop, &peers, &*vehicle, &mut seqs, out, &recorder, sysid).await;
+        send_all(&coop, &peers, &vehicle, &mut seqs, out, &recorder, sysid).await;
     }
     reader.abort();
     Ok(NodeSummary {

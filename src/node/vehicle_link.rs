@@ -1,0 +1,223 @@
+//! The node's link to its vehicle. UDP links (`udpin:`, `udpout:`) are the node's own sockets,
+//! with a large receive buffer: an autopilot streams IMU samples at up to a few hundred hertz,
+//! and a node busy with a joint update or a rebuild must not lose them to a full kernel buffer
+//! (the mavlink crate's UDP connection keeps the system default, about 200 KiB, which a loaded
+//! machine overflowed in the field). Other URLs (`tcpin:`, `tcpout:`, `serial:`, `udpbcast:`) go
+//! through the mavlink crate, whose stream transports are not subject to datagram loss.
+//!
+//! Frames lost all the same are seen as gaps in the vehicle's MAVLink sequence numbers (the
+//! runner counts them) and bridged by the core.
+
+use std::net::SocketAddr;
+use std::sync::Mutex;
+
+use mavlink_core::{AsyncMavConnection, MavHeader};
+use tokio::net::UdpSocket;
+
+use crate::protocol::MavMessage;
+use crate::protocol::wire;
+
+/// Receive buffer asked for a UDP vehicle link (the kernel caps it at net.core.rmem_max; the
+/// node warns when it got less than it asked).
+pub const VEHICLE_RECV_BUFFER: usize = 4 << 20;
+
+/// One received MAVLink frame: its header, the message and the frame's bytes (for the log).
+pub type Received = (MavHeader, MavMessage, Vec<u8>);
+
+/// A connection to the vehicle.
+pub enum VehicleLink {
+    /// Our own UDP socket. `udpin`: bound to the address, replies go to whoever sent last.
+    /// `udpout`: bound to an ephemeral port, sends to the address.
+    Udp { socket: UdpSocket, peer: Mutex<Option<SocketAddr>>, learn_peer: bool },
+    /// Anything else, through the mavlink crate.
+    Crate(Box<mavlink_core::AsyncConnection<MavMessage>>),
+}
+
+/// Resolves `host:port` of a URL.
+async fn resolve(url: &str, rest: &str) -> anyhow::Result<SocketAddr> {
+    use anyhow::Context as _;
+    tokio::net::lookup_host(rest)
+        .await
+        .with_context(|| format!("vehicle URL {url:?}: {rest:?} is not HOST:PORT"))?
+        .next()
+        .with_context(|| format!("vehicle URL {url:?}: {rest:?} resolves to no address"))
+}
+
+/// A UDP socket with the large receive buffer, bound to `addr`.
+pub fn bind_udp(addr: SocketAddr, buffer: usize) -> std::io::Result<UdpSocket> {
+    use socket2::{Domain, Protocol, Socket, Type};
+    let socket = Socket::new(Domain::for_address(addr), Type::DGRAM, Some(Protocol::UDP))?;
+    if let Err(e) = socket.set_recv_buffer_size(buffer) {
+        tracing::warn!(error = %e, "could not enlarge a socket's receive buffer");
+    }
+    socket.set_nonblocking(true)?;
+    socket.bind(&addr.into())?;
+    UdpSocket::from_std(socket.into())
+}
+
+/// The receive buffer the kernel granted a socket, bytes (Linux reports twice what it keeps for
+/// data: the figure includes its bookkeeping).
+pub fn recv_buffer_size(socket: &UdpSocket) -> std::io::Result<usize> {
+    socket2::SockRef::from(socket).recv_buffer_size()
+}
+
+impl VehicleLink {
+    /// Opens the link named by a MAVLink connection URL.
+    pub async fn open(url: &str) -> anyhow::Result<Self> {
+        use anyhow::Context as _;
+        if let Some(rest) = url.strip_prefix("udpin:") {
+            let addr = resolve(url, rest).await?;
+            let socket = bind_udp(addr, VEHICLE_RECV_BUFFER).with_context(|| format!("binding the vehicle socket {addr}"))?;
+            return Ok(Self::Udp { socket, peer: Mutex::new(None), learn_peer: true });
+        }
+        if let Some(rest) = url.strip_prefix("udpout:") {
+            let addr = resolve(url, rest).await?;
+            let local: SocketAddr = if addr.is_ipv4() { "0.0.0.0:0" } else { "[::]:0" }.parse().expect("literal");
+            let socket = bind_udp(local, VEHICLE_RECV_BUFFER).context("binding the vehicle socket")?;
+            return Ok(Self::Udp { socket, peer: Mutex::new(Some(addr)), learn_peer: false });
+        }
+        let conn = mavlink_core::connect_async::<MavMessage>(url).await?;
+        Ok(Self::Crate(Box::new(conn)))
+    }
+
+    /// The receive buffer granted to a UDP link (None for the others).
+    pub fn recv_buffer(&self) -> Option<usize> {
+        match self {
+            Self::Udp { socket, .. } => recv_buffer_size(socket).ok(),
+            Self::Crate(_) => None,
+        }
+    }
+
+    /// Sends one message (a link with no peer yet, an `udpin` that has heard nobody, drops it).
+    pub async fn send(&self, header: &MavHeader, msg: &MavMessage) {
+        match self {
+            Self::Udp { socket, peer, .. } => {
+                let to = *peer.lock().unwrap_or_else(|e| e.into_inner());
+                if let Some(to) = to {
+                    let _ = socket.send_to(&wire::to_frame(*header, msg), to).await;
+                }
+            }
+            Self::Crate(conn) => {
+                let _ = conn.send(header, msg).await;
+            }
+        }
+    }
+
+    /// Receives the next datagram's (or stream's) frames. Bytes that are no MAVLink frame of
+    /// the dialect are skipped: `Ok` with what could be read, possibly nothing.
+    pub async fn recv(&self, buf: &mut [u8]) -> std::io::Result<Vec<Received>> {
+        match self {
+            Self::Udp { socket, peer, learn_peer } => {
+                let (n, from) = socket.recv_from(buf).await?;
+                if *learn_peer {
+                    *peer.lock().unwrap_or_else(|e| e.into_inner()) = Some(from);
+                }
+                Ok(split_frames(&buf[..n]))
+            }
+            Self::Crate(conn) => match conn.recv_raw().await {
+                Ok(raw) => {
+                    let bytes = match &raw {
+                        mavlink_core::MAVLinkMessageRaw::V1(r) => r.raw_bytes().to_vec(),
+                        mavlink_core::MAVLinkMessageRaw::V2(r) => r.raw_bytes().to_vec(),
+                    };
+                    Ok(wire::from_any_frame(&bytes).map(|(h, m)| vec![(h, m, bytes)]).unwrap_or_default())
+                }
+                Err(mavlink_core::error::MessageReadError::Io(e)) if e.kind() != std::io::ErrorKind::WouldBlock => Err(e),
+                Err(_) => Ok(Vec::new()),
+            },
+        }
+    }
+}
+
+/// The MAVLink v1 and v2 frames of one datagram, in order; reading stops at the first bytes that
+/// are not a complete frame of the dialect (CRC, unknown message, truncation).
+pub fn split_frames(mut bytes: &[u8]) -> Vec<Received> {
+    let mut out = Vec::new();
+    while !bytes.is_empty() {
+        let Some(len) = frame_len(bytes) else { break };
+        let frame = &bytes[..len];
+        match wire::from_any_frame(frame) {
+            Ok((header, msg)) => out.push((header, msg, frame.to_vec())),
+            Err(_) => break,
+        }
+        bytes = &bytes[len..];
+    }
+    out
+}
+
+/// Length of the frame at the start of `bytes` from its header, if it is all there.
+fn frame_len(bytes: &[u8]) -> Option<usize> {
+    let payload = usize::from(*bytes.get(1)?);
+    let len = match bytes[0] {
+        0xFE => 8 + payload,
+        0xFD => 12 + payload + if bytes.get(2)? & 0x01 != 0 { 13 } else { 0 },
+        _ => return None,
+    };
+    (bytes.len() >= len).then_some(len)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::protocol::dialect::cooploc::{MavAutopilot, MavType};
+
+    fn hb(seq: u8) -> Vec<u8> {
+        let msg = wire::heartbeat(MavType::MAV_TYPE_GROUND_ROVER, MavAutopilot::MAV_AUTOPILOT_ARDUPILOTMEGA);
+        wire::to_frame(MavHeader { system_id: 1, component_id: 1, sequence: seq }, &msg)
+    }
+
+    #[test]
+    fn a_datagram_with_several_frames_gives_them_all_and_stops_at_garbage() {
+        let mut d = [hb(1), hb(2), hb(3)].concat();
+        let got = split_frames(&d);
+        assert_eq!(got.iter().map(|f| f.0.sequence).collect::<Vec<_>>(), vec![1, 2, 3]);
+        assert_eq!(got[1].2, hb(2));
+        // A corrupted second frame: the first is kept, nothing after the damage is guessed at.
+        let second = hb(2).len() + 5;
+        d[second] ^= 0xFF;
+        assert_eq!(split_frames(&d).len(), 1);
+        // Truncated, empty, not MAVLink.
+        assert!(split_frames(&hb(1)[..10]).is_empty());
+        assert!(split_frames(&[]).is_empty());
+        assert!(split_frames(b"hello world").is_empty());
+    }
+
+    #[tokio::test]
+    async fn udp_links_get_a_large_receive_buffer_and_udpin_answers_the_last_sender() {
+        let vehicle = UdpSocket::bind("127.0.0.1:0").await.unwrap();
+        let link = VehicleLink::open(&format!("udpout:{}", vehicle.local_addr().unwrap())).await.unwrap();
+        // The default is about 200 KiB; the kernel may cap what we ask at net.core.rmem_max.
+        let default = recv_buffer_size(&UdpSocket::bind("127.0.0.1:0").await.unwrap()).unwrap();
+        let rmem_max: usize =
+            std::fs::read_to_string("/proc/sys/net/core/rmem_max").ok().and_then(|s| s.trim().parse().ok()).unwrap_or(0);
+        let granted = link.recv_buffer().unwrap();
+        assert!(granted >= default, "granted {granted}, default {default}");
+        if rmem_max >= VEHICLE_RECV_BUFFER {
+            assert!(granted >= VEHICLE_RECV_BUFFER, "granted {granted} with rmem_max {rmem_max}");
+        }
+        // udpout sends to the vehicle; the vehicle's reply comes back.
+        let msg = wire::heartbeat(MavType::MAV_TYPE_ONBOARD_CONTROLLER, MavAutopilot::MAV_AUTOPILOT_INVALID);
+        link.send(&MavHeader { system_id: 7, component_id: 191, sequence: 4 }, &msg).await;
+        let mut buf = [0u8; 600];
+        let (n, node) = vehicle.recv_from(&mut buf).await.unwrap();
+        assert_eq!(wire::from_frame(&buf[..n]).unwrap().0.system_id, 7);
+        vehicle.send_to(&[hb(9), hb(10)].concat(), node).await.unwrap();
+        let got = link.recv(&mut [0u8; 2048]).await.unwrap();
+        assert_eq!(got.iter().map(|f| f.0.sequence).collect::<Vec<_>>(), vec![9, 10]);
+
+        // udpin: silent until it has heard someone, then answers them.
+        let probe = UdpSocket::bind("127.0.0.1:0").await.unwrap();
+        let link = VehicleLink::open(&format!("udpin:{}", probe.local_addr().unwrap().ip())).await;
+        assert!(link.is_err(), "udpin without a port is refused");
+        let port_free = UdpSocket::bind("127.0.0.1:0").await.unwrap();
+        let addr = port_free.local_addr().unwrap();
+        drop(port_free);
+        let link = VehicleLink::open(&format!("udpin:{addr}")).await.unwrap();
+        link.send(&MavHeader::default(), &msg).await; // nobody to send to: dropped
+        probe.send_to(&hb(1), addr).await.unwrap();
+        assert_eq!(link.recv(&mut [0u8; 2048]).await.unwrap().len(), 1);
+        link.send(&MavHeader { system_id: 3, component_id: 191, sequence: 1 }, &msg).await;
+        let (n, _) = probe.recv_from(&mut buf).await.unwrap();
+        assert_eq!(wire::from_frame(&buf[..n]).unwrap().0.system_id, 3);
+    }
+}
