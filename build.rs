@@ -2,7 +2,10 @@
 //! includes the vendored common.xml) into OUT_DIR with mavlink-bindgen, extensions on.
 
 fn main() {
-    let dialects = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("dialects");
+    // Read at run time: a build script binary reused from another checkout of this package
+    // (a shared CARGO_TARGET_DIR) must not read that checkout's dialect.
+    let manifest_dir = std::env::var_os("CARGO_MANIFEST_DIR").expect("cargo sets CARGO_MANIFEST_DIR");
+    let dialects = std::path::Path::new(&manifest_dir).join("dialects");
     for xml in ["cooploc.xml", "common.xml", "standard.xml", "minimal.xml"] {
         println!("cargo:rerun-if-changed={}", dialects.join(xml).display());
     }

@@ -69,25 +69,28 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     );
     let base = summaries.iter().find(|s| s.name == "fault-free").map(|s| s.final_rms_m);
     println!(
-        "| case | final RMS m | vs fault-free | at fault end m | dead reckoning m | NEES (95% band) | worse than DR | diverged / detected / not recovered | heals | partial | failed | gated |"
+        "| case | final RMS m | vs fault-free | at fault end m | dead reckoning m | NEES per node | team NEES (95% band) | worse than DR | diverged / detected / not recovered | left out / stores adopted | heals | partial | failed | gated |"
     );
-    println!("|---|---|---|---|---|---|---|---|---|---|---|---|");
+    println!("|---|---|---|---|---|---|---|---|---|---|---|---|---|---|");
     for s in &summaries {
         let rel = base.map_or("".into(), |b| format!("{:+.0}%", 100.0 * (s.final_rms_m / b - 1.0)));
         println!(
-            "| {} | {:.2} | {} | {:.2} | {:.2} | {:.2} ({:.2}-{:.2}) | {} | {} / {} / {} | {} | {} | {} | {} |",
+            "| {} | {:.2} | {} | {:.2} | {:.2} | {:.2} | {:.2} ({:.2}-{:.2}) | {} | {} / {} / {} | {} / {} | {} | {} | {} | {} |",
             s.name,
             s.final_rms_m,
             rel,
             s.fault_end_rms_m,
             s.dr_rms_m,
             s.avg_nees,
-            s.nees_band.0,
-            s.nees_band.1,
+            s.team_nees,
+            s.team_nees_band.0,
+            s.team_nees_band.1,
             s.worse_than_dr,
             s.runs_diverged,
             s.runs_detected,
             s.runs_not_recovered,
+            s.excluded,
+            s.stores_adopted,
             s.heals,
             s.partial,
             s.failed,

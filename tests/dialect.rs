@@ -11,7 +11,8 @@ use std::process::Command;
 
 use cooploc::protocol::MavMessage;
 use cooploc::protocol::dialect::cooploc::{
-    COOPLOC_EPOCH_DATA, COOPLOC_ESTIMATE_DATA, COOPLOC_RANGE_DATA, COOPLOC_STATE_FRAGMENT_DATA, CooplocEpochState, CooplocMethod,
+    COOPLOC_EPOCH_DATA, COOPLOC_ESTIMATE_DATA, COOPLOC_RANGE_DATA, COOPLOC_STATE_FRAGMENT_DATA, COOPLOC_STORE_FRAGMENT_DATA,
+    CooplocEpochState, CooplocMethod,
 };
 use cooploc::protocol::wire::{from_frame, to_frame};
 use mavlink_core::MavHeader;
@@ -91,6 +92,36 @@ fn cases() -> Vec<(&'static str, MavMessage, Value)> {
             }),
             json!({"time_usec": 200_000_000u64, "epoch": 200, "announcer": 1, "count": 3, "participants": participants.to_vec(), "state": 1,
                    "digest": 0x0123_4567_89ab_cdefu64}),
+        ),
+        (
+            "COOPLOC_EPOCH",
+            MavMessage::COOPLOC_EPOCH(COOPLOC_EPOCH_DATA {
+                time_usec: 210_000_000,
+                epoch: 210,
+                announcer: 3,
+                participants,
+                count: 2,
+                state: CooplocEpochState::COOPLOC_EPOCH_STATE_STORE_WANTED,
+                digest: 0x0fed_cba9_8765_4321,
+            }),
+            json!({"time_usec": 210_000_000u64, "epoch": 210, "announcer": 3, "count": 2, "participants": participants.to_vec(), "state": 4,
+                   "digest": 0x0fed_cba9_8765_4321u64}),
+        ),
+        (
+            "COOPLOC_STORE_FRAGMENT",
+            MavMessage::COOPLOC_STORE_FRAGMENT(COOPLOC_STORE_FRAGMENT_DATA {
+                time_usec: 210_000_000,
+                epoch: 210,
+                record_crc32: 0x0BAD_F00D,
+                record_len: 6243,
+                platform: 1,
+                frag_index: 26,
+                frag_count: 27,
+                data_len: 211,
+                data: data.clone().try_into().unwrap(),
+            }),
+            json!({"time_usec": 210_000_000u64, "epoch": 210, "record_crc32": 0x0BAD_F00Du32, "record_len": 6243, "platform": 1,
+                   "frag_index": 26, "frag_count": 27, "data_len": 211, "data": data}),
         ),
     ]
 }

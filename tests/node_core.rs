@@ -282,7 +282,14 @@ fn hostile_epochs_and_records_are_refused_and_counted() {
         let f = cooploc::estimation::ins::InsFilter::new(ins, t0, state, sigma).unwrap();
         let mut snap = cooploc::estimation::PlatformFilter::snapshot(&f, 2);
         snap.covariance[(0, 0)] = -1.0;
-        let rec = StateRecord { snapshot: snap, digest: 1, flags: 0, ranges: Vec::new() };
+        let rec = StateRecord {
+            snapshot: snap,
+            digest: 1,
+            own_ref: cooploc::estimation::StoreRef::fresh(5),
+            refs: Vec::new(),
+            flags: 0,
+            ranges: Vec::new(),
+        };
         let bytes = encode_record(&rec, Encoding::F64).unwrap();
         for fr in fragment(2, 5, 5_000_000, &bytes).unwrap() {
             bad_record.push(fragment_to_message(&fr).unwrap());

@@ -187,10 +187,16 @@ fn wire_budget() {
     use mavlink_core::MavHeader;
     let header = MavHeader { system_id: 1, component_id: 191, sequence: 0 };
     let frames_len = |msgs: &[cooploc::protocol::MavMessage]| msgs.iter().map(|m| to_frame(header, m).len()).sum::<usize>();
+    use cooploc::estimation::StoreRef;
+    use cooploc::protocol::record::{StateRecord, StoreSnapshot, encode_record, encode_store};
     let snap = snapshot(1, 16, 1234.5);
+    // A record of the paper's team: three references in the store, no range.
+    let r = StoreRef { epoch: 7, token: 0x1234 };
+    let three =
+        StateRecord { snapshot: snap, digest: 1, own_ref: r, refs: vec![(1, r), (2, r), (3, r)], flags: 0, ranges: Vec::new() };
     let mut per_event = Vec::new();
     for enc in [Encoding::F64, Encoding::F32] {
-        let rec = record::encode(&snap, enc).unwrap();
+        let rec = encode_record(&three, enc).unwrap();
         let msgs: Vec<_> = fragment(1, 7, 7_000_000, &rec).unwrap().iter().map(|f| fragment_to_message(f).unwrap()).collect();
         per_event.push((enc, rec.len(), msgs.len(), frames_len(&msgs)));
     }
@@ -204,6 +210,29 @@ fn wire_budget() {
     let imu_bytes = frames_len(&[imu_to_highres(&imu)]);
     let odo_bytes = frames_len(&[odometer_to_odometry(&OdometerSample { t: TimeUs(100_000), speed_m_s: 10.0 }, 0.2)]);
     let raw_per_s = 200 * imu_bytes + 10 * odo_bytes;
+    // The store a left-out node asks for: three 16-state platforms, three blocks.
+    let block = DMatrix::from_element(16, 16, 1e-3);
+    let store = CrossCovariances::from_parts(
+        vec![((1, 2), block.clone()), ((1, 3), block.clone()), ((2, 3), block)],
+        vec![(1, r), (2, r), (3, r)],
+    )
+    .unwrap();
+    let store_bytes = encode_store(&StoreSnapshot { epoch: 7, digest_before: 1, store }).unwrap();
+    let store_frags: Vec<_> = fragment(1, 7, 7_000_000, &store_bytes)
+        .unwrap()
+        .into_iter()
+        .map(|mut f| {
+            f.payload = cooploc::protocol::fragment::Payload::Store;
+            fragment_to_message(&f).unwrap()
+        })
+        .collect();
+    eprintln!(
+        "store snapshot of 3 platforms: {} B in {} fragments = {} B on the wire",
+        store_bytes.len(),
+        store_frags.len(),
+        frames_len(&store_frags)
+    );
+    assert!(matches!(store_frags[0], cooploc::protocol::MavMessage::COOPLOC_STORE_FRAGMENT(_)));
     for (enc, rec, n, bytes) in &per_event {
         eprintln!("state broadcast, {enc:?}: record {rec} B in {n} fragments = {bytes} B on the wire per platform per event");
     }
@@ -223,6 +252,7 @@ fn wire_budget() {
 #[test]
 fn records_carry_digest_flags_and_ranges() {
     use cooploc::estimation::RangeSample;
+    use cooploc::estimation::StoreRef;
     use cooploc::protocol::record::{FLAG_FRESH, MAX_RANGES, StateRecord, decode_record, encode_record};
     use cooploc::time::TimeUs;
     let t = TimeUs(7_000_000);
@@ -230,12 +260,19 @@ fn records_carry_digest_flags_and_ranges() {
         .map(|to| RangeSample { t, from: 1, to, range_m: 100.0 + f64::from(to) / 3.0, sigma_m: 0.1 })
         .map(|r| cooploc::protocol::wire::range_as_sent(&r))
         .collect();
-    let rec = StateRecord { snapshot: snapshot(1, 16, 12.5), digest: 0xdead_beef_0123_4567, flags: FLAG_FRESH, ranges };
+    let rec = StateRecord {
+        snapshot: snapshot(1, 16, 12.5),
+        digest: 0xdead_beef_0123_4567,
+        own_ref: StoreRef { epoch: 41, token: 0x0123_4567_89ab_cdef },
+        refs: Vec::new(),
+        flags: FLAG_FRESH,
+        ranges,
+    };
     for enc in [Encoding::F64, Encoding::F32] {
         let bytes = encode_record(&rec, enc).unwrap();
         assert_eq!(bytes.len(), record::record_len(16, enc) + 3 * 10);
         let back = decode_record(1, t, &bytes).unwrap();
-        assert_eq!((back.digest, back.flags, &back.ranges), (rec.digest, rec.flags, &rec.ranges));
+        assert_eq!((back.digest, back.own_ref, back.flags, &back.ranges), (rec.digest, rec.own_ref, rec.flags, &rec.ranges));
         // Cut inside the ranges, or a count that promises more: a length error.
         assert!(matches!(decode_record(1, t, &bytes[..bytes.len() - 1]), Err(RecordError::LengthMismatch { .. })));
         let mut more = bytes.clone();
@@ -243,7 +280,7 @@ fn records_carry_digest_flags_and_ranges() {
         more[count_at] = 4;
         assert!(matches!(decode_record(1, t, &more), Err(RecordError::LengthMismatch { .. })));
         let mut flags = bytes.clone();
-        flags[count_at - 1] = 0x80;
+        flags[count_at - 2] = 0x80;
         assert_eq!(decode_record(1, t, &flags), Err(RecordError::Flags(0x80)));
         // A range to the sender itself, or a negative sigma, is refused.
         let mut selfie = bytes.clone();
@@ -253,8 +290,69 @@ fn records_carry_digest_flags_and_ranges() {
         sigma[count_at + 7..count_at + 11].copy_from_slice(&(-0.1f32).to_le_bytes());
         assert!(matches!(decode_record(1, t, &sigma), Err(RecordError::Range { index: 0, .. })));
     }
+    // References: they come back exactly; out of order, or more than a team, they are refused.
+    let refs = vec![(1, StoreRef { epoch: 40, token: 7 }), (3, StoreRef { epoch: 12, token: 9 })];
+    let with_refs = StateRecord { refs: refs.clone(), ..rec.clone() };
+    let bytes = encode_record(&with_refs, Encoding::F64).unwrap();
+    assert_eq!(bytes.len(), record::record_len(16, Encoding::F64) + 2 * 14 + 3 * 10);
+    assert_eq!(decode_record(1, t, &bytes).unwrap(), with_refs);
+    let swapped = StateRecord { refs: vec![refs[1], refs[0]], ..rec.clone() };
+    assert_eq!(encode_record(&swapped, Encoding::F64), Err(RecordError::RefOrder));
+    let mut swapped_bytes = bytes.clone();
+    let refs_at = record::record_len(16, Encoding::F64) - 1; // first reference, after its count
+    swapped_bytes[refs_at..refs_at + 2].copy_from_slice(&5u16.to_le_bytes());
+    assert_eq!(decode_record(1, t, &swapped_bytes), Err(RecordError::RefOrder));
+    let mut count = bytes.clone();
+    count[refs_at - 1] = 200;
+    assert_eq!(decode_record(1, t, &count), Err(RecordError::TooManyRefs(200)));
     let too_many = StateRecord { ranges: vec![rec.ranges[0]; MAX_RANGES + 1], ..rec.clone() };
     assert_eq!(encode_record(&too_many, Encoding::F32), Err(RecordError::TooManyRanges(MAX_RANGES + 1)));
     let foreign = StateRecord { ranges: vec![RangeSample { from: 2, ..rec.ranges[0] }], ..rec };
     assert!(matches!(encode_record(&foreign, Encoding::F32), Err(RecordError::Range { index: 0, .. })));
+}
+
+/// A store snapshot (what a node left out of an epoch takes from its teammates) comes back bit for
+/// bit with the digest it claims; a snapshot whose bytes do not give that digest, or whose blocks
+/// are not ordered pairs of one shape per platform, is refused with the reason.
+#[test]
+fn store_snapshots_round_trip_and_refuse_what_does_not_add_up() {
+    use cooploc::estimation::{StoreError, StoreRef};
+    use cooploc::protocol::record::{StoreSnapshot, decode_store, encode_store};
+    use nalgebra::DMatrix;
+    let block = |seed: f64| DMatrix::from_fn(16, 16, |r, c| (seed + r as f64 * 0.37 - c as f64 * 0.11).sin() * 1e-3);
+    let store = CrossCovariances::from_parts(
+        vec![((1, 2), block(1.0)), ((1, 3), block(2.0)), ((2, 3), block(3.0))],
+        vec![(1, StoreRef { epoch: 9, token: 11 }), (2, StoreRef { epoch: 9, token: 11 }), (3, StoreRef::fresh(4))],
+    )
+    .unwrap();
+    let snap = StoreSnapshot { epoch: 9, digest_before: 0xabc, store: store.clone() };
+    let bytes = encode_store(&snap).unwrap();
+    assert_eq!(bytes.len(), 21 + 1 + 3 * 14 + 2 + 3 * (6 + 16 * 16 * 8));
+    let back = decode_store(&bytes).unwrap();
+    assert_eq!(back, snap);
+    assert_eq!(back.store.digest(), store.digest());
+    // One bit of one value changed: the digest it carries no longer matches.
+    let mut flipped = bytes.clone();
+    let last = flipped.len() - 1;
+    flipped[last] ^= 1;
+    assert_eq!(decode_store(&flipped), Err(RecordError::StoreDigest));
+    // Truncated, or with bytes left over.
+    assert!(matches!(decode_store(&bytes[..bytes.len() - 8]), Err(RecordError::TooShort { .. })));
+    let mut longer = bytes.clone();
+    longer.push(0);
+    assert!(matches!(decode_store(&longer), Err(RecordError::LengthMismatch { .. })));
+    // Blocks that do not make a store.
+    assert_eq!(CrossCovariances::from_parts(vec![((2, 1), block(1.0))], vec![]), Err(StoreError::Pair(2, 1)));
+    let small = DMatrix::zeros(15, 16);
+    assert_eq!(
+        CrossCovariances::from_parts(vec![((1, 2), block(1.0)), ((1, 3), small)], vec![]),
+        Err(StoreError::Shape(1, 3, 15, 16))
+    );
+    let mut nan = block(1.0);
+    nan[(3, 3)] = f64::NAN;
+    assert_eq!(CrossCovariances::from_parts(vec![((1, 2), nan)], vec![]), Err(StoreError::NonFinite(1, 2)));
+    // The references count in the digest: a store that saw another update differs.
+    let mut other = store.clone();
+    other.set_reference(3, StoreRef { epoch: 9, token: 11 });
+    assert_ne!(other.digest(), store.digest());
 }

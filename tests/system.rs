@@ -346,7 +346,7 @@ impl Drop for LossyNet {
 /// cooperative network loses 10% of the datagrams, and node 3 is killed at about 114 s and
 /// restarted (from its vehicle's SIM_STATE) 20 s later. No node diverges: each ends within a few
 /// metres, better than dead reckoning on the team; the restart is detected (store digests
-/// differ) and healed.
+/// differ) and handled (the restarted node takes the others' store, or the team heals).
 #[test]
 fn lossy_links_and_a_restarted_node_do_not_break_the_team() {
     let world = World::new(&Scenario::from_toml_str(PAPER_TOML).unwrap()).unwrap();
@@ -388,7 +388,7 @@ fn lossy_links_and_a_restarted_node_do_not_break_the_team() {
 
     let inputs = world.run_inputs(seed, run);
     let dr = run_filter(&world, &inputs, &[], Method::DeadReckoning).unwrap();
-    let (mut node_err, mut dr_err, mut detections) = (0.0, 0.0, 0u64);
+    let (mut node_err, mut dr_err, mut detections, mut restart_handled) = (0.0, 0.0, 0u64, 0u64);
     for (k, (&id, out)) in ids.iter().zip(&outs).enumerate() {
         let line = wait_line(out, &format!("node {id} done:"), Duration::from_secs(240));
         let stats = wait_line(out, &format!("node {id} stats"), Duration::from_secs(5));
@@ -409,6 +409,9 @@ fn lossy_links_and_a_restarted_node_do_not_break_the_team() {
                 .unwrap()
         };
         detections += field("store_mismatches") + field("epoch_disagreements");
+        if id == 3 {
+            restart_handled = field("stores_adopted") + field("heals");
+        }
         let dr_k = dr.platforms[k].final_error().pos_err_m;
         eprintln!("node {id}: final horizontal error {err:.2} m, dead reckoning {dr_k:.2} m, heals {}", field("heals"));
         assert!(err < dr_k + 5.0, "node {id} diverged: {err:.2} m against dead reckoning's {dr_k:.2} m");
@@ -422,6 +425,7 @@ fn lossy_links_and_a_restarted_node_do_not_break_the_team() {
     );
     assert!(dropped * 100 >= (fw + dropped) * 8, "the network lost about 10%");
     assert!(detections > 0, "the restart was not detected");
+    assert!(restart_handled > 0, "the restarted node neither took the others' store nor healed");
     assert!(node_err < dr_err, "the team ({node_err:.2} m) should beat dead reckoning ({dr_err:.2} m)");
     drop(children);
 }

@@ -243,9 +243,80 @@ fn split(
 /// platforms (paper Step 5: "saved locally to use ... before the next collaborative
 /// localization"). The current cross-covariance is `Psi_i C_ij Psi_j^T`; a missing block is zero
 /// (no correlation yet: the first event, paper Step 5's closing note).
+///
+/// Next to the blocks, the store keeps a [`StoreRef`] per platform: which joint update last reset
+/// that platform's `Psi`, as the holder of the store saw it. The blocks of platform `k` are in
+/// the reference of `k`'s own `Psi` only if `k` itself last reset it at that same update; a node
+/// compares the two before it trusts a store (see `node::core`).
 #[derive(Debug, Clone, Default, PartialEq)]
 pub struct CrossCovariances {
     blocks: BTreeMap<(PlatformId, PlatformId), DMatrix<f64>>,
+    refs: BTreeMap<PlatformId, StoreRef>,
+}
+
+/// The joint update that last reset a platform's `Psi`: its epoch and a token of what it ran on
+/// (participants and store digests; 0 means none: the platform started independently of the
+/// team at or after `epoch`).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, PartialOrd, Ord)]
+pub struct StoreRef {
+    pub epoch: u32,
+    pub token: u64,
+}
+
+impl StoreRef {
+    /// A platform that started independently of everyone, first heard of at `epoch`.
+    pub fn fresh(epoch: u32) -> Self {
+        Self { epoch, token: 0 }
+    }
+
+    pub fn is_fresh(&self) -> bool {
+        self.token == 0
+    }
+
+    /// The reference a joint update at `epoch` on `participants` (sorted), whose records carried
+    /// `digests`, gives each participant: equal on every node that ran the same update.
+    pub fn of_update(epoch: u32, participants: &[PlatformId], digests: &[u64]) -> Self {
+        let mut h = Fnv::new();
+        h.eat(&epoch.to_le_bytes());
+        for p in participants {
+            h.eat(&p.to_le_bytes());
+        }
+        for d in digests {
+            h.eat(&d.to_le_bytes());
+        }
+        Self { epoch, token: h.finish() }
+    }
+}
+
+/// FNV-1a, 64 bit (never 0 at the end: 0 means "none" on the wire).
+struct Fnv(u64);
+
+impl Fnv {
+    fn new() -> Self {
+        Self(0xcbf2_9ce4_8422_2325)
+    }
+
+    fn eat(&mut self, bytes: &[u8]) {
+        for b in bytes {
+            self.0 ^= u64::from(*b);
+            self.0 = self.0.wrapping_mul(0x0000_0100_0000_01b3);
+        }
+    }
+
+    fn finish(&self) -> u64 {
+        self.0.max(1)
+    }
+}
+
+/// Why a store could not be rebuilt from its parts.
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+pub enum StoreError {
+    #[error("store block ({0}, {1}) is not an ordered pair of two platforms")]
+    Pair(PlatformId, PlatformId),
+    #[error("store block ({0}, {1}) is {2}x{3}, which does not match the other blocks of those platforms")]
+    Shape(PlatformId, PlatformId, usize, usize),
+    #[error("store block ({0}, {1}) has a non-finite value")]
+    NonFinite(PlatformId, PlatformId),
 }
 
 impl CrossCovariances {
@@ -269,35 +340,79 @@ impl CrossCovariances {
     /// Forgets every block that involves `id` (a platform that left the team for good).
     pub fn forget(&mut self, id: PlatformId) {
         self.blocks.retain(|(a, b), _| *a != id && *b != id);
+        self.refs.remove(&id);
     }
 
     /// Forgets everything.
     pub fn clear(&mut self) {
         self.blocks.clear();
+        self.refs.clear();
+    }
+
+    /// The update that last reset `id`'s `Psi`, as this store saw it.
+    pub fn reference(&self, id: PlatformId) -> Option<StoreRef> {
+        self.refs.get(&id).copied()
+    }
+
+    pub fn set_reference(&mut self, id: PlatformId, r: StoreRef) {
+        self.refs.insert(id, r);
+    }
+
+    /// Every platform's reference, by platform id.
+    pub fn references(&self) -> impl Iterator<Item = (PlatformId, StoreRef)> + '_ {
+        self.refs.iter().map(|(k, v)| (*k, *v))
+    }
+
+    /// Every stored block `((i, j), C_ij)` with `i < j`, in order.
+    pub fn blocks(&self) -> impl Iterator<Item = ((PlatformId, PlatformId), &DMatrix<f64>)> + '_ {
+        self.blocks.iter().map(|(k, v)| (*k, v))
+    }
+
+    /// A store from its blocks (`i < j`, finite, one dimension per platform) and references.
+    pub fn from_parts(
+        blocks: Vec<((PlatformId, PlatformId), DMatrix<f64>)>,
+        refs: Vec<(PlatformId, StoreRef)>,
+    ) -> Result<Self, StoreError> {
+        let mut store = Self::new();
+        let mut dims: BTreeMap<PlatformId, usize> = BTreeMap::new();
+        for ((a, b), m) in blocks {
+            if a >= b {
+                return Err(StoreError::Pair(a, b));
+            }
+            let fits = |p: PlatformId, n: usize, dims: &mut BTreeMap<PlatformId, usize>| *dims.entry(p).or_insert(n) == n;
+            if !fits(a, m.nrows(), &mut dims) || !fits(b, m.ncols(), &mut dims) || m.is_empty() {
+                return Err(StoreError::Shape(a, b, m.nrows(), m.ncols()));
+            }
+            if !m.iter().all(|v| v.is_finite()) {
+                return Err(StoreError::NonFinite(a, b));
+            }
+            store.blocks.insert((a, b), m);
+        }
+        store.refs = refs.into_iter().collect();
+        Ok(store)
     }
 
     /// A 64-bit digest (FNV-1a) of every stored block, its platform pair and the bits of every
-    /// value: two stores have the same digest when they are equal, and different ones otherwise
-    /// except with probability about 2^-64. Never 0 (0 means "no store" on the wire).
+    /// value, and of every reference: two stores have the same digest when they are equal, and
+    /// different ones otherwise except with probability about 2^-64. Never 0 (0 means "no store"
+    /// on the wire).
     pub fn digest(&self) -> u64 {
-        const PRIME: u64 = 0x0000_0100_0000_01b3;
-        let mut h: u64 = 0xcbf2_9ce4_8422_2325;
-        let mut eat = |bytes: &[u8]| {
-            for b in bytes {
-                h ^= u64::from(*b);
-                h = h.wrapping_mul(PRIME);
-            }
-        };
+        let mut h = Fnv::new();
         for ((a, b), m) in &self.blocks {
-            eat(&a.to_le_bytes());
-            eat(&b.to_le_bytes());
-            eat(&(m.nrows() as u32).to_le_bytes());
-            eat(&(m.ncols() as u32).to_le_bytes());
+            h.eat(&a.to_le_bytes());
+            h.eat(&b.to_le_bytes());
+            h.eat(&(m.nrows() as u32).to_le_bytes());
+            h.eat(&(m.ncols() as u32).to_le_bytes());
             for v in m.iter() {
-                eat(&v.to_bits().to_le_bytes());
+                h.eat(&v.to_bits().to_le_bytes());
             }
         }
-        h.max(1)
+        for (p, r) in &self.refs {
+            h.eat(&p.to_le_bytes());
+            h.eat(&r.epoch.to_le_bytes());
+            h.eat(&r.token.to_le_bytes());
+        }
+        h.finish()
     }
 
     /// Number of stored blocks.

@@ -143,6 +143,8 @@ pub struct RunOutcome {
     pub last_divergent_epoch: Option<u32>,
     /// The last epoch at or before the end of the faults (0: none).
     pub fault_end_epoch: u32,
+    /// The team's joint horizontal NEES at the end (see [`team_nees`]).
+    pub team_nees: f64,
     /// Disagreements the nodes detected themselves (reported disagreements plus store
     /// mismatches, summed over nodes).
     pub detections: u64,
@@ -254,6 +256,60 @@ fn horizontal_error(world: &World, id: PlatformId, core: &NodeCore) -> (f64, f64
     let cov = nalgebra::DMatrix::from_fn(2, 2, |r, c| p[(r, c)]);
     let nees = crate::estimation::consistency::nees(&nalgebra::DVector::from_column_slice(e.xy().as_slice()), &cov);
     (e.xy().norm(), nees.unwrap_or(f64::INFINITY))
+}
+
+/// The team's joint horizontal NEES at the end (`2 x members` degrees of freedom): the errors
+/// stacked, against the joint covariance the decentralized filter implies, each node's own block
+/// and the cross blocks `Psi_i C_ij Psi_j^T` of the store the nodes hold (the store of the most
+/// nodes; they agree at the end of every case). Unlike the per-node NEES of one run, whose values
+/// are strongly correlated (ranges leave the team's common position unobserved, so the nodes'
+/// errors move together), this is one chi-square sample per run, so its run average has an exact
+/// band. NaN for methods that keep no store.
+fn team_nees(world: &World, ids: &[PlatformId], cores: &[&NodeCore]) -> f64 {
+    use crate::estimation::PlatformFilter;
+    use nalgebra::{DMatrix, DVector};
+    if cores.iter().any(|c| c.config().method != Method::Decentralized) {
+        return f64::NAN;
+    }
+    let mut counts: BTreeMap<u64, usize> = BTreeMap::new();
+    for c in cores {
+        *counts.entry(c.store_digest()).or_default() += 1;
+    }
+    let common = counts.iter().max_by_key(|(d, n)| (**n, Reverse(**d))).map(|(d, _)| *d);
+    let Some(store) = cores.iter().find(|c| Some(c.store_digest()) == common).map(|c| c.store()) else {
+        return f64::NAN;
+    };
+    let snaps: Vec<_> = cores.iter().zip(ids).map(|(c, &id)| c.filter().snapshot(id)).collect();
+    let pos =
+        |k: usize| -> Option<[usize; 2]> { Some([snaps[k].geometry.position_index[0]?, snaps[k].geometry.position_index[1]?]) };
+    let n = ids.len();
+    let mut p = DMatrix::zeros(2 * n, 2 * n);
+    let mut e = DVector::zeros(2 * n);
+    for i in 0..n {
+        let Some(pi) = pos(i) else { return f64::NAN };
+        let f = cores[i].filter();
+        let truth = world.trajectory(ids[i]).expect("team member").truth_at(f.time());
+        let err = truth.pos_ned_m - f.position_ned_m();
+        e[2 * i] = err.x;
+        e[2 * i + 1] = err.y;
+        for j in 0..n {
+            let Some(pj) = pos(j) else { return f64::NAN };
+            let block = if i == j {
+                snaps[i].covariance.clone()
+            } else {
+                match store.get(ids[i], ids[j]) {
+                    Some(c) => &snaps[i].psi * c * snaps[j].psi.transpose(),
+                    None => continue,
+                }
+            };
+            for (a, &ra) in pi.iter().enumerate() {
+                for (b, &cb) in pj.iter().enumerate() {
+                    p[(2 * i + a, 2 * j + b)] = block[(ra, cb)];
+                }
+            }
+        }
+    }
+    crate::estimation::consistency::nees(&e, &p).unwrap_or(f64::INFINITY)
 }
 
 /// Runs one case once (`seed`, `run`) with method `method` on `schedule`.
@@ -424,11 +480,14 @@ pub fn run_case(
     }
     let divergent: Vec<u32> = all.iter().filter(|(_, d)| d.windows(2).any(|w| w[0] != w[1])).map(|(e, _)| *e).collect();
     let fault_end_epoch = epoch_times.iter().filter(|t| **t <= fault_end).count() as u32;
+    let cores: Vec<&NodeCore> = sim.nodes.iter().filter_map(|n| n.core.as_ref()).collect();
+    let team_nees = team_nees(world, &ids, &cores);
     Ok(RunOutcome {
         nodes: outcomes,
         divergent_epochs: divergent.len() as u32,
         last_divergent_epoch: divergent.last().copied(),
         fault_end_epoch,
+        team_nees,
         detections,
     })
 }
@@ -444,9 +503,14 @@ pub struct CaseSummary {
     pub fault_end_rms_m: f64,
     /// RMS of dead reckoning's final error on the same inputs, m.
     pub dr_rms_m: f64,
-    /// Average final 2-D NEES over runs and nodes, and its 95% band for a consistent filter.
+    /// Average final 2-D NEES over runs and nodes, and the 95% band it would have if the nodes'
+    /// errors were independent (they are not: see [`team_nees`]).
     pub avg_nees: f64,
     pub nees_band: (f64, f64),
+    /// Average over runs of the team's joint NEES (`2 x nodes` degrees of freedom), and its 95%
+    /// band for a consistent filter.
+    pub team_nees: f64,
+    pub team_nees_band: (f64, f64),
     /// Nodes (over all runs) that ended worse than dead reckoning by more than their own 3-sigma.
     pub worse_than_dr: usize,
     /// Runs in which the nodes' stores diverged at some epoch, and those among them in which the
@@ -455,7 +519,10 @@ pub struct CaseSummary {
     pub runs_detected: usize,
     /// Runs still diverged more than 3 epochs after the faults ended.
     pub runs_not_recovered: usize,
-    /// Sums over runs and nodes.
+    /// Sums over runs and nodes: epochs a node was left out of (its store not valid for the
+    /// participants) and stores it then adopted from them, heals with the bound, ...
+    pub excluded: u64,
+    pub stores_adopted: u64,
     pub heals: u64,
     pub partial: u64,
     pub applied: u64,
@@ -478,10 +545,18 @@ pub fn summarize(name: &str, runs: &[RunOutcome]) -> CaseSummary {
         dr_rms_m: rms(&|n| n.dr_final_err_m),
         avg_nees: nodes.iter().map(|n| n.final_nees).sum::<f64>() / nodes.len().max(1) as f64,
         nees_band: crate::estimation::consistency::average_nees_band(2, nodes.len(), 0.95),
+        team_nees: runs.iter().map(|r| r.team_nees).sum::<f64>() / runs.len().max(1) as f64,
+        team_nees_band: crate::estimation::consistency::average_nees_band(
+            2 * runs.first().map_or(0, |r| r.nodes.len()),
+            runs.len(),
+            0.95,
+        ),
         worse_than_dr: nodes.iter().filter(|n| n.final_err_m > n.dr_final_err_m + 3.0 * n.final_sigma_m).count(),
         runs_diverged: diverged.len(),
         runs_detected: diverged.iter().filter(|r| r.detections > 0).count(),
         runs_not_recovered: runs.iter().filter(|r| r.last_divergent_epoch.is_some_and(|e| e > r.fault_end_epoch + 3)).count(),
+        excluded: sum(&|s| s.epochs_excluded),
+        stores_adopted: sum(&|s| s.stores_adopted),
         heals: sum(&|s| s.heals),
         partial: sum(&|s| s.epochs_partial),
         applied: sum(&|s| s.epochs_applied),

@@ -34,14 +34,23 @@
 //!    says so (PARTIAL).
 //! 3. **Joint update** (Steps 4-5), on the records sorted by platform id. If every record carries
 //!    the same store digest, the exact method runs (the store and the Psi of each record). If
-//!    not, the stores have diverged (a node missed an epoch, ran it on other records, restarted):
-//!    every node sees the same records, so every node *heals* the same way, with the
-//!    covariance-intersection bound of [`crate::estimation::coop`] (cross blocks dropped, each
-//!    correlated participant's covariance divided by its weight), which is consistent whatever
-//!    the true cross-covariances were; after it the stores agree again and the exact method
-//!    resumes. Ranges whose innovation fails a chi-square gate are left out (every node leaves
-//!    out the same ones). An update that fails is retried with the bound; one that fails again
-//!    is not applied, and said so (FAILED).
+//!    not, the stores have diverged (a node missed an epoch, ran it on other records, restarted).
+//!    Every node sees the same records, so every node makes the same choice:
+//!    - if a store held by two records or more is *valid for every participant* (the store's
+//!      reference for each, the joint update that last reset its Psi, is the participant's own;
+//!      or the participant started independently after the store last saw it), its holders run
+//!      the exact method among themselves and the others are *left out*: they apply nothing
+//!      (their Psi keeps accumulating, so that store stays right for them), ask the holders for
+//!      their store right after the epoch (STORE_WANTED, answered with COOPLOC_STORE_FRAGMENT),
+//!      and adopt it; the team is exact again from the next epoch on;
+//!    - else every node *heals* with the covariance-intersection bound of
+//!      [`crate::estimation::coop`] (cross blocks dropped, each participant's covariance divided
+//!      by its weight), which is consistent whatever the true cross-covariances were; after it
+//!      the stores agree again and the exact method resumes.
+//!
+//!    Ranges whose innovation fails a chi-square gate are left out (every node leaves out the
+//!    same ones). An update that fails is retried with the bound; one that fails again is not
+//!    applied, and said so (FAILED).
 //! 4. **Back to the present**: the node restores its checkpoint at `t_e`, writes back its own
 //!    share, and replays every input since.
 //! 5. **Report**: a COOPLOC_EPOCH (APPLIED, PARTIAL or FAILED) with the participants and the
@@ -65,10 +74,10 @@ use crate::estimation::ci::ci_update;
 use crate::estimation::ins::{InsConfig, InsFilter, InsInitialSigma, InsState};
 use crate::estimation::{
     BoundScope, CoopMeasurement, Correction, CrossCovariances, CrossMode, EstimationError, ImuSample, JointPrior, Method,
-    OdometerSample, PlatformFilter, PlatformId, RangeSample, UpdateOptions, cooperative_update_with,
+    OdometerSample, PlatformFilter, PlatformId, RangeSample, StoreRef, UpdateOptions, cooperative_update_with,
 };
 use crate::protocol::MavMessage;
-use crate::protocol::fragment::{Pushed, Reassembler, fragment};
+use crate::protocol::fragment::{Payload, Pushed, Reassembler, fragment};
 use crate::protocol::record::{self, Encoding, FLAG_FRESH, StateRecord};
 use crate::protocol::wire::{self, EpochState};
 use crate::recording::{CoopUpdateRecord, RangeRecord};
@@ -232,9 +241,17 @@ pub struct NodeStats {
     pub epoch_disagreements: u64,
     /// Epochs whose records carried different store digests: the stores had diverged.
     pub store_mismatches: u64,
-    /// Joint updates run with the covariance-intersection bound (store mismatch or a failed
-    /// exact update).
+    /// Joint updates run with the covariance-intersection bound (store mismatch with no valid
+    /// store among the records, or a failed exact update).
     pub heals: u64,
+    /// Epochs this node was left out of because its store was not valid for the participants
+    /// (it then asks them for theirs).
+    pub epochs_excluded: u64,
+    /// Store snapshots sent to a teammate that asked, and adopted from one.
+    pub stores_sent: u64,
+    pub stores_adopted: u64,
+    /// Store snapshots refused: not asked for, stale, not valid for this node, undecodable.
+    pub stores_refused: u64,
     /// Wall-clock jumps (the node was frozen) credited to the waiting epochs.
     pub freezes: u64,
     pub replayed_inputs: u64,
@@ -340,6 +357,73 @@ struct RanOn {
     digest: u64,
 }
 
+/// A store asked for: the one the participants of `epoch` hold right after it.
+#[derive(Debug, Clone)]
+struct WantStore {
+    epoch: u32,
+    t: TimeUs,
+    /// Their store's digest before the epoch (as their records carried it).
+    digest_before: u64,
+    members: Vec<PlatformId>,
+    /// Wall time we asked first and last.
+    since: u64,
+    last_request: u64,
+}
+
+/// Store snapshots kept for teammates that ask (the last epochs we took part in).
+const SNAPSHOTS_KEPT: usize = 4;
+
+/// The records that share a store valid for every participant of an epoch (see
+/// [`choose_store`]).
+#[derive(Debug, Clone, PartialEq)]
+struct StoreChoice {
+    digest: u64,
+    /// Platforms whose record carries that store (they run the epoch).
+    members: Vec<PlatformId>,
+    /// Participants that started independently of the team after the store last saw them: their
+    /// blocks are forgotten (their errors are uncorrelated with everyone's).
+    refreshed: Vec<PlatformId>,
+}
+
+/// When the records of an epoch carry different store digests: the store, among theirs, that is
+/// valid for every participant, if any. A store is valid for a participant when the reference
+/// it holds for it is the participant's own (both saw the same last joint update of its Psi),
+/// or when the participant started independently of the team after the store last saw it. The
+/// store held by the most records wins (ties: the lowest digest); it must be held by two records
+/// at least. Every node computes this from the records alone, so every node that holds the same
+/// records makes the same choice.
+fn choose_store(records: &[StateRecord]) -> Option<StoreChoice> {
+    let mut groups: BTreeMap<u64, Vec<&StateRecord>> = BTreeMap::new();
+    for r in records {
+        groups.entry(r.digest).or_default().push(r);
+    }
+    let mut best: Option<StoreChoice> = None;
+    for (&digest, holders) in &groups {
+        if holders.len() < 2 || best.as_ref().is_some_and(|b| b.members.len() >= holders.len()) {
+            continue;
+        }
+        let refs: BTreeMap<PlatformId, StoreRef> = holders[0].refs.iter().copied().collect();
+        let mut refreshed = Vec::new();
+        let valid = records.iter().all(|r| {
+            let id = r.snapshot.id;
+            let held = refs.get(&id);
+            if r.own_ref.is_fresh() {
+                let stale = held.is_some_and(|h| h.epoch < r.own_ref.epoch);
+                if stale {
+                    refreshed.push(id);
+                }
+                held.is_none() || stale
+            } else {
+                held == Some(&r.own_ref)
+            }
+        });
+        if valid {
+            best = Some(StoreChoice { digest, members: holders.iter().map(|r| r.snapshot.id).collect(), refreshed });
+        }
+    }
+    best
+}
+
 /// The node's state machine.
 #[derive(Debug)]
 pub struct NodeCore {
@@ -377,6 +461,18 @@ pub struct NodeCore {
     cross: CrossCovariances,
     /// Independent of every teammate and no epoch applied yet.
     fresh: bool,
+    /// The joint update that last reset our Psi (None: none since the start).
+    own_ref: Option<StoreRef>,
+    /// The first epoch we broadcast (our reference while we have applied none).
+    born: Option<u32>,
+    /// Our store right after recent epochs we took part in: (epoch, time, store digest before
+    /// the epoch, store after it), for teammates that ask.
+    snapshots: VecDeque<(u32, TimeUs, u64, CrossCovariances)>,
+    /// The store we asked for after we were left out of an epoch.
+    want_store: Option<WantStore>,
+    /// Wall time we last sent our store after each recent epoch.
+    store_sent_at: BTreeMap<u32, u64>,
+    store_reassembler: Reassembler,
     gate: Option<[f64; 3]>,
     last_event: Option<(u32, f64, u8, u8)>,
     pub stats: NodeStats,
@@ -429,6 +525,12 @@ impl NodeCore {
             wall_us: 0,
             reassembler: Reassembler::new(256),
             cross: CrossCovariances::new(),
+            own_ref: None,
+            born: None,
+            snapshots: VecDeque::new(),
+            want_store: None,
+            store_sent_at: BTreeMap::new(),
+            store_reassembler: Reassembler::new(16),
             gate,
             last_event: None,
             stats: NodeStats::default(),
@@ -458,6 +560,11 @@ impl NodeCore {
     /// node that ran the same epochs on the same records.
     pub fn store_digest(&self) -> u64 {
         if self.cfg.method == Method::Decentralized { self.cross.digest() } else { 0 }
+    }
+
+    /// The cross-covariance store (with the references it holds).
+    pub fn store(&self) -> &CrossCovariances {
+        &self.cross
     }
 
     /// The last epoch resolved (run, or passed over), if any.
@@ -800,8 +907,13 @@ impl NodeCore {
     }
 
     fn peer_message(&mut self, from: PlatformId, msg: MavMessage, out: &mut Vec<NodeOutput>) {
-        let cooploc =
-            matches!(msg, MavMessage::COOPLOC_STATE_FRAGMENT(_) | MavMessage::COOPLOC_RANGE(_) | MavMessage::COOPLOC_EPOCH(_));
+        let cooploc = matches!(
+            msg,
+            MavMessage::COOPLOC_STATE_FRAGMENT(_)
+                | MavMessage::COOPLOC_STORE_FRAGMENT(_)
+                | MavMessage::COOPLOC_RANGE(_)
+                | MavMessage::COOPLOC_EPOCH(_)
+        );
         if !cooploc || from == self.cfg.id {
             return; // heartbeats, estimates, ground stations; our own traffic looped back
         }
@@ -850,6 +962,30 @@ impl NodeCore {
                 }
                 self.stats.records_incomplete += self.reassembler.take_dropped().len() as u64;
             }
+            MavMessage::COOPLOC_STORE_FRAGMENT(m) => {
+                let Ok(f) = wire::store_fragment_from_message(&m) else {
+                    self.stats.fragments_rejected += 1;
+                    return;
+                };
+                if f.platform != from {
+                    self.stats.fragments_rejected += 1;
+                    return;
+                }
+                // Only fragments of a store we asked for are kept (nobody can make us hold
+                // another's bytes).
+                if self.want_store.as_ref().is_none_or(|w| w.epoch != f.epoch || !w.members.contains(&from)) {
+                    return;
+                }
+                match self.store_reassembler.push(&f) {
+                    Pushed::Complete(rec) => match record::decode_store(&rec.bytes) {
+                        Ok(snap) if snap.epoch == f.epoch => self.receive_store(from, snap),
+                        Ok(_) | Err(_) => self.stats.stores_refused += 1,
+                    },
+                    Pushed::Rejected(_) => self.stats.fragments_rejected += 1,
+                    Pushed::Stored | Pushed::Duplicate => {}
+                }
+                self.store_reassembler.take_dropped();
+            }
             MavMessage::COOPLOC_RANGE(m) => match wire::range_from_message(&m) {
                 // The joint problem takes ranges from records; a peer's range only makes the
                 // epoch known early.
@@ -861,6 +997,12 @@ impl NodeCore {
             MavMessage::COOPLOC_EPOCH(m) => {
                 let Ok(a) = wire::epoch_from_message(&m) else { return };
                 if a.announcer != from {
+                    return;
+                }
+                if a.state == EpochState::COOPLOC_EPOCH_STATE_STORE_WANTED {
+                    if a.participants.contains(&self.cfg.id) {
+                        self.send_store(from, a.epoch, a.digest, out);
+                    }
                     return;
                 }
                 if a.state == EpochState::COOPLOC_EPOCH_STATE_COLLECTING {
@@ -915,8 +1057,12 @@ impl NodeCore {
             if e.broadcast_at.is_none() {
                 // Epoch ids are consecutive: one we have not heard of lies before this one. Our
                 // record of this one would not carry its update, so wait (a timeout at most)
-                // for it to become known rather than broadcast too early.
-                let gap = self.last_applied.is_some_and(|(last, _)| epoch > last.saturating_add(1));
+                // for it to become known rather than broadcast too early. Not after a longer
+                // silence (our radio was out of range, we were dead): those epochs are over, and
+                // waiting would only make us late for this one.
+                let gap = self
+                    .last_applied
+                    .is_some_and(|(last, _)| epoch > last.saturating_add(1) && epoch <= last.saturating_add(RECENT_EPOCHS));
                 if gap {
                     let since = *self.gap_since.get_or_insert(self.wall_us);
                     if self.wall_us < since + self.cfg.epoch_timeout_us {
@@ -924,6 +1070,9 @@ impl NodeCore {
                     }
                 }
                 self.gap_since = None;
+                if self.awaiting_store(out) {
+                    return;
+                }
                 if t <= self.history[0].0 && self.checkpoint_at(t).is_none() {
                     // Before our start or beyond our history: we cannot take part.
                     self.stats.epochs_skipped += 1;
@@ -977,6 +1126,28 @@ impl NodeCore {
         }
     }
 
+    /// While a store we asked for may still come (an epoch timeout from the first request, and
+    /// nothing resolved since), the next broadcast waits for it: our record would otherwise
+    /// carry the old store, and we would be left out again. The request is repeated every retry
+    /// interval meanwhile.
+    fn awaiting_store(&mut self, out: &mut Vec<NodeOutput>) -> bool {
+        let Some(w) = self.want_store.clone() else { return false };
+        let current = self.last_applied.is_some_and(|(e, _)| e == w.epoch);
+        if !current || self.wall_us >= w.since + self.cfg.epoch_timeout_us {
+            if !current {
+                self.want_store = None;
+            }
+            return false;
+        }
+        if self.wall_us >= w.last_request + self.cfg.retry_us {
+            if let Some(x) = self.want_store.as_mut() {
+                x.last_request = self.wall_us;
+            }
+            self.send_status(w.epoch, w.t, w.members.clone(), EpochState::COOPLOC_EPOCH_STATE_STORE_WANTED, w.digest_before, out);
+        }
+        true
+    }
+
     fn send_status(
         &mut self,
         epoch: u32,
@@ -996,10 +1167,22 @@ impl NodeCore {
     /// Broadcasts our record of `epoch` (our checkpoint at `t`, our store digest, our ranges).
     fn broadcast(&mut self, epoch: u32, t: TimeUs, out: &mut Vec<NodeOutput>) {
         let snapshot = self.checkpoint_at(t).expect("checked").snapshot(self.cfg.id);
+        let born = *self.born.get_or_insert(epoch);
+        // Before our first joint update: fresh as of our first broadcast if we started
+        // independently of the team, else a reference no store holds (we may be correlated with
+        // anyone: only the bound is safe).
+        let own_ref = self.own_ref.unwrap_or(if self.cfg.independent_start {
+            StoreRef::fresh(born)
+        } else {
+            StoreRef { epoch: born, token: u64::MAX }
+        });
+        let refs = self.cross.references().collect();
         let e = self.epochs.get_mut(&epoch).expect("open");
         let ours = StateRecord {
             snapshot,
             digest: if self.cfg.method == Method::Decentralized { self.cross.digest() } else { 0 },
+            own_ref,
+            refs,
             flags: if self.fresh { FLAG_FRESH } else { 0 },
             ranges: std::mem::take(&mut e.own_ranges),
         };
@@ -1045,7 +1228,32 @@ impl NodeCore {
     fn run_epoch(&mut self, epoch: u32, partial: bool, out: &mut Vec<NodeOutput>) {
         let Some(e) = self.epochs.get(&epoch) else { return };
         let t = e.t;
-        let records: Vec<StateRecord> = e.records.values().cloned().collect(); // sorted by platform id
+        let mut records: Vec<StateRecord> = e.records.values().cloned().collect(); // sorted by platform id
+        self.finish_epoch(epoch);
+        if partial {
+            self.stats.epochs_partial += 1;
+        }
+        let dcl = self.cfg.method == Method::Decentralized;
+        let agree = records.windows(2).all(|w| w[0].digest == w[1].digest);
+        if dcl && !agree {
+            self.stats.store_mismatches += 1;
+        }
+        // Diverged stores: the records that share a store valid for everyone run the exact
+        // method; the others are left out and take that store afterwards.
+        let digest_before = self.store_digest();
+        let choice = if dcl && !agree { choose_store(&records) } else { None };
+        if let Some(c) = &choice {
+            records.retain(|r| c.members.contains(&r.snapshot.id));
+            if c.members.contains(&self.cfg.id) {
+                for &k in &c.refreshed {
+                    self.cross.forget(k);
+                }
+            } else {
+                self.leave_out(epoch, t, c, out);
+                return;
+            }
+        }
+        let exact = agree || choice.is_some();
         let participants: Vec<PlatformId> = records.iter().map(|r| r.snapshot.id).collect();
         let ranges: Vec<RangeSample> =
             records.iter().flat_map(|r| r.ranges.iter().filter(|x| participants.contains(&x.to)).copied()).collect();
@@ -1053,29 +1261,30 @@ impl NodeCore {
             .iter()
             .map(|r| CoopMeasurement::Range { from: r.from, to: r.to, range_m: r.range_m, sigma_m: r.sigma_m })
             .collect();
-        self.finish_epoch(epoch);
-        if partial {
-            self.stats.epochs_partial += 1;
-        }
         let own_index = participants.iter().position(|&p| p == self.cfg.id);
-        let dcl = self.cfg.method == Method::Decentralized;
-        let agree = records.windows(2).all(|w| w[0].digest == w[1].digest);
-        if dcl && !agree {
-            self.stats.store_mismatches += 1;
-        }
         let nothing_to_do =
-            own_index.is_none() || self.cfg.method == Method::DeadReckoning || (measurements.is_empty() && (agree || !dcl));
+            own_index.is_none() || self.cfg.method == Method::DeadReckoning || (measurements.is_empty() && (exact || !dcl));
         let mut state = if partial { EpochState::COOPLOC_EPOCH_STATE_PARTIAL } else { EpochState::COOPLOC_EPOCH_STATE_APPLIED };
         let mut applied = None;
         if nothing_to_do {
             self.stats.epochs_skipped += 1;
         } else {
             let snapshots: Vec<_> = records.iter().map(|r| r.snapshot.clone()).collect();
-            // Every participant takes a weight: a member that has never applied an epoch may
-            // still be correlated with those that used its record (nodes that ran an epoch on
-            // different sets), so its FRESH flag is no proof of independence.
-            match self.joint_update(&snapshots, &measurements, agree, Vec::new()) {
-                Ok(result) => applied = Some(result),
+            // Every participant takes a weight in a heal: a member that has never applied an
+            // epoch may still be correlated with those that used its record (nodes that ran an
+            // epoch on different sets), so its FRESH flag is no proof of independence.
+            match self.joint_update(&snapshots, &measurements, exact, Vec::new()) {
+                Ok(result) => {
+                    if dcl {
+                        // Every participant's Psi restarts here, on every node that ran this.
+                        let digests: Vec<u64> = records.iter().map(|r| r.digest).collect();
+                        let r = StoreRef::of_update(epoch, &participants, &digests);
+                        for &p in &participants {
+                            self.cross.set_reference(p, r);
+                        }
+                    }
+                    applied = Some(result);
+                }
                 Err(_) => {
                     self.stats.epochs_failed += 1;
                     state = EpochState::COOPLOC_EPOCH_STATE_FAILED;
@@ -1093,8 +1302,14 @@ impl NodeCore {
             } else {
                 self.stats.epochs_applied += 1;
                 self.fresh = false;
+                if dcl {
+                    self.own_ref = self.cross.reference(self.cfg.id);
+                }
                 self.report_update(epoch, t, &participants, &ranges, &gated, diag, out);
             }
+        }
+        if dcl && own_index.is_some() {
+            self.keep_snapshot(epoch, t, digest_before);
         }
         let digest = self.store_digest();
         self.ran_on.push_back(RanOn { epoch, participants: participants.clone(), digest });
@@ -1104,6 +1319,81 @@ impl NodeCore {
         if own_index.is_some() {
             self.send_status(epoch, t, participants, state, digest, out);
         }
+    }
+
+    /// Keeps our store after `epoch` for teammates that may ask for it (only while a snapshot
+    /// fits in one fragment series: beyond that a left-out node heals with the bound).
+    fn keep_snapshot(&mut self, epoch: u32, t: TimeUs, digest_before: u64) {
+        let bytes: usize = self.cross.blocks().map(|(_, m)| 6 + m.len() * 8).sum::<usize>() + 32 + 14 * self.cfg.team.len();
+        if bytes > crate::protocol::fragment::MAX_RECORD_LEN.min(u16::MAX as usize) {
+            return;
+        }
+        self.snapshots.push_back((epoch, t, digest_before, self.cross.clone()));
+        if self.snapshots.len() > SNAPSHOTS_KEPT {
+            self.snapshots.pop_front();
+        }
+    }
+
+    /// We were left out of `epoch` (our store is not valid for its participants): nothing is
+    /// applied, and we ask them for their store after it.
+    fn leave_out(&mut self, epoch: u32, t: TimeUs, c: &StoreChoice, out: &mut Vec<NodeOutput>) {
+        self.stats.epochs_excluded += 1;
+        self.want_store = Some(WantStore {
+            epoch,
+            t,
+            digest_before: c.digest,
+            members: c.members.clone(),
+            since: self.wall_us,
+            last_request: self.wall_us,
+        });
+        self.send_status(epoch, t, c.members.clone(), EpochState::COOPLOC_EPOCH_STATE_STORE_WANTED, c.digest, out);
+    }
+
+    /// Sends our store after `epoch` to `to`, a teammate that asked: only one that did not run
+    /// that epoch with us, and at most one store per retry interval in all (a request is a
+    /// small message and a store a large one: nobody can make us flood the network).
+    fn send_store(&mut self, to: PlatformId, epoch: u32, digest_before: u64, out: &mut Vec<NodeOutput>) {
+        let Some((_, t, _, store)) = self.snapshots.iter().find(|(e, _, d, _)| *e == epoch && *d == digest_before) else {
+            return;
+        };
+        let ran_with_us = self.ran_on.iter().any(|r| r.epoch == epoch && r.participants.contains(&to));
+        let recently = self.store_sent_at.values().any(|&at| self.wall_us < at + self.cfg.retry_us);
+        if ran_with_us || recently {
+            return;
+        }
+        let snap = record::StoreSnapshot { epoch, digest_before, store: store.clone() };
+        let Ok(bytes) = record::encode_store(&snap) else { return };
+        let Ok(frags) = fragment(self.cfg.id, epoch, t.0, &bytes) else { return };
+        for mut f in frags {
+            f.payload = Payload::Store;
+            if let Ok(m) = wire::fragment_to_message(&f) {
+                out.push(NodeOutput::ToPeers(m));
+            }
+        }
+        self.store_sent_at.insert(epoch, self.wall_us);
+        self.store_sent_at.retain(|e, _| e.saturating_add(EPOCHS_REMEMBERED as u32) > epoch);
+        self.stats.stores_sent += 1;
+    }
+
+    /// A store snapshot arrived: adopted if it is the one we asked for, nothing was resolved
+    /// since, it carries the digest it claims and it is valid for us.
+    fn receive_store(&mut self, from: PlatformId, snap: record::StoreSnapshot) {
+        let valid_for_us = |store: &CrossCovariances, own: Option<StoreRef>| match own {
+            Some(r) => store.reference(self.cfg.id) == Some(r),
+            None => store.reference(self.cfg.id).is_none() && self.cfg.independent_start,
+        };
+        let wanted = self
+            .want_store
+            .as_ref()
+            .is_some_and(|w| w.epoch == snap.epoch && w.digest_before == snap.digest_before && w.members.contains(&from));
+        let current = self.last_applied.is_some_and(|(e, _)| e == snap.epoch);
+        if !(wanted && current && valid_for_us(&snap.store, self.own_ref)) {
+            self.stats.stores_refused += 1;
+            return;
+        }
+        self.cross = snap.store;
+        self.want_store = None;
+        self.stats.stores_adopted += 1;
     }
 
     /// The method's joint update: exact when the stores agree, else (or when the exact one

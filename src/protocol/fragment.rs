@@ -27,6 +27,18 @@ pub struct Fragment {
     pub count: u8,
     /// `data_len` bytes of the record from offset `index * FRAGMENT_DATA`.
     pub data: Vec<u8>,
+    /// What the series carries.
+    pub payload: Payload,
+}
+
+/// What a series of fragments carries (`COOPLOC_FRAGMENT_KIND`).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub enum Payload {
+    /// A state record (see [`crate::protocol::record`]).
+    #[default]
+    Record,
+    /// A cross-covariance store snapshot (see [`crate::protocol::record::StoreSnapshot`]).
+    Store,
 }
 
 /// Why a record cannot be fragmented.
@@ -55,6 +67,7 @@ pub fn fragment(platform: PlatformId, epoch: u32, time_usec: u64, record: &[u8])
             index: i as u8,
             count: count as u8,
             data: chunk.to_vec(),
+            payload: Payload::Record,
         })
         .collect())
 }

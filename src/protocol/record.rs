@@ -6,7 +6,7 @@
 //!
 //! | offset | type | field |
 //! |---|---|---|
-//! | 0 | u8 | record version (1) |
+//! | 0 | u8 | record version (3) |
 //! | 1 | u8 | encoding of the matrices: 0 = f64, 1 = f32 (`COOPLOC_STATE_ENCODING`) |
 //! | 2 | u16 | error-state dimension `n` (1..=64) |
 //! | 4 | i8 x 3 | error-state index of the N, E, D position (-1: not a state) |
@@ -16,12 +16,17 @@
 //! | 40 | n(n+1)/2 values | covariance, upper triangle, row major |
 //! | .. | n*n values | recursive coefficient matrix Psi, row major |
 //! | .. | u64 | digest of the sender's cross-covariance store before this epoch (0: none kept) |
-//! | .. | u8 | flags: bit 0 `FRESH` (initialised independently of every teammate, no epoch applied yet; informational: the heal does not rely on it, see `node::core`) |
+//! | .. | u32, u64 | the sender's own reference: the epoch and token of the joint update that last reset its Psi (token 0: it started independently of the team, first heard of at that epoch) |
+//! | .. | u8 | flags: bit 0 `FRESH` (initialised independently of every teammate, no epoch applied yet) |
+//! | .. | u8 | number `m` of references in the sender's store (0..=64) |
+//! | .. | m x (u16, u32, u64) | each: platform, epoch, token (ascending platform ids) |
 //! | .. | u8 | number `k` of ranges the sender's radio measured at this epoch (0..=32) |
 //! | .. | k x (u16, f32, f32) | each range: platform ranged to, distance m, sigma m |
 //!
 //! The trailer makes a record the sender's whole contribution to the epoch's joint problem: its
-//! state, its ranges and the digest every receiver compares with its own store. A node that holds
+//! state, its ranges, the digest every receiver compares with its own store, and the references
+//! that tell every receiver whether the sender's store is valid for the participants (each
+//! participant's own reference equal to the one the store holds for it). A node that holds
 //! a platform's record therefore holds that platform's ranges too, resends included, and nodes
 //! that hold the same records solve the same problem.
 //!
@@ -33,16 +38,19 @@
 
 use nalgebra::{DMatrix, Vector3};
 
-use crate::estimation::{Geometry, Heading, PlatformId, RangeSample, Snapshot};
+use crate::estimation::{CrossCovariances, Geometry, Heading, PlatformId, RangeSample, Snapshot, StoreError, StoreRef};
 use crate::time::TimeUs;
 
 /// Record format version.
-pub const RECORD_VERSION: u8 = 2;
+pub const RECORD_VERSION: u8 = 3;
 /// Most ranges one record carries.
 pub const MAX_RANGES: usize = 32;
-/// Trailer bytes before the ranges: digest, flags, count.
-const TRAILER_LEN: usize = 10;
+/// Fixed trailer bytes: digest, own reference, flags, reference count, range count.
+const TRAILER_LEN: usize = 8 + 12 + 1 + 1 + 1;
 const RANGE_LEN: usize = 10;
+const REF_LEN: usize = 14;
+/// Most references one record (or store) carries: one per team member.
+pub const MAX_REFS: usize = 64;
 /// Record flag: the sender was initialised independently of every teammate and has run no
 /// epoch since (a fresh or late joiner): its error is uncorrelated with everyone's.
 pub const FLAG_FRESH: u8 = 1;
@@ -89,6 +97,14 @@ pub enum RecordError {
     Range { index: usize, why: &'static str },
     #[error("state record has unknown flags {0:#04x}")]
     Flags(u8),
+    #[error("{0} store references, at most {MAX_REFS}")]
+    TooManyRefs(usize),
+    #[error("store references are not in ascending platform order")]
+    RefOrder,
+    #[error("store snapshot: {0}")]
+    Store(StoreError),
+    #[error("store snapshot's blocks and references do not give the digest it claims")]
+    StoreDigest,
 }
 
 /// One platform's contribution to an epoch: its state, the digest of its cross-covariance
@@ -97,12 +113,16 @@ pub enum RecordError {
 pub struct StateRecord {
     pub snapshot: Snapshot,
     pub digest: u64,
+    /// The joint update that last reset the sender's Psi (see [`StoreRef`]).
+    pub own_ref: StoreRef,
+    /// The references held in the sender's store, ascending platform ids.
+    pub refs: Vec<(PlatformId, StoreRef)>,
     pub flags: u8,
     /// Ranges measured by this platform (`from` = its id), at the epoch's time.
     pub ranges: Vec<RangeSample>,
 }
 
-/// Bytes of a record of dimension `n` in `encoding` carrying no range.
+/// Bytes of a record of dimension `n` in `encoding` carrying no range and no reference.
 pub fn record_len(n: usize, encoding: Encoding) -> usize {
     matrices_end(n, encoding) + TRAILER_LEN
 }
@@ -117,7 +137,15 @@ fn index_byte(i: Option<usize>) -> i8 {
 
 /// Serialises a snapshot alone (no digest, no flag, no range).
 pub fn encode(s: &Snapshot, encoding: Encoding) -> Result<Vec<u8>, RecordError> {
-    encode_record(&StateRecord { snapshot: s.clone(), digest: 0, flags: 0, ranges: Vec::new() }, encoding)
+    let rec = StateRecord {
+        snapshot: s.clone(),
+        digest: 0,
+        own_ref: StoreRef::fresh(0),
+        refs: Vec::new(),
+        flags: 0,
+        ranges: Vec::new(),
+    };
+    encode_record(&rec, encoding)
 }
 
 /// Serialises a record. Fails on a dimension above [`MAX_DIM`], a non-finite value, more than
@@ -132,6 +160,7 @@ pub fn encode_record(rec: &StateRecord, encoding: Encoding) -> Result<Vec<u8>, R
     if rec.flags & !FLAG_FRESH != 0 {
         return Err(RecordError::Flags(rec.flags));
     }
+    check_refs(&rec.refs)?;
     for (index, r) in rec.ranges.iter().enumerate() {
         check_range(index, s.id, r.to, r.range_m, r.sigma_m)?;
         if r.from != s.id {
@@ -177,7 +206,10 @@ pub fn encode_record(rec: &StateRecord, encoding: Encoding) -> Result<Vec<u8>, R
         }
     }
     out.extend_from_slice(&rec.digest.to_le_bytes());
+    out.extend_from_slice(&rec.own_ref.epoch.to_le_bytes());
+    out.extend_from_slice(&rec.own_ref.token.to_le_bytes());
     out.push(rec.flags);
+    put_refs(&mut out, &rec.refs);
     out.push(rec.ranges.len() as u8);
     for r in &rec.ranges {
         out.extend_from_slice(&r.to.to_le_bytes());
@@ -229,21 +261,26 @@ pub fn decode_record(id: PlatformId, t: TimeUs, bytes: &[u8]) -> Result<StateRec
         return Err(RecordError::LengthMismatch { got: bytes.len(), expected: end + TRAILER_LEN });
     }
     let digest = u64::from_le_bytes(bytes[end..end + 8].try_into().expect("8 bytes"));
-    let flags = bytes[end + 8];
+    let own_ref = StoreRef {
+        epoch: u32::from_le_bytes(bytes[end + 8..end + 12].try_into().expect("4 bytes")),
+        token: u64::from_le_bytes(bytes[end + 12..end + 20].try_into().expect("8 bytes")),
+    };
+    let flags = bytes[end + 20];
     if flags & !FLAG_FRESH != 0 {
         return Err(RecordError::Flags(flags));
     }
-    let k = bytes[end + 9] as usize;
+    let (refs, o) = get_refs(bytes, end + 21)?;
+    let k = *bytes.get(o).ok_or(RecordError::TooShort { got: bytes.len(), need: o + 1 })? as usize;
     if k > MAX_RANGES {
         return Err(RecordError::TooManyRanges(k));
     }
-    let expected = end + TRAILER_LEN + k * RANGE_LEN;
+    let expected = o + 1 + k * RANGE_LEN;
     if bytes.len() != expected {
         return Err(RecordError::LengthMismatch { got: bytes.len(), expected });
     }
     let mut ranges = Vec::with_capacity(k);
     for index in 0..k {
-        let o = end + TRAILER_LEN + index * RANGE_LEN;
+        let o = o + 1 + index * RANGE_LEN;
         let to = u16::from_le_bytes([bytes[o], bytes[o + 1]]);
         let range_m = f32::from_le_bytes(bytes[o + 2..o + 6].try_into().expect("4 bytes")) as f64;
         let sigma_m = f32::from_le_bytes(bytes[o + 6..o + 10].try_into().expect("4 bytes")) as f64;
@@ -303,5 +340,138 @@ pub fn decode_record(id: PlatformId, t: TimeUs, bytes: &[u8]) -> Result<StateRec
         covariance,
         psi,
     };
-    Ok(StateRecord { snapshot, digest, flags, ranges })
+    Ok(StateRecord { snapshot, digest, own_ref, refs, flags, ranges })
+}
+
+fn check_refs(refs: &[(PlatformId, StoreRef)]) -> Result<(), RecordError> {
+    if refs.len() > MAX_REFS {
+        return Err(RecordError::TooManyRefs(refs.len()));
+    }
+    if refs.windows(2).any(|w| w[0].0 >= w[1].0) {
+        return Err(RecordError::RefOrder);
+    }
+    Ok(())
+}
+
+fn put_refs(out: &mut Vec<u8>, refs: &[(PlatformId, StoreRef)]) {
+    out.push(refs.len() as u8);
+    for (p, r) in refs {
+        out.extend_from_slice(&p.to_le_bytes());
+        out.extend_from_slice(&r.epoch.to_le_bytes());
+        out.extend_from_slice(&r.token.to_le_bytes());
+    }
+}
+
+/// Reads a reference list at `o`; returns it and the offset after it.
+fn get_refs(bytes: &[u8], o: usize) -> Result<(Vec<(PlatformId, StoreRef)>, usize), RecordError> {
+    let m = *bytes.get(o).ok_or(RecordError::TooShort { got: bytes.len(), need: o + 1 })? as usize;
+    if m > MAX_REFS {
+        return Err(RecordError::TooManyRefs(m));
+    }
+    let end = o + 1 + m * REF_LEN;
+    if bytes.len() < end {
+        return Err(RecordError::TooShort { got: bytes.len(), need: end });
+    }
+    let refs: Vec<(PlatformId, StoreRef)> = (0..m)
+        .map(|i| {
+            let b = &bytes[o + 1 + i * REF_LEN..];
+            let p = u16::from_le_bytes([b[0], b[1]]);
+            let epoch = u32::from_le_bytes(b[2..6].try_into().expect("4 bytes"));
+            let token = u64::from_le_bytes(b[6..14].try_into().expect("8 bytes"));
+            (p, StoreRef { epoch, token })
+        })
+        .collect();
+    check_refs(&refs)?;
+    Ok((refs, end))
+}
+
+/// A node's cross-covariance store right after an epoch, sent to a teammate whose own store was
+/// not valid for it (see `node::core`). Layout, little endian: u8 version (1), u32 epoch, u64
+/// digest of the store before the epoch, u64 digest after it, the references (u8 count, then
+/// (u16, u32, u64) each), u16 number of blocks, then each block: u16 i, u16 j (i < j), u8 rows,
+/// u8 columns, rows x columns f64 row major. Blocks are always f64: the receiver must hold the
+/// very bits the sender holds, or its digest would differ.
+#[derive(Debug, Clone, PartialEq)]
+pub struct StoreSnapshot {
+    pub epoch: u32,
+    pub digest_before: u64,
+    pub store: CrossCovariances,
+}
+
+/// Store snapshot format version.
+pub const STORE_VERSION: u8 = 1;
+
+/// Serialises a store snapshot.
+pub fn encode_store(s: &StoreSnapshot) -> Result<Vec<u8>, RecordError> {
+    let refs: Vec<(PlatformId, StoreRef)> = s.store.references().collect();
+    check_refs(&refs)?;
+    let blocks: Vec<_> = s.store.blocks().collect();
+    let mut out = Vec::with_capacity(32 + blocks.len() * (6 + 16 * 16 * 8));
+    out.push(STORE_VERSION);
+    out.extend_from_slice(&s.epoch.to_le_bytes());
+    out.extend_from_slice(&s.digest_before.to_le_bytes());
+    out.extend_from_slice(&s.store.digest().to_le_bytes());
+    put_refs(&mut out, &refs);
+    out.extend_from_slice(&(blocks.len() as u16).to_le_bytes());
+    for ((i, j), m) in blocks {
+        if m.nrows() > MAX_DIM || m.ncols() > MAX_DIM {
+            return Err(RecordError::Dimension(m.nrows().max(m.ncols())));
+        }
+        out.extend_from_slice(&i.to_le_bytes());
+        out.extend_from_slice(&j.to_le_bytes());
+        out.push(m.nrows() as u8);
+        out.push(m.ncols() as u8);
+        for r in 0..m.nrows() {
+            for c in 0..m.ncols() {
+                out.extend_from_slice(&m[(r, c)].to_le_bytes());
+            }
+        }
+    }
+    Ok(out)
+}
+
+/// Reads a store snapshot back, checking its shape, its values and that its blocks and
+/// references give the digest it claims.
+pub fn decode_store(bytes: &[u8]) -> Result<StoreSnapshot, RecordError> {
+    const HEAD: usize = 1 + 4 + 8 + 8;
+    if bytes.len() < HEAD {
+        return Err(RecordError::TooShort { got: bytes.len(), need: HEAD });
+    }
+    if bytes[0] != STORE_VERSION {
+        return Err(RecordError::Version(bytes[0]));
+    }
+    let epoch = u32::from_le_bytes(bytes[1..5].try_into().expect("4 bytes"));
+    let digest_before = u64::from_le_bytes(bytes[5..13].try_into().expect("8 bytes"));
+    let digest_after = u64::from_le_bytes(bytes[13..21].try_into().expect("8 bytes"));
+    let (refs, mut o) = get_refs(bytes, HEAD)?;
+    let count = bytes.get(o..o + 2).ok_or(RecordError::TooShort { got: bytes.len(), need: o + 2 })?;
+    let count = u16::from_le_bytes([count[0], count[1]]) as usize;
+    o += 2;
+    let mut blocks = Vec::with_capacity(count.min(4096));
+    for _ in 0..count {
+        let head = bytes.get(o..o + 6).ok_or(RecordError::TooShort { got: bytes.len(), need: o + 6 })?;
+        let (i, j) = (u16::from_le_bytes([head[0], head[1]]), u16::from_le_bytes([head[2], head[3]]));
+        let (rows, cols) = (head[4] as usize, head[5] as usize);
+        if rows == 0 || cols == 0 || rows > MAX_DIM || cols > MAX_DIM {
+            return Err(RecordError::Dimension(rows.max(cols)));
+        }
+        o += 6;
+        let end = o + rows * cols * 8;
+        let data = bytes.get(o..end).ok_or(RecordError::TooShort { got: bytes.len(), need: end })?;
+        let m = DMatrix::from_row_iterator(
+            rows,
+            cols,
+            data.chunks_exact(8).map(|c| f64::from_le_bytes(c.try_into().expect("8 bytes"))),
+        );
+        blocks.push(((i, j), m));
+        o = end;
+    }
+    if o != bytes.len() {
+        return Err(RecordError::LengthMismatch { got: bytes.len(), expected: o });
+    }
+    let store = CrossCovariances::from_parts(blocks, refs).map_err(RecordError::Store)?;
+    if store.digest() != digest_after {
+        return Err(RecordError::StoreDigest);
+    }
+    Ok(StoreSnapshot { epoch, digest_before, store })
 }

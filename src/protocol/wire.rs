@@ -11,11 +11,11 @@ use mavlink_core::{MavHeader, MavlinkVersion, Message};
 use nalgebra::{Matrix3, Vector3};
 
 use super::dialect::cooploc::{
-    COOPLOC_EPOCH_DATA, COOPLOC_ESTIMATE_DATA, COOPLOC_RANGE_DATA, COOPLOC_STATE_FRAGMENT_DATA, CooplocEpochState, CooplocMethod,
-    HEARTBEAT_DATA, HIGHRES_IMU_DATA, LOCAL_POSITION_NED_DATA, MavAutopilot, MavFrame, MavMessage, MavModeFlag, MavState,
-    MavType, ODOMETRY_DATA, SIM_STATE_DATA,
+    COOPLOC_EPOCH_DATA, COOPLOC_ESTIMATE_DATA, COOPLOC_RANGE_DATA, COOPLOC_STATE_FRAGMENT_DATA, COOPLOC_STORE_FRAGMENT_DATA,
+    CooplocEpochState, CooplocMethod, HEARTBEAT_DATA, HIGHRES_IMU_DATA, LOCAL_POSITION_NED_DATA, MavAutopilot, MavFrame,
+    MavMessage, MavModeFlag, MavState, MavType, ODOMETRY_DATA, SIM_STATE_DATA,
 };
-use super::fragment::{FRAGMENT_DATA, Fragment};
+use super::fragment::{FRAGMENT_DATA, Fragment, Payload};
 use crate::estimation::{ImuSample, Method, OdometerSample, PlatformId, RangeSample};
 use crate::sitl::TruthState;
 use crate::time::TimeUs;
@@ -95,7 +95,7 @@ pub fn fragment_to_message(f: &Fragment) -> Result<MavMessage, WireError> {
     }
     let mut data = [0u8; FRAGMENT_DATA];
     data[..f.data.len()].copy_from_slice(&f.data);
-    Ok(MavMessage::COOPLOC_STATE_FRAGMENT(COOPLOC_STATE_FRAGMENT_DATA {
+    let m = COOPLOC_STATE_FRAGMENT_DATA {
         time_usec: f.time_usec,
         epoch: f.epoch,
         record_crc32: f.record_crc32,
@@ -105,14 +105,47 @@ pub fn fragment_to_message(f: &Fragment) -> Result<MavMessage, WireError> {
         frag_count: f.count,
         data_len: f.data.len() as u8,
         data,
-    }))
+    };
+    Ok(match f.payload {
+        Payload::Record => MavMessage::COOPLOC_STATE_FRAGMENT(m),
+        Payload::Store => MavMessage::COOPLOC_STORE_FRAGMENT(COOPLOC_STORE_FRAGMENT_DATA {
+            time_usec: m.time_usec,
+            epoch: m.epoch,
+            record_crc32: m.record_crc32,
+            record_len: m.record_len,
+            platform: m.platform,
+            frag_index: m.frag_index,
+            frag_count: m.frag_count,
+            data_len: m.data_len,
+            data: m.data,
+        }),
+    })
 }
 
 pub fn fragment_from_message(m: &COOPLOC_STATE_FRAGMENT_DATA) -> Result<Fragment, WireError> {
-    const MSG: &str = "COOPLOC_STATE_FRAGMENT";
+    fragment_from_fields("COOPLOC_STATE_FRAGMENT", Payload::Record, m)
+}
+
+/// A COOPLOC_STORE_FRAGMENT (same fields as a state fragment) as a [`Fragment`] of a store.
+pub fn store_fragment_from_message(m: &COOPLOC_STORE_FRAGMENT_DATA) -> Result<Fragment, WireError> {
+    let fields = COOPLOC_STATE_FRAGMENT_DATA {
+        time_usec: m.time_usec,
+        epoch: m.epoch,
+        record_crc32: m.record_crc32,
+        record_len: m.record_len,
+        platform: m.platform,
+        frag_index: m.frag_index,
+        frag_count: m.frag_count,
+        data_len: m.data_len,
+        data: m.data,
+    };
+    fragment_from_fields("COOPLOC_STORE_FRAGMENT", Payload::Store, &fields)
+}
+
+fn fragment_from_fields(msg: &'static str, payload: Payload, m: &COOPLOC_STATE_FRAGMENT_DATA) -> Result<Fragment, WireError> {
     let n = m.data_len as usize;
     if n == 0 || n > FRAGMENT_DATA {
-        return Err(bad(MSG, "data_len", format!("{n} outside 1..={FRAGMENT_DATA}")));
+        return Err(bad(msg, "data_len", format!("{n} outside 1..={FRAGMENT_DATA}")));
     }
     Ok(Fragment {
         platform: m.platform,
@@ -123,6 +156,7 @@ pub fn fragment_from_message(m: &COOPLOC_STATE_FRAGMENT_DATA) -> Result<Fragment
         index: m.frag_index,
         count: m.frag_count,
         data: m.data[..n].to_vec(),
+        payload,
     })
 }
 
