@@ -69,13 +69,13 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     );
     let base = summaries.iter().find(|s| s.name == "fault-free").map(|s| s.final_rms_m);
     println!(
-        "| case | final RMS m | vs fault-free | at fault end m | dead reckoning m | NEES per node | team NEES (95% band) | worse than DR | diverged / detected / not recovered | left out / stores adopted | heals | partial | failed | gated |"
+        "| case | final RMS m | vs fault-free | at fault end m | dead reckoning m | NEES per node | team NEES (95% band) | worse than DR | diverged / detected / not recovered | left out / stores adopted / bystood | heals | partial | failed | gated |"
     );
     println!("|---|---|---|---|---|---|---|---|---|---|---|---|---|---|");
     for s in &summaries {
         let rel = base.map_or("".into(), |b| format!("{:+.0}%", 100.0 * (s.final_rms_m / b - 1.0)));
         println!(
-            "| {} | {:.2} | {} | {:.2} | {:.2} | {:.2} | {:.2} ({:.2}-{:.2}) | {} | {} / {} / {} | {} / {} | {} | {} | {} | {} |",
+            "| {} | {:.2} | {} | {:.2} | {:.2} | {:.2} | {:.2} ({:.2}-{:.2}) | {} | {} / {} / {} | {} / {} / {} | {} | {} | {} | {} |",
             s.name,
             s.final_rms_m,
             rel,
@@ -91,6 +91,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
             s.runs_not_recovered,
             s.excluded,
             s.stores_adopted,
+            s.bystood,
             s.heals,
             s.partial,
             s.failed,

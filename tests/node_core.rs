@@ -341,3 +341,55 @@ fn hostile_epochs_and_records_are_refused_and_counted() {
     assert_eq!(node.stats.ranges_rejected, 1);
     assert!(nodes.iter().all(|n| n.stats.epochs_implausible == 0), "a clean run refuses nothing");
 }
+
+/// The store-transfer messages are no lever for an attacker: requests for a store from a member
+/// that ran the epoch with the node (or for a store the node does not hold) get no answer, so a
+/// small forged message cannot make a node send a large one; and a store series nobody asked for
+/// is dropped before reassembly, leaving the node's store as it was.
+#[test]
+fn forged_store_requests_and_snapshots_change_nothing() {
+    use cooploc::estimation::{CrossCovariances, StoreRef};
+    use cooploc::protocol::dialect::cooploc::CooplocEpochState;
+    use cooploc::protocol::fragment::{Payload, fragment};
+    use cooploc::protocol::record::{StoreSnapshot, encode_store};
+    let world = World::new(&Scenario::from_toml_str(PAPER_TOML).unwrap()).unwrap();
+    let (mut nodes, epochs) = run_network(&world, Method::Decentralized, "1hz", 1, 0);
+    let last = epochs.len() as u32;
+    let node = &mut nodes[0];
+    assert_eq!(node.last_epoch(), Some(last));
+    let digest = node.store_digest();
+    let mut out = Vec::new();
+    let kept: Vec<(u32, u64)> = node.kept_stores().collect();
+    assert_eq!(kept.len(), 4, "the node keeps its last stores for teammates that ask");
+    let asks: Vec<(u32, u64)> =
+        kept.iter().copied().chain((last.saturating_sub(5)..=last).flat_map(|e| [(e, 0), (e, 1), (e, u64::MAX)])).collect();
+    for (e, d) in asks {
+        {
+            let ask = wire::EpochAnnouncement {
+                epoch: e,
+                t: TimeUs(u64::from(e) * 1_000_000),
+                announcer: 2,
+                participants: vec![1, 3],
+                state: CooplocEpochState::COOPLOC_EPOCH_STATE_STORE_WANTED,
+                digest: d,
+            };
+            let msg = wire::epoch_to_message(&ask).unwrap();
+            for _ in 0..20 {
+                out.extend(node.handle(NodeInput::Peer { from: 2, msg: Box::new(msg.clone()) }));
+            }
+        }
+    }
+    assert_eq!(node.stats.stores_sent, 0, "{:?}", node.stats);
+    assert!(out.iter().all(|o| !matches!(o, NodeOutput::ToPeers(MavMessage::COOPLOC_STORE_FRAGMENT(_)))));
+    // A well-formed store that nobody asked for.
+    let r = StoreRef { epoch: last, token: 7 };
+    let bogus =
+        CrossCovariances::from_parts(vec![((1, 2), nalgebra::DMatrix::from_element(16, 16, 5.0))], vec![(1, r), (2, r), (3, r)])
+            .unwrap();
+    let bytes = encode_store(&StoreSnapshot { epoch: last, digest_before: digest, store: bogus }).unwrap();
+    for mut f in fragment(2, last, u64::from(last) * 1_000_000, &bytes).unwrap() {
+        f.payload = Payload::Store;
+        node.handle(NodeInput::Peer { from: 2, msg: Box::new(wire::fragment_to_message(&f).unwrap()) });
+    }
+    assert_eq!((node.stats.stores_adopted, node.store_digest()), (0, digest), "{:?}", node.stats);
+}

@@ -523,6 +523,8 @@ pub struct CaseSummary {
     /// participants) and stores it then adopted from them, heals with the bound, ...
     pub excluded: u64,
     pub stores_adopted: u64,
+    /// Epochs a node that had been frozen ran as the others had run them without it.
+    pub bystood: u64,
     pub heals: u64,
     pub partial: u64,
     pub applied: u64,
@@ -557,6 +559,7 @@ pub fn summarize(name: &str, runs: &[RunOutcome]) -> CaseSummary {
         runs_not_recovered: runs.iter().filter(|r| r.last_divergent_epoch.is_some_and(|e| e > r.fault_end_epoch + 3)).count(),
         excluded: sum(&|s| s.epochs_excluded),
         stores_adopted: sum(&|s| s.stores_adopted),
+        bystood: sum(&|s| s.epochs_bystood),
         heals: sum(&|s| s.heals),
         partial: sum(&|s| s.epochs_partial),
         applied: sum(&|s| s.epochs_applied),

@@ -247,6 +247,8 @@ pub struct NodeStats {
     /// Epochs this node was left out of because its store was not valid for the participants
     /// (it then asks them for theirs).
     pub epochs_excluded: u64,
+    /// Epochs the others ran without us while we were frozen, run as they did (our store only).
+    pub epochs_bystood: u64,
     /// Store snapshots sent to a teammate that asked, and adopted from one.
     pub stores_sent: u64,
     pub stores_adopted: u64,
@@ -304,6 +306,11 @@ struct Epoch {
     /// Ranges our vehicle measured at this epoch (they go into our record).
     own_ranges: Vec<RangeSample>,
     records: BTreeMap<PlatformId, StateRecord>,
+    /// Open while (or just after) we were frozen: the others may have run it without us, so
+    /// we wait for how they ran it before we run it.
+    after_freeze: bool,
+    /// The participants a peer reported it ran this epoch on (APPLIED or PARTIAL).
+    peer_ran: Option<Vec<PlatformId>>,
 }
 
 impl Epoch {
@@ -317,6 +324,8 @@ impl Epoch {
             early_request_sent: false,
             own_ranges: Vec::new(),
             records: BTreeMap::new(),
+            after_freeze: false,
+            peer_ran: None,
         }
     }
 }
@@ -457,6 +466,8 @@ pub struct NodeCore {
     gap_since: Option<u64>,
     /// Wall clock, us, as last given to [`NodeCore::poll`].
     wall_us: u64,
+    /// Wall time we woke from the last freeze of our own.
+    woke_at: Option<u64>,
     reassembler: Reassembler,
     cross: CrossCovariances,
     /// Independent of every teammate and no epoch applied yet.
@@ -523,6 +534,7 @@ impl NodeCore {
             heard_at: BTreeMap::new(),
             gap_since: None,
             wall_us: 0,
+            woke_at: None,
             reassembler: Reassembler::new(256),
             cross: CrossCovariances::new(),
             own_ref: None,
@@ -565,6 +577,11 @@ impl NodeCore {
     /// The cross-covariance store (with the references it holds).
     pub fn store(&self) -> &CrossCovariances {
         &self.cross
+    }
+
+    /// The stores kept for teammates that may ask: (epoch, store digest before it) of each.
+    pub fn kept_stores(&self) -> impl Iterator<Item = (u32, u64)> + '_ {
+        self.snapshots.iter().map(|(e, _, d, _)| (*e, *d))
     }
 
     /// The last epoch resolved (run, or passed over), if any.
@@ -839,9 +856,11 @@ impl NodeCore {
         let step = wall_us.saturating_sub(self.wall_us);
         if self.wall_us > 0 && step > FREEZE_US {
             self.stats.freezes += 1;
+            self.woke_at = Some(wall_us);
             for e in self.epochs.values_mut() {
                 e.broadcast_at = e.broadcast_at.map(|b| b + step);
                 e.progress_at = e.progress_at.saturating_add(step);
+                e.after_freeze = true;
             }
         }
         self.wall_us = self.wall_us.max(wall_us);
@@ -889,7 +908,9 @@ impl NodeCore {
             self.stats.epochs_implausible += 1;
             return None;
         }
-        self.epochs.insert(epoch, Epoch::new(t));
+        let mut fresh_epoch = Epoch::new(t);
+        fresh_epoch.after_freeze = self.woke_at.is_some_and(|w| self.wall_us < w + self.cfg.epoch_timeout_us);
+        self.epochs.insert(epoch, fresh_epoch);
         if t > self.history[0].0
             && self.marks.insert(t)
             && t <= self.filter.time()
@@ -1012,6 +1033,15 @@ impl NodeCore {
                         self.stats.epoch_disagreements += 1;
                     }
                 } else if let Some(e) = self.epochs.get_mut(&a.epoch)
+                    && e.peer_ran.is_none()
+                    && matches!(a.state, EpochState::COOPLOC_EPOCH_STATE_APPLIED | EpochState::COOPLOC_EPOCH_STATE_PARTIAL)
+                    && a.participants.contains(&from)
+                {
+                    e.peer_ran = Some(a.participants.clone());
+                }
+                let reported = a.state != EpochState::COOPLOC_EPOCH_STATE_COLLECTING;
+                if reported
+                    && let Some(e) = self.epochs.get_mut(&a.epoch)
                     && e.broadcast_at.is_some()
                     && !e.early_request_sent
                     && a.participants.iter().any(|p| !e.records.contains_key(p))
@@ -1103,6 +1133,23 @@ impl NodeCore {
             let waited = self.wall_us.saturating_sub(since.max(e.progress_at));
             let waited_in_all = self.wall_us.saturating_sub(since);
             let lagging = self.filter.time().0.saturating_sub(t.0) >= self.cfg.max_lag_us;
+            // After a freeze of our own: how did the others run this epoch? Without us, we run
+            // it as they did, as a bystander; with us, or if nobody says within a timeout, as
+            // usual.
+            if let Some(ran) = e.peer_ran.clone().filter(|p| e.after_freeze && !p.contains(&self.cfg.id)) {
+                if ran.iter().all(|p| e.records.contains_key(p)) || waited >= self.cfg.epoch_timeout_us || lagging {
+                    self.run_bystander(epoch, &ran);
+                    continue;
+                }
+            } else if e.after_freeze && e.peer_ran.is_none() && waited < self.cfg.epoch_timeout_us && !lagging {
+                if self.wall_us >= e.last_status_at + self.cfg.retry_us {
+                    let held: Vec<PlatformId> = e.records.keys().copied().collect();
+                    self.epochs.get_mut(&epoch).expect("first").last_status_at = self.wall_us;
+                    let digest = self.store_digest();
+                    self.send_status(epoch, t, held, EpochState::COOPLOC_EPOCH_STATE_COLLECTING, digest, out);
+                }
+                return;
+            }
             if complete {
                 self.run_epoch(epoch, false, out);
             } else if waited >= self.cfg.epoch_timeout_us
@@ -1318,6 +1365,50 @@ impl NodeCore {
         }
         if own_index.is_some() {
             self.send_status(epoch, t, participants, state, digest, out);
+        }
+    }
+
+    /// Runs `epoch` as the others did without us (we were frozen): nothing applied to our own
+    /// filter (our Psi keeps accumulating), but our store takes the update they made, exactly as
+    /// they computed it, when it was theirs before the epoch. Else our store falls behind, and we
+    /// are left out at the next epoch and take theirs.
+    fn run_bystander(&mut self, epoch: u32, ran: &[PlatformId]) {
+        let Some(e) = self.epochs.get(&epoch) else { return };
+        let records: Vec<StateRecord> = e.records.values().filter(|r| ran.contains(&r.snapshot.id)).cloned().collect();
+        self.finish_epoch(epoch);
+        self.stats.epochs_bystood += 1;
+        let participants: Vec<PlatformId> = records.iter().map(|r| r.snapshot.id).collect();
+        let ours = self.store_digest();
+        let dcl = self.cfg.method == Method::Decentralized;
+        if dcl && participants == ran && records.iter().all(|r| r.digest == ours) {
+            let measurements: Vec<CoopMeasurement> = records
+                .iter()
+                .flat_map(|r| r.ranges.iter().filter(|x| participants.contains(&x.to)))
+                .map(|r| CoopMeasurement::Range { from: r.from, to: r.to, range_m: r.range_m, sigma_m: r.sigma_m })
+                .collect();
+            if !measurements.is_empty() {
+                let snapshots: Vec<_> = records.iter().map(|r| r.snapshot.clone()).collect();
+                let exact = UpdateOptions { gate_chi2: self.gate, ..UpdateOptions::new(CrossMode::Propagate) };
+                let bound = UpdateOptions {
+                    prior: JointPrior::Bound { independent: Vec::new(), scope: BoundScope::Position },
+                    ..exact.clone()
+                };
+                let updated = cooperative_update_with(&mut self.cross, &snapshots, &measurements, &exact)
+                    .or_else(|_| cooperative_update_with(&mut self.cross, &snapshots, &measurements, &bound))
+                    .is_ok();
+                if updated {
+                    let digests: Vec<u64> = records.iter().map(|r| r.digest).collect();
+                    let r = StoreRef::of_update(epoch, &participants, &digests);
+                    for &p in &participants {
+                        self.cross.set_reference(p, r);
+                    }
+                }
+            }
+        }
+        let digest = self.store_digest();
+        self.ran_on.push_back(RanOn { epoch, participants, digest });
+        if self.ran_on.len() > EPOCHS_REMEMBERED {
+            self.ran_on.pop_front();
         }
     }
 

@@ -72,7 +72,16 @@ impl VehicleLink {
         }
         if let Some(rest) = url.strip_prefix("udpout:") {
             let addr = resolve(url, rest).await?;
-            let local: SocketAddr = if addr.is_ipv4() { "0.0.0.0:0" } else { "[::]:0" }.parse().expect("literal");
+            // A vehicle on this machine is reached over loopback: bind there, not on every
+            // interface.
+            let local: SocketAddr = match (addr.is_ipv4(), addr.ip().is_loopback()) {
+                (true, true) => "127.0.0.1:0",
+                (true, false) => "0.0.0.0:0",
+                (false, true) => "[::1]:0",
+                (false, false) => "[::]:0",
+            }
+            .parse()
+            .expect("literal");
             let socket = bind_udp(local, VEHICLE_RECV_BUFFER).context("binding the vehicle socket")?;
             return Ok(Self::Udp { socket, peer: Mutex::new(Some(addr)), learn_peer: false });
         }
@@ -197,6 +206,9 @@ mod tests {
         }
         // udpout sends to the vehicle; the vehicle's reply comes back.
         let msg = wire::heartbeat(MavType::MAV_TYPE_ONBOARD_CONTROLLER, MavAutopilot::MAV_AUTOPILOT_INVALID);
+        if let VehicleLink::Udp { socket, .. } = &link {
+            assert!(socket.local_addr().unwrap().ip().is_loopback(), "a loopback vehicle is reached from loopback only");
+        }
         link.send(&MavHeader { system_id: 7, component_id: 191, sequence: 4 }, &msg).await;
         let mut buf = [0u8; 600];
         let (n, node) = vehicle.recv_from(&mut buf).await.unwrap();
