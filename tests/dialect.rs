@@ -199,11 +199,12 @@ fn pymavlink_agrees_in_both_directions() {
     assert!(out.status.success(), "pymavlink script failed: {}", String::from_utf8_lossy(&out.stderr));
     let report: Value = serde_json::from_slice(&out.stdout).unwrap();
     let golden = golden();
-    for ((name, msg, _), result) in cases.iter().zip(report["cases"].as_array().unwrap()) {
+    assert_eq!(golden.len(), cases.len());
+    for (((name, msg, _), result), (gold_name, gold)) in cases.iter().zip(report["cases"].as_array().unwrap()).zip(&golden) {
         assert_eq!(result["name"], *name);
+        assert_eq!(gold_name, name);
         assert!(result["decoded_equal"].as_bool().unwrap(), "{name}: pymavlink decoded differently: {}", result["mismatches"]);
         let py_hex = result["python_hex"].as_str().unwrap();
-        let gold = &golden.iter().find(|(n, _)| n == name).unwrap().1;
         assert_eq!(py_hex, gold, "{name}: pymavlink's frame differs from the golden bytes");
         let (_, back) = from_frame(&unhex(py_hex)).unwrap();
         assert_eq!(&back, msg, "{name}: Rust decodes pymavlink's frame differently");

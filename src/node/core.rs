@@ -1141,7 +1141,16 @@ impl NodeCore {
                     self.run_bystander(epoch, &ran);
                     continue;
                 }
-            } else if e.after_freeze && e.peer_ran.is_none() && waited < self.cfg.epoch_timeout_us && !lagging {
+            } else if e.after_freeze && e.peer_ran.is_none() {
+                if waited >= self.cfg.epoch_timeout_us || lagging {
+                    // Nobody said: they were not ahead of us (a stall of the whole machine
+                    // froze them too). One timeout per freeze at most: run as usual from now on.
+                    self.woke_at = None;
+                    for x in self.epochs.values_mut() {
+                        x.after_freeze = false;
+                    }
+                    continue;
+                }
                 if self.wall_us >= e.last_status_at + self.cfg.retry_us {
                     let held: Vec<PlatformId> = e.records.keys().copied().collect();
                     self.epochs.get_mut(&epoch).expect("first").last_status_at = self.wall_us;
