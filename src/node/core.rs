@@ -927,6 +927,21 @@ impl NodeCore {
         rec.snapshot.validate().is_ok() && crate::estimation::kalman::is_psd(&rec.snapshot.covariance, 1e-6)
     }
 
+    /// A fragment that parsed and claims its sender's platform, else counted as rejected.
+    fn fragment_of(
+        &mut self,
+        from: PlatformId,
+        parsed: Result<crate::protocol::fragment::Fragment, wire::WireError>,
+    ) -> Option<crate::protocol::fragment::Fragment> {
+        match parsed {
+            Ok(f) if f.platform == from => Some(f),
+            _ => {
+                self.stats.fragments_rejected += 1;
+                None
+            }
+        }
+    }
+
     fn peer_message(&mut self, from: PlatformId, msg: MavMessage, out: &mut Vec<NodeOutput>) {
         let cooploc = matches!(
             msg,
@@ -945,14 +960,7 @@ impl NodeCore {
         self.heard_at.insert(from, self.wall_us);
         match msg {
             MavMessage::COOPLOC_STATE_FRAGMENT(m) => {
-                let Ok(f) = wire::fragment_from_message(&m) else {
-                    self.stats.fragments_rejected += 1;
-                    return;
-                };
-                if f.platform != from {
-                    self.stats.fragments_rejected += 1;
-                    return;
-                }
+                let Some(f) = self.fragment_of(from, wire::fragment_from_message(&m)) else { return };
                 match self.reassembler.push(&f) {
                     Pushed::Complete(rec) => match record::decode_record(rec.platform, TimeUs(rec.time_usec), &rec.bytes) {
                         Ok(r) if Self::plausible(&r) && r.ranges.iter().all(|x| self.in_team(x.to)) => {
@@ -984,14 +992,7 @@ impl NodeCore {
                 self.stats.records_incomplete += self.reassembler.take_dropped().len() as u64;
             }
             MavMessage::COOPLOC_STORE_FRAGMENT(m) => {
-                let Ok(f) = wire::store_fragment_from_message(&m) else {
-                    self.stats.fragments_rejected += 1;
-                    return;
-                };
-                if f.platform != from {
-                    self.stats.fragments_rejected += 1;
-                    return;
-                }
+                let Some(f) = self.fragment_of(from, wire::store_fragment_from_message(&m)) else { return };
                 // Only fragments of a store we asked for are kept (nobody can make us hold
                 // another's bytes).
                 if self.want_store.as_ref().is_none_or(|w| w.epoch != f.epoch || !w.members.contains(&from)) {
@@ -1151,12 +1152,7 @@ impl NodeCore {
                     }
                     continue;
                 }
-                if self.wall_us >= e.last_status_at + self.cfg.retry_us {
-                    let held: Vec<PlatformId> = e.records.keys().copied().collect();
-                    self.epochs.get_mut(&epoch).expect("first").last_status_at = self.wall_us;
-                    let digest = self.store_digest();
-                    self.send_status(epoch, t, held, EpochState::COOPLOC_EPOCH_STATE_COLLECTING, digest, out);
-                }
+                self.ask_again(epoch, out);
                 return;
             }
             if complete {
@@ -1171,15 +1167,23 @@ impl NodeCore {
                 self.absent.extend(silent);
                 self.run_epoch(epoch, true, out);
             } else {
-                if self.wall_us >= e.last_status_at + self.cfg.retry_us {
-                    let held: Vec<PlatformId> = e.records.keys().copied().collect();
-                    self.epochs.get_mut(&epoch).expect("first").last_status_at = self.wall_us;
-                    let digest = self.store_digest();
-                    self.send_status(epoch, t, held, EpochState::COOPLOC_EPOCH_STATE_COLLECTING, digest, out);
-                }
+                self.ask_again(epoch, out);
                 return;
             }
         }
+    }
+
+    /// While we wait for records of `epoch`: our COLLECTING status (the records we hold, a
+    /// retransmission request for the others) once per retry interval.
+    fn ask_again(&mut self, epoch: u32, out: &mut Vec<NodeOutput>) {
+        let Some(e) = self.epochs.get_mut(&epoch) else { return };
+        if self.wall_us < e.last_status_at + self.cfg.retry_us {
+            return;
+        }
+        e.last_status_at = self.wall_us;
+        let (t, held): (TimeUs, Vec<PlatformId>) = (e.t, e.records.keys().copied().collect());
+        let digest = self.store_digest();
+        self.send_status(epoch, t, held, EpochState::COOPLOC_EPOCH_STATE_COLLECTING, digest, out);
     }
 
     /// While a store we asked for may still come (an epoch timeout from the first request, and
@@ -1397,15 +1401,7 @@ impl NodeCore {
                 .collect();
             if !measurements.is_empty() {
                 let snapshots: Vec<_> = records.iter().map(|r| r.snapshot.clone()).collect();
-                let exact = UpdateOptions { gate_chi2: self.gate, ..UpdateOptions::new(CrossMode::Propagate) };
-                let bound = UpdateOptions {
-                    prior: JointPrior::Bound { independent: Vec::new(), scope: BoundScope::Position },
-                    ..exact.clone()
-                };
-                let updated = cooperative_update_with(&mut self.cross, &snapshots, &measurements, &exact)
-                    .or_else(|_| cooperative_update_with(&mut self.cross, &snapshots, &measurements, &bound))
-                    .is_ok();
-                if updated {
+                if self.store_update(&snapshots, &measurements, true, Vec::new()).is_ok() {
                     let digests: Vec<u64> = records.iter().map(|r| r.digest).collect();
                     let r = StoreRef::of_update(epoch, &participants, &digests);
                     for &p in &participants {
@@ -1516,18 +1512,7 @@ impl NodeCore {
                 Ok((c, Some(o.diagnostics), o.gated))
             }
             Method::Decentralized => {
-                let exact = UpdateOptions { gate_chi2: self.gate, ..UpdateOptions::new(CrossMode::Propagate) };
-                let bound =
-                    UpdateOptions { prior: JointPrior::Bound { independent, scope: BoundScope::Position }, ..exact.clone() };
-                let first = if agree { &exact } else { &bound };
-                let o = match cooperative_update_with(&mut self.cross, snapshots, measurements, first) {
-                    Ok(o) => o,
-                    Err(_) if agree => cooperative_update_with(&mut self.cross, snapshots, measurements, &bound)?,
-                    Err(e) => return Err(e),
-                };
-                if !o.weights.is_empty() {
-                    self.stats.heals += 1;
-                }
+                let o = self.store_update(snapshots, measurements, agree, independent)?;
                 let c = own(o.corrections, id).ok_or(EstimationError::UnknownPlatform(id))?;
                 Ok((c, Some(o.diagnostics), o.gated))
             }
@@ -1537,6 +1522,29 @@ impl NodeCore {
             }
             Method::DeadReckoning | Method::Centralized => Err(EstimationError::NotApplicable("no joint update")),
         }
+    }
+
+    /// The decentralized joint update on our store: exact when the stores agree (retried with
+    /// the bound if it fails), else the bound.
+    fn store_update(
+        &mut self,
+        snapshots: &[crate::estimation::Snapshot],
+        measurements: &[CoopMeasurement],
+        agree: bool,
+        independent: Vec<PlatformId>,
+    ) -> Result<crate::estimation::EventOutcome, EstimationError> {
+        let exact = UpdateOptions { gate_chi2: self.gate, ..UpdateOptions::new(CrossMode::Propagate) };
+        let bound = UpdateOptions { prior: JointPrior::Bound { independent, scope: BoundScope::Position }, ..exact.clone() };
+        let first = if agree { &exact } else { &bound };
+        let o = match cooperative_update_with(&mut self.cross, snapshots, measurements, first) {
+            Ok(o) => o,
+            Err(_) if agree => cooperative_update_with(&mut self.cross, snapshots, measurements, &bound)?,
+            Err(e) => return Err(e),
+        };
+        if !o.weights.is_empty() {
+            self.stats.heals += 1;
+        }
+        Ok(o)
     }
 
     #[allow(clippy::too_many_arguments)]

@@ -108,19 +108,27 @@ pub fn fragment_to_message(f: &Fragment) -> Result<MavMessage, WireError> {
     };
     Ok(match f.payload {
         Payload::Record => MavMessage::COOPLOC_STATE_FRAGMENT(m),
-        Payload::Store => MavMessage::COOPLOC_STORE_FRAGMENT(COOPLOC_STORE_FRAGMENT_DATA {
-            time_usec: m.time_usec,
-            epoch: m.epoch,
-            record_crc32: m.record_crc32,
-            record_len: m.record_len,
-            platform: m.platform,
-            frag_index: m.frag_index,
-            frag_count: m.frag_count,
-            data_len: m.data_len,
-            data: m.data,
-        }),
+        Payload::Store => MavMessage::COOPLOC_STORE_FRAGMENT(same_fields!(m, COOPLOC_STORE_FRAGMENT_DATA)),
     })
 }
+
+/// COOPLOC_STATE_FRAGMENT and COOPLOC_STORE_FRAGMENT have the same fields: one as the other.
+macro_rules! same_fields {
+    ($m:expr, $to:ident) => {
+        $to {
+            time_usec: $m.time_usec,
+            epoch: $m.epoch,
+            record_crc32: $m.record_crc32,
+            record_len: $m.record_len,
+            platform: $m.platform,
+            frag_index: $m.frag_index,
+            frag_count: $m.frag_count,
+            data_len: $m.data_len,
+            data: $m.data,
+        }
+    };
+}
+use same_fields;
 
 pub fn fragment_from_message(m: &COOPLOC_STATE_FRAGMENT_DATA) -> Result<Fragment, WireError> {
     fragment_from_fields("COOPLOC_STATE_FRAGMENT", Payload::Record, m)
@@ -128,18 +136,7 @@ pub fn fragment_from_message(m: &COOPLOC_STATE_FRAGMENT_DATA) -> Result<Fragment
 
 /// A COOPLOC_STORE_FRAGMENT (same fields as a state fragment) as a [`Fragment`] of a store.
 pub fn store_fragment_from_message(m: &COOPLOC_STORE_FRAGMENT_DATA) -> Result<Fragment, WireError> {
-    let fields = COOPLOC_STATE_FRAGMENT_DATA {
-        time_usec: m.time_usec,
-        epoch: m.epoch,
-        record_crc32: m.record_crc32,
-        record_len: m.record_len,
-        platform: m.platform,
-        frag_index: m.frag_index,
-        frag_count: m.frag_count,
-        data_len: m.data_len,
-        data: m.data,
-    };
-    fragment_from_fields("COOPLOC_STORE_FRAGMENT", Payload::Store, &fields)
+    fragment_from_fields("COOPLOC_STORE_FRAGMENT", Payload::Store, &same_fields!(m, COOPLOC_STATE_FRAGMENT_DATA))
 }
 
 fn fragment_from_fields(msg: &'static str, payload: Payload, m: &COOPLOC_STATE_FRAGMENT_DATA) -> Result<Fragment, WireError> {
