@@ -429,3 +429,79 @@ fn lossy_links_and_a_restarted_node_do_not_break_the_team() {
     assert!(node_err < dr_err, "the team ({node_err:.2} m) should beat dead reckoning ({dr_err:.2} m)");
     drop(children);
 }
+
+/// A node frozen (SIGSTOP) for 1.5 s of wall time, 30 s of vehicle time at 20x, while the
+/// simulator and its teammates go on: it does not exit on its idle timer when it wakes (the
+/// silence was its own), it catches up on what waited in its sockets, runs the epochs the others
+/// ran without it as a bystander where it can, and every node ends near the fault-free result.
+#[test]
+fn a_frozen_node_wakes_up_and_catches_up() {
+    let world = World::new(&Scenario::from_toml_str(PAPER_TOML).unwrap()).unwrap();
+    let (seed, run, schedule, speed) = (1u64, 0u32, "1hz", 20.0);
+    let (sitl_child, _sitl_out, vehicle_addr) = start_sitl(&world, schedule, &[]);
+    let mut children = Kill(vec![sitl_child]);
+    let ids = world.platform_ids();
+    let net = LossyNet::new(ids.len(), 0.0, 3);
+    let mut outs = Vec::new();
+    for (k, &id) in ids.iter().enumerate() {
+        let mut node = bin();
+        node.args(["node", "--id", &id.to_string(), "--vehicle", &format!("udpout:{}", vehicle_addr[&id])]);
+        node.args(["--method", "dcl", "--idle-exit-s", "1.0", "--retry-ms", "10", "--epoch-timeout-ms", "200"]);
+        for j in (0..ids.len()).filter(|&j| j != k) {
+            node.args(["--peer", &net.proxy(j)]);
+        }
+        let (child, out) = spawn_lines(node);
+        children.0.push(child);
+        let line = wait_line(&out, &format!("node {id} coop udp "), Duration::from_secs(30));
+        net.set_real(k, line.split_whitespace().last().unwrap());
+        outs.push(out);
+    }
+    // Node 3 freezes at about 150 s of vehicle time, for longer than its idle timer.
+    std::thread::sleep(Duration::from_secs_f64(150.0 / speed));
+    let pid = children.0[3].id().to_string();
+    let signal = |sig: &str| assert!(Command::new("kill").args([sig, &pid]).status().unwrap().success(), "kill {sig}");
+    signal("-STOP");
+    std::thread::sleep(Duration::from_secs_f64(1.5));
+    signal("-CONT");
+
+    let inputs = world.run_inputs(seed, run);
+    let dr = run_filter(&world, &inputs, &[], Method::DeadReckoning).unwrap();
+    let dcl = run_filter(&world, &inputs, &world.ranges(schedule, seed, run).unwrap(), Method::Decentralized).unwrap();
+    for (k, (&id, out)) in ids.iter().zip(&outs).enumerate() {
+        let line = wait_line(out, &format!("node {id} done:"), Duration::from_secs(240));
+        let stats = wait_line(out, &format!("node {id} stats"), Duration::from_secs(5));
+        eprintln!("{line}\n{stats}");
+        assert!(line.contains("t 380000000"), "node {id} stopped before the end of the run: {line}");
+        let inside = line.split('[').nth(1).unwrap().split(']').next().unwrap();
+        let pos: Vec<f64> = inside.split(',').map(|v| v.trim().parse().unwrap()).collect();
+        let truth = inputs.platforms[k].truth.last().unwrap().pos_ned_m;
+        let err = ((truth[0] - pos[0]).powi(2) + (truth[1] - pos[1]).powi(2)).sqrt();
+        let (dr_k, dcl_k) = (dr.platforms[k].final_error().pos_err_m, dcl.platforms[k].final_error().pos_err_m);
+        let field = |name: &str| -> u64 {
+            stats
+                .split(&format!("{name}: "))
+                .nth(1)
+                .unwrap()
+                .split(|c: char| !c.is_ascii_digit())
+                .next()
+                .unwrap()
+                .parse()
+                .unwrap()
+        };
+        eprintln!(
+            "node {id}: final error {err:.2} m (fault-free dcl {dcl_k:.2} m, dead reckoning {dr_k:.2} m); freezes {}, bystood {}, \
+             left out {}, stores adopted {}, heals {}",
+            field("freezes"),
+            field("epochs_bystood"),
+            field("epochs_excluded"),
+            field("stores_adopted"),
+            field("heals")
+        );
+        assert!(err < dr_k + 5.0, "node {id} diverged: {err:.2} m against dead reckoning's {dr_k:.2} m");
+        if id == 3 {
+            assert!(field("freezes") >= 1, "node 3 did not notice its freeze");
+            assert!(field("epochs_bystood") >= 1, "node 3 ran no epoch as a bystander after its freeze");
+        }
+    }
+    drop(children);
+}

@@ -469,8 +469,15 @@ pub async fn run(
             }
         };
         let Some(core) = core.as_mut() else { continue };
-        // Wall time reaches the core only on the ticks (recorded), so a replay is exact.
+        // Wall time reaches the core only through recorded polls, so a replay is exact: on the
+        // ticks, and before a frame read while the ticks are late (this process was frozen and
+        // its sockets hold what came meanwhile: the core must see the freeze before that).
         let mut out = Vec::new();
+        if last_tick.elapsed() > FROZEN_TICK_GAP {
+            let now = wall_us();
+            record_event(&recorder, id, &NodeEvent::Poll { wall_us: now });
+            out.extend(core.poll(now));
+        }
         for input in inputs {
             out.extend(core.handle(input));
         }
