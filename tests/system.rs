@@ -47,6 +47,23 @@ fn wait_line(rx: &mpsc::Receiver<String>, prefix: &str, timeout: Duration) -> St
     }
 }
 
+/// The numbers between the first `[` and `]` of a node's output line (its position).
+fn bracket(line: &str) -> Vec<f64> {
+    let inside = line.split('[').nth(1).unwrap().split(']').next().unwrap();
+    inside.split(',').map(|v| v.trim().parse().unwrap()).collect()
+}
+
+/// Field `name` of a node's `stats` line (its `NodeStats`, Debug-printed).
+fn stat(stats: &str, name: &str) -> u64 {
+    stats.split(&format!("{name}: ")).nth(1).unwrap().split(|c: char| !c.is_ascii_digit()).next().unwrap().parse().unwrap()
+}
+
+/// Horizontal distance between a node's `done` line position and `truth` (NED, m).
+fn horizontal_error(line: &str, truth: nalgebra::Vector3<f64>) -> f64 {
+    let pos = bracket(line);
+    ((truth[0] - pos[0]).powi(2) + (truth[1] - pos[1]).powi(2)).sqrt()
+}
+
 struct Kill(Vec<Child>);
 impl Drop for Kill {
     fn drop(&mut self) {
@@ -110,8 +127,7 @@ fn sitl_and_three_nodes_match_the_experiment() {
     let mut finals = Vec::new();
     for (id, out) in &node_outputs {
         let line = wait_line(out, &format!("node {id} done:"), Duration::from_secs(240));
-        let inside = line.split('[').nth(1).unwrap().split(']').next().unwrap();
-        let pos: Vec<f64> = inside.split(',').map(|v| v.trim().parse().unwrap()).collect();
+        let pos = bracket(&line);
         let count = |name: &str| -> u64 {
             line.split(&format!(" {name} ")).nth(1).unwrap().split_whitespace().next().unwrap().parse().unwrap()
         };
@@ -219,10 +235,6 @@ fn a_node_on_a_serial_line_initialises_from_sim_state() {
     let done = wait_line(&node_out, "node 1 initialised from SIM_STATE", Duration::from_secs(120));
     let number = |line: &str, key: &str| -> f64 {
         line.split(&format!(" {key} ")).nth(1).unwrap().split_whitespace().next().unwrap().trim_end_matches(',').parse().unwrap()
-    };
-    let bracket = |line: &str| -> Vec<f64> {
-        let inside = line.split('[').nth(1).unwrap().split(']').next().unwrap();
-        inside.split(',').map(|v| v.trim().parse().unwrap()).collect()
     };
     let t0 = number(&done, "t") as u64;
     let init = bracket(&done);
@@ -393,21 +405,8 @@ fn lossy_links_and_a_restarted_node_do_not_break_the_team() {
         let line = wait_line(out, &format!("node {id} done:"), Duration::from_secs(240));
         let stats = wait_line(out, &format!("node {id} stats"), Duration::from_secs(5));
         eprintln!("{line}\n{stats}");
-        let inside = line.split('[').nth(1).unwrap().split(']').next().unwrap();
-        let pos: Vec<f64> = inside.split(',').map(|v| v.trim().parse().unwrap()).collect();
-        let truth = inputs.platforms[k].truth.last().unwrap().pos_ned_m;
-        let err = ((truth[0] - pos[0]).powi(2) + (truth[1] - pos[1]).powi(2)).sqrt();
-        let field = |name: &str| -> u64 {
-            stats
-                .split(&format!("{name}: "))
-                .nth(1)
-                .unwrap()
-                .split(|c: char| !c.is_ascii_digit())
-                .next()
-                .unwrap()
-                .parse()
-                .unwrap()
-        };
+        let err = horizontal_error(&line, inputs.platforms[k].truth.last().unwrap().pos_ned_m);
+        let field = |name: &str| stat(&stats, name);
         detections += field("store_mismatches") + field("epoch_disagreements");
         if id == 3 {
             restart_handled = field("stores_adopted") + field("heals");
@@ -472,22 +471,9 @@ fn a_frozen_node_wakes_up_and_catches_up() {
         let stats = wait_line(out, &format!("node {id} stats"), Duration::from_secs(5));
         eprintln!("{line}\n{stats}");
         assert!(line.contains("t 380000000"), "node {id} stopped before the end of the run: {line}");
-        let inside = line.split('[').nth(1).unwrap().split(']').next().unwrap();
-        let pos: Vec<f64> = inside.split(',').map(|v| v.trim().parse().unwrap()).collect();
-        let truth = inputs.platforms[k].truth.last().unwrap().pos_ned_m;
-        let err = ((truth[0] - pos[0]).powi(2) + (truth[1] - pos[1]).powi(2)).sqrt();
+        let err = horizontal_error(&line, inputs.platforms[k].truth.last().unwrap().pos_ned_m);
         let (dr_k, dcl_k) = (dr.platforms[k].final_error().pos_err_m, dcl.platforms[k].final_error().pos_err_m);
-        let field = |name: &str| -> u64 {
-            stats
-                .split(&format!("{name}: "))
-                .nth(1)
-                .unwrap()
-                .split(|c: char| !c.is_ascii_digit())
-                .next()
-                .unwrap()
-                .parse()
-                .unwrap()
-        };
+        let field = |name: &str| stat(&stats, name);
         eprintln!(
             "node {id}: final error {err:.2} m (fault-free dcl {dcl_k:.2} m, dead reckoning {dr_k:.2} m); freezes {}, bystood {}, \
              left out {}, stores adopted {}, heals {}",

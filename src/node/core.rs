@@ -1371,11 +1371,7 @@ impl NodeCore {
         if dcl && own_index.is_some() {
             self.keep_snapshot(epoch, t, digest_before);
         }
-        let digest = self.store_digest();
-        self.ran_on.push_back(RanOn { epoch, participants: participants.clone(), digest });
-        if self.ran_on.len() > EPOCHS_REMEMBERED {
-            self.ran_on.pop_front();
-        }
+        let digest = self.remember_run(epoch, participants.clone());
         if own_index.is_some() {
             self.send_status(epoch, t, participants, state, digest, out);
         }
@@ -1410,11 +1406,18 @@ impl NodeCore {
                 }
             }
         }
+        self.remember_run(epoch, participants);
+    }
+
+    /// Remembers what `epoch` ran on and our store digest after it (agreement checks, resends);
+    /// returns that digest.
+    fn remember_run(&mut self, epoch: u32, participants: Vec<PlatformId>) -> u64 {
         let digest = self.store_digest();
         self.ran_on.push_back(RanOn { epoch, participants, digest });
         if self.ran_on.len() > EPOCHS_REMEMBERED {
             self.ran_on.pop_front();
         }
+        digest
     }
 
     /// Keeps our store after `epoch` for teammates that may ask for it (only while a snapshot
