@@ -111,6 +111,10 @@ pub fn standard_cases() -> Vec<FaultCase> {
         FaultCase { name: "node 3 killed, back after 20 s", faults: Faults { kill: node3(114.0, 134.0), ..Faults::default() } },
         FaultCase { name: "node 3 joins at 100 s", faults: Faults { join: Some((2, 100.0)), ..Faults::default() } },
         FaultCase { name: "node 3 leaves for 60 s", faults: Faults { leave: node3(150.0, 210.0), ..Faults::default() } },
+        FaultCase {
+            name: "node 3 leaves for 60 s, 10% loss, delay 0-300 ms",
+            faults: Faults { leave: node3(150.0, 210.0), ..links(0.10, 0.0, (0, 300)) },
+        },
     ]
 }
 
