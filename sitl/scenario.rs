@@ -37,7 +37,7 @@ pub enum ScenarioError {
     UnknownPlatform(PlatformId),
 }
 
-fn invalid(field: impl Into<String>, reason: impl Into<String>) -> ScenarioError {
+pub(crate) fn invalid(field: impl Into<String>, reason: impl Into<String>) -> ScenarioError {
     ScenarioError::Invalid { field: field.into(), reason: reason.into() }
 }
 
@@ -439,15 +439,15 @@ impl PlatformSpec {
     }
 }
 
-fn finite(field: &str, v: f64) -> Result<(), ScenarioError> {
+pub(crate) fn finite(field: &str, v: f64) -> Result<(), ScenarioError> {
     if v.is_finite() { Ok(()) } else { Err(invalid(field, format!("must be finite, got {v}"))) }
 }
 
-fn positive(field: &str, v: f64) -> Result<(), ScenarioError> {
+pub(crate) fn positive(field: &str, v: f64) -> Result<(), ScenarioError> {
     if v.is_finite() && v > 0.0 { Ok(()) } else { Err(invalid(field, format!("must be positive, got {v}"))) }
 }
 
-fn non_negative(field: &str, v: f64) -> Result<(), ScenarioError> {
+pub(crate) fn non_negative(field: &str, v: f64) -> Result<(), ScenarioError> {
     if v.is_finite() && v >= 0.0 { Ok(()) } else { Err(invalid(field, format!("must be non-negative, got {v}"))) }
 }
 

@@ -37,31 +37,7 @@ pub enum ExperimentError {
 /// initial uncertainty (every number lives in the scenario file).
 pub fn ins_settings(world: &World) -> (InsConfig, InsInitialSigma) {
     let s: &Scenario = world.scenario();
-    let m = world.sensor_model();
-    let config = InsConfig {
-        latitude_deg: s.latitude_deg,
-        gravity_m_s2: s.gravity_m_s2,
-        accel_noise_density_m_s2_per_sqrt_hz: m.accel_noise_density_m_s2_per_sqrt_hz,
-        gyro_noise_density_rad_s_per_sqrt_hz: m.gyro_arw_rad_per_sqrt_s,
-        accel_bias_random_walk_m_s3_per_sqrt_hz: m.accel_bias_walk_m_s2_per_sqrt_s,
-        gyro_bias_random_walk_rad_s2_per_sqrt_hz: m.gyro_bias_walk_rad_s_per_sqrt_s,
-        sigma_odometer_m_s: m.odometer_sigma_m_s,
-        sigma_nhc_lateral_m_s: s.filter.nhc_lateral_sigma_m_s,
-        sigma_nhc_vertical_m_s: s.filter.nhc_vertical_sigma_m_s,
-        max_imu_gap_s: 0.5,
-        covariance_decimation: s.covariance_decimation(),
-    };
-    let i = &s.initial;
-    let rp = i.roll_pitch_sigma_deg.to_radians();
-    let sigma = InsInitialSigma {
-        pos_ned_m: Vector3::repeat(i.position_sigma_m),
-        vel_ned_m_s: Vector3::repeat(i.velocity_sigma_m_s),
-        att_ned_rad: Vector3::new(rp, rp, i.yaw_sigma_deg.to_radians()),
-        accel_bias_frd_m_s2: Vector3::repeat(m.accel_bias_sigma_m_s2),
-        gyro_bias_frd_rad_s: Vector3::repeat(m.gyro_bias_sigma_rad_s),
-        odometer_scale: m.odometer_scale_sigma,
-    };
-    (config, sigma)
+    crate::node::profile::VehicleProfile::from_scenario(s).ins_settings(s.latitude_deg)
 }
 
 /// A platform's initial filter state in run `run` (truth at time zero plus the errors the

@@ -13,7 +13,8 @@ use nalgebra::{Matrix3, Vector3};
 use super::dialect::cooploc::{
     COOPLOC_EPOCH_DATA, COOPLOC_ESTIMATE_DATA, COOPLOC_RANGE_DATA, COOPLOC_STATE_FRAGMENT_DATA, COOPLOC_STORE_FRAGMENT_DATA,
     CooplocEpochState, CooplocMethod, HEARTBEAT_DATA, HIGHRES_IMU_DATA, LOCAL_POSITION_NED_DATA, MavAutopilot, MavFrame,
-    MavMessage, MavModeFlag, MavState, MavType, ODOMETRY_DATA, SIM_STATE_DATA,
+    MavMessage, MavModeFlag, MavState, MavType, ODOMETRY_DATA, RAW_IMU_DATA, SCALED_IMU2_DATA, SIM_STATE_DATA,
+    WHEEL_DISTANCE_DATA,
 };
 use super::fragment::{FRAGMENT_DATA, Fragment, Payload};
 use crate::estimation::{ImuSample, Method, OdometerSample, PlatformId, RangeSample};
@@ -371,13 +372,98 @@ pub fn imu_from_highres(m: &HIGHRES_IMU_DATA) -> Result<ImuSample, WireError> {
     const MSG: &str = "HIGHRES_IMU";
     let f = Vector3::new(finite(MSG, "xacc", m.xacc)?, finite(MSG, "yacc", m.yacc)?, finite(MSG, "zacc", m.zacc)?);
     let w = Vector3::new(finite(MSG, "xgyro", m.xgyro)?, finite(MSG, "ygyro", m.ygyro)?, finite(MSG, "zgyro", m.zgyro)?);
+    imu_checked(MSG, TimeUs(m.time_usec), f, w)
+}
+
+/// HIGHRES_IMU `fields_updated` bits of the accelerometer and gyro (xacc..zgyro).
+pub const HIGHRES_ACCEL_GYRO_FIELDS: u16 = 0b11_1111;
+
+/// One mG in m/s^2 (ArduPilot scales RAW_IMU and SCALED_IMU* with standard gravity).
+pub const MILLI_G_M_S2: f64 = 9.80665e-3;
+
+fn imu_checked(msg: &'static str, t: TimeUs, f: Vector3<f64>, w: Vector3<f64>) -> Result<ImuSample, WireError> {
     if f.norm() > MAX_ACCEL_M_S2 {
-        return Err(bad(MSG, "xacc", format!("specific force {:.1} m/s^2 beyond 50 g", f.norm())));
+        return Err(bad(msg, "xacc", format!("specific force {:.1} m/s^2 beyond 50 g", f.norm())));
     }
     if w.norm() > MAX_RATE_RAD_S {
-        return Err(bad(MSG, "xgyro", format!("angular rate {:.1} rad/s beyond {MAX_RATE_RAD_S}", w.norm())));
+        return Err(bad(msg, "xgyro", format!("angular rate {:.1} rad/s beyond {MAX_RATE_RAD_S}", w.norm())));
     }
-    Ok(ImuSample { t: TimeUs(m.time_usec), specific_force_frd_m_s2: f, angular_rate_frd_rad_s: w })
+    Ok(ImuSample { t, specific_force_frd_m_s2: f, angular_rate_frd_rad_s: w })
+}
+
+/// The int16 IMU messages (RAW_IMU as ArduPilot fills it, SCALED_IMU, SCALED_IMU2/3): body FRD
+/// acceleration in mG and angular rate in mrad/s, as an IMU sample at `t` (the caller maps the
+/// message's own time field). An int16 at its extreme (-32768 or 32767) is a saturated or
+/// missing axis and refused.
+pub fn imu_from_int16(msg: &'static str, t: TimeUs, acc_mg: [i16; 3], gyro_mrad_s: [i16; 3]) -> Result<ImuSample, WireError> {
+    const NAMES: [&str; 6] = ["xacc", "yacc", "zacc", "xgyro", "ygyro", "zgyro"];
+    for (k, v) in acc_mg.iter().chain(&gyro_mrad_s).enumerate() {
+        if *v == i16::MIN || *v == i16::MAX {
+            return Err(bad(msg, NAMES[k], format!("{v}: saturated")));
+        }
+    }
+    let f = Vector3::from(acc_mg.map(|v| f64::from(v) * MILLI_G_M_S2));
+    let w = Vector3::from(gyro_mrad_s.map(|v| f64::from(v) * 1e-3));
+    imu_checked(msg, t, f, w)
+}
+
+/// An IMU sample as RAW_IMU the way ArduPilot sends it (mG, mrad/s, rounded), at `time_usec`.
+pub fn imu_to_raw_imu(s: &ImuSample, time_usec: u64, id: u8) -> MavMessage {
+    let (f, w) = int16_axes(s);
+    MavMessage::RAW_IMU(RAW_IMU_DATA {
+        time_usec,
+        xacc: f[0],
+        yacc: f[1],
+        zacc: f[2],
+        xgyro: w[0],
+        ygyro: w[1],
+        zgyro: w[2],
+        id,
+        ..Default::default()
+    })
+}
+
+/// An IMU sample as SCALED_IMU2 (mG, mrad/s), at `time_boot_ms`.
+pub fn imu_to_scaled_imu2(s: &ImuSample, time_boot_ms: u32) -> MavMessage {
+    let (f, w) = int16_axes(s);
+    MavMessage::SCALED_IMU2(SCALED_IMU2_DATA {
+        time_boot_ms,
+        xacc: f[0],
+        yacc: f[1],
+        zacc: f[2],
+        xgyro: w[0],
+        ygyro: w[1],
+        zgyro: w[2],
+        ..Default::default()
+    })
+}
+
+fn int16_axes(s: &ImuSample) -> ([i16; 3], [i16; 3]) {
+    let q = |v: f64| v.round().clamp(-32767.0, 32766.0) as i16;
+    ([0, 1, 2].map(|k| q(s.specific_force_frd_m_s2[k] / MILLI_G_M_S2)), [0, 1, 2].map(|k| q(s.angular_rate_frd_rad_s[k] * 1e3)))
+}
+
+/// WHEEL_DISTANCE's cumulative distances of `wheels`, m, checked (count, finite, plausible).
+pub fn wheel_distances(m: &WHEEL_DISTANCE_DATA, wheels: &[u8]) -> Result<Vec<f64>, WireError> {
+    const MSG: &str = "WHEEL_DISTANCE";
+    let count = m.count as usize;
+    if count > 16 {
+        return Err(bad(MSG, "count", format!("{count} wheels, at most 16")));
+    }
+    wheels
+        .iter()
+        .map(|&w| {
+            let w = w as usize;
+            if w >= count {
+                return Err(bad(MSG, "count", format!("{count} wheels: no wheel {w}")));
+            }
+            let d = m.distance[w];
+            if !d.is_finite() || d.abs() > 1e9 {
+                return Err(bad(MSG, "distance", format!("wheel {w}: {d} m")));
+            }
+            Ok(d)
+        })
+        .collect()
 }
 
 /// An IMU sample as HIGHRES_IMU with the accelerometer and gyro fields marked updated.

@@ -1,0 +1,448 @@
+//! What an autopilot sends, as the node core's inputs: a sans-io decoder, driven by the vehicle
+//! profile's `[inputs]` (see [`super::profile`]). The runner and `cooploc replay` both feed it
+//! every frame from the vehicle, so a log replays through exactly the same conversions.
+//!
+//! - **IMU**: HIGHRES_IMU (its `id` must be the profile's `imu_id`; a message whose
+//!   `fields_updated` does not mark the accelerometer and gyro fresh is a repeat and skipped),
+//!   RAW_IMU (`id` too), SCALED_IMU, SCALED_IMU2, SCALED_IMU3 (int16 mG and mrad/s, converted in
+//!   [`crate::protocol::wire`]). The core takes the mean over each interval: an *average* sample
+//!   (PX4) is that already; two consecutive *instantaneous* samples (ArduPilot) are averaged
+//!   (trapezoid), and a sample after a gap of more than [`MAX_TRAPEZOID_GAP_US`] is held over
+//!   the gap. The rate actually arriving is measured; a change of more than a quarter is
+//!   counted (the filter takes samples at any spacing).
+//! - **Odometer**: ODOMETRY with a body-frame velocity, unless its estimator_type says it is the
+//!   autopilot's own EKF output (refused: not a measurement); or WHEEL_DISTANCE, differentiated:
+//!   the mean speed of the wheels over the interval between two messages, stamped at its
+//!   middle, and with two wheels the differential-drive yaw rate. A wheel that runs backwards
+//!   further or faster than a vehicle can, or a change of `count`, is a counter reset: counted,
+//!   and the next interval starts from the new reading.
+//! - **Time**: `time_boot_ms` (u32 milliseconds, wrapping after 49.7 days: unwrapped),
+//!   `time_usec` since boot, and `time_usec` in Unix time (from 2001 on) alike. With
+//!   `clock = "unix"`, stamps since boot are mapped to Unix time by the vehicle's SYSTEM_TIME
+//!   (until the first one, samples are counted and dropped); a boot clock that goes back more
+//!   than a second (three stamps in a row) is an autopilot reboot, and the mapping is taken again from the next
+//!   SYSTEM_TIME. [`VehicleInputs::to_vehicle_time`] maps back, for what the node sends.
+//! - **Origin**: GPS_GLOBAL_ORIGIN, else HOME_POSITION, when the profile gives none.
+
+use nalgebra::Vector3;
+
+use super::core::NodeInput;
+use super::profile::{ImuMessage, Inputs, OdometerMessage, SampleKind, TeamClock};
+use crate::estimation::{ImuSample, OdometerSample};
+use crate::protocol::MavMessage;
+use crate::protocol::dialect::cooploc::{COMMAND_ACK_DATA, MavEstimatorType};
+use crate::protocol::wire::{self, GeoOrigin};
+use crate::time::TimeUs;
+
+/// Time stamps from this many microseconds on are Unix time (2001-09-09); below, time since boot.
+pub const UNIX_TIME_FROM_US: u64 = 1_000_000_000_000_000;
+/// Two instantaneous IMU samples further apart than this are not averaged.
+pub const MAX_TRAPEZOID_GAP_US: u64 = 100_000;
+/// A boot clock going back more than this, in [`REBOOT_CONFIRMATIONS`] stamps in a row, is a
+/// reboot (less: a late or reordered frame).
+const REBOOT_BACKSTEP_US: u64 = 1_000_000;
+const REBOOT_CONFIRMATIONS: u32 = 3;
+/// Fastest a land vehicle's wheel turns, m/s (a faster change of a wheel's distance is a reset).
+const MAX_WHEEL_SPEED_M_S: f64 = 60.0;
+/// WHEEL_DISTANCE messages further apart than this give no speed (the interval restarts).
+const MAX_WHEEL_INTERVAL_US: u64 = 1_000_000;
+
+/// What one vehicle message meant.
+#[derive(Debug, Clone, PartialEq)]
+pub enum VehicleEvent {
+    /// A sample or a range for the core.
+    Input(NodeInput),
+    /// The vehicle's origin (GPS_GLOBAL_ORIGIN or HOME_POSITION).
+    Origin(GeoOrigin),
+    /// A command acknowledgement for the node.
+    Ack(COMMAND_ACK_DATA),
+    /// Counted and dropped (the counters say why), or not an input at all.
+    Nothing,
+}
+
+/// Counters of what the decoder used, bridged and refused.
+#[derive(Debug, Clone, Default, PartialEq, Eq)]
+pub struct InputCounters {
+    pub imu: u64,
+    /// IMU messages of another IMU instance or another message than the profile's.
+    pub imu_other: u64,
+    /// HIGHRES_IMU whose `fields_updated` does not mark the accelerometer and gyro fresh.
+    pub imu_not_updated: u64,
+    /// IMU messages with unusable values (non-finite, saturated, implausible).
+    pub imu_invalid: u64,
+    /// IMU samples not after the previous one (duplicates, reordered frames).
+    pub imu_out_of_order: u64,
+    /// Times the arriving IMU rate changed by more than a quarter.
+    pub imu_rate_changes: u64,
+    pub odometer: u64,
+    /// ODOMETRY that is the autopilot's own estimate (estimator_type AUTOPILOT), refused.
+    pub odometry_from_autopilot: u64,
+    pub odometer_invalid: u64,
+    /// Wheel distance counters reset (or implausible jumps), bridged.
+    pub wheel_resets: u64,
+    /// WHEEL_DISTANCE intervals too long to give a speed.
+    pub wheel_gaps: u64,
+    pub ranges: u64,
+    pub ranges_invalid: u64,
+    /// `time_boot_ms` wraps (every 49.7 days of uptime).
+    pub time_wraps: u64,
+    /// Autopilot reboots (its boot clock went back, and stayed back).
+    pub reboots: u64,
+    /// Stamps more than a second behind the boot clock, not (yet) a reboot: dropped.
+    pub stale_stamps: u64,
+    /// Samples dropped because the team clock is not known yet (no SYSTEM_TIME).
+    pub waiting_for_clock: u64,
+    /// SYSTEM_TIME messages whose mapping disagrees with the one in use by more than 50 ms.
+    pub clock_disagreements: u64,
+}
+
+/// The decoder (see the module documentation).
+#[derive(Debug, Clone)]
+pub struct VehicleInputs {
+    cfg: Inputs,
+    /// The highest `time_boot_ms` seen and the wraps before it.
+    boot_ms: Option<(u32, u64)>,
+    /// The latest boot-clock stamp, us (reboot detection).
+    last_boot_us: Option<u64>,
+    /// Consecutive stamps far behind `last_boot_us`.
+    backsteps: u32,
+    /// Unix time minus boot time, us, from SYSTEM_TIME.
+    unix_offset_us: Option<i64>,
+    /// The previous IMU sample (instantaneous reading), team time.
+    prev_imu: Option<(TimeUs, Vector3<f64>, Vector3<f64>)>,
+    /// Established IMU interval (us) and the intervals since it last changed.
+    imu_interval: Option<f64>,
+    recent_intervals: Vec<u64>,
+    /// Previous WHEEL_DISTANCE reading: team time, count, distances of the profile's wheels.
+    prev_wheels: Option<(TimeUs, u8, Vec<f64>)>,
+    /// The yaw rate of the last differential-drive interval, rad/s (FRD: positive turns right).
+    pub last_wheel_yaw_rate_rad_s: Option<f64>,
+    pub counters: InputCounters,
+}
+
+impl VehicleInputs {
+    pub fn new(cfg: Inputs) -> Self {
+        VehicleInputs {
+            cfg,
+            boot_ms: None,
+            last_boot_us: None,
+            backsteps: 0,
+            unix_offset_us: None,
+            prev_imu: None,
+            imu_interval: None,
+            recent_intervals: Vec::new(),
+            prev_wheels: None,
+            last_wheel_yaw_rate_rad_s: None,
+            counters: InputCounters::default(),
+        }
+    }
+
+    /// The arriving IMU rate, Hz, once established.
+    pub fn imu_rate_hz(&self) -> Option<f64> {
+        self.imu_interval.map(|us| 1e6 / us)
+    }
+
+    /// Decodes one message from the vehicle's system.
+    pub fn decode(&mut self, msg: &MavMessage) -> VehicleEvent {
+        match msg {
+            MavMessage::SYSTEM_TIME(m) => {
+                self.system_time(m.time_unix_usec, m.time_boot_ms);
+                VehicleEvent::Nothing
+            }
+            MavMessage::HIGHRES_IMU(m) => {
+                if self.cfg.imu != ImuMessage::HighresImu || m.id != self.cfg.imu_id {
+                    self.counters.imu_other += 1;
+                    return VehicleEvent::Nothing;
+                }
+                if m.fields_updated.bits() & wire::HIGHRES_ACCEL_GYRO_FIELDS != wire::HIGHRES_ACCEL_GYRO_FIELDS {
+                    self.counters.imu_not_updated += 1;
+                    return VehicleEvent::Nothing;
+                }
+                let Some(t) = self.usec(m.time_usec) else { return VehicleEvent::Nothing };
+                match wire::imu_from_highres(m) {
+                    Ok(s) => self.imu(ImuSample { t, ..s }),
+                    Err(_) => self.imu_invalid(),
+                }
+            }
+            MavMessage::RAW_IMU(m) => {
+                if self.cfg.imu != ImuMessage::RawImu || m.id != self.cfg.imu_id {
+                    self.counters.imu_other += 1;
+                    return VehicleEvent::Nothing;
+                }
+                let Some(t) = self.usec(m.time_usec) else { return VehicleEvent::Nothing };
+                self.int16_imu("RAW_IMU", t, [m.xacc, m.yacc, m.zacc], [m.xgyro, m.ygyro, m.zgyro])
+            }
+            MavMessage::SCALED_IMU(m) => {
+                self.scaled(ImuMessage::ScaledImu, m.time_boot_ms, [m.xacc, m.yacc, m.zacc], [m.xgyro, m.ygyro, m.zgyro])
+            }
+            MavMessage::SCALED_IMU2(m) => {
+                self.scaled(ImuMessage::ScaledImu2, m.time_boot_ms, [m.xacc, m.yacc, m.zacc], [m.xgyro, m.ygyro, m.zgyro])
+            }
+            MavMessage::SCALED_IMU3(m) => {
+                self.scaled(ImuMessage::ScaledImu3, m.time_boot_ms, [m.xacc, m.yacc, m.zacc], [m.xgyro, m.ygyro, m.zgyro])
+            }
+            MavMessage::ODOMETRY(m) => {
+                if self.cfg.odometer != OdometerMessage::Odometry {
+                    return VehicleEvent::Nothing;
+                }
+                if m.estimator_type == MavEstimatorType::MAV_ESTIMATOR_TYPE_AUTOPILOT {
+                    self.counters.odometry_from_autopilot += 1;
+                    return VehicleEvent::Nothing;
+                }
+                let Some(t) = self.usec(m.time_usec) else { return VehicleEvent::Nothing };
+                match wire::odometer_from_odometry(m) {
+                    Ok(s) => {
+                        self.counters.odometer += 1;
+                        VehicleEvent::Input(NodeInput::Odometer(OdometerSample { t, ..s }))
+                    }
+                    Err(_) => {
+                        self.counters.odometer_invalid += 1;
+                        VehicleEvent::Nothing
+                    }
+                }
+            }
+            MavMessage::WHEEL_DISTANCE(m) => {
+                if self.cfg.odometer != OdometerMessage::WheelDistance {
+                    return VehicleEvent::Nothing;
+                }
+                let Some(t) = self.usec(m.time_usec) else { return VehicleEvent::Nothing };
+                match wire::wheel_distances(m, &self.cfg.wheels) {
+                    Ok(d) => self.wheels(t, m.count, d),
+                    Err(_) => {
+                        self.counters.odometer_invalid += 1;
+                        VehicleEvent::Nothing
+                    }
+                }
+            }
+            MavMessage::COOPLOC_RANGE(m) => match wire::range_from_message(m) {
+                Ok((epoch, r)) => {
+                    let Some(t) = self.usec(r.t.0) else { return VehicleEvent::Nothing };
+                    self.counters.ranges += 1;
+                    VehicleEvent::Input(NodeInput::OwnRange { epoch, range: crate::estimation::RangeSample { t, ..r } })
+                }
+                Err(_) => {
+                    self.counters.ranges_invalid += 1;
+                    VehicleEvent::Nothing
+                }
+            },
+            MavMessage::GPS_GLOBAL_ORIGIN(m) => origin(m.latitude, m.longitude, m.altitude),
+            MavMessage::HOME_POSITION(m) => origin(m.latitude, m.longitude, m.altitude),
+            MavMessage::COMMAND_ACK(m) => VehicleEvent::Ack(m.clone()),
+            _ => VehicleEvent::Nothing,
+        }
+    }
+
+    fn scaled(&mut self, which: ImuMessage, time_boot_ms: u32, acc: [i16; 3], gyro: [i16; 3]) -> VehicleEvent {
+        if self.cfg.imu != which {
+            self.counters.imu_other += 1;
+            return VehicleEvent::Nothing;
+        }
+        let Some(t) = self.boot_ms(time_boot_ms) else { return VehicleEvent::Nothing };
+        self.int16_imu(which.name(), t, acc, gyro)
+    }
+
+    fn int16_imu(&mut self, name: &'static str, t: TimeUs, acc: [i16; 3], gyro: [i16; 3]) -> VehicleEvent {
+        match wire::imu_from_int16(name, t, acc, gyro) {
+            Ok(s) => self.imu(s),
+            Err(_) => self.imu_invalid(),
+        }
+    }
+
+    fn imu_invalid(&mut self) -> VehicleEvent {
+        self.counters.imu_invalid += 1;
+        VehicleEvent::Nothing
+    }
+
+    fn imu(&mut self, s: ImuSample) -> VehicleEvent {
+        let prev = self.prev_imu;
+        if let Some((t0, _, _)) = prev
+            && s.t <= t0
+        {
+            self.counters.imu_out_of_order += 1;
+            return VehicleEvent::Nothing;
+        }
+        self.prev_imu = Some((s.t, s.specific_force_frd_m_s2, s.angular_rate_frd_rad_s));
+        if let Some((t0, _, _)) = prev {
+            self.track_rate(s.t.0 - t0.0);
+        }
+        self.counters.imu += 1;
+        let sample = match (self.cfg.samples(), prev) {
+            (SampleKind::Instantaneous, Some((t0, f0, w0))) if s.t.0 - t0.0 <= MAX_TRAPEZOID_GAP_US => ImuSample {
+                t: s.t,
+                specific_force_frd_m_s2: (f0 + s.specific_force_frd_m_s2) * 0.5,
+                angular_rate_frd_rad_s: (w0 + s.angular_rate_frd_rad_s) * 0.5,
+            },
+            _ => s,
+        };
+        VehicleEvent::Input(NodeInput::Imu(sample))
+    }
+
+    /// Keeps the established IMU interval; 20 consecutive intervals off it by more than a quarter
+    /// establish a new one.
+    fn track_rate(&mut self, dt_us: u64) {
+        const WINDOW: usize = 20;
+        let dt = dt_us as f64;
+        match self.imu_interval {
+            Some(est) if (dt - est).abs() <= 0.25 * est => self.recent_intervals.clear(),
+            _ => {
+                self.recent_intervals.push(dt_us);
+                if self.recent_intervals.len() >= WINDOW {
+                    let mut v = std::mem::take(&mut self.recent_intervals);
+                    v.sort_unstable();
+                    if self.imu_interval.is_some() {
+                        self.counters.imu_rate_changes += 1;
+                    }
+                    self.imu_interval = Some(v[v.len() / 2] as f64);
+                }
+            }
+        }
+    }
+
+    fn wheels(&mut self, t: TimeUs, count: u8, d: Vec<f64>) -> VehicleEvent {
+        let Some((t0, count0, d0)) = self.prev_wheels.replace((t, count, d.clone())) else {
+            return VehicleEvent::Nothing;
+        };
+        if t <= t0 {
+            // a reordered or repeated message: keep the later reading
+            self.prev_wheels = Some((t0, count0, d0));
+            self.counters.odometer_invalid += 1;
+            return VehicleEvent::Nothing;
+        }
+        let dt_us = t.0 - t0.0;
+        if dt_us > MAX_WHEEL_INTERVAL_US {
+            self.counters.wheel_gaps += 1;
+            return VehicleEvent::Nothing;
+        }
+        let dt = dt_us as f64 * 1e-6;
+        let deltas: Vec<f64> = d.iter().zip(&d0).map(|(a, b)| a - b).collect();
+        if count != count0 || deltas.iter().any(|x| x.abs() > MAX_WHEEL_SPEED_M_S * dt + 0.05) {
+            self.counters.wheel_resets += 1;
+            return VehicleEvent::Nothing;
+        }
+        let speed = deltas.iter().sum::<f64>() / deltas.len() as f64 / dt;
+        self.last_wheel_yaw_rate_rad_s = match (deltas.as_slice(), self.cfg.wheel_track_m) {
+            ([left, right], Some(track)) => Some((left - right) / track / dt),
+            _ => None,
+        };
+        self.counters.odometer += 1;
+        VehicleEvent::Input(NodeInput::Odometer(OdometerSample { t: TimeUs(t0.0 + dt_us / 2), speed_m_s: speed }))
+    }
+
+    fn system_time(&mut self, unix_us: u64, boot_ms: u32) {
+        if unix_us < UNIX_TIME_FROM_US {
+            return; // the autopilot has no Unix time yet
+        }
+        let boot_us = self.unwrap_boot_ms(boot_ms);
+        if !self.note_boot(boot_us) {
+            return;
+        }
+        let offset = unix_us as i64 - boot_us as i64;
+        match self.unix_offset_us {
+            None => self.unix_offset_us = Some(offset),
+            Some(o) if (o - offset).abs() > 50_000 => self.counters.clock_disagreements += 1,
+            Some(_) => {}
+        }
+    }
+
+    /// A `time_usec` stamp in the team's clock.
+    fn usec(&mut self, us: u64) -> Option<TimeUs> {
+        if us >= UNIX_TIME_FROM_US {
+            return Some(TimeUs(us));
+        }
+        self.boot_us(us)
+    }
+
+    /// A `time_boot_ms` stamp in the team's clock.
+    fn boot_ms(&mut self, ms: u32) -> Option<TimeUs> {
+        let us = self.unwrap_boot_ms(ms);
+        self.boot_us(us)
+    }
+
+    /// A `time_boot_ms` stamp as microseconds since boot, unwrapped (it wraps every 2^32 ms).
+    fn unwrap_boot_ms(&mut self, ms: u32) -> u64 {
+        const HALF: u32 = 1 << 31;
+        let wraps = match self.boot_ms {
+            None => {
+                self.boot_ms = Some((ms, 0));
+                0
+            }
+            Some((last, wraps)) if ms < last && last - ms > HALF => {
+                self.counters.time_wraps += 1;
+                self.boot_ms = Some((ms, wraps + 1));
+                wraps + 1
+            }
+            // a late frame from before the last wrap
+            Some((last, wraps)) if ms > last && ms - last > HALF => wraps.saturating_sub(1),
+            Some((last, wraps)) => {
+                if ms > last {
+                    self.boot_ms = Some((ms, wraps));
+                }
+                wraps
+            }
+        };
+        ((wraps << 32) + u64::from(ms)) * 1000
+    }
+
+    /// Notes a stamp since boot; false for a stale stamp (dropped). Detects reboots.
+    fn note_boot(&mut self, us: u64) -> bool {
+        if let Some(last) = self.last_boot_us
+            && us + REBOOT_BACKSTEP_US < last
+        {
+            // one stamp far back is a frame stuck somewhere; several in a row, a reboot
+            self.backsteps += 1;
+            if self.backsteps < REBOOT_CONFIRMATIONS {
+                self.counters.stale_stamps += 1;
+                return false;
+            }
+            self.backsteps = 0;
+            self.counters.reboots += 1;
+            self.unix_offset_us = None;
+            self.prev_imu = None;
+            self.prev_wheels = None;
+            self.boot_ms = None;
+            self.last_boot_us = Some(us);
+        } else {
+            self.backsteps = 0;
+            self.last_boot_us = Some(self.last_boot_us.map_or(us, |l| l.max(us)));
+        }
+        true
+    }
+
+    /// A stamp since boot, us, in the team's clock.
+    fn boot_us(&mut self, us: u64) -> Option<TimeUs> {
+        if !self.note_boot(us) {
+            return None;
+        }
+        match self.cfg.clock {
+            TeamClock::Vehicle => Some(TimeUs(us)),
+            TeamClock::Unix => match self.unix_offset_us {
+                Some(o) => u64::try_from(us as i64 + o).ok().map(TimeUs),
+                None => {
+                    self.counters.waiting_for_clock += 1;
+                    None
+                }
+            },
+        }
+    }
+
+    /// A team-clock time in the vehicle's own clock (`time_usec` since its boot when the team
+    /// clock is Unix time and the mapping is known), for what the node sends to the autopilot.
+    pub fn to_vehicle_time(&self, t: TimeUs) -> u64 {
+        match (self.cfg.clock, self.unix_offset_us) {
+            (TeamClock::Unix, Some(o)) => u64::try_from(t.0 as i64 - o).unwrap_or(0),
+            _ => t.0,
+        }
+    }
+}
+
+fn origin(lat_e7: i32, lon_e7: i32, alt_mm: i32) -> VehicleEvent {
+    let lat = wire::e7_to_deg(lat_e7);
+    let lon = wire::e7_to_deg(lon_e7);
+    if lat.abs() > 90.0 || lon.abs() > 180.0 || (lat_e7 == 0 && lon_e7 == 0) {
+        return VehicleEvent::Nothing;
+    }
+    VehicleEvent::Origin(GeoOrigin { lat_deg: lat, lon_deg: lon, alt_m: f64::from(alt_mm) * 1e-3 })
+}
+
+#[cfg(test)]
+mod tests;

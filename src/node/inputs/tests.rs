@@ -1,0 +1,239 @@
+use super::*;
+use crate::protocol::dialect::cooploc::{
+    HIGHRES_IMU_DATA, HighresImuUpdatedFlags, MavFrame, ODOMETRY_DATA, RAW_IMU_DATA, SCALED_IMU2_DATA, SYSTEM_TIME_DATA,
+    WHEEL_DISTANCE_DATA,
+};
+
+fn inputs(edit: impl FnOnce(&mut Inputs)) -> VehicleInputs {
+    let mut cfg = Inputs::default();
+    edit(&mut cfg);
+    VehicleInputs::new(cfg)
+}
+
+fn imu(e: VehicleEvent) -> ImuSample {
+    match e {
+        VehicleEvent::Input(NodeInput::Imu(s)) => s,
+        other => panic!("expected an IMU sample, got {other:?}"),
+    }
+}
+
+fn odo(e: VehicleEvent) -> OdometerSample {
+    match e {
+        VehicleEvent::Input(NodeInput::Odometer(s)) => s,
+        other => panic!("expected an odometer sample, got {other:?}"),
+    }
+}
+
+fn raw(time_usec: u64, acc: [i16; 3], gyro: [i16; 3]) -> MavMessage {
+    MavMessage::RAW_IMU(RAW_IMU_DATA {
+        time_usec,
+        xacc: acc[0],
+        yacc: acc[1],
+        zacc: acc[2],
+        xgyro: gyro[0],
+        ygyro: gyro[1],
+        zgyro: gyro[2],
+        ..Default::default()
+    })
+}
+
+fn scaled2(ms: u32, zacc: i16) -> MavMessage {
+    MavMessage::SCALED_IMU2(SCALED_IMU2_DATA { time_boot_ms: ms, zacc, ..Default::default() })
+}
+
+fn highres(time_usec: u64, id: u8, fields: u16, zacc: f32) -> MavMessage {
+    MavMessage::HIGHRES_IMU(HIGHRES_IMU_DATA {
+        time_usec,
+        zacc,
+        id,
+        fields_updated: HighresImuUpdatedFlags::from_bits_truncate(fields),
+        ..Default::default()
+    })
+}
+
+fn wheels(time_usec: u64, count: u8, d: &[f64]) -> MavMessage {
+    let mut distance = [0.0; 16];
+    distance[..d.len()].copy_from_slice(d);
+    MavMessage::WHEEL_DISTANCE(WHEEL_DISTANCE_DATA { time_usec, distance, count })
+}
+
+fn system_time(unix_us: u64, boot_ms: u32) -> MavMessage {
+    MavMessage::SYSTEM_TIME(SYSTEM_TIME_DATA { time_unix_usec: unix_us, time_boot_ms: boot_ms })
+}
+
+#[test]
+fn raw_imu_is_scaled_and_instantaneous_samples_are_averaged_over_their_interval() {
+    let mut d = inputs(|c| c.imu = ImuMessage::RawImu);
+    // the first sample is held over its (unknown) interval
+    let s = imu(d.decode(&raw(1_000_000, [0, 0, -1000], [0, 0, 10])));
+    assert_eq!(s.t, TimeUs(1_000_000));
+    assert!((s.specific_force_frd_m_s2[2] + 9.80665).abs() < 1e-12);
+    assert!((s.angular_rate_frd_rad_s[2] - 0.01).abs() < 1e-12);
+    // the next is the mean of the two readings (trapezoid over 25 ms)
+    let s = imu(d.decode(&raw(1_025_000, [100, 0, -1000], [0, 0, 30])));
+    assert!((s.specific_force_frd_m_s2[0] - 0.5 * 0.980665).abs() < 1e-12);
+    assert!((s.angular_rate_frd_rad_s[2] - 0.02).abs() < 1e-12);
+    // after a gap the sample is held, not averaged with a reading from long ago
+    let s = imu(d.decode(&raw(1_525_000, [200, 0, -1000], [0, 0, 0])));
+    assert!((s.specific_force_frd_m_s2[0] - 2.0 * 0.980665).abs() < 1e-12);
+    // a saturated axis and a repeat are refused and counted
+    assert_eq!(d.decode(&raw(1_550_000, [i16::MIN, 0, -1000], [0, 0, 0])), VehicleEvent::Nothing);
+    assert_eq!(d.decode(&raw(1_525_000, [0, 0, -1000], [0, 0, 0])), VehicleEvent::Nothing);
+    assert_eq!((d.counters.imu, d.counters.imu_invalid, d.counters.imu_out_of_order), (3, 1, 1));
+    // another IMU's RAW_IMU is not ours
+    let mut other = RAW_IMU_DATA { time_usec: 1_600_000, id: 1, ..Default::default() };
+    other.zacc = -1000;
+    assert_eq!(d.decode(&MavMessage::RAW_IMU(other)), VehicleEvent::Nothing);
+    assert_eq!(d.counters.imu_other, 1);
+}
+
+#[test]
+fn highres_imu_honours_its_id_and_fields_updated() {
+    let mut d = inputs(|c| c.imu_id = 2);
+    assert_eq!(d.decode(&highres(10, 0, 0x3f, -9.8)), VehicleEvent::Nothing);
+    assert_eq!(d.counters.imu_other, 1);
+    // only the magnetometer is fresh: a repeat of the last IMU values
+    assert_eq!(d.decode(&highres(20, 2, 0b1_1100_0000, -9.8)), VehicleEvent::Nothing);
+    assert_eq!(d.counters.imu_not_updated, 1);
+    let s = imu(d.decode(&highres(30, 2, 0x3f, -9.8)));
+    assert_eq!(s.t, TimeUs(30));
+    // averages are taken as they are (PX4): no trapezoid
+    let s = imu(d.decode(&highres(5030, 2, 0x1fff, -9.6)));
+    assert_eq!(s.specific_force_frd_m_s2[2], -9.6f32 as f64);
+}
+
+#[test]
+fn time_boot_ms_wraps_without_a_step() {
+    let mut d = inputs(|c| c.imu = ImuMessage::ScaledImu2);
+    let before = u32::MAX - 15; // 49.7 days of uptime
+    let t0 = imu(d.decode(&scaled2(before, -1000))).t;
+    let t1 = imu(d.decode(&scaled2(before.wrapping_add(20), -1000))).t;
+    assert_eq!(t1.0 - t0.0, 20_000, "20 ms across the wrap");
+    assert_eq!(d.counters.time_wraps, 1);
+    // a frame from before the wrap that arrives late is placed before it, not 49 days ahead
+    assert_eq!(d.decode(&scaled2(before + 5, -1000)), VehicleEvent::Nothing);
+    assert_eq!(d.counters.imu_out_of_order, 1);
+    let t2 = imu(d.decode(&scaled2(before.wrapping_add(40), -1000))).t;
+    assert_eq!(t2.0 - t1.0, 20_000);
+}
+
+#[test]
+fn a_unix_team_clock_maps_boot_stamps_with_system_time_and_back() {
+    let mut d = inputs(|c| {
+        c.imu = ImuMessage::RawImu;
+        c.clock = TeamClock::Unix;
+    });
+    // before any SYSTEM_TIME the team time of a boot stamp is unknown
+    assert_eq!(d.decode(&raw(5_000_000, [0, 0, -1000], [0; 3])), VehicleEvent::Nothing);
+    assert_eq!(d.counters.waiting_for_clock, 1);
+    // a SYSTEM_TIME without Unix time (no RTC yet) does not help
+    d.decode(&system_time(0, 5_010));
+    assert_eq!(d.decode(&raw(5_020_000, [0, 0, -1000], [0; 3])), VehicleEvent::Nothing);
+    let unix0 = 1_795_000_000_000_000u64; // 2026-11
+    d.decode(&system_time(unix0, 5_030));
+    let s = imu(d.decode(&raw(5_040_000, [0, 0, -1000], [0; 3])));
+    assert_eq!(s.t, TimeUs(unix0 + 10_000));
+    assert_eq!(d.to_vehicle_time(s.t), 5_040_000);
+    // stamps already in Unix time are used as they are
+    let s = imu(d.decode(&raw(unix0 + 30_000, [0, 0, -1000], [0; 3])));
+    assert_eq!(s.t, TimeUs(unix0 + 30_000));
+    // a SYSTEM_TIME that disagrees by a second is counted, not adopted (the filter's time would jump)
+    d.decode(&system_time(unix0 + 1_050_000, 5_050));
+    assert_eq!(d.counters.clock_disagreements, 1);
+    assert_eq!(imu(d.decode(&raw(5_070_000, [0, 0, -1000], [0; 3]))).t, TimeUs(unix0 + 40_000));
+}
+
+#[test]
+fn an_autopilot_reboot_is_told_from_a_late_frame() {
+    let mut d = inputs(|c| {
+        c.imu = ImuMessage::RawImu;
+        c.clock = TeamClock::Unix;
+    });
+    let unix0 = 1_795_000_000_000_000u64;
+    d.decode(&system_time(unix0, 600_000));
+    let s = imu(d.decode(&raw(600_000_000, [0, 0, -1000], [0; 3])));
+    assert_eq!(s.t, TimeUs(unix0));
+    // one frame 2 s old: dropped, not a reboot
+    assert_eq!(d.decode(&raw(598_000_000, [0, 0, -1000], [0; 3])), VehicleEvent::Nothing);
+    assert_eq!((d.counters.stale_stamps, d.counters.reboots), (1, 0));
+    assert!(matches!(d.decode(&raw(600_010_000, [0, 0, -1000], [0; 3])), VehicleEvent::Input(_)));
+    // the autopilot reboots: its clock restarts; three stamps confirm it
+    for k in 0..3 {
+        assert_eq!(d.decode(&raw(2_000_000 + k * 10_000, [0, 0, -1000], [0; 3])), VehicleEvent::Nothing);
+    }
+    assert_eq!(d.counters.reboots, 1);
+    // the new boot's mapping comes from its SYSTEM_TIME: 10 min later in Unix time
+    let unix1 = unix0 + 600_000_000;
+    d.decode(&system_time(unix1, 2_030));
+    let s = imu(d.decode(&raw(2_040_000, [0, 0, -1000], [0; 3])));
+    assert_eq!(s.t, TimeUs(unix1 + 10_000));
+}
+
+#[test]
+fn wheel_distances_are_differentiated_with_resets_bridged() {
+    let mut d = inputs(|c| {
+        c.odometer = OdometerMessage::WheelDistance;
+        c.wheels = vec![0, 1];
+        c.wheel_track_m = Some(0.5);
+    });
+    assert_eq!(d.decode(&wheels(1_000_000, 2, &[10.0, 10.0])), VehicleEvent::Nothing);
+    // 50 ms: left 0.11 m, right 0.09 m: 2 m/s, turning right at 0.8 rad/s
+    let s = odo(d.decode(&wheels(1_050_000, 2, &[10.11, 10.09])));
+    assert_eq!(s.t, TimeUs(1_025_000), "stamped at the middle of the interval");
+    assert!((s.speed_m_s - 2.0).abs() < 1e-9);
+    assert!((d.last_wheel_yaw_rate_rad_s.unwrap() - 0.8).abs() < 1e-9);
+    // the encoder counters reset to zero: counted, and the next interval starts from there
+    assert_eq!(d.decode(&wheels(1_100_000, 2, &[0.0, 0.0])), VehicleEvent::Nothing);
+    assert_eq!(d.counters.wheel_resets, 1);
+    let s = odo(d.decode(&wheels(1_150_000, 2, &[0.1, 0.1])));
+    assert!((s.speed_m_s - 2.0).abs() < 1e-9);
+    // a message without the wheel, a count change, a gap
+    assert_eq!(d.decode(&wheels(1_200_000, 1, &[0.2])), VehicleEvent::Nothing);
+    assert_eq!(d.counters.odometer_invalid, 1);
+    assert_eq!(d.decode(&wheels(3_000_000, 2, &[3.0, 3.0])), VehicleEvent::Nothing);
+    assert_eq!(d.counters.wheel_gaps, 1);
+    // driving backwards is a negative speed, not a reset
+    let s = odo(d.decode(&wheels(3_100_000, 2, &[2.9, 2.9])));
+    assert!((s.speed_m_s + 1.0).abs() < 1e-9);
+    assert_eq!(d.counters.wheel_resets, 1);
+}
+
+#[test]
+fn odometry_from_the_autopilots_own_ekf_is_not_an_odometer() {
+    let mut d = inputs(|_| {});
+    let mut m = ODOMETRY_DATA {
+        time_usec: 100,
+        vx: 3.0,
+        child_frame_id: MavFrame::MAV_FRAME_BODY_FRD,
+        estimator_type: MavEstimatorType::MAV_ESTIMATOR_TYPE_AUTOPILOT,
+        ..Default::default()
+    };
+    assert_eq!(d.decode(&MavMessage::ODOMETRY(m.clone())), VehicleEvent::Nothing);
+    assert_eq!(d.counters.odometry_from_autopilot, 1);
+    m.estimator_type = MavEstimatorType::MAV_ESTIMATOR_TYPE_UNKNOWN;
+    assert_eq!(odo(d.decode(&MavMessage::ODOMETRY(m))).speed_m_s, 3.0);
+}
+
+#[test]
+fn an_imu_rate_change_is_measured_and_counted() {
+    let mut d = inputs(|_| {});
+    let mut t = 0;
+    for _ in 0..50 {
+        t += 5_000;
+        imu(d.decode(&highres(t, 0, 0x3f, -9.8)));
+    }
+    assert_eq!(d.imu_rate_hz(), Some(200.0));
+    // the autopilot falls back to 50 Hz (a ground station overrode the rate)
+    for _ in 0..50 {
+        t += 20_000;
+        imu(d.decode(&highres(t, 0, 0x3f, -9.8)));
+    }
+    assert_eq!(d.imu_rate_hz(), Some(50.0));
+    assert_eq!(d.counters.imu_rate_changes, 1);
+    // jitter of a few percent is no change
+    for k in 0..50 {
+        t += if k % 2 == 0 { 19_000 } else { 21_000 };
+        imu(d.decode(&highres(t, 0, 0x3f, -9.8)));
+    }
+    assert_eq!(d.counters.imu_rate_changes, 1);
+}

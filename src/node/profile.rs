@@ -1,0 +1,597 @@
+//! The vehicle profile (`cooploc node --vehicle-config FILE.toml`): everything a node must know
+//! about the vehicle it runs on, and nothing about the world around it.
+//!
+//! The vehicle part has the same keys as a scenario's (see [`crate::sitl::scenario`]):
+//! `latitude_deg`, `gravity_m_s2`, `[sensors]` (IMU and odometer noise and bias figures, and the
+//! rates the node asks for), `[initial]` (initial uncertainty) and `[filter]` (non-holonomic
+//! constraints, covariance rate). A scenario's vehicle part *is* a profile
+//! ([`VehicleProfile::from_scenario`]), so the simulator and the node read one format. A profile
+//! adds what only a real vehicle has:
+//!
+//! - `[origin]`: the geodetic point of the local NED frame (`lat_deg`, `lon_deg`, `alt_m`).
+//!   Without it the node takes the vehicle's GPS_GLOBAL_ORIGIN, or else its HOME_POSITION.
+//! - `[inputs]`: which messages carry the IMU (`imu`: `highres_imu`, `raw_imu`, `scaled_imu`,
+//!   `scaled_imu2`, `scaled_imu3`; `imu_id` for HIGHRES_IMU and RAW_IMU; `imu_samples`:
+//!   `average` over the interval as PX4 sends, or `instantaneous` as ArduPilot does), the
+//!   odometer (`odometer`: `odometry` for a wheel or odometer source's body velocity,
+//!   `wheel_distance` for cumulative wheel distances with `wheels` and `wheel_track_m`, or
+//!   `none`), the team clock (`clock`: `vehicle` when the vehicles' time stamps already share a
+//!   clock, `unix` when they count from each autopilot's boot and SYSTEM_TIME maps them to Unix
+//!   time), and whether to ask for the rates (`request_rates`).
+//! - `[output]`: what the node sends back to the autopilot: ODOMETRY at `odometry_rate_hz`
+//!   (0: none), LOCAL_POSITION_NED after every cooperative update (`local_position_ned`), and
+//!   GPS_INPUT (`gps_input`, ArduPilot's path for absolute positions).
+//!
+//! Every key is checked (an unknown one is an error naming it), every value is validated with
+//! its field named (`sensors.accel_noise_ug_per_sqrt_hz: ...`), and figures no real sensor can
+//! have (zero or absurd noise) are refused, all before any socket opens. The examples in
+//! `sitl/vehicles/` are a PX4 rover and an ArduPilot Rover.
+
+use std::path::Path;
+
+use nalgebra::Vector3;
+use serde::{Deserialize, Serialize};
+
+use crate::estimation::ins::{InsConfig, InsInitialSigma};
+use crate::protocol::wire::GeoOrigin;
+use crate::sitl::scenario::{FilterTuning, InitialUncertainty, Scenario, ScenarioError, Sensors, finite, non_negative, positive};
+use crate::sitl::sensors::{DEG_PER_H_RAD_S, DEG_PER_SQRT_H_RAD_PER_SQRT_S, MICRO_G_M_S2};
+
+/// Why a profile is refused.
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+pub enum ProfileError {
+    #[error("cannot read vehicle profile {path}: {message}")]
+    Io { path: String, message: String },
+    /// Not TOML, or not the profile's shape (the message names an unknown key or a missing field).
+    #[error("cannot parse vehicle profile {path}: {message}")]
+    Parse { path: String, message: String },
+    #[error("invalid vehicle profile field `{field}`: {reason}")]
+    Invalid { field: String, reason: String },
+}
+
+impl From<ScenarioError> for ProfileError {
+    fn from(e: ScenarioError) -> Self {
+        match e {
+            ScenarioError::Invalid { field, reason } => ProfileError::Invalid { field, reason },
+            other => ProfileError::Invalid { field: String::new(), reason: other.to_string() },
+        }
+    }
+}
+
+fn invalid(field: impl Into<String>, reason: impl Into<String>) -> ProfileError {
+    ProfileError::Invalid { field: field.into(), reason: reason.into() }
+}
+
+/// A vehicle profile (see the module documentation).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct VehicleProfile {
+    /// Short name, for logs and reports.
+    pub name: String,
+    /// Latitude of the local frame, deg (the Earth-rate vector). Optional when `[origin]` gives
+    /// it or the vehicle will.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub latitude_deg: Option<f64>,
+    /// Magnitude of gravity, m/s^2.
+    #[serde(default = "default_gravity")]
+    pub gravity_m_s2: f64,
+    pub sensors: Sensors,
+    pub initial: InitialUncertainty,
+    pub filter: FilterTuning,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub origin: Option<OriginSpec>,
+    #[serde(default)]
+    pub inputs: Inputs,
+    #[serde(default)]
+    pub output: Output,
+}
+
+fn default_gravity() -> f64 {
+    9.80665
+}
+
+/// The geodetic origin of the local NED frame.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct OriginSpec {
+    pub lat_deg: f64,
+    pub lon_deg: f64,
+    #[serde(default)]
+    pub alt_m: f64,
+}
+
+/// The message that carries the IMU.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum ImuMessage {
+    /// HIGHRES_IMU (float SI units, `time_usec`; PX4's stream, ArduPilot's on request).
+    HighresImu,
+    /// RAW_IMU (int16 mG and mrad/s, `time_usec`; ArduPilot's first IMU).
+    RawImu,
+    /// SCALED_IMU (int16 mG and mrad/s, `time_boot_ms`).
+    ScaledImu,
+    /// SCALED_IMU2 (ArduPilot's second IMU).
+    ScaledImu2,
+    /// SCALED_IMU3.
+    ScaledImu3,
+}
+
+impl ImuMessage {
+    /// The MAVLink message id.
+    pub fn message_id(self) -> u32 {
+        match self {
+            ImuMessage::HighresImu => 105,
+            ImuMessage::RawImu => 27,
+            ImuMessage::ScaledImu => 26,
+            ImuMessage::ScaledImu2 => 116,
+            ImuMessage::ScaledImu3 => 129,
+        }
+    }
+
+    /// How the autopilots that send this message sample it: PX4's HIGHRES_IMU averages over
+    /// its integration window; ArduPilot's RAW_IMU and SCALED_IMU* are the latest sample.
+    pub fn default_samples(self) -> SampleKind {
+        match self {
+            ImuMessage::HighresImu => SampleKind::Average,
+            _ => SampleKind::Instantaneous,
+        }
+    }
+
+    pub fn name(self) -> &'static str {
+        match self {
+            ImuMessage::HighresImu => "HIGHRES_IMU",
+            ImuMessage::RawImu => "RAW_IMU",
+            ImuMessage::ScaledImu => "SCALED_IMU",
+            ImuMessage::ScaledImu2 => "SCALED_IMU2",
+            ImuMessage::ScaledImu3 => "SCALED_IMU3",
+        }
+    }
+}
+
+/// What one IMU message's values stand for.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum SampleKind {
+    /// The mean over the interval since the previous sample (integrated IMU, PX4).
+    Average,
+    /// The value at the time stamp (ArduPilot): the node takes the mean of two consecutive
+    /// samples as the mean over their interval (trapezoid).
+    Instantaneous,
+}
+
+/// The message that carries the odometer.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum OdometerMessage {
+    /// ODOMETRY with a body-frame (BODY_FRD) velocity from a wheel or odometer source. ODOMETRY
+    /// whose estimator_type is AUTOPILOT (the autopilot's own EKF output, as PX4 sends) is
+    /// refused: it is not an independent measurement.
+    Odometry,
+    /// WHEEL_DISTANCE (id 9000): cumulative distance per wheel, differentiated.
+    WheelDistance,
+    /// No odometer (the non-holonomic constraints alone bound the velocity).
+    None,
+}
+
+/// Which clock the team's time stamps share.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum TeamClock {
+    /// The vehicles' time stamps already share one clock (the simulator; autopilots that stamp
+    /// in Unix time).
+    Vehicle,
+    /// Each autopilot counts from its own boot; the node maps its stamps to Unix time with the
+    /// vehicle's SYSTEM_TIME (time_unix_usec against time_boot_ms). Stamps already in Unix time
+    /// are used as they are.
+    Unix,
+}
+
+/// Where the node's inputs come from.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Inputs {
+    #[serde(default = "default_imu")]
+    pub imu: ImuMessage,
+    /// The IMU instance (HIGHRES_IMU and RAW_IMU `id`) to use; the others are counted and
+    /// ignored.
+    #[serde(default)]
+    pub imu_id: u8,
+    /// Default: the message's usual meaning ([`ImuMessage::default_samples`]).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub imu_samples: Option<SampleKind>,
+    #[serde(default = "default_odometer")]
+    pub odometer: OdometerMessage,
+    /// WHEEL_DISTANCE indices: one wheel, or the left and the right wheel of a differential
+    /// drive.
+    #[serde(default = "default_wheels")]
+    pub wheels: Vec<u8>,
+    /// Distance between the two wheels, m (yaw rate of a differential drive).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub wheel_track_m: Option<f64>,
+    #[serde(default = "default_clock")]
+    pub clock: TeamClock,
+    /// Ask the autopilot for the IMU and odometer rates of `[sensors]` (SET_MESSAGE_INTERVAL).
+    #[serde(default = "yes")]
+    pub request_rates: bool,
+}
+
+fn default_imu() -> ImuMessage {
+    ImuMessage::HighresImu
+}
+fn default_odometer() -> OdometerMessage {
+    OdometerMessage::Odometry
+}
+fn default_wheels() -> Vec<u8> {
+    vec![0]
+}
+fn default_clock() -> TeamClock {
+    TeamClock::Vehicle
+}
+fn yes() -> bool {
+    true
+}
+
+impl Default for Inputs {
+    fn default() -> Self {
+        Inputs {
+            imu: default_imu(),
+            imu_id: 0,
+            imu_samples: None,
+            odometer: default_odometer(),
+            wheels: default_wheels(),
+            wheel_track_m: None,
+            clock: default_clock(),
+            request_rates: true,
+        }
+    }
+}
+
+impl Inputs {
+    /// How the IMU messages' values are read.
+    pub fn samples(&self) -> SampleKind {
+        self.imu_samples.unwrap_or(self.imu.default_samples())
+    }
+}
+
+/// What the node sends back to the autopilot.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Output {
+    /// ODOMETRY (frame LOCAL_FRD, child BODY_FRD, as ArduPilot and PX4 fuse it), vehicle time,
+    /// Hz; 0: none.
+    #[serde(default = "default_odometry_rate")]
+    pub odometry_rate_hz: f64,
+    /// LOCAL_POSITION_NED after every cooperative update (ground stations show it).
+    #[serde(default = "yes")]
+    pub local_position_ned: bool,
+    /// GPS_INPUT (ArduPilot, GPS type 14) with the estimate as an absolute position, at the
+    /// ODOMETRY rate; needs the origin.
+    #[serde(default)]
+    pub gps_input: bool,
+}
+
+fn default_odometry_rate() -> f64 {
+    20.0
+}
+
+impl Default for Output {
+    fn default() -> Self {
+        Output { odometry_rate_hz: default_odometry_rate(), local_position_ned: true, gps_input: false }
+    }
+}
+
+/// Bounds no real sensor of a land vehicle exceeds: a figure beyond them is a unit mistake.
+const MAX_ACCEL_BIAS_UG: f64 = 200_000.0;
+const MAX_ACCEL_NOISE_UG_PER_SQRT_HZ: f64 = 20_000.0;
+const MAX_GYRO_BIAS_DEG_H: f64 = 36_000.0;
+const MAX_GYRO_ARW_DEG_PER_SQRT_H: f64 = 60.0;
+const MAX_IMU_RATE_HZ: f64 = 2_000.0;
+
+impl VehicleProfile {
+    /// Reads, parses and validates a profile file.
+    pub fn from_path(path: impl AsRef<Path>) -> Result<Self, ProfileError> {
+        let path = path.as_ref();
+        let text = std::fs::read_to_string(path)
+            .map_err(|e| ProfileError::Io { path: path.display().to_string(), message: e.to_string() })?;
+        Self::parse(&text, &path.display().to_string())
+    }
+
+    /// Parses and validates a profile held in a string.
+    pub fn from_toml_str(text: &str) -> Result<Self, ProfileError> {
+        Self::parse(text, "<string>")
+    }
+
+    fn parse(text: &str, path: &str) -> Result<Self, ProfileError> {
+        let p: VehicleProfile =
+            toml::from_str(text).map_err(|e| ProfileError::Parse { path: path.to_string(), message: e.to_string() })?;
+        p.validate()?;
+        Ok(p)
+    }
+
+    /// The vehicle part of a scenario, as the simulator's vehicles are: HIGHRES_IMU averages,
+    /// ODOMETRY, one clock, the scenario's latitude.
+    pub fn from_scenario(s: &Scenario) -> Self {
+        VehicleProfile {
+            name: s.name.clone(),
+            latitude_deg: Some(s.latitude_deg),
+            gravity_m_s2: s.gravity_m_s2,
+            sensors: s.sensors,
+            initial: s.initial,
+            filter: s.filter,
+            origin: None,
+            inputs: Inputs::default(),
+            output: Output::default(),
+        }
+    }
+
+    /// The profile as TOML (attached to logs so that replay reads the same profile).
+    pub fn to_toml(&self) -> String {
+        toml::to_string(self).unwrap_or_default()
+    }
+
+    /// Checks every value; the first problem found is returned, naming its field. A profile
+    /// describes a real vehicle, so it is stricter than a scenario: sensor noise must be
+    /// positive and plausible.
+    pub fn validate(&self) -> Result<(), ProfileError> {
+        if self.name.trim().is_empty() {
+            return Err(invalid("name", "must not be empty"));
+        }
+        let s = &self.sensors;
+        positive("sensors.imu_rate_hz", s.imu_rate_hz)?;
+        if s.imu_rate_hz > MAX_IMU_RATE_HZ {
+            return Err(invalid("sensors.imu_rate_hz", format!("must be at most {MAX_IMU_RATE_HZ} Hz, got {}", s.imu_rate_hz)));
+        }
+        positive("sensors.odometer_rate_hz", s.odometer_rate_hz)?;
+        if s.odometer_rate_hz > MAX_IMU_RATE_HZ {
+            return Err(invalid(
+                "sensors.odometer_rate_hz",
+                format!("must be at most {MAX_IMU_RATE_HZ} Hz, got {}", s.odometer_rate_hz),
+            ));
+        }
+        positive("gravity_m_s2", self.gravity_m_s2)?;
+        if !(9.7..=9.9).contains(&self.gravity_m_s2) {
+            return Err(invalid("gravity_m_s2", format!("{} m/s^2 is not the Earth's gravity (9.78-9.84)", self.gravity_m_s2)));
+        }
+        for (field, v, max) in [
+            ("sensors.accel_bias_ug", s.accel_bias_ug, MAX_ACCEL_BIAS_UG),
+            ("sensors.accel_noise_ug_per_sqrt_hz", s.accel_noise_ug_per_sqrt_hz, MAX_ACCEL_NOISE_UG_PER_SQRT_HZ),
+            ("sensors.gyro_bias_deg_h", s.gyro_bias_deg_h, MAX_GYRO_BIAS_DEG_H),
+            ("sensors.gyro_arw_deg_per_sqrt_h", s.gyro_arw_deg_per_sqrt_h, MAX_GYRO_ARW_DEG_PER_SQRT_H),
+        ] {
+            positive(field, v)
+                .map_err(|_| invalid(field, format!("must be positive (a real sensor has noise and bias), got {v}")))?;
+            if v > max {
+                return Err(invalid(
+                    field,
+                    format!("{v} is beyond any real IMU (at most {max}); check the unit in the key name"),
+                ));
+            }
+        }
+        for (field, v) in [
+            ("sensors.accel_bias_walk_ug_per_sqrt_s", s.accel_bias_walk_ug_per_sqrt_s),
+            ("sensors.gyro_bias_walk_deg_h_per_sqrt_s", s.gyro_bias_walk_deg_h_per_sqrt_s),
+            ("sensors.odometer_scale_sigma", s.odometer_scale_sigma),
+            ("initial.position_sigma_m", self.initial.position_sigma_m),
+            ("initial.velocity_sigma_m_s", self.initial.velocity_sigma_m_s),
+            ("initial.roll_pitch_sigma_deg", self.initial.roll_pitch_sigma_deg),
+            ("initial.yaw_sigma_deg", self.initial.yaw_sigma_deg),
+            ("filter.nhc_lateral_sigma_m_s", self.filter.nhc_lateral_sigma_m_s),
+            ("filter.nhc_vertical_sigma_m_s", self.filter.nhc_vertical_sigma_m_s),
+        ] {
+            non_negative(field, v)?;
+        }
+        if self.inputs.odometer != OdometerMessage::None {
+            positive("sensors.odometer_sigma_m_s", s.odometer_sigma_m_s)?;
+        } else {
+            non_negative("sensors.odometer_sigma_m_s", s.odometer_sigma_m_s)?;
+        }
+        if s.odometer_scale_sigma > 0.5 {
+            return Err(invalid(
+                "sensors.odometer_scale_sigma",
+                format!("{} is a fraction (0.01 = 1%), at most 0.5", s.odometer_scale_sigma),
+            ));
+        }
+        if let Some(rate) = self.filter.covariance_rate_hz {
+            positive("filter.covariance_rate_hz", rate)?;
+            if rate > s.imu_rate_hz {
+                return Err(invalid(
+                    "filter.covariance_rate_hz",
+                    format!("{rate} Hz is above the IMU rate {} Hz", s.imu_rate_hz),
+                ));
+            }
+        }
+        if let Some(lat) = self.latitude_deg {
+            finite("latitude_deg", lat)?;
+            if lat.abs() > 90.0 {
+                return Err(invalid("latitude_deg", format!("must be within [-90, 90], got {lat}")));
+            }
+        }
+        if let Some(o) = &self.origin {
+            finite("origin.lat_deg", o.lat_deg)?;
+            finite("origin.lon_deg", o.lon_deg)?;
+            finite("origin.alt_m", o.alt_m)?;
+            if o.lat_deg.abs() > 90.0 {
+                return Err(invalid("origin.lat_deg", format!("must be within [-90, 90], got {}", o.lat_deg)));
+            }
+            if o.lon_deg.abs() > 180.0 {
+                return Err(invalid("origin.lon_deg", format!("must be within [-180, 180], got {}", o.lon_deg)));
+            }
+            if let Some(lat) = self.latitude_deg
+                && (lat - o.lat_deg).abs() > 1e-6
+            {
+                return Err(invalid(
+                    "latitude_deg",
+                    format!("{lat} differs from origin.lat_deg {}; give one of them", o.lat_deg),
+                ));
+            }
+        }
+        let i = &self.inputs;
+        if i.imu_id != 0 && !matches!(i.imu, ImuMessage::HighresImu | ImuMessage::RawImu) {
+            return Err(invalid(
+                "inputs.imu_id",
+                format!("{} carries no IMU id; use scaled_imu2/3 for the others", i.imu.name()),
+            ));
+        }
+        if i.odometer == OdometerMessage::WheelDistance {
+            if i.wheels.is_empty() || i.wheels.len() > 2 {
+                return Err(invalid("inputs.wheels", format!("one wheel or a left and a right wheel, got {:?}", i.wheels)));
+            }
+            if i.wheels.iter().any(|&w| w >= 16) {
+                return Err(invalid("inputs.wheels", format!("WHEEL_DISTANCE has wheels 0..=15, got {:?}", i.wheels)));
+            }
+            if i.wheels.len() == 2 && i.wheels[0] == i.wheels[1] {
+                return Err(invalid("inputs.wheels", "the left and the right wheel must differ"));
+            }
+        }
+        if let Some(track) = i.wheel_track_m {
+            positive("inputs.wheel_track_m", track)?;
+            if i.wheels.len() != 2 {
+                return Err(invalid("inputs.wheel_track_m", "needs two wheels in inputs.wheels"));
+            }
+        }
+        let o = &self.output;
+        non_negative("output.odometry_rate_hz", o.odometry_rate_hz)?;
+        if o.odometry_rate_hz > 0.0 && !(4.0..=200.0).contains(&o.odometry_rate_hz) {
+            return Err(invalid(
+                "output.odometry_rate_hz",
+                format!("0 (off) or 4-200 Hz (ArduPilot ignores ODOMETRY below 4 Hz), got {}", o.odometry_rate_hz),
+            ));
+        }
+        if o.gps_input && o.odometry_rate_hz == 0.0 {
+            return Err(invalid("output.gps_input", "is sent at output.odometry_rate_hz, which is 0"));
+        }
+        Ok(())
+    }
+
+    /// The latitude the INS uses: `latitude_deg`, the origin's, or none yet (from the vehicle).
+    pub fn latitude(&self) -> Option<f64> {
+        self.latitude_deg.or(self.origin.map(|o| o.lat_deg))
+    }
+
+    /// The configured origin, if any.
+    pub fn geo_origin(&self) -> Option<GeoOrigin> {
+        self.origin.map(|o| GeoOrigin { lat_deg: o.lat_deg, lon_deg: o.lon_deg, alt_m: o.alt_m })
+    }
+
+    /// How many IMU samples one covariance step spans at the configured rates.
+    pub fn covariance_decimation(&self) -> u32 {
+        match self.filter.covariance_rate_hz {
+            Some(rate) => ((self.sensors.imu_rate_hz / rate).round() as u32).max(1),
+            None => 1,
+        }
+    }
+
+    /// The INS noise model and initial uncertainty, at latitude `latitude_deg`.
+    pub fn ins_settings(&self, latitude_deg: f64) -> (InsConfig, InsInitialSigma) {
+        let s = &self.sensors;
+        let config = InsConfig {
+            latitude_deg,
+            gravity_m_s2: self.gravity_m_s2,
+            accel_noise_density_m_s2_per_sqrt_hz: s.accel_noise_ug_per_sqrt_hz * MICRO_G_M_S2,
+            gyro_noise_density_rad_s_per_sqrt_hz: s.gyro_arw_deg_per_sqrt_h * DEG_PER_SQRT_H_RAD_PER_SQRT_S,
+            accel_bias_random_walk_m_s3_per_sqrt_hz: s.accel_bias_walk_ug_per_sqrt_s * MICRO_G_M_S2,
+            gyro_bias_random_walk_rad_s2_per_sqrt_hz: s.gyro_bias_walk_deg_h_per_sqrt_s * DEG_PER_H_RAD_S,
+            sigma_odometer_m_s: s.odometer_sigma_m_s,
+            sigma_nhc_lateral_m_s: self.filter.nhc_lateral_sigma_m_s,
+            sigma_nhc_vertical_m_s: self.filter.nhc_vertical_sigma_m_s,
+            max_imu_gap_s: 0.5,
+            covariance_decimation: self.covariance_decimation(),
+        };
+        let i = &self.initial;
+        let rp = i.roll_pitch_sigma_deg.to_radians();
+        let sigma = InsInitialSigma {
+            pos_ned_m: Vector3::repeat(i.position_sigma_m),
+            vel_ned_m_s: Vector3::repeat(i.velocity_sigma_m_s),
+            att_ned_rad: Vector3::new(rp, rp, i.yaw_sigma_deg.to_radians()),
+            accel_bias_frd_m_s2: Vector3::repeat(s.accel_bias_ug * MICRO_G_M_S2),
+            gyro_bias_frd_rad_s: Vector3::repeat(s.gyro_bias_deg_h * DEG_PER_H_RAD_S),
+            odometer_scale: s.odometer_scale_sigma,
+        };
+        (config, sigma)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::sitl::{PAPER_TOML, World};
+
+    fn example(name: &str) -> String {
+        std::fs::read_to_string(format!("{}/sitl/vehicles/{name}.toml", env!("CARGO_MANIFEST_DIR"))).unwrap()
+    }
+
+    #[test]
+    fn the_examples_are_valid() {
+        for name in ["px4-rover", "ardupilot-rover"] {
+            let p = VehicleProfile::from_toml_str(&example(name)).unwrap_or_else(|e| panic!("{name}: {e}"));
+            assert_eq!(p.name, name);
+        }
+    }
+
+    #[test]
+    fn a_scenario_is_a_profile_with_the_same_ins_settings() {
+        let scenario = Scenario::from_toml_str(PAPER_TOML).unwrap();
+        let world = World::new(&scenario).unwrap();
+        let p = VehicleProfile::from_scenario(&scenario);
+        p.validate().unwrap();
+        // the same figures the simulator draws its sensor errors from
+        let m = world.sensor_model();
+        let (c, s) = p.ins_settings(scenario.latitude_deg);
+        assert_eq!(c.accel_noise_density_m_s2_per_sqrt_hz, m.accel_noise_density_m_s2_per_sqrt_hz);
+        assert_eq!(c.gyro_noise_density_rad_s_per_sqrt_hz, m.gyro_arw_rad_per_sqrt_s);
+        assert_eq!(c.accel_bias_random_walk_m_s3_per_sqrt_hz, m.accel_bias_walk_m_s2_per_sqrt_s);
+        assert_eq!(c.gyro_bias_random_walk_rad_s2_per_sqrt_hz, m.gyro_bias_walk_rad_s_per_sqrt_s);
+        assert_eq!(c.sigma_odometer_m_s, m.odometer_sigma_m_s);
+        assert_eq!(c.covariance_decimation, scenario.covariance_decimation());
+        assert_eq!(s.accel_bias_frd_m_s2[0], m.accel_bias_sigma_m_s2);
+        assert_eq!(s.gyro_bias_frd_rad_s[2], m.gyro_bias_sigma_rad_s);
+        assert_eq!(s.odometer_scale, m.odometer_scale_sigma);
+        // and it survives the trip through TOML (logs carry it)
+        assert_eq!(VehicleProfile::from_toml_str(&p.to_toml()).unwrap(), p);
+    }
+
+    fn with(edit: &str, replace: &str) -> Result<VehicleProfile, ProfileError> {
+        let text = example("px4-rover");
+        assert!(text.contains(edit), "{edit}");
+        VehicleProfile::from_toml_str(&text.replacen(edit, replace, 1))
+    }
+
+    fn field_of(r: Result<VehicleProfile, ProfileError>) -> String {
+        match r {
+            Err(ProfileError::Invalid { field, .. }) => field,
+            other => panic!("expected an invalid field, got {other:?}"),
+        }
+    }
+
+    #[test]
+    fn bad_profiles_name_their_field() {
+        let unknown = with("[inputs]", "[inputs]\nimu_rate = 3").unwrap_err();
+        assert!(matches!(&unknown, ProfileError::Parse { message, .. } if message.contains("imu_rate")), "{unknown}");
+        let gyro = "gyro_arw_deg_per_sqrt_h = ";
+        assert_eq!(field_of(with(gyro, "gyro_arw_deg_per_sqrt_h = 0.0 #")), "sensors.gyro_arw_deg_per_sqrt_h");
+        assert_eq!(field_of(with(gyro, "gyro_arw_deg_per_sqrt_h = 5000.0 #")), "sensors.gyro_arw_deg_per_sqrt_h");
+        assert_eq!(
+            field_of(with("accel_noise_ug_per_sqrt_hz = ", "accel_noise_ug_per_sqrt_hz = -1 #")),
+            "sensors.accel_noise_ug_per_sqrt_hz"
+        );
+        assert_eq!(field_of(with("imu_rate_hz = ", "imu_rate_hz = 0 #")), "sensors.imu_rate_hz");
+        assert_eq!(field_of(with("odometry_rate_hz = ", "odometry_rate_hz = 2 #")), "output.odometry_rate_hz");
+        assert_eq!(field_of(with("lat_deg = ", "lat_deg = 95 #")), "origin.lat_deg");
+        assert_eq!(field_of(with("gravity_m_s2 = ", "gravity_m_s2 = 1.0 #")), "gravity_m_s2");
+        let bad_msg = with("imu = \"highres_imu\"", "imu = \"highres\"").unwrap_err();
+        assert!(bad_msg.to_string().contains("highres"), "{bad_msg}");
+    }
+
+    #[test]
+    fn wheel_distance_needs_sensible_wheels() {
+        let text = example("ardupilot-rover");
+        let edit = |a: &str, b: &str| {
+            assert!(text.contains(a), "{a}");
+            VehicleProfile::from_toml_str(&text.replacen(a, b, 1))
+        };
+        assert_eq!(field_of(edit("wheels = [0, 1]", "wheels = [0, 0]")), "inputs.wheels");
+        assert_eq!(field_of(edit("wheels = [0, 1]", "wheels = [0, 16]")), "inputs.wheels");
+        assert_eq!(field_of(edit("wheels = [0, 1]", "wheels = [0, 1, 2]")), "inputs.wheels");
+        assert_eq!(field_of(edit("wheel_track_m = ", "wheel_track_m = -0.3 #")), "inputs.wheel_track_m");
+    }
+}
