@@ -150,6 +150,7 @@ pub async fn run_demo(cfg: DemoConfig, ready: impl FnOnce(&DemoAddresses)) -> an
             peers: node_addrs.iter().map(|(_, a)| *a).collect(),
             idle_exit: Some(Duration::from_millis(1500)),
             grace: Duration::from_millis(500),
+            profile: crate::node::profile::VehicleProfile::from_scenario(&scenario),
         };
         let (bound_tx, bound_rx) = tokio::sync::oneshot::channel();
         let mut stop = stop_rx.clone();

@@ -7,9 +7,9 @@ use std::time::Duration;
 use anyhow::{Context, bail};
 use cooploc::estimation::Method;
 use cooploc::estimation::ins::InsState;
-use cooploc::experiment::ins_settings;
 use cooploc::node::core::{NodeConfig, NodeCore};
-use cooploc::node::runner::{Links, NodeInit, metadata_name, node_metadata, run};
+use cooploc::node::profile::VehicleProfile;
+use cooploc::node::runner::{Links, NodeInit, metadata_name, node_metadata, run, vehicle_attachment_name};
 use cooploc::protocol::record::Encoding;
 use cooploc::protocol::wire::GeoOrigin;
 use cooploc::recording::{Link, Recorder, RecorderOptions};
@@ -35,7 +35,13 @@ pub struct Args {
     /// Method: dr, naive, dcl or ci.
     #[arg(long, default_value = "dcl")]
     method: String,
-    /// Scenario whose sensor and filter numbers tune the INS (the vehicle's sensors).
+    /// The vehicle profile (sitl/vehicles/*.toml): sensor figures, the messages to read, the
+    /// rates to ask for, what to send back. Without it: the vehicle part of --scenario, as the
+    /// simulator's vehicles are.
+    #[arg(long)]
+    vehicle_config: Option<PathBuf>,
+    /// Scenario of a simulated run: the vehicle part without --vehicle-config, the team and
+    /// --init-from-run.
     #[arg(long, default_value = "sitl/scenarios/paper.toml")]
     scenario: PathBuf,
     /// Number format of the broadcast matrices: f64 or f32.
@@ -120,9 +126,15 @@ pub fn run_cmd(args: Args) -> anyhow::Result<()> {
             }
         }
     }
+    // The profile first: a bad one is refused before any socket opens.
+    let profile = match &args.vehicle_config {
+        Some(path) => VehicleProfile::from_path(path)?,
+        None => VehicleProfile::from_scenario(&Scenario::from_path(&args.scenario)?),
+    };
     let scenario = Scenario::from_path(&args.scenario)?;
     let world = World::new(&scenario)?;
-    let (ins, initial_sigma) = ins_settings(&world);
+    let latitude = profile.latitude().context("the vehicle profile gives no latitude")?;
+    let (ins, initial_sigma) = profile.ins_settings(latitude);
     let initial = match from_run {
         Some((seed, run)) => Some(
             cooploc::experiment::initial_state(&world, seed, run, args.id)
@@ -154,7 +166,7 @@ pub fn run_cmd(args: Args) -> anyhow::Result<()> {
     cfg.retry_us = args.retry_ms * 1000;
     cfg.range_grace_us = args.range_grace_ms * 1000;
     cfg.gate_probability = args.gate_probability;
-    let origin = GeoOrigin { lat_deg: scenario.latitude_deg, lon_deg: args.origin_lon_deg, alt_m: 0.0 };
+    let origin = profile.geo_origin().unwrap_or(GeoOrigin { lat_deg: latitude, lon_deg: args.origin_lon_deg, alt_m: 0.0 });
     let recorder = match &args.log {
         Some(path) => {
             let options = RecorderOptions { geo_origin: Some(origin), ..RecorderOptions::default() };
@@ -165,6 +177,7 @@ pub fn run_cmd(args: Args) -> anyhow::Result<()> {
             rec.metadata(&metadata_name(args.id), meta)?;
             let toml = std::fs::read(&args.scenario).with_context(|| format!("reading {}", args.scenario.display()))?;
             rec.attachment("scenario.toml", "application/toml", &toml)?;
+            rec.attachment(&vehicle_attachment_name(args.id), "application/toml", profile.to_toml().as_bytes())?;
             rec.declare_link(Link::Vehicle(args.id as u8), args.vehicle.clone());
             Some(std::sync::Arc::new(std::sync::Mutex::new(rec)))
         }
@@ -184,6 +197,7 @@ pub fn run_cmd(args: Args) -> anyhow::Result<()> {
         peers: args.peers.clone(),
         idle_exit: (args.idle_exit_s > 0.0).then(|| Duration::from_secs_f64(args.idle_exit_s)),
         grace: Duration::from_millis(500),
+        profile: profile.clone(),
     };
     let rt = tokio::runtime::Builder::new_multi_thread().worker_threads(2).enable_all().build()?;
     let runner_recorder = recorder.clone();
@@ -237,5 +251,16 @@ pub fn run_cmd(args: Args) -> anyhow::Result<()> {
         summary.peers.len()
     );
     println!("node {} stats {:?}", e.platform, st);
+    println!(
+        "node {} vehicle imu_rate_hz {} odometry_sent {} odometry_resets {} inputs {:?}",
+        e.platform,
+        summary.imu_rate_hz.map_or("-".into(), |r| format!("{r:.1}")),
+        summary.odometry_sent,
+        summary.odometry_resets,
+        summary.inputs
+    );
+    for r in &summary.rate_requests {
+        println!("node {} rate request {} at {} Hz: {:?}", e.platform, r.message, r.rate_hz, r.outcome);
+    }
     Ok(())
 }

@@ -13,9 +13,11 @@
 use std::collections::BTreeMap;
 
 use crate::estimation::{Method, PlatformId, RangeSample};
-use crate::experiment::{FilterRun, ins_settings, run_filter};
+use crate::experiment::{FilterRun, run_filter};
 use crate::node::core::{NodeConfig, NodeCore, NodeInput, NodeOutput};
-use crate::node::runner::{NodeEvent, events_topic, state_from_sim_state};
+use crate::node::inputs::{VehicleEvent, VehicleInputs};
+use crate::node::profile::VehicleProfile;
+use crate::node::runner::{NodeEvent, events_topic, state_from_sim_state, vehicle_attachment_name};
 use crate::protocol::MavMessage;
 use crate::protocol::record::Encoding;
 use crate::protocol::wire::{self, EstimateReport, GeoOrigin};
@@ -51,6 +53,18 @@ pub fn world_of(log: &Log) -> Result<World, ReplayError> {
     let text = std::str::from_utf8(&a.data).map_err(|e| ReplayError::Scenario(e.to_string()))?;
     let scenario = Scenario::from_toml_str(text).map_err(|e| ReplayError::Scenario(e.to_string()))?;
     World::new(&scenario).map_err(|e| ReplayError::Scenario(e.to_string()))
+}
+
+/// Node `id`'s vehicle profile: the one attached to the log (`vehicle.<id>.toml`), or the
+/// vehicle part of the scenario (logs of nodes that ran without `--vehicle-config`, or older).
+pub fn profile_of(log: &Log, world: &World, id: PlatformId) -> Result<VehicleProfile, ReplayError> {
+    match log.attachments.iter().find(|a| a.name == vehicle_attachment_name(id)) {
+        Some(a) => {
+            let text = std::str::from_utf8(&a.data).map_err(|e| ReplayError::Node(id, format!("vehicle profile: {e}")))?;
+            VehicleProfile::from_toml_str(text).map_err(|e| ReplayError::Node(id, e.to_string()))
+        }
+        None => Ok(VehicleProfile::from_scenario(world.scenario())),
+    }
 }
 
 fn field<T: std::str::FromStr>(record: &str, m: &BTreeMap<String, String>, name: &str) -> Result<T, ReplayError>
@@ -124,7 +138,9 @@ fn replay_node(log: &Log, world: &World, id: PlatformId) -> Result<NodeReplay, R
         _ => Encoding::F64,
     };
     let team: Vec<PlatformId> = field::<String>(&record, m, "team")?.split(',').filter_map(|s| s.parse().ok()).collect();
-    let (ins, sigma) = ins_settings(world);
+    let profile = profile_of(log, world, id)?;
+    let latitude = profile.latitude().ok_or_else(|| ReplayError::Node(id, "its vehicle profile gives no latitude".into()))?;
+    let (ins, sigma) = profile.ins_settings(latitude);
     let mut cfg = NodeConfig::new(id, method, ins, sigma, encoding, team);
     cfg.epoch_timeout_us = field(&record, m, "epoch_timeout_us")?;
     cfg.retry_us = field(&record, m, "retry_us")?;
@@ -156,6 +172,7 @@ fn replay_node(log: &Log, world: &World, id: PlatformId) -> Result<NodeReplay, R
     let events = events_topic(id);
     let mut out = NodeReplay { id, method, recorded: Vec::new(), replayed: Vec::new(), last: None, imu_replayed: 0 };
     let mut last_sim_state = None;
+    let mut decoder = VehicleInputs::new(profile.inputs.clone());
     for msg in &log.messages {
         let topic = msg.topic();
         let outputs = if topic == vehicle_rx {
@@ -166,19 +183,13 @@ fn replay_node(log: &Log, world: &World, id: PlatformId) -> Result<NodeReplay, R
             if let MavMessage::SIM_STATE(s) = &m {
                 last_sim_state = Some(s.clone());
             }
-            let Some(core) = core.as_mut() else { continue };
-            let input = match &m {
-                MavMessage::HIGHRES_IMU(m) => wire::imu_from_highres(m).ok().map(NodeInput::Imu),
-                MavMessage::ODOMETRY(m) => wire::odometer_from_odometry(m).ok().map(NodeInput::Odometer),
-                MavMessage::COOPLOC_RANGE(m) => {
-                    wire::range_from_message(m).ok().map(|(epoch, range)| NodeInput::OwnRange { epoch, range })
-                }
-                _ => None,
-            };
-            match input {
-                Some(i) => core.handle(i),
-                None => continue,
+            if matches!(m, MavMessage::SIM_STATE(_)) {
+                continue;
             }
+            // every frame goes through the decoder, as in the node (it keeps state)
+            let VehicleEvent::Input(input) = decoder.decode(&m) else { continue };
+            let Some(core) = core.as_mut() else { continue };
+            core.handle(input)
         } else if topic == coop_rx {
             let Ok((header, m)) = wire::from_any_frame(&msg.data) else { continue };
             let (Some(core), Ok(from)) = (core.as_mut(), PlatformId::try_from(header.system_id)) else { continue };
@@ -235,22 +246,20 @@ pub fn compare_methods(log: &Log, methods: &[Method]) -> Result<Vec<FilterRun>, 
     for p in &mut inputs.platforms {
         let topic = topics::frames(Link::Vehicle(p.id as u8), Direction::Rx);
         let (mut imu, mut odometer) = (Vec::new(), Vec::new());
+        let mut decoder = VehicleInputs::new(profile_of(log, &world, p.id)?.inputs);
         for msg in log.topic(&topic) {
             let Ok((header, m)) = wire::from_any_frame(&msg.data) else { continue };
             if header.system_id != u32::from(p.id) {
                 continue;
             }
-            match &m {
-                MavMessage::HIGHRES_IMU(m) => imu.extend(wire::imu_from_highres(m).ok()),
-                MavMessage::ODOMETRY(m) => odometer.extend(wire::odometer_from_odometry(m).ok()),
-                MavMessage::COOPLOC_RANGE(m) => {
-                    if let Ok((_, r)) = wire::range_from_message(m) {
-                        ranges.entry(r.t.0).or_default().push(r);
-                    }
-                }
+            match decoder.decode(&m) {
+                VehicleEvent::Input(NodeInput::Imu(s)) => imu.push(s),
+                VehicleEvent::Input(NodeInput::Odometer(s)) => odometer.push(s),
+                VehicleEvent::Input(NodeInput::OwnRange { range, .. }) => ranges.entry(range.t.0).or_default().push(range),
                 _ => {}
             }
         }
+        odometer.sort_by_key(|s| s.t);
         if imu.is_empty() {
             return Err(ReplayError::Offline(format!("platform {}: no HIGHRES_IMU on {topic}", p.id)));
         }

@@ -184,9 +184,10 @@ pub enum NodeInput {
 
 /// What the node sends out.
 #[derive(Debug, Clone, PartialEq)]
+// A message is moved once, to the runner: boxing it would allocate for every one sent.
+#[allow(clippy::large_enum_variant)]
 pub enum NodeOutput {
     ToPeers(MavMessage),
-    ToVehicle(MavMessage),
     /// The internals of a joint update just run (for logs).
     Update(Box<CoopUpdateRecord>),
 }
@@ -1582,7 +1583,6 @@ impl NodeCore {
         })));
         let report = self.estimate();
         out.push(NodeOutput::ToPeers(wire::estimate_to_message(&report)));
-        out.push(NodeOutput::ToVehicle(wire::estimate_to_local_position(&report)));
     }
 
     /// Restores the checkpoint at `t`, writes back the correction, and replays the inputs after
@@ -1621,6 +1621,26 @@ impl NodeCore {
             }
         }
         out
+    }
+
+    /// The node's current navigation solution (what it feeds back to its autopilot).
+    pub fn navigation(&self) -> wire::Navigation {
+        let f = &self.filter;
+        let p = f.covariance16();
+        let mut pose = nalgebra::Matrix6::zeros();
+        for (r, pr) in [(0, 0), (3, 6)] {
+            for (c, pc) in [(0, 0), (3, 6)] {
+                pose.fixed_view_mut::<3, 3>(r, c).copy_from(&p.fixed_view::<3, 3>(pr, pc));
+            }
+        }
+        wire::Navigation {
+            t: f.time(),
+            position_ned_m: f.position_ned_m(),
+            velocity_ned_m_s: f.velocity_ned_m_s(),
+            attitude_frd_to_ned: f.attitude(),
+            pose_covariance: pose,
+            velocity_covariance_ned: p.fixed_view::<3, 3>(3, 3).into_owned(),
+        }
     }
 
     /// The estimate report of the node's current state.

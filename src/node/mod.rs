@@ -1,5 +1,14 @@
-//! The per-vehicle companion node: [`core`] is the whole protocol as a pure state machine (inputs
-//! in, messages out, no sockets, no clocks); the tokio runner that owns the sockets comes on top.
+//! The per-vehicle companion node.
+//!
+//! | module | what |
+//! |---|---|
+//! | [`core`] | the whole cooperative protocol as a pure state machine (inputs in, messages out, no sockets, no clocks) |
+//! | [`profile`] | the vehicle profile (`--vehicle-config`): sensor figures, which messages to read, what to send back |
+//! | [`inputs`] | what an autopilot sends (ArduPilot, PX4, the simulator), as the core's samples in the team's clock |
+//! | [`autopilot`] | rate requests (SET_MESSAGE_INTERVAL) and the estimate fed back as ODOMETRY |
+//! | [`runner`] | the tokio runner that owns the sockets and the clock |
+//! | [`vehicle_link`] | the MAVLink connection to the vehicle (UDP, TCP, serial) |
+pub mod autopilot;
 pub mod core;
 pub mod inputs;
 pub mod profile;

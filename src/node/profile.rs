@@ -9,7 +9,8 @@
 //! adds what only a real vehicle has:
 //!
 //! - `[origin]`: the geodetic point of the local NED frame (`lat_deg`, `lon_deg`, `alt_m`).
-//!   Without it the node takes the vehicle's GPS_GLOBAL_ORIGIN, or else its HOME_POSITION.
+//!   The node compares it with the vehicle's GPS_GLOBAL_ORIGIN and HOME_POSITION and warns when
+//!   they are far apart. Either `[origin]` or `latitude_deg` is required.
 //! - `[inputs]`: which messages carry the IMU (`imu`: `highres_imu`, `raw_imu`, `scaled_imu`,
 //!   `scaled_imu2`, `scaled_imu3`; `imu_id` for HIGHRES_IMU and RAW_IMU; `imu_samples`:
 //!   `average` over the interval as PX4 sends, or `instantaneous` as ArduPilot does), the
@@ -19,8 +20,7 @@
 //!   clock, `unix` when they count from each autopilot's boot and SYSTEM_TIME maps them to Unix
 //!   time), and whether to ask for the rates (`request_rates`).
 //! - `[output]`: what the node sends back to the autopilot: ODOMETRY at `odometry_rate_hz`
-//!   (0: none), LOCAL_POSITION_NED after every cooperative update (`local_position_ned`), and
-//!   GPS_INPUT (`gps_input`, ArduPilot's path for absolute positions).
+//!   (0: none), and LOCAL_POSITION_NED after every cooperative update (`local_position_ned`).
 //!
 //! Every key is checked (an unknown one is an error naming it), every value is validated with
 //! its field named (`sensors.accel_noise_ug_per_sqrt_hz: ...`), and figures no real sensor can
@@ -264,10 +264,6 @@ pub struct Output {
     /// LOCAL_POSITION_NED after every cooperative update (ground stations show it).
     #[serde(default = "yes")]
     pub local_position_ned: bool,
-    /// GPS_INPUT (ArduPilot, GPS type 14) with the estimate as an absolute position, at the
-    /// ODOMETRY rate; needs the origin.
-    #[serde(default)]
-    pub gps_input: bool,
 }
 
 fn default_odometry_rate() -> f64 {
@@ -276,7 +272,7 @@ fn default_odometry_rate() -> f64 {
 
 impl Default for Output {
     fn default() -> Self {
-        Output { odometry_rate_hz: default_odometry_rate(), local_position_ned: true, gps_input: false }
+        Output { odometry_rate_hz: default_odometry_rate(), local_position_ned: true }
     }
 }
 
@@ -319,7 +315,8 @@ impl VehicleProfile {
             initial: s.initial,
             filter: s.filter,
             origin: None,
-            inputs: Inputs::default(),
+            // the simulator streams at the scenario's rates already
+            inputs: Inputs { request_rates: false, ..Inputs::default() },
             output: Output::default(),
         }
     }
@@ -425,6 +422,9 @@ impl VehicleProfile {
                 ));
             }
         }
+        if self.latitude().is_none() {
+            return Err(invalid("origin", "give [origin] (lat_deg, lon_deg, alt_m) or latitude_deg"));
+        }
         let i = &self.inputs;
         if i.imu_id != 0 && !matches!(i.imu, ImuMessage::HighresImu | ImuMessage::RawImu) {
             return Err(invalid(
@@ -457,13 +457,10 @@ impl VehicleProfile {
                 format!("0 (off) or 4-200 Hz (ArduPilot ignores ODOMETRY below 4 Hz), got {}", o.odometry_rate_hz),
             ));
         }
-        if o.gps_input && o.odometry_rate_hz == 0.0 {
-            return Err(invalid("output.gps_input", "is sent at output.odometry_rate_hz, which is 0"));
-        }
         Ok(())
     }
 
-    /// The latitude the INS uses: `latitude_deg`, the origin's, or none yet (from the vehicle).
+    /// The latitude the INS uses: `latitude_deg` or the origin's.
     pub fn latitude(&self) -> Option<f64> {
         self.latitude_deg.or(self.origin.map(|o| o.lat_deg))
     }

@@ -21,7 +21,10 @@ use std::time::Duration;
 use mavlink_core::MavHeader;
 use tokio::net::UdpSocket;
 
+use super::autopilot::{OdometryOutput, RateOutcome, RateRequest, RateRequests};
 use super::core::{NodeConfig, NodeCore, NodeInput, NodeOutput, NodeStats};
+use super::inputs::{InputCounters, VehicleEvent, VehicleInputs};
+use super::profile::VehicleProfile;
 use super::vehicle_link::{Received, VehicleLink};
 use crate::estimation::PlatformId;
 use crate::estimation::ins::InsState;
@@ -80,6 +83,11 @@ fn record_frame(rec: &Option<SharedRecorder>, link: Link, dir: Direction, bytes:
         let _ = r.frame(link, dir, wall_now_ns(), bytes);
         let _ = r.maybe_flush(std::time::Instant::now());
     }
+}
+
+/// Name of the attachment holding node `id`'s vehicle profile in a log.
+pub fn vehicle_attachment_name(id: PlatformId) -> String {
+    format!("vehicle.{id}.toml")
 }
 
 /// Name of the metadata record describing node `id` in a log.
@@ -157,6 +165,8 @@ pub struct Links {
     /// `grace`, runs the epochs still pending, and returns.
     pub idle_exit: Option<Duration>,
     pub grace: Duration,
+    /// The vehicle: which messages to read, what to ask for and send back.
+    pub profile: VehicleProfile,
 }
 
 /// What a node did, when it stops.
@@ -176,6 +186,15 @@ pub struct NodeSummary {
     pub coop_frames: u64,
     pub coop_rejected: u64,
     pub peers: Vec<SocketAddr>,
+    /// What the vehicle's messages gave (see [`InputCounters`]).
+    pub inputs: InputCounters,
+    /// The IMU rate that arrived, Hz.
+    pub imu_rate_hz: Option<f64>,
+    /// How each rate request ended.
+    pub rate_requests: Vec<RateRequest>,
+    /// ODOMETRY messages sent to the autopilot, and their last reset counter.
+    pub odometry_sent: u64,
+    pub odometry_resets: u8,
 }
 
 struct Sequences {
@@ -196,6 +215,20 @@ impl Sequences {
     }
 }
 
+/// Sends one message to the vehicle (and logs it).
+async fn to_vehicle(vehicle: &VehicleLink, seqs: &mut Sequences, rec: &Option<SharedRecorder>, sysid: u8, msg: &MavMessage) {
+    let header = seqs.vehicle();
+    record_frame(rec, Link::Vehicle(sysid), Direction::Tx, &wire::to_frame(header, msg));
+    vehicle.send(&header, msg).await;
+}
+
+/// The node's outputs to the vehicle: LOCAL_POSITION_NED after each cooperative update (when the
+/// profile asks for it), stamped in the vehicle's clock.
+struct VehicleOutputs<'a> {
+    local_position_ned: bool,
+    clock: &'a VehicleInputs,
+}
+
 #[allow(clippy::too_many_arguments)]
 async fn send_all(
     coop: &UdpSocket,
@@ -205,12 +238,20 @@ async fn send_all(
     outputs: Vec<NodeOutput>,
     rec: &Option<SharedRecorder>,
     sysid: u8,
+    vout: &VehicleOutputs<'_>,
 ) {
     for output in outputs {
         match output {
             NodeOutput::ToPeers(msg) => {
                 let frame = wire::to_frame(seqs.coop(), &msg);
                 record_frame(rec, Link::Coop(sysid), Direction::Tx, &frame);
+                if let MavMessage::COOPLOC_ESTIMATE(m) = &msg
+                    && vout.local_position_ned
+                    && let Ok(e) = wire::estimate_from_message(m)
+                {
+                    let boot_ms = (vout.clock.to_vehicle_time(e.t) / 1000) as u32;
+                    to_vehicle(vehicle, seqs, rec, sysid, &wire::estimate_to_local_position(&e, boot_ms)).await;
+                }
                 if let (Some(r), MavMessage::COOPLOC_ESTIMATE(m)) = (rec, &msg)
                     && let Ok(e) = wire::estimate_from_message(m)
                     && let Ok(mut r) = r.lock()
@@ -234,11 +275,6 @@ async fn send_all(
                 {
                     let _ = r.coop_update(wall_now_ns(), &u);
                 }
-            }
-            NodeOutput::ToVehicle(msg) => {
-                let header = seqs.vehicle();
-                record_frame(rec, Link::Vehicle(sysid), Direction::Tx, &wire::to_frame(header, &msg));
-                vehicle.send(&header, &msg).await;
             }
         }
     }
@@ -293,6 +329,11 @@ pub async fn run(
     let _ = bound.send(local);
     tracing::info!(platform = id, vehicle = %links.vehicle, coop = %local, "node started");
     let mut peers: BTreeSet<SocketAddr> = links.peers.iter().copied().collect();
+    let mut decoder = VehicleInputs::new(links.profile.inputs.clone());
+    let mut rates = RateRequests::new(&links.profile, sysid);
+    let mut odometry = OdometryOutput::new(links.profile.output.odometry_rate_hz);
+    let profile_origin = links.profile.geo_origin();
+    let mut vehicle_origin_checked = false;
 
     // The vehicle link is read on its own task (a serial or TCP read has no timeout).
     let (vtx, mut vrx) = tokio::sync::mpsc::channel::<Received>(4096);
@@ -351,20 +392,23 @@ pub async fn run(
                     if let Some(core) = core.as_mut() {
                         record_event(&recorder, id, &NodeEvent::EndOfInput);
                         let out = core.end_of_input();
-                        send_all(&coop, &peers, &vehicle, &mut seqs, out, &recorder, sysid).await;
+                        send_all(&coop, &peers, &vehicle, &mut seqs, out, &recorder, sysid, &VehicleOutputs { local_position_ned: links.profile.output.local_position_ned, clock: &decoder }).await;
                     }
+                }
+                if heard_vehicle && let Some(cmd) = rates.poll(wall_us()) {
+                    to_vehicle(&vehicle, &mut seqs, &recorder, sysid, &cmd).await;
                 }
                 if let Some(core) = core.as_mut() {
                     let now = wall_us();
                     record_event(&recorder, id, &NodeEvent::Poll { wall_us: now });
                     let out = core.poll(now);
-                    send_all(&coop, &peers, &vehicle, &mut seqs, out, &recorder, sysid).await;
+                    send_all(&coop, &peers, &vehicle, &mut seqs, out, &recorder, sysid, &VehicleOutputs { local_position_ned: links.profile.output.local_position_ned, clock: &decoder }).await;
                 }
                 if ending.is_some_and(|end| tokio::time::Instant::now() >= end) {
                     if let Some(core) = core.as_mut() {
                         record_event(&recorder, id, &NodeEvent::RunPending);
                         let out = core.run_pending();
-                        send_all(&coop, &peers, &vehicle, &mut seqs, out, &recorder, sysid).await;
+                        send_all(&coop, &peers, &vehicle, &mut seqs, out, &recorder, sysid, &VehicleOutputs { local_position_ned: links.profile.output.local_position_ned, clock: &decoder }).await;
                     }
                     break;
                 }
@@ -416,27 +460,37 @@ pub async fn run(
                     }
                     continue;
                 }
+                let input = match decoder.decode(&msg) {
+                    VehicleEvent::Input(i) => i,
+                    VehicleEvent::Ack(ack) => {
+                        if let Some(r) = rates.on_ack(&ack) {
+                            match &r.outcome {
+                                Some(RateOutcome::Accepted) => tracing::info!(platform = id, message = r.message, rate_hz = r.rate_hz, "the autopilot accepted the rate"),
+                                other => tracing::warn!(platform = id, message = r.message, rate_hz = r.rate_hz, outcome = ?other, "the autopilot refused the rate; navigating on what it sends"),
+                            }
+                        }
+                        continue;
+                    }
+                    VehicleEvent::Origin(o) => {
+                        if let (Some(mine), false) = (profile_origin, vehicle_origin_checked) {
+                            vehicle_origin_checked = true;
+                            let apart = wire::geodetic_to_ned(&mine, &wire::Geodetic { lat_deg: o.lat_deg, lon_deg: o.lon_deg, alt_m: o.alt_m }).xy().norm();
+                            if apart > 1000.0 {
+                                tracing::warn!(platform = id, apart_m = apart, "the vehicle's origin is far from the profile's [origin]: positions sent back are in the profile's frame");
+                            }
+                        }
+                        continue;
+                    }
+                    VehicleEvent::Nothing => continue,
+                };
                 if core.is_none() {
-                    if let MavMessage::HIGHRES_IMU(m) = &msg {
-                        last_imu_t = Some(TimeUs(m.time_usec));
+                    if let NodeInput::Imu(s) = &input {
+                        last_imu_t = Some(s.t);
                     }
                     before_init += 1;
                     continue;
                 }
-                let input = match &msg {
-                    MavMessage::HIGHRES_IMU(m) => wire::imu_from_highres(m).map(NodeInput::Imu).map_err(|e| e.to_string()),
-                    MavMessage::ODOMETRY(m) => wire::odometer_from_odometry(m).map(NodeInput::Odometer).map_err(|e| e.to_string()),
-                    MavMessage::COOPLOC_RANGE(m) => wire::range_from_message(m).map(|(epoch, range)| NodeInput::OwnRange { epoch, range }).map_err(|e| e.to_string()),
-                    _ => continue,
-                };
-                match input {
-                    Ok(i) => vec![i],
-                    Err(e) => {
-                        summary_counts.1 += 1;
-                        tracing::debug!(platform = id, error = %e, "vehicle message dropped");
-                        continue;
-                    }
-                }
+                vec![input]
             }
             r = coop.recv_from(&mut buf) => {
                 let Ok((n, from)) = r else { continue };
@@ -478,10 +532,27 @@ pub async fn run(
             record_event(&recorder, id, &NodeEvent::Poll { wall_us: now });
             out.extend(core.poll(now));
         }
+        let vehicle_input = inputs.iter().any(|i| matches!(i, NodeInput::Imu(_)));
         for input in inputs {
             out.extend(core.handle(input));
         }
-        send_all(&coop, &peers, &vehicle, &mut seqs, out, &recorder, sysid).await;
+        if vehicle_input
+            && let Some(o) = odometry.as_mut()
+            && let Some(msg) = o.poll(&core.navigation(), |t| decoder.to_vehicle_time(t))
+        {
+            to_vehicle(&vehicle, &mut seqs, &recorder, sysid, &msg).await;
+        }
+        send_all(
+            &coop,
+            &peers,
+            &vehicle,
+            &mut seqs,
+            out,
+            &recorder,
+            sysid,
+            &VehicleOutputs { local_position_ned: links.profile.output.local_position_ned, clock: &decoder },
+        )
+        .await;
     }
     reader.abort();
     Ok(NodeSummary {
@@ -495,5 +566,10 @@ pub async fn run(
         coop_frames: summary_counts.2,
         coop_rejected: summary_counts.3,
         peers: peers.into_iter().collect(),
+        inputs: decoder.counters.clone(),
+        imu_rate_hz: decoder.imu_rate_hz(),
+        rate_requests: rates.requests.clone(),
+        odometry_sent: odometry.as_ref().map_or(0, |o| o.sent),
+        odometry_resets: odometry.as_ref().map_or(0, |o| o.reset_counter),
     })
 }

@@ -12,8 +12,8 @@ use nalgebra::{Matrix3, Vector3};
 
 use super::dialect::cooploc::{
     COOPLOC_EPOCH_DATA, COOPLOC_ESTIMATE_DATA, COOPLOC_RANGE_DATA, COOPLOC_STATE_FRAGMENT_DATA, COOPLOC_STORE_FRAGMENT_DATA,
-    CooplocEpochState, CooplocMethod, HEARTBEAT_DATA, HIGHRES_IMU_DATA, LOCAL_POSITION_NED_DATA, MavAutopilot, MavFrame,
-    MavMessage, MavModeFlag, MavState, MavType, ODOMETRY_DATA, RAW_IMU_DATA, SCALED_IMU2_DATA, SIM_STATE_DATA,
+    CooplocEpochState, CooplocMethod, HEARTBEAT_DATA, HIGHRES_IMU_DATA, LOCAL_POSITION_NED_DATA, MavAutopilot, MavEstimatorType,
+    MavFrame, MavMessage, MavModeFlag, MavState, MavType, ODOMETRY_DATA, RAW_IMU_DATA, SCALED_IMU2_DATA, SIM_STATE_DATA,
     WHEEL_DISTANCE_DATA,
 };
 use super::fragment::{FRAGMENT_DATA, Fragment, Payload};
@@ -347,17 +347,87 @@ pub fn estimate_from_message(m: &COOPLOC_ESTIMATE_DATA) -> Result<EstimateReport
     })
 }
 
-/// The estimate as LOCAL_POSITION_NED, the standard message autopilots and ground stations show
-/// (time since boot in ms: the vehicle's time).
-pub fn estimate_to_local_position(e: &EstimateReport) -> MavMessage {
+/// The estimate as LOCAL_POSITION_NED, the standard message autopilots and ground stations show,
+/// stamped `time_boot_ms` in the vehicle's own clock.
+pub fn estimate_to_local_position(e: &EstimateReport, time_boot_ms: u32) -> MavMessage {
     MavMessage::LOCAL_POSITION_NED(LOCAL_POSITION_NED_DATA {
-        time_boot_ms: (e.t.0 / 1000) as u32,
+        time_boot_ms,
         x: e.position_ned_m[0] as f32,
         y: e.position_ned_m[1] as f32,
         z: e.position_ned_m[2] as f32,
         vx: e.velocity_ned_m_s[0] as f32,
         vy: e.velocity_ned_m_s[1] as f32,
         vz: e.velocity_ned_m_s[2] as f32,
+    })
+}
+
+/// A node's navigation solution, as fed back to its autopilot.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Navigation {
+    pub t: TimeUs,
+    pub position_ned_m: Vector3<f64>,
+    pub velocity_ned_m_s: Vector3<f64>,
+    pub attitude_frd_to_ned: nalgebra::UnitQuaternion<f64>,
+    /// Covariance of position (N, E, D) and attitude error (small rotations about N, E, D).
+    pub pose_covariance: nalgebra::Matrix6<f64>,
+    /// Covariance of the NED velocity.
+    pub velocity_covariance_ned: Matrix3<f64>,
+}
+
+/// The 21 upper-triangle entries of a symmetric 6x6 matrix, row by row (MAVLink's layout).
+fn upper_triangle(m: &nalgebra::Matrix6<f64>) -> [f32; 21] {
+    let mut out = [0.0f32; 21];
+    let mut k = 0;
+    for r in 0..6 {
+        for c in r..6 {
+            out[k] = m[(r, c)] as f32;
+            k += 1;
+        }
+    }
+    out
+}
+
+/// The navigation solution as ODOMETRY the way ArduPilot and PX4 fuse it: `frame_id`
+/// LOCAL_FRD (a local frame whose axes are north, east, down: the node's NED frame),
+/// `child_frame_id` BODY_FRD (velocity in the body frame, rotated by `q`), `q` the body
+/// attitude, the pose covariance in (x, y, z, roll, pitch, yaw) (the attitude errors about
+/// N, E, D rotated into roll and pitch about the body's heading), the body velocity's
+/// covariance (angular rates unknown: NaN), stamped `time_usec` in the vehicle's clock.
+pub fn navigation_to_odometry(n: &Navigation, time_usec: u64, reset_counter: u8) -> MavMessage {
+    let r = n.attitude_frd_to_ned.to_rotation_matrix();
+    let v_body = r.inverse() * n.velocity_ned_m_s;
+    let (_, _, yaw) = n.attitude_frd_to_ned.euler_angles();
+    let (s, c) = yaw.sin_cos();
+    // small NED tilt errors to roll/pitch errors of a level vehicle heading `yaw`
+    let mut j = nalgebra::Matrix6::<f64>::identity();
+    j.fixed_view_mut::<3, 3>(3, 3).copy_from(&Matrix3::new(c, s, 0.0, -s, c, 0.0, 0.0, 0.0, 1.0));
+    let pose = j * n.pose_covariance * j.transpose();
+    let mut vel = nalgebra::Matrix6::<f64>::zeros();
+    vel.fixed_view_mut::<3, 3>(0, 0).copy_from(&(r.matrix().transpose() * n.velocity_covariance_ned * r.matrix()));
+    let mut velocity_covariance = upper_triangle(&vel);
+    for k in [15, 18, 20] {
+        velocity_covariance[k] = f32::NAN;
+    }
+    let q = n.attitude_frd_to_ned.quaternion();
+    MavMessage::ODOMETRY(ODOMETRY_DATA {
+        time_usec,
+        frame_id: MavFrame::MAV_FRAME_LOCAL_FRD,
+        child_frame_id: MavFrame::MAV_FRAME_BODY_FRD,
+        x: n.position_ned_m[0] as f32,
+        y: n.position_ned_m[1] as f32,
+        z: n.position_ned_m[2] as f32,
+        q: [q.w as f32, q.i as f32, q.j as f32, q.k as f32],
+        vx: v_body[0] as f32,
+        vy: v_body[1] as f32,
+        vz: v_body[2] as f32,
+        rollspeed: f32::NAN,
+        pitchspeed: f32::NAN,
+        yawspeed: f32::NAN,
+        pose_covariance: upper_triangle(&pose),
+        velocity_covariance,
+        reset_counter,
+        estimator_type: MavEstimatorType::MAV_ESTIMATOR_TYPE_UNKNOWN,
+        quality: 0,
     })
 }
 

@@ -1,0 +1,275 @@
+//! The node's conversation with its autopilot, sans-io: asking for the message rates the
+//! profile wants, and feeding the estimate back as ODOMETRY at a steady rate.
+//!
+//! - [`RateRequests`]: one MAV_CMD_SET_MESSAGE_INTERVAL (COMMAND_LONG to the autopilot,
+//!   component 1) at a time, since a COMMAND_ACK does not say which message it answers;
+//!   resent after [`ACK_TIMEOUT_US`] of wall time without an answer, given up after
+//!   [`MAX_TRIES`]. Each request ends accepted, refused (with the autopilot's MAV_RESULT) or
+//!   unanswered; the node navigates on whatever arrives in every case, and says which.
+//! - [`OdometryOutput`]: ODOMETRY every `1 / odometry_rate_hz` of vehicle time (between epochs
+//!   too), stamped in the vehicle's clock; its `reset_counter` steps when the estimate jumps by
+//!   more than its motion and uncertainty explain (a large cooperative correction), so that the
+//!   autopilot's EKF resets to it instead of rejecting it.
+
+use nalgebra::Vector3;
+
+use super::profile::{OdometerMessage, VehicleProfile};
+use crate::protocol::MavMessage;
+use crate::protocol::dialect::cooploc::{COMMAND_ACK_DATA, COMMAND_LONG_DATA, MavCmd, MavResult};
+use crate::protocol::wire::{self, Navigation};
+use crate::time::TimeUs;
+
+/// Wall time a rate request waits for its COMMAND_ACK, us.
+pub const ACK_TIMEOUT_US: u64 = 1_000_000;
+/// Tries per rate request.
+pub const MAX_TRIES: u32 = 3;
+/// WHEEL_DISTANCE's message id.
+const WHEEL_DISTANCE_ID: u32 = 9000;
+/// ODOMETRY's message id.
+const ODOMETRY_ID: u32 = 331;
+
+/// How one rate request ended.
+#[derive(Debug, Clone, PartialEq)]
+pub enum RateOutcome {
+    Accepted,
+    /// The autopilot answered with this result (DENIED, UNSUPPORTED, FAILED, ...).
+    Refused(MavResult),
+    /// No COMMAND_ACK after [`MAX_TRIES`] tries.
+    Unanswered,
+}
+
+/// One message rate the node asks for.
+#[derive(Debug, Clone, PartialEq)]
+pub struct RateRequest {
+    pub message: &'static str,
+    pub message_id: u32,
+    pub rate_hz: f64,
+    pub outcome: Option<RateOutcome>,
+    tries: u32,
+    sent_wall_us: Option<u64>,
+}
+
+/// The rate requests of a profile, one in flight at a time.
+#[derive(Debug, Clone)]
+pub struct RateRequests {
+    target_system: u8,
+    pub requests: Vec<RateRequest>,
+}
+
+impl RateRequests {
+    /// The IMU and odometer messages at the profile's `[sensors]` rates (none if the profile
+    /// says `request_rates = false`).
+    pub fn new(profile: &VehicleProfile, target_system: u8) -> Self {
+        let mut requests = Vec::new();
+        if profile.inputs.request_rates {
+            let imu = profile.inputs.imu;
+            requests.push(RateRequest::new(imu.name(), imu.message_id(), profile.sensors.imu_rate_hz));
+            let odo = match profile.inputs.odometer {
+                OdometerMessage::WheelDistance => Some(("WHEEL_DISTANCE", WHEEL_DISTANCE_ID)),
+                OdometerMessage::Odometry => Some(("ODOMETRY", ODOMETRY_ID)),
+                OdometerMessage::None => None,
+            };
+            if let Some((name, id)) = odo {
+                requests.push(RateRequest::new(name, id, profile.sensors.odometer_rate_hz));
+            }
+        }
+        RateRequests { target_system, requests }
+    }
+
+    fn current(&mut self) -> Option<&mut RateRequest> {
+        self.requests.iter_mut().find(|r| r.outcome.is_none())
+    }
+
+    /// The command to send now, if any (the first unanswered request, when it is due).
+    pub fn poll(&mut self, wall_us: u64) -> Option<MavMessage> {
+        let target_system = self.target_system;
+        let r = self.current()?;
+        if let Some(sent) = r.sent_wall_us {
+            if wall_us < sent + ACK_TIMEOUT_US {
+                return None;
+            }
+            if r.tries >= MAX_TRIES {
+                r.outcome = Some(RateOutcome::Unanswered);
+                tracing::warn!(
+                    message = r.message,
+                    rate_hz = r.rate_hz,
+                    "the autopilot did not answer the rate request; navigating on what it sends"
+                );
+                return self.poll(wall_us);
+            }
+        }
+        r.tries += 1;
+        r.sent_wall_us = Some(wall_us);
+        Some(MavMessage::COMMAND_LONG(COMMAND_LONG_DATA {
+            command: MavCmd::MAV_CMD_SET_MESSAGE_INTERVAL,
+            param1: r.message_id as f32,
+            param2: (1e6 / r.rate_hz) as f32,
+            target_system,
+            target_component: 1,
+            confirmation: (r.tries - 1) as u8,
+            ..Default::default()
+        }))
+    }
+
+    /// Takes a COMMAND_ACK; returns the request it settled.
+    pub fn on_ack(&mut self, ack: &COMMAND_ACK_DATA) -> Option<RateRequest> {
+        if ack.command != MavCmd::MAV_CMD_SET_MESSAGE_INTERVAL {
+            return None;
+        }
+        let r = self.current()?;
+        r.sent_wall_us?;
+        match ack.result {
+            MavResult::MAV_RESULT_IN_PROGRESS => return None,
+            MavResult::MAV_RESULT_ACCEPTED => r.outcome = Some(RateOutcome::Accepted),
+            other => r.outcome = Some(RateOutcome::Refused(other)),
+        }
+        Some(r.clone())
+    }
+
+    /// Every request has ended.
+    pub fn done(&self) -> bool {
+        self.requests.iter().all(|r| r.outcome.is_some())
+    }
+}
+
+impl RateRequest {
+    fn new(message: &'static str, message_id: u32, rate_hz: f64) -> Self {
+        RateRequest { message, message_id, rate_hz, outcome: None, tries: 0, sent_wall_us: None }
+    }
+}
+
+/// ODOMETRY to the autopilot at a steady vehicle-time rate (see the module documentation).
+#[derive(Debug, Clone)]
+pub struct OdometryOutput {
+    period_us: u64,
+    next: Option<TimeUs>,
+    last: Option<(TimeUs, Vector3<f64>, Vector3<f64>)>,
+    pub reset_counter: u8,
+    pub sent: u64,
+}
+
+impl OdometryOutput {
+    /// None when the rate is 0 (off).
+    pub fn new(rate_hz: f64) -> Option<Self> {
+        (rate_hz > 0.0).then(|| OdometryOutput {
+            period_us: (1e6 / rate_hz).round() as u64,
+            next: None,
+            last: None,
+            reset_counter: 0,
+            sent: 0,
+        })
+    }
+
+    /// The ODOMETRY due now that the filter is at `nav.t`, if any; `to_vehicle` maps the team
+    /// clock to the vehicle's.
+    pub fn poll(&mut self, nav: &Navigation, to_vehicle: impl Fn(TimeUs) -> u64) -> Option<MavMessage> {
+        if self.next.is_some_and(|next| nav.t < next) {
+            return None;
+        }
+        // the next one a whole number of periods on (a gap is not made up with a burst)
+        let base = self.next.unwrap_or(nav.t).0;
+        let periods = (nav.t.0.saturating_sub(base)) / self.period_us + 1;
+        self.next = Some(TimeUs(base + periods * self.period_us));
+        if let Some((t0, p0, v0)) = self.last {
+            let dt = nav.t.0.saturating_sub(t0.0) as f64 * 1e-6;
+            let unexplained = (nav.position_ned_m - p0 - v0 * dt).norm();
+            let sigma = nav.pose_covariance.fixed_view::<3, 3>(0, 0).trace().max(0.0).sqrt();
+            if unexplained > 3.0 * sigma + 0.5 {
+                self.reset_counter = self.reset_counter.wrapping_add(1);
+            }
+        }
+        self.last = Some((nav.t, nav.position_ned_m, nav.velocity_ned_m_s));
+        self.sent += 1;
+        Some(wire::navigation_to_odometry(nav, to_vehicle(nav.t), self.reset_counter))
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::protocol::dialect::cooploc::MavFrame;
+    use crate::sitl::{PAPER_TOML, Scenario};
+    use nalgebra::{Matrix3, Matrix6, UnitQuaternion};
+
+    fn profile() -> VehicleProfile {
+        let mut p = VehicleProfile::from_scenario(&Scenario::from_toml_str(PAPER_TOML).unwrap());
+        p.inputs.request_rates = true;
+        p
+    }
+
+    fn ack(result: MavResult) -> COMMAND_ACK_DATA {
+        COMMAND_ACK_DATA { command: MavCmd::MAV_CMD_SET_MESSAGE_INTERVAL, result, ..Default::default() }
+    }
+
+    #[test]
+    fn rate_requests_go_one_at_a_time_and_end_accepted_refused_or_unanswered() {
+        let mut r = RateRequests::new(&profile(), 3);
+        let Some(MavMessage::COMMAND_LONG(c)) = r.poll(0) else { panic!("a request") };
+        assert_eq!((c.param1, c.param2, c.target_system, c.target_component), (105.0, 5000.0, 3, 1));
+        // nothing else while it waits for its answer
+        assert_eq!(r.poll(500_000), None);
+        // an ack for another command is not ours
+        let other = COMMAND_ACK_DATA { command: MavCmd::MAV_CMD_REQUEST_MESSAGE, ..Default::default() };
+        assert_eq!(r.on_ack(&other), None);
+        assert_eq!(r.on_ack(&ack(MavResult::MAV_RESULT_ACCEPTED)).unwrap().outcome, Some(RateOutcome::Accepted));
+        // then the odometer; refused
+        let Some(MavMessage::COMMAND_LONG(c)) = r.poll(600_000) else { panic!("the second request") };
+        assert_eq!(c.param1, 331.0);
+        assert_eq!(
+            r.on_ack(&ack(MavResult::MAV_RESULT_DENIED)).unwrap().outcome,
+            Some(RateOutcome::Refused(MavResult::MAV_RESULT_DENIED))
+        );
+        assert!(r.done());
+        assert_eq!(r.poll(10_000_000), None);
+    }
+
+    #[test]
+    fn an_autopilot_that_never_answers_gets_three_tries() {
+        let mut r = RateRequests::new(&profile(), 1);
+        let mut sent = 0;
+        for k in 0..100 {
+            if r.poll(k * 100_000).is_some() {
+                sent += 1;
+            }
+        }
+        assert_eq!(sent, 2 * MAX_TRIES, "three tries for each of the two");
+        assert!(r.requests.iter().all(|q| q.outcome == Some(RateOutcome::Unanswered)));
+    }
+
+    fn nav(t: u64, n: f64) -> Navigation {
+        Navigation {
+            t: TimeUs(t),
+            position_ned_m: Vector3::new(n, 0.0, 0.0),
+            velocity_ned_m_s: Vector3::new(10.0, 0.0, 0.0),
+            attitude_frd_to_ned: UnitQuaternion::from_euler_angles(0.0, 0.0, 0.5),
+            pose_covariance: Matrix6::identity() * 0.01,
+            velocity_covariance_ned: Matrix3::identity() * 0.04,
+        }
+    }
+
+    #[test]
+    fn odometry_goes_out_at_its_rate_in_the_frames_autopilots_fuse() {
+        let mut o = OdometryOutput::new(20.0).unwrap();
+        let mut times = Vec::new();
+        // a 200 Hz filter for one second
+        for k in 0..200u64 {
+            let t = 1_000_000 + k * 5_000;
+            if let Some(MavMessage::ODOMETRY(m)) = o.poll(&nav(t, 10.0 * k as f64 * 0.005), |t| t.0 - 1_000_000) {
+                assert_eq!(m.frame_id, MavFrame::MAV_FRAME_LOCAL_FRD);
+                assert_eq!(m.child_frame_id, MavFrame::MAV_FRAME_BODY_FRD);
+                // body velocity: 10 m/s north seen from a vehicle heading 0.5 rad
+                assert!((m.vx - 10.0 * 0.5f32.cos()).abs() < 1e-4 && (m.vy + 10.0 * 0.5f32.sin()).abs() < 1e-4);
+                assert!((m.pose_covariance[0] - 0.01).abs() < 1e-7 && (m.pose_covariance[20] - 0.01).abs() < 1e-7);
+                assert!((m.velocity_covariance[0] - 0.04).abs() < 1e-7 && m.velocity_covariance[15].is_nan());
+                assert_eq!(m.reset_counter, 0);
+                times.push(m.time_usec);
+            }
+        }
+        assert_eq!(times.len(), 20);
+        assert!(times.windows(2).all(|w| w[1] - w[0] == 50_000), "{times:?}");
+        assert_eq!(times[0], 0, "stamped in the vehicle's clock");
+        // a 40 m correction is a reset, not motion
+        let Some(MavMessage::ODOMETRY(m)) = o.poll(&nav(2_000_000, 50.0), |t| t.0) else { panic!() };
+        assert_eq!(m.reset_counter, 1);
+    }
+}
