@@ -1,0 +1,168 @@
+//! A node driven by frames built independently with pymavlink, the way ArduPilot and PX4 send
+//! them (tests/python/autopilot_vehicle.py): RAW_IMU, SCALED_IMU2 across a `time_boot_ms` wrap,
+//! HIGHRES_IMU with two IMU ids, WHEEL_DISTANCE with a counter reset, ODOMETRY from the
+//! autopilot's own EKF (refused) and from a wheel source, boot-time stamps mapped to the team's
+//! Unix clock by SYSTEM_TIME, a refused rate request. The vehicle drives 20 m north in 10 s and
+//! the node starts at rest, not knowing its speed (velocity sigma 2 m/s): only the right IMU and
+//! a working odometer get it there. The script
+//! checks the ODOMETRY the node sends back (frames, rate, vehicle clock).
+
+mod common;
+
+use std::io::{BufRead, BufReader};
+use std::process::{Child, Command, Stdio};
+use std::sync::mpsc;
+use std::time::Duration;
+
+const UNIX0_US: u64 = 1_795_000_000_000_000;
+
+fn spawn_lines(mut cmd: Command) -> (Child, mpsc::Receiver<String>) {
+    let mut child = cmd.current_dir(env!("CARGO_MANIFEST_DIR")).stdout(Stdio::piped()).stderr(Stdio::null()).spawn().unwrap();
+    let out = child.stdout.take().unwrap();
+    let (tx, rx) = mpsc::channel();
+    std::thread::spawn(move || {
+        for line in BufReader::new(out).lines().map_while(Result::ok) {
+            if tx.send(line).is_err() {
+                break;
+            }
+        }
+    });
+    (child, rx)
+}
+
+fn wait_line(rx: &mpsc::Receiver<String>, prefix: &str, timeout: Duration) -> String {
+    let deadline = std::time::Instant::now() + timeout;
+    loop {
+        let left = deadline.saturating_duration_since(std::time::Instant::now());
+        match rx.recv_timeout(left) {
+            Ok(line) if line.starts_with(prefix) => return line,
+            Ok(_) => {}
+            Err(e) => panic!("no line starting with {prefix:?}: {e}"),
+        }
+    }
+}
+
+/// Field `name: N` of a Debug-printed struct on a node's output line.
+fn count(line: &str, name: &str) -> u64 {
+    line.split(&format!(" {name}: ")).nth(1).unwrap().split(|c: char| !c.is_ascii_digit()).next().unwrap().parse().unwrap()
+}
+
+struct Kill(Vec<Child>);
+impl Drop for Kill {
+    fn drop(&mut self) {
+        for c in &mut self.0 {
+            let _ = c.kill();
+            let _ = c.wait();
+        }
+    }
+}
+
+struct Outcome {
+    done: String,
+    vehicle: String,
+    requests: Vec<String>,
+    script: serde_json::Value,
+}
+
+fn drive(kind: &str, profile_edits: &[(&str, &str)], example: &str) -> Option<Outcome> {
+    let python = common::python("the pymavlink vehicle")?;
+    let root = env!("CARGO_MANIFEST_DIR");
+    let mut profile = std::fs::read_to_string(format!("{root}/sitl/vehicles/{example}.toml")).unwrap();
+    // the node starts at rest, not knowing its speed
+    let edits = [("velocity_sigma_m_s = 0.1", "velocity_sigma_m_s = 2.0")];
+    for (from, to) in edits.iter().chain(profile_edits) {
+        assert!(profile.contains(from), "{from}");
+        profile = profile.replacen(from, to, 1);
+    }
+    let dir = std::env::temp_dir().join(format!("cooploc-autopilot-{kind}-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    let path = dir.join("vehicle.toml");
+    std::fs::write(&path, profile).unwrap();
+
+    let mut script = Command::new(python);
+    script.arg(format!("{root}/tests/python/autopilot_vehicle.py")).arg(kind);
+    let (vehicle_proc, vrx) = spawn_lines(script);
+    let mut kill = Kill(vec![vehicle_proc]);
+    let port = wait_line(&vrx, "port ", Duration::from_secs(30))[5..].to_string();
+    let boot0_us: u64 = if kind == "scaled2" { ((1u64 << 32) - 5000) * 1000 } else { 100_000_000 };
+    let mut node = Command::new(env!("CARGO_BIN_EXE_cooploc"));
+    node.args(["node", "--id", "1", "--team", "1", "--method", "dr", "--idle-exit-s", "1.5"])
+        .arg("--vehicle")
+        .arg(format!("udpout:127.0.0.1:{port}"))
+        .arg("--vehicle-config")
+        .arg(&path)
+        .args(["--init-ned", "0,0,0", "--init-vel-ned", "0,0,0", "--init-rpy-deg", "0,0,0"])
+        .arg("--init-time-us")
+        .arg((UNIX0_US + boot0_us - 1000).to_string());
+    let (node_proc, nrx) = spawn_lines(node);
+    kill.0.push(node_proc);
+    let script: serde_json::Value =
+        serde_json::from_str(&wait_line(&vrx, "{", Duration::from_secs(60))).expect("the script's JSON report");
+    let done = wait_line(&nrx, "node 1 done", Duration::from_secs(30));
+    let _stats = wait_line(&nrx, "node 1 stats", Duration::from_secs(5));
+    let vehicle = wait_line(&nrx, "node 1 vehicle", Duration::from_secs(5));
+    let mut requests = Vec::new();
+    while let Ok(line) = nrx.recv_timeout(Duration::from_secs(2)) {
+        if line.starts_with("node 1 rate request") {
+            requests.push(line);
+        }
+    }
+    let _ = std::fs::remove_dir_all(&dir);
+    Some(Outcome { done, vehicle, requests, script })
+}
+
+fn position(done: &str) -> Vec<f64> {
+    let inside = done.split('[').nth(1).unwrap().split(']').next().unwrap();
+    inside.split(',').map(|v| v.trim().parse().unwrap()).collect()
+}
+
+/// What every kind must show: the vehicle's 20 m north, and ODOMETRY back at >= 10 Hz in the
+/// frames the autopilots fuse, stamped in the vehicle's own clock.
+fn check_common(o: &Outcome, boot0_us: u64) {
+    let p = position(&o.done);
+    assert!((p[0] - 20.0).abs() < 1.0 && p[1].abs() < 1.0, "the node should be 20 m north: {}", o.done);
+    let s = &o.script;
+    assert_eq!(s["bad_frames"], serde_json::json!([]), "{s}");
+    let (first, last) = (s["odometry_first_us"].as_u64().unwrap(), s["odometry_last_us"].as_u64().unwrap());
+    assert!(first >= boot0_us && last <= boot0_us + 10_100_000, "ODOMETRY in the vehicle's boot clock: {first}..{last}");
+    let rate = s["odometry_distinct"].as_f64().unwrap() / ((last - first) as f64 * 1e-6);
+    assert!(rate >= 10.0, "ODOMETRY at {rate:.1} Hz of vehicle time");
+    assert!((s["odometry_last_n"].as_f64().unwrap() - p[0]).abs() < 0.5, "{s}");
+}
+
+#[test]
+fn ardupilot_raw_imu_and_wheel_distance_with_a_reset_and_a_refused_rate() {
+    let Some(o) = drive("ardupilot", &[], "ardupilot-rover") else { return };
+    check_common(&o, 100_000_000);
+    assert_eq!(count(&o.vehicle, "wheel_resets"), 1, "{}", o.vehicle);
+    assert!(count(&o.vehicle, "imu") >= 400, "{}", o.vehicle);
+    // SCALED_IMU2 and both HIGHRES_IMU streams are another IMU than the profile's
+    assert!(count(&o.vehicle, "imu_other") >= 800, "{}", o.vehicle);
+    assert_eq!(count(&o.vehicle, "waiting_for_clock"), 0, "SYSTEM_TIME came first: {}", o.vehicle);
+    let reqs = o.script["requests"].as_array().unwrap();
+    assert!(reqs.iter().any(|r| r[0] == 27 && r[1] == 25_000.0), "RAW_IMU at 40 Hz asked: {reqs:?}");
+    assert!(reqs.iter().any(|r| r[0] == 9000 && r[1] == 50_000.0), "WHEEL_DISTANCE at 20 Hz asked: {reqs:?}");
+    assert!(o.requests.iter().any(|l| l.contains("RAW_IMU") && l.contains("Accepted")), "{:?}", o.requests);
+    assert!(o.requests.iter().any(|l| l.contains("WHEEL_DISTANCE") && l.contains("MAV_RESULT_DENIED")), "{:?}", o.requests);
+}
+
+#[test]
+fn px4_highres_imu_of_the_right_id_and_odometry_from_a_wheel_source_only() {
+    let Some(o) = drive("px4", &[("imu_id = 0", "imu_id = 1")], "px4-rover") else { return };
+    check_common(&o, 100_000_000);
+    // id 0 turns at 0.2 rad/s: had the node used it, it would not be 20 m north
+    assert!(count(&o.vehicle, "imu_other") >= 2000, "{}", o.vehicle);
+    assert!(count(&o.vehicle, "odometry_from_autopilot") >= 190, "{}", o.vehicle);
+    assert!(count(&o.vehicle, "odometer") >= 190, "{}", o.vehicle);
+    let reqs = o.script["requests"].as_array().unwrap();
+    assert!(reqs.iter().any(|r| r[0] == 105 && r[1] == 5_000.0), "HIGHRES_IMU at 200 Hz asked: {reqs:?}");
+}
+
+#[test]
+fn scaled_imu2_across_a_time_boot_ms_wrap() {
+    let Some(o) = drive("scaled2", &[("imu = \"raw_imu\"", "imu = \"scaled_imu2\"")], "ardupilot-rover") else { return };
+    check_common(&o, ((1u64 << 32) - 5000) * 1000);
+    assert!(count(&o.vehicle, "time_wraps") >= 1, "{}", o.vehicle);
+    assert_eq!(count(&o.vehicle, "imu_out_of_order"), 0, "{}", o.vehicle);
+    assert!(count(&o.vehicle, "imu") >= 500, "{}", o.vehicle);
+}
