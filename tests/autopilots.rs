@@ -166,3 +166,34 @@ fn scaled_imu2_across_a_time_boot_ms_wrap() {
     assert_eq!(count(&o.vehicle, "imu_out_of_order"), 0, "{}", o.vehicle);
     assert!(count(&o.vehicle, "imu") >= 500, "{}", o.vehicle);
 }
+
+#[test]
+fn a_bad_profile_is_refused_before_any_socket_opens_naming_its_field() {
+    let root = env!("CARGO_MANIFEST_DIR");
+    let good = std::fs::read_to_string(format!("{root}/sitl/vehicles/ardupilot-rover.toml")).unwrap();
+    let dir = std::env::temp_dir().join(format!("cooploc-bad-profile-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    for (from, to, expect) in [
+        ("[inputs]", "[inputs]\nimu_hz = 50", "imu_hz"),
+        ("gyro_arw_deg_per_sqrt_h = 0.9", "gyro_arw_deg_per_sqrt_h = 900", "sensors.gyro_arw_deg_per_sqrt_h"),
+        ("accel_noise_ug_per_sqrt_hz = 285.0", "accel_noise_ug_per_sqrt_hz = 0.0", "sensors.accel_noise_ug_per_sqrt_hz"),
+        ("wheels = [0, 1]", "wheels = [0, 0]", "inputs.wheels"),
+        ("odometry_rate_hz = 20.0", "odometry_rate_hz = 1.0", "output.odometry_rate_hz"),
+    ] {
+        let path = dir.join("bad.toml");
+        assert!(good.contains(from), "{from}");
+        std::fs::write(&path, good.replacen(from, to, 1)).unwrap();
+        // the vehicle address is a port nobody listens on: the profile must be refused first
+        let out = Command::new(env!("CARGO_BIN_EXE_cooploc"))
+            .current_dir(root)
+            .args(["node", "--id", "1", "--vehicle", "udpout:127.0.0.1:9", "--vehicle-config"])
+            .arg(&path)
+            .output()
+            .unwrap();
+        let stderr = String::from_utf8_lossy(&out.stderr);
+        assert!(!out.status.success(), "{to}: accepted");
+        assert!(stderr.contains(expect), "{to}: the error should name {expect}: {stderr}");
+        assert!(!stderr.contains("node started"), "{to}: {stderr}");
+    }
+    let _ = std::fs::remove_dir_all(&dir);
+}
