@@ -4,9 +4,11 @@
 //! - **Vehicle**: a MAVLink connection URL (`udpout:HOST:PORT`, `udpin:HOST:PORT`, `tcpout:`,
 //!   `tcpin:`, `serial:/dev/ttyX:BAUD`; see [`super::vehicle_link`]: UDP links get a large
 //!   receive buffer, and lost frames are counted from sequence gaps). Only messages from the
-//!   vehicle's own system id are used: HIGHRES_IMU, ODOMETRY (body velocity) and the cooploc
-//!   ranges its radio measured. The node sends HEARTBEAT (compid 191, ONBOARD_CONTROLLER) at 1 Hz
-//!   and, after every cooperative update, its estimate as LOCAL_POSITION_NED.
+//!   vehicle's own system id are used, decoded by [`super::inputs`] as the vehicle profile says
+//!   (the IMU and odometer messages, SYSTEM_TIME, the cooploc ranges its radio measured). The
+//!   node sends HEARTBEAT (compid 191, ONBOARD_CONTROLLER) at 1 Hz, its rate requests
+//!   ([`super::autopilot`]), ODOMETRY at the profile's rate and, after every cooperative
+//!   update, LOCAL_POSITION_NED.
 //! - **Cooperative network**: one UDP socket. The node sends to every peer it knows: those given
 //!   on the command line and every address a valid cooploc frame from another platform arrived
 //!   from (so a node can be started knowing only one peer, and tests can use ephemeral ports).
@@ -332,6 +334,7 @@ pub async fn run(
     let mut decoder = VehicleInputs::new(links.profile.inputs.clone());
     let mut rates = RateRequests::new(&links.profile, sysid);
     let mut odometry = OdometryOutput::new(links.profile.output.odometry_rate_hz);
+    let lpn = links.profile.output.local_position_ned;
     let profile_origin = links.profile.geo_origin();
     let mut vehicle_origin_checked = false;
 
@@ -392,7 +395,7 @@ pub async fn run(
                     if let Some(core) = core.as_mut() {
                         record_event(&recorder, id, &NodeEvent::EndOfInput);
                         let out = core.end_of_input();
-                        send_all(&coop, &peers, &vehicle, &mut seqs, out, &recorder, sysid, &VehicleOutputs { local_position_ned: links.profile.output.local_position_ned, clock: &decoder }).await;
+                        send_all(&coop, &peers, &vehicle, &mut seqs, out, &recorder, sysid, &VehicleOutputs { local_position_ned: lpn, clock: &decoder }).await;
                     }
                 }
                 if heard_vehicle && let Some(cmd) = rates.poll(wall_us()) {
@@ -402,13 +405,13 @@ pub async fn run(
                     let now = wall_us();
                     record_event(&recorder, id, &NodeEvent::Poll { wall_us: now });
                     let out = core.poll(now);
-                    send_all(&coop, &peers, &vehicle, &mut seqs, out, &recorder, sysid, &VehicleOutputs { local_position_ned: links.profile.output.local_position_ned, clock: &decoder }).await;
+                    send_all(&coop, &peers, &vehicle, &mut seqs, out, &recorder, sysid, &VehicleOutputs { local_position_ned: lpn, clock: &decoder }).await;
                 }
                 if ending.is_some_and(|end| tokio::time::Instant::now() >= end) {
                     if let Some(core) = core.as_mut() {
                         record_event(&recorder, id, &NodeEvent::RunPending);
                         let out = core.run_pending();
-                        send_all(&coop, &peers, &vehicle, &mut seqs, out, &recorder, sysid, &VehicleOutputs { local_position_ned: links.profile.output.local_position_ned, clock: &decoder }).await;
+                        send_all(&coop, &peers, &vehicle, &mut seqs, out, &recorder, sysid, &VehicleOutputs { local_position_ned: lpn, clock: &decoder }).await;
                     }
                     break;
                 }
@@ -550,7 +553,7 @@ pub async fn run(
             out,
             &recorder,
             sysid,
-            &VehicleOutputs { local_position_ned: links.profile.output.local_position_ned, clock: &decoder },
+            &VehicleOutputs { local_position_ned: lpn, clock: &decoder },
         )
         .await;
     }
