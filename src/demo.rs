@@ -116,6 +116,9 @@ pub async fn run_demo(cfg: DemoConfig, ready: impl FnOnce(&DemoAddresses)) -> an
         streams: StreamDefaults { sim_state: Interval::Every(500_000), ..StreamDefaults::default() },
         origin_lon_deg: origin.lon_deg,
         link_loss: 0.0,
+        autopilot: Default::default(),
+        origin: None,
+        stream_rates: Vec::new(),
     };
     let sim = Simulator::bind(world.clone(), sitl).await?;
     let vehicles: Vec<(PlatformId, SocketAddr)> = sim

@@ -5,6 +5,7 @@ use std::path::PathBuf;
 
 use anyhow::{Context, bail};
 use cooploc::estimation::PlatformId;
+use cooploc::node::profile::VehicleProfile;
 use cooploc::simulator::{self, Endpoint, Interval, SitlConfig, Speed, StreamDefaults};
 use cooploc::sitl::scenario::Scenario;
 use cooploc::sitl::world::World;
@@ -60,6 +61,38 @@ pub struct Args {
     /// and the platform, so a run is repeatable).
     #[arg(long, default_value_t = 0.0)]
     link_loss: f64,
+    /// Behave as this autopilot: its message set, units, rates, time stamps and quirks, and its
+    /// acceptance rules for the ODOMETRY the node sends back (ardupilot, px4 or cooploc).
+    #[arg(long, default_value = "cooploc")]
+    autopilot: simulator::Autopilot,
+    /// A vehicle profile (sitl/vehicles/*.toml) whose vehicle part (sensors, initial
+    /// uncertainty, filter, latitude, gravity, origin) replaces the scenario's: the vehicles the
+    /// nodes will be told they run on.
+    #[arg(long)]
+    vehicle_config: Option<PathBuf>,
+    /// A stream's rate at boot, repeatable: `MESSAGE=HZ` (RAW_IMU, HIGHRES_IMU, WHEEL_DISTANCE,
+    /// ODOMETRY, SYSTEM_TIME, SIM_STATE), as an autopilot's stream-rate parameters set it;
+    /// without it ArduPilot streams its sensors at 1 Hz and PX4 HIGHRES_IMU at 50 Hz until asked.
+    #[arg(long = "stream-rate", value_name = "MESSAGE=HZ", value_parser = parse_stream_rate)]
+    stream_rates: Vec<(u32, f64)>,
+}
+
+fn parse_stream_rate(s: &str) -> Result<(u32, f64), String> {
+    let (name, hz) = s.split_once('=').ok_or_else(|| format!("{s:?} is not MESSAGE=HZ"))?;
+    let id = match name {
+        "RAW_IMU" => 27,
+        "HIGHRES_IMU" => 105,
+        "WHEEL_DISTANCE" => 9000,
+        "ODOMETRY" => 331,
+        "SYSTEM_TIME" => 2,
+        "SIM_STATE" => 108,
+        _ => return Err(format!("{name:?}: one of RAW_IMU, HIGHRES_IMU, WHEEL_DISTANCE, ODOMETRY, SYSTEM_TIME, SIM_STATE")),
+    };
+    let hz: f64 = hz.parse().map_err(|_| format!("{hz:?} is not a rate in Hz"))?;
+    if !(hz.is_finite() && hz > 0.0 && hz <= 10_000.0) {
+        return Err(format!("{hz} Hz: must be in (0, 10000]"));
+    }
+    Ok((id, hz))
 }
 
 #[derive(Debug, Clone, PartialEq)]
@@ -128,7 +161,14 @@ struct Validated {
 }
 
 fn validate(args: Args) -> anyhow::Result<Validated> {
-    let scenario = Scenario::from_path(&args.scenario)?;
+    let mut scenario = Scenario::from_path(&args.scenario)?;
+    let profile = match &args.vehicle_config {
+        Some(path) => Some(VehicleProfile::from_path(path)?),
+        None => None,
+    };
+    if let Some(p) = &profile {
+        p.apply_to(&mut scenario).with_context(|| format!("the scenario with the vehicle of {}", p.name))?;
+    }
     let world = World::new(&scenario)?;
     let ids = world.platform_ids();
     let schedule = match args.schedule {
@@ -181,6 +221,9 @@ fn validate(args: Args) -> anyhow::Result<Validated> {
         streams: StreamDefaults { sim_state, ..StreamDefaults::default() },
         origin_lon_deg: args.origin_lon_deg,
         link_loss: args.link_loss,
+        autopilot: args.autopilot,
+        origin: profile.as_ref().and_then(VehicleProfile::geo_origin),
+        stream_rates: args.stream_rates.clone(),
     };
     Ok(Validated { world, config })
 }
@@ -229,6 +272,25 @@ pub fn run(args: Args) -> anyhow::Result<()> {
                 c.commands_rejected,
                 c.commands_unsupported
             );
+            if c.raw_imu_sent + c.wheel_distance_sent + c.system_time_sent > 0 {
+                println!(
+                    "vehicle {} also sent raw_imu {}, wheel_distance {}, system_time {}",
+                    v.platform, c.raw_imu_sent, c.wheel_distance_sent, c.system_time_sent
+                );
+            }
+            let k = &v.checker;
+            if k.accepted + k.ignored.values().sum::<u64>() > 0 {
+                println!(
+                    "vehicle {} odometry_check accepted {} ignored {} rate_hz {} without_covariance {} off_clock {} reasons {:?}",
+                    v.platform,
+                    k.accepted,
+                    k.ignored.values().sum::<u64>(),
+                    k.rate_hz().map_or("-".into(), |r| format!("{r:.2}")),
+                    k.without_covariance,
+                    k.off_clock,
+                    k.ignored
+                );
+            }
         }
         anyhow::Ok(())
     })

@@ -197,3 +197,130 @@ fn a_bad_profile_is_refused_before_any_socket_opens_naming_its_field() {
     }
     let _ = std::fs::remove_dir_all(&dir);
 }
+
+/// Three nodes against `cooploc sitl --autopilot AUTOPILOT` (the paper scenario, seed 1, run 0,
+/// ranging at 1 Hz, 20x real time) with the vehicle of `profile` and its streams set at boot to
+/// `rates`, each node told the same profile: their final positions against the offline
+/// experiment (decentralized) of the same inputs, as the personality sends them and the node's
+/// decoder reads them; and what the personality's checker made of their ODOMETRY.
+fn team_against(autopilot: &str, profile: &str, rates: &[&str]) {
+    use cooploc::estimation::Method;
+    use cooploc::experiment::{initial_state, run_filter};
+    use cooploc::node::profile::VehicleProfile;
+    use cooploc::simulator::personality::{SIM_UNIX_EPOCH_US, decoded_run};
+    use cooploc::sitl::{PAPER_TOML, Scenario, World};
+    let root = env!("CARGO_MANIFEST_DIR");
+    let profile_path = format!("{root}/sitl/vehicles/{profile}.toml");
+    let vehicle = VehicleProfile::from_path(&profile_path).unwrap();
+    let mut scenario = Scenario::from_toml_str(PAPER_TOML).unwrap();
+    vehicle.apply_to(&mut scenario).unwrap();
+    let world = World::new(&scenario).unwrap();
+    let (seed, run, schedule) = (1u64, 0u32, "1hz");
+
+    let mut sitl = Command::new(env!("CARGO_BIN_EXE_cooploc"));
+    sitl.args(["sitl", "sitl/scenarios/paper.toml", "--seed", "1", "--run", "0", "--schedule", schedule, "--speed", "20"]);
+    sitl.args(["--base-port", "0", "--wait-for-peers", "--sim-state-hz", "1", "--autopilot", autopilot]);
+    sitl.args(["--vehicle-config", &profile_path]);
+    for r in rates {
+        sitl.args(["--stream-rate", r]);
+    }
+    let (sitl_child, sitl_out) = spawn_lines(sitl);
+    let mut kill = Kill(vec![sitl_child]);
+    let mut vehicle_addr = std::collections::BTreeMap::new();
+    for _ in world.platform_ids() {
+        let line = wait_line(&sitl_out, "vehicle ", Duration::from_secs(30));
+        let words: Vec<&str> = line.split_whitespace().collect();
+        vehicle_addr.insert(words[1].parse::<u16>().unwrap(), words.last().unwrap().to_string());
+    }
+    let mut outs = Vec::new();
+    let mut coop: Vec<String> = Vec::new();
+    for id in world.platform_ids() {
+        let (t0, state) = initial_state(&world, seed, run, id).unwrap();
+        let (r, p, y) = state.att_frd_to_ned.euler_angles();
+        let v3 = |v: nalgebra::Vector3<f64>| format!("{:.17e},{:.17e},{:.17e}", v[0], v[1], v[2]);
+        let mut node = Command::new(env!("CARGO_BIN_EXE_cooploc"));
+        node.args(["node", "--id", &id.to_string(), "--vehicle", &format!("udpout:{}", vehicle_addr[&id])]);
+        node.args(["--vehicle-config", &profile_path, "--method", "dcl", "--idle-exit-s", "1.5"]);
+        node.arg(format!("--init-time-us={}", SIM_UNIX_EPOCH_US + t0.0));
+        node.arg(format!("--init-ned={}", v3(state.pos_ned_m)));
+        node.arg(format!("--init-vel-ned={}", v3(state.vel_ned_m_s)));
+        node.arg(format!("--init-rpy-deg={:.17e},{:.17e},{:.17e}", r.to_degrees(), p.to_degrees(), y.to_degrees()));
+        for peer in &coop {
+            node.args(["--peer", peer]);
+        }
+        let (child, out) = spawn_lines(node);
+        kill.0.push(child);
+        let line = wait_line(&out, &format!("node {id} coop udp "), Duration::from_secs(30));
+        coop.push(line.split_whitespace().last().unwrap().to_string());
+        outs.push((id, out));
+    }
+    let mut finals = Vec::new();
+    for (id, out) in &outs {
+        let done = wait_line(out, &format!("node {id} done:"), Duration::from_secs(240));
+        let vehicle_line = wait_line(out, &format!("node {id} vehicle"), Duration::from_secs(5));
+        eprintln!("{done}\n{vehicle_line}");
+        assert!(done.contains("epochs_partial 0 "), "{done}");
+        assert!(done.contains("vehicle_lost 0 "), "{done}");
+        assert_eq!(count(&vehicle_line, "imu_out_of_order") + count(&vehicle_line, "waiting_for_clock"), 0, "{vehicle_line}");
+        if autopilot == "px4" {
+            assert!(count(&vehicle_line, "odometry_from_autopilot") > 3000, "PX4's EKF output refused: {vehicle_line}");
+        }
+        finals.push((*id, position(&done)));
+    }
+    // what the autopilots made of the nodes' ODOMETRY
+    for id in world.platform_ids() {
+        let line = wait_line(&sitl_out, &format!("vehicle {id} odometry_check"), Duration::from_secs(30));
+        eprintln!("{line}");
+        let words: Vec<&str> = line.split_whitespace().collect();
+        let field = |name: &str| words[words.iter().position(|w| *w == name).unwrap() + 1];
+        assert!(field("accepted").parse::<u64>().unwrap() > 7000, "{line}");
+        assert_eq!(field("ignored"), "0", "{line}");
+        assert!(field("rate_hz").parse::<f64>().unwrap() >= 10.0, "{line}");
+        assert_eq!(field("off_clock"), "0", "{line}");
+        assert_eq!(field("without_covariance"), "0", "{line}");
+    }
+    let rate_pairs: Vec<(u32, f64)> = rates
+        .iter()
+        .map(|r| {
+            let (name, hz) = r.split_once('=').unwrap();
+            let id = match name {
+                "RAW_IMU" => 27,
+                "HIGHRES_IMU" => 105,
+                "WHEEL_DISTANCE" => 9000,
+                other => panic!("{other}"),
+            };
+            (id, hz.parse().unwrap())
+        })
+        .collect();
+    let ap = autopilot.parse().unwrap();
+    let (inputs, ranges) = decoded_run(&world, seed, run, schedule, ap, &vehicle.inputs, &rate_pairs).unwrap();
+    let dcl = run_filter(&world, &inputs, &ranges, Method::Decentralized).unwrap();
+    let dr = run_filter(&world, &inputs, &[], Method::DeadReckoning).unwrap();
+    let (mut node_err, mut dr_err) = (0.0, 0.0);
+    for (k, (id, pos)) in finals.iter().enumerate() {
+        let truth = inputs.platforms[k].truth.last().unwrap().pos_ned_m;
+        let reference = dcl.platforms[k].final_position_ned_m;
+        eprintln!(
+            "{autopilot} node {id}: final N/E {:.4} {:.4}, offline {:.4} {:.4}",
+            pos[0], pos[1], reference[0], reference[1]
+        );
+        assert!(
+            (pos[0] - reference[0]).abs() < 1e-3 && (pos[1] - reference[1]).abs() < 1e-3,
+            "node {id} differs from the offline run of the same inputs"
+        );
+        node_err += ((truth[0] - pos[0]).powi(2) + (truth[1] - pos[1]).powi(2)).sqrt();
+        dr_err += dr.platforms[k].final_error().pos_err_m;
+    }
+    eprintln!("{autopilot}: nodes {node_err:.2} m, dead reckoning {dr_err:.2} m (sum of final errors)");
+    assert!(node_err < dr_err, "decentralized nodes {node_err:.2} m should beat dead reckoning {dr_err:.2} m");
+}
+
+#[test]
+fn three_nodes_against_the_ardupilot_personality_match_the_offline_run() {
+    team_against("ardupilot", "ardupilot-rover", &["RAW_IMU=40", "WHEEL_DISTANCE=20"]);
+}
+
+#[test]
+fn three_nodes_against_the_px4_personality_match_the_offline_run() {
+    team_against("px4", "px4-rover", &["HIGHRES_IMU=200"]);
+}

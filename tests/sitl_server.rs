@@ -98,6 +98,9 @@ fn config(world: &World, speed: Speed) -> SitlConfig {
         streams: StreamDefaults::default(),
         origin_lon_deg: 10.0,
         link_loss: 0.0,
+        autopilot: Default::default(),
+        origin: None,
+        stream_rates: Vec::new(),
     }
 }
 

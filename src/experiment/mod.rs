@@ -81,6 +81,12 @@ pub struct PlatformOutcome {
     pub final_nees: f64,
     /// Estimated horizontal track at every truth sample (N, E), m.
     pub track_ne_m: Vec<[f64; 2]>,
+    /// The filter's position at its last input, and that input's time (what a node reports at
+    /// the end of the same inputs).
+    #[serde(skip)]
+    pub final_position_ned_m: Vector3<f64>,
+    #[serde(skip)]
+    pub final_t: TimeUs,
 }
 
 impl PlatformOutcome {
@@ -101,7 +107,7 @@ fn error15(f: &InsFilter, run: &PlatformRun, k: usize) -> DVector<f64> {
     let truth = &run.truth[k];
     let x = f.state();
     let mut e = DVector::zeros(15);
-    e.fixed_rows_mut::<3>(ins::POS).copy_from(&(truth.pos_ned_m - x.pos_ned_m));
+    e.fixed_rows_mut::<3>(ins::POS).copy_from(&(truth.pos_ned_m - position_at(f, truth.t)));
     e.fixed_rows_mut::<3>(ins::VEL).copy_from(&(truth.vel_ned_m_s - x.vel_ned_m_s));
     e.fixed_rows_mut::<3>(ins::ATT).copy_from(&ins::attitude_error_ned(&truth.attitude, &x.att_frd_to_ned));
     e.fixed_rows_mut::<3>(ins::ACCEL_BIAS).copy_from(&(run.errors.accel_bias_m_s2 - x.accel_bias_frd_m_s2));
@@ -109,9 +115,17 @@ fn error15(f: &InsFilter, run: &PlatformRun, k: usize) -> DVector<f64> {
     e
 }
 
+/// The filter's position at `t`, moved from its own time along its velocity: a truth sample
+/// that falls between two IMU samples (an autopilot's IMU stamps need not fall on the truth
+/// grid) is compared with the estimate at the truth's instant. Zero shift on the grid.
+fn position_at(f: &InsFilter, t: TimeUs) -> Vector3<f64> {
+    let dt = t.secs_since(f.time());
+    if dt == 0.0 { f.position_ned_m() } else { f.position_ned_m() + f.velocity_ned_m_s() * dt }
+}
+
 fn error_sample(f: &InsFilter, run: &PlatformRun, k: usize) -> ErrorSample {
     let truth = &run.truth[k];
-    let d = truth.pos_ned_m - f.position_ned_m();
+    let d = truth.pos_ned_m - position_at(f, truth.t);
     ErrorSample {
         t_s: truth.t.as_secs_f64(),
         pos_err_m: d.xy().norm(),
@@ -144,6 +158,8 @@ pub fn run_filter(
             trace: Vec::with_capacity(p.truth.len()),
             final_nees: f64::NAN,
             track_ne_m: Vec::with_capacity(p.truth.len()),
+            final_position_ned_m: Vector3::zeros(),
+            final_t: TimeUs(0),
         })
         .collect();
     // Cursors into each platform's samples, and into the ranging epochs.
@@ -210,6 +226,8 @@ pub fn run_filter(
         let f = team.filter(p.id).expect("member");
         let e = error15(f, p, p.truth.len() - 1);
         let cov = f.covariance().view((0, 0), (15, 15)).into_owned();
+        outcomes[i].final_position_ned_m = f.position_ned_m();
+        outcomes[i].final_t = f.time();
         outcomes[i].final_nees = nees(&e, &cov).map_err(|e| fail(p.id, f.time(), e))?;
     }
     Ok(FilterRun { method, platforms: outcomes })

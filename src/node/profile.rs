@@ -321,6 +321,21 @@ impl VehicleProfile {
         }
     }
 
+    /// Puts this vehicle into a scenario: its sensors, initial uncertainty, filter tuning,
+    /// latitude and gravity replace the scenario's (`cooploc sitl --vehicle-config`), so that
+    /// the simulated vehicles are the ones the nodes are told they run on. The result is
+    /// validated as a scenario (sensor periods on the microsecond grid, epochs on the IMU grid).
+    pub fn apply_to(&self, s: &mut Scenario) -> Result<(), ScenarioError> {
+        if let Some(lat) = self.latitude() {
+            s.latitude_deg = lat;
+        }
+        s.gravity_m_s2 = self.gravity_m_s2;
+        s.sensors = self.sensors;
+        s.initial = self.initial;
+        s.filter = self.filter;
+        s.validate()
+    }
+
     /// The profile as TOML (attached to logs so that replay reads the same profile).
     pub fn to_toml(&self) -> String {
         toml::to_string(self).unwrap_or_default()

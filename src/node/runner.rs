@@ -438,10 +438,17 @@ pub async fn run(
                     continue;
                 }
                 if header.component_id == 1 {
-                    if let Some(last) = last_vehicle_seq {
-                        vehicle_lost += u64::from(header.sequence.wrapping_sub(last).wrapping_sub(1));
+                    // A gap is loss; a frame from behind the last one (reordered on the way) was
+                    // counted lost in its gap and is not.
+                    match last_vehicle_seq.map(|last| header.sequence.wrapping_sub(last)) {
+                        None => last_vehicle_seq = Some(header.sequence),
+                        Some(0) => {}
+                        Some(ahead) if ahead < 128 => {
+                            vehicle_lost += u64::from(ahead - 1);
+                            last_vehicle_seq = Some(header.sequence);
+                        }
+                        Some(_) => vehicle_lost = vehicle_lost.saturating_sub(1),
                     }
-                    last_vehicle_seq = Some(header.sequence);
                 }
                 if let MavMessage::SIM_STATE(m) = &msg
                     && let Some((config, origin)) = &pending_init

@@ -38,6 +38,7 @@
 //! the vehicle's target (`--vehicle 1=udpout:127.0.0.1:14550` here, `udpin:127.0.0.1:14550` on
 //! the client side). A serial link (a device or a pseudo-terminal) carries one peer.
 
+pub mod personality;
 pub mod vehicle;
 
 use std::future::Future;
@@ -57,6 +58,7 @@ use crate::protocol::MavMessage;
 use crate::protocol::wire::GeoOrigin;
 use crate::sitl::{ScenarioError, SimEvent, World};
 use crate::time::TimeUs;
+pub use personality::{Autopilot, Checker};
 pub use vehicle::{
     COMPONENT_ID, Destination, Interval, Outgoing, Stream, StreamDefaults, VehicleConfig, VehicleCore, VehicleCounters,
 };
@@ -126,6 +128,13 @@ pub struct SitlConfig {
     /// Probability that a frame a vehicle sends is lost on its link (a lossy radio), drawn from
     /// a generator seeded by the run's seed and the platform; 0 for a perfect link.
     pub link_loss: f64,
+    /// Which autopilot every vehicle behaves as.
+    pub autopilot: Autopilot,
+    /// The NED origin (a vehicle profile's); None: the scenario's latitude and `origin_lon_deg`.
+    pub origin: Option<GeoOrigin>,
+    /// Stream rates set at boot, `(message id, Hz)`, for every vehicle (see
+    /// [`VehicleCore::preset_rate`]).
+    pub stream_rates: Vec<(u32, f64)>,
 }
 
 /// What can stop a simulator.
@@ -168,6 +177,8 @@ pub struct VehicleReport {
     pub endpoint: BoundEndpoint,
     pub counters: VehicleCounters,
     pub link: LinkCounters,
+    /// What the vehicle's autopilot made of the ODOMETRY it received.
+    pub checker: Checker,
 }
 
 /// The end of a run.
@@ -177,6 +188,35 @@ pub struct SimReport {
     /// Simulated time reached.
     pub sim_time: TimeUs,
     pub vehicles: Vec<VehicleReport>,
+}
+
+/// The configuration of platform `id`'s vehicle core in `world`.
+pub fn vehicle_config(
+    world: &World,
+    id: PlatformId,
+    schedule: &str,
+    defaults: StreamDefaults,
+    origin: GeoOrigin,
+    autopilot: Autopilot,
+) -> VehicleConfig {
+    let scenario = world.scenario();
+    VehicleConfig {
+        platform: id,
+        defaults,
+        origin,
+        gravity_m_s2: scenario.gravity_m_s2,
+        odometer_sigma_m_s: scenario.sensors.odometer_sigma_m_s,
+        imu_period_us: scenario.imu_period_us(),
+        odometer_period_us: TimeUs::from_secs_f64(1.0 / scenario.sensors.odometer_rate_hz).0,
+        range_period_us: scenario
+            .ranging
+            .schedules
+            .iter()
+            .find(|s| s.name == schedule)
+            .and_then(|s| s.every_s)
+            .map(|p| TimeUs::from_secs_f64(p).0),
+        autopilot,
+    }
 }
 
 /// Default endpoints: every platform on UDP `bind_ip:base_port + id` (port 0: ephemeral).
@@ -363,33 +403,20 @@ impl Simulator {
             }
         }
         let scenario = world.scenario();
-        let imu_period_us = scenario.imu_period_us();
-        let odometer_period_us = TimeUs::from_secs_f64(1.0 / scenario.sensors.odometer_rate_hz).0;
-        let range_period_us = scenario
-            .ranging
-            .schedules
-            .iter()
-            .find(|s| s.name == config.schedule)
-            .and_then(|s| s.every_s)
-            .map(|p| TimeUs::from_secs_f64(p).0);
-        let origin = GeoOrigin { lat_deg: scenario.latitude_deg, lon_deg: config.origin_lon_deg, alt_m: 0.0 };
+        let origin =
+            config.origin.unwrap_or(GeoOrigin { lat_deg: scenario.latitude_deg, lon_deg: config.origin_lon_deg, alt_m: 0.0 });
         let (tx, inbound) = mpsc::channel(4096);
         let mut cores = Vec::new();
         let mut io = Vec::new();
         let mut tasks = Vec::new();
         let mut writers = Vec::new();
         for (index, &id) in ids.iter().enumerate() {
-            let core = VehicleCore::new(VehicleConfig {
-                platform: id,
-                defaults: config.streams,
-                origin,
-                gravity_m_s2: scenario.gravity_m_s2,
-                odometer_sigma_m_s: scenario.sensors.odometer_sigma_m_s,
-                imu_period_us,
-                odometer_period_us,
-                range_period_us,
-            })
-            .map_err(|e| SimError::Config(e.to_string()))?;
+            let core = VehicleCore::new(vehicle_config(&world, id, &config.schedule, config.streams, origin, config.autopilot))
+                .map_err(|e| SimError::Config(e.to_string()))?;
+            let mut core = core;
+            for &(message_id, hz) in &config.stream_rates {
+                core.preset_rate(message_id, hz).map_err(|e| SimError::Config(format!("--stream-rate: {e}")))?;
+            }
             let mut matching = config.endpoints.iter().filter(|(p, _)| *p == id);
             let endpoint = match (matching.next(), matching.next()) {
                 (Some((_, e)), None) => e.clone(),
@@ -564,6 +591,7 @@ impl Simulator {
                 endpoint: io.endpoint,
                 counters: core.counters().clone(),
                 link: io.counters,
+                checker: core.checker().clone(),
             })
             .collect();
         // The links are gone with `self.io`: serial writers finish what is queued, within bounds.

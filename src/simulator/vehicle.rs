@@ -8,11 +8,11 @@
 
 use mavlink_core::MavHeader;
 
+use super::personality::{Autopilot, Checker, Personality, WHEEL_ODOMETRY_COMPID};
 use crate::estimation::{ImuSample, OdometerSample, PlatformId, RangeSample};
 use crate::protocol::MavMessage;
 use crate::protocol::dialect::cooploc::{
-    AUTOPILOT_VERSION_DATA, COMMAND_ACK_DATA, MESSAGE_INTERVAL_DATA, MavAutopilot, MavCmd, MavProtocolCapability, MavResult,
-    MavType,
+    AUTOPILOT_VERSION_DATA, COMMAND_ACK_DATA, MESSAGE_INTERVAL_DATA, MavCmd, MavProtocolCapability, MavResult,
 };
 use crate::protocol::wire::{self, GeoOrigin};
 use crate::sitl::Trajectory;
@@ -21,6 +21,9 @@ use crate::time::TimeUs;
 /// Component id of every simulated vehicle (MAV_COMP_ID_AUTOPILOT1).
 pub const COMPONENT_ID: u8 = 1;
 
+/// The streams sent on the simulated clock (the others at sensor samples).
+const CLOCK_STREAMS: [Stream; 4] = [Stream::Heartbeat, Stream::SimState, Stream::SystemTime, Stream::AutopilotOdometry];
+
 /// Shortest interval a periodic (clock-driven) stream accepts, us (1 kHz).
 pub const MIN_PERIODIC_INTERVAL_US: u64 = 1_000;
 
@@ -28,16 +31,31 @@ pub const MIN_PERIODIC_INTERVAL_US: u64 = 1_000;
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
 pub enum Stream {
     Heartbeat,
+    /// The IMU: HIGHRES_IMU (cooploc, PX4) or RAW_IMU (ArduPilot).
     HighresImu,
+    /// The odometer: ODOMETRY (cooploc), WHEEL_DISTANCE (ArduPilot), a wheel peripheral's
+    /// ODOMETRY (PX4).
     Odometry,
     SimState,
     Range,
+    /// SYSTEM_TIME (ArduPilot, PX4).
+    SystemTime,
+    /// The autopilot's own EKF output as ODOMETRY (PX4).
+    AutopilotOdometry,
 }
 
 impl Stream {
-    pub const ALL: [Stream; 5] = [Stream::Heartbeat, Stream::HighresImu, Stream::Odometry, Stream::SimState, Stream::Range];
+    pub const ALL: [Stream; 7] = [
+        Stream::Heartbeat,
+        Stream::HighresImu,
+        Stream::Odometry,
+        Stream::SimState,
+        Stream::Range,
+        Stream::SystemTime,
+        Stream::AutopilotOdometry,
+    ];
 
-    /// The MAVLink message id.
+    /// The MAVLink message id (the simulator's own personality; see [`VehicleCore::stream_of`]).
     pub fn message_id(self) -> u32 {
         match self {
             Stream::Heartbeat => 0,
@@ -45,9 +63,12 @@ impl Stream {
             Stream::Odometry => 331,
             Stream::SimState => 108,
             Stream::Range => 61001,
+            Stream::SystemTime => 2,
+            Stream::AutopilotOdometry => 331,
         }
     }
 
+    /// The stream of message `id` under the simulator's own personality.
     pub fn from_message_id(id: u32) -> Option<Stream> {
         Stream::ALL.into_iter().find(|s| s.message_id() == id)
     }
@@ -107,6 +128,8 @@ pub struct VehicleConfig {
     pub odometer_period_us: u64,
     /// Ranging period of a periodic schedule (reported by MESSAGE_INTERVAL), if any.
     pub range_period_us: Option<u64>,
+    /// Which autopilot the vehicle behaves as.
+    pub autopilot: Autopilot,
 }
 
 /// Where an outgoing message goes.
@@ -144,6 +167,9 @@ pub struct VehicleCounters {
     pub odometry_sent: u64,
     pub sim_state_sent: u64,
     pub range_sent: u64,
+    pub raw_imu_sent: u64,
+    pub wheel_distance_sent: u64,
+    pub system_time_sent: u64,
     /// Valid MAVLink frames received.
     pub frames_received: u64,
     /// Datagrams with no valid MAVLink frame (garbage, unknown ids, bad CRC) and frames that
@@ -174,11 +200,15 @@ pub struct VehicleCore {
     config: VehicleConfig,
     sysid: u8,
     sequence: u8,
-    streams: [StreamState; 5],
+    streams: [StreamState; 7],
     last_imu: Option<ImuSample>,
     last_odometer: Option<OdometerSample>,
     last_ranges: Vec<(u32, RangeSample)>,
     counters: VehicleCounters,
+    personality: Personality,
+    checker: Checker,
+    /// Sequence of the wheel-odometry peripheral (its own component).
+    peripheral_sequence: u8,
 }
 
 /// A platform that cannot be a MAVLink system.
@@ -191,12 +221,29 @@ impl VehicleCore {
         let sysid = u8::try_from(config.platform).ok().filter(|&s| s != 0).ok_or(BadSystemId(config.platform))?;
         let d = config.defaults;
         let state = |default| StreamState { default, current: default, next_due_us: 0, last_sent_us: None };
-        let mut streams = [state(Interval::Every(1_000_000)); 5];
-        streams[Stream::HighresImu.index()] = state(d.highres_imu);
-        streams[Stream::Odometry.index()] = state(d.odometry);
+        let mut streams = [state(Interval::Every(1_000_000)); 7];
+        let (imu, odometry, system_time, autopilot_odometry) = match config.autopilot {
+            Autopilot::Cooploc => (d.highres_imu, d.odometry, Interval::Disabled, Interval::Disabled),
+            // stream groups at 1 Hz until a ground station or the node asks for more
+            Autopilot::ArduPilot => {
+                (Interval::Every(1_000_000), Interval::Every(1_000_000), Interval::Every(1_000_000), Interval::Disabled)
+            }
+            // onboard mode: HIGHRES_IMU at 50 Hz; the wheel peripheral at its own rate
+            Autopilot::Px4 => {
+                (Interval::Every(20_000), Interval::EverySample, Interval::Every(1_000_000), Interval::Every(100_000))
+            }
+        };
+        streams[Stream::HighresImu.index()] = state(imu);
+        streams[Stream::Odometry.index()] = state(odometry);
         streams[Stream::SimState.index()] = state(d.sim_state);
         streams[Stream::Range.index()] = state(d.range);
+        streams[Stream::SystemTime.index()] = state(system_time);
+        streams[Stream::AutopilotOdometry.index()] = state(autopilot_odometry);
+        let personality = Personality::new(config.autopilot, config.platform, config.odometer_period_us);
         Ok(VehicleCore {
+            personality,
+            checker: Checker::default(),
+            peripheral_sequence: 0,
             config,
             sysid,
             sequence: 0,
@@ -220,6 +267,37 @@ impl VehicleCore {
         &self.counters
     }
 
+    /// What the vehicle's autopilot made of the ODOMETRY it received.
+    pub fn checker(&self) -> &Checker {
+        &self.checker
+    }
+
+    /// Sets a stream's rate before the run, as an autopilot's parameters do at boot (ArduPilot's
+    /// SRn_/MAVn_ rates, PX4's `mavlink stream -r`): the same rules and caps as
+    /// SET_MESSAGE_INTERVAL. Fails for a message this vehicle does not stream or a bad rate.
+    pub fn preset_rate(&mut self, message_id: u32, rate_hz: f64) -> Result<(), String> {
+        let stream = self
+            .stream_of(message_id)
+            .ok_or_else(|| format!("message {message_id} is not a stream of a {} vehicle", self.config.autopilot.name()))?;
+        if !(rate_hz.is_finite() && rate_hz > 0.0) {
+            return Err(format!("rate {rate_hz} Hz: must be positive"));
+        }
+        self.set_interval(TimeUs(0), stream, (1e6 / rate_hz) as f32).map_err(|()| format!("rate {rate_hz} Hz refused"))
+    }
+
+    /// The stream a message id stands for, under this vehicle's personality.
+    pub fn stream_of(&self, id: u32) -> Option<Stream> {
+        let ap = self.config.autopilot;
+        match id {
+            _ if id == ap.imu_message_id() => Some(Stream::HighresImu),
+            _ if Some(id) == ap.odometer_message_id() => Some(Stream::Odometry),
+            331 if ap == Autopilot::Px4 => Some(Stream::AutopilotOdometry),
+            2 if ap.boot_clock() => Some(Stream::SystemTime),
+            0 | 108 | 61001 => Stream::from_message_id(id),
+            _ => None,
+        }
+    }
+
     /// The current interval of a stream.
     pub fn interval(&self, stream: Stream) -> Interval {
         self.streams[stream.index()].current
@@ -233,6 +311,21 @@ impl VehicleCore {
     fn emit(&mut self, destination: Destination, message: MavMessage, out: &mut Vec<Outgoing>) {
         let header = MavHeader { system_id: u32::from(self.sysid), component_id: COMPONENT_ID, sequence: self.sequence };
         self.sequence = self.sequence.wrapping_add(1);
+        self.count_and_push(destination, header, message, out);
+    }
+
+    /// A message from the vehicle's wheel-odometry peripheral (its own component and sequence).
+    fn emit_peripheral(&mut self, message: MavMessage, out: &mut Vec<Outgoing>) {
+        let header = MavHeader {
+            system_id: u32::from(self.sysid),
+            component_id: WHEEL_ODOMETRY_COMPID,
+            sequence: self.peripheral_sequence,
+        };
+        self.peripheral_sequence = self.peripheral_sequence.wrapping_add(1);
+        self.count_and_push(Destination::AllPeers, header, message, out);
+    }
+
+    fn count_and_push(&mut self, destination: Destination, header: MavHeader, message: MavMessage, out: &mut Vec<Outgoing>) {
         self.counters.frames_sent += 1;
         match &message {
             MavMessage::HEARTBEAT(_) => self.counters.heartbeat_sent += 1,
@@ -240,13 +333,16 @@ impl VehicleCore {
             MavMessage::ODOMETRY(_) => self.counters.odometry_sent += 1,
             MavMessage::SIM_STATE(_) => self.counters.sim_state_sent += 1,
             MavMessage::COOPLOC_RANGE(_) => self.counters.range_sent += 1,
+            MavMessage::RAW_IMU(_) => self.counters.raw_imu_sent += 1,
+            MavMessage::WHEEL_DISTANCE(_) => self.counters.wheel_distance_sent += 1,
+            MavMessage::SYSTEM_TIME(_) => self.counters.system_time_sent += 1,
             _ => {}
         }
         out.push(Outgoing { destination, header, message });
     }
 
-    fn heartbeat() -> MavMessage {
-        wire::heartbeat(MavType::MAV_TYPE_GROUND_ROVER, MavAutopilot::MAV_AUTOPILOT_GENERIC)
+    fn heartbeat(&self) -> MavMessage {
+        self.config.autopilot.heartbeat()
     }
 
     fn sim_state(&self, t: TimeUs, truth: &Trajectory) -> MavMessage {
@@ -255,7 +351,7 @@ impl VehicleCore {
 
     /// Earliest simulated time at which a clock-driven message (HEARTBEAT, SIM_STATE) is due.
     pub fn next_periodic_due(&self) -> Option<TimeUs> {
-        [Stream::Heartbeat, Stream::SimState]
+        CLOCK_STREAMS
             .into_iter()
             .filter_map(|s| {
                 let st = &self.streams[s.index()];
@@ -269,14 +365,16 @@ impl VehicleCore {
     /// time (SIM_STATE holds the truth at that time), in time order.
     pub fn advance_to(&mut self, now: TimeUs, truth: &Trajectory, out: &mut Vec<Outgoing>) {
         while let Some(due) = self.next_periodic_due().filter(|d| *d <= now) {
-            for stream in [Stream::Heartbeat, Stream::SimState] {
+            for stream in CLOCK_STREAMS {
                 let st = self.streams[stream.index()];
                 let Interval::Every(interval) = st.current else { continue };
                 if st.next_due_us != due.0 {
                     continue;
                 }
                 let message = match stream {
-                    Stream::Heartbeat => Self::heartbeat(),
+                    Stream::Heartbeat => self.heartbeat(),
+                    Stream::SystemTime => self.personality.system_time(due),
+                    Stream::AutopilotOdometry => self.personality.autopilot_odometry(&truth.truth_at(due)),
                     _ => self.sim_state(due, truth),
                 };
                 self.emit(Destination::AllPeers, message, out);
@@ -315,16 +413,24 @@ impl VehicleCore {
     /// An IMU sample of this vehicle: HIGHRES_IMU if the stream's interval says so.
     pub fn on_imu(&mut self, s: &ImuSample, out: &mut Vec<Outgoing>) {
         self.last_imu = Some(*s);
+        self.personality.take_imu(s);
         if self.sample_due(Stream::HighresImu, s.t.0) {
-            self.emit(Destination::AllPeers, wire::imu_to_highres(s), out);
+            let m = self.personality.imu_message(s);
+            self.emit(Destination::AllPeers, m, out);
         }
     }
 
     /// An odometer sample of this vehicle: ODOMETRY (body-frame velocity) if due.
     pub fn on_odometer(&mut self, s: &OdometerSample, out: &mut Vec<Outgoing>) {
         self.last_odometer = Some(*s);
+        self.personality.take_odometer(s);
         if self.sample_due(Stream::Odometry, s.t.0) {
-            self.emit(Destination::AllPeers, wire::odometer_to_odometry(s, self.config.odometer_sigma_m_s), out);
+            let m = self.personality.odometer_message(s, self.config.odometer_sigma_m_s);
+            if self.config.autopilot == Autopilot::Px4 {
+                self.emit_peripheral(m, out);
+            } else {
+                self.emit(Destination::AllPeers, m, out);
+            }
         }
     }
 
@@ -340,7 +446,8 @@ impl VehicleCore {
         if self.sample_due(Stream::Range, t.0) {
             for i in 0..self.last_ranges.len() {
                 let (epoch, r) = self.last_ranges[i];
-                self.emit(Destination::AllPeers, wire::range_to_message(&r, epoch), out);
+                let m = self.personality.range_message(&r, epoch);
+                self.emit(Destination::AllPeers, m, out);
             }
         }
     }
@@ -381,6 +488,10 @@ impl VehicleCore {
     ) {
         self.counters.frames_received += 1;
         let (command, params, target) = match message {
+            MavMessage::ODOMETRY(m) => {
+                self.checker.check(self.config.autopilot, m, self.personality.clock_us(now));
+                return;
+            }
             MavMessage::COMMAND_LONG(c) => (
                 c.command,
                 [c.param1, c.param2, c.param3, c.param4, c.param5, c.param6, c.param7],
@@ -435,7 +546,7 @@ impl VehicleCore {
         use MavResult::*;
         match command {
             MavCmd::MAV_CMD_SET_MESSAGE_INTERVAL => {
-                let Some(stream) = message_id_param(p[0]).and_then(Stream::from_message_id) else {
+                let Some(stream) = message_id_param(p[0]).and_then(|id| self.stream_of(id)) else {
                     return (MAV_RESULT_DENIED, vec![]);
                 };
                 match self.set_interval(now, stream, p[1]) {
@@ -473,9 +584,13 @@ impl VehicleCore {
         } else if interval_us < 0.0 || interval_us as f64 > i32::MAX as f64 {
             return Err(());
         } else {
-            let us = (interval_us as f64).round().max(1.0) as u64;
+            let mut us = (interval_us as f64).round().max(1.0) as u64;
             if !stream.sample_driven() && us < MIN_PERIODIC_INTERVAL_US {
                 return Err(());
+            }
+            if matches!(stream, Stream::HighresImu | Stream::Odometry) {
+                // accepted, and capped at what the autopilot can do
+                us = us.max(self.config.autopilot.min_sensor_interval_us());
             }
             Interval::Every(us)
         };
@@ -496,7 +611,7 @@ impl VehicleCore {
 
     /// MESSAGE_INTERVAL for `id`: -1 disabled, 0 not a stream of this vehicle.
     fn message_interval(&self, id: u16) -> MavMessage {
-        let interval_us = match Stream::from_message_id(id as u32) {
+        let interval_us = match self.stream_of(id as u32) {
             None => 0,
             Some(stream) => match self.streams[stream.index()].current {
                 Interval::Disabled => -1,
@@ -525,21 +640,26 @@ impl VehicleCore {
                 Some(id) => (MAV_RESULT_ACCEPTED, vec![self.message_interval(id)]),
                 None => (MAV_RESULT_DENIED, vec![]),
             },
-            _ => match Stream::from_message_id(id) {
-                Some(Stream::Heartbeat) => (MAV_RESULT_ACCEPTED, vec![Self::heartbeat()]),
+            _ => match self.stream_of(id) {
+                Some(Stream::Heartbeat) => (MAV_RESULT_ACCEPTED, vec![self.heartbeat()]),
+                Some(Stream::SystemTime) => (MAV_RESULT_ACCEPTED, vec![self.personality.system_time(now)]),
+                Some(Stream::AutopilotOdometry) => {
+                    (MAV_RESULT_ACCEPTED, vec![self.personality.autopilot_odometry(&truth.truth_at(now))])
+                }
                 Some(Stream::SimState) => (MAV_RESULT_ACCEPTED, vec![self.sim_state(now, truth)]),
                 Some(Stream::HighresImu) => match self.last_imu {
-                    Some(s) => (MAV_RESULT_ACCEPTED, vec![wire::imu_to_highres(&s)]),
+                    Some(s) => (MAV_RESULT_ACCEPTED, vec![self.personality.clone().imu_message(&s)]),
                     None => not_yet,
                 },
                 Some(Stream::Odometry) => match self.last_odometer {
-                    Some(s) => (MAV_RESULT_ACCEPTED, vec![wire::odometer_to_odometry(&s, self.config.odometer_sigma_m_s)]),
+                    Some(s) => (MAV_RESULT_ACCEPTED, vec![self.personality.odometer_message(&s, self.config.odometer_sigma_m_s)]),
                     None => not_yet,
                 },
                 Some(Stream::Range) if self.last_ranges.is_empty() => not_yet,
-                Some(Stream::Range) => {
-                    (MAV_RESULT_ACCEPTED, self.last_ranges.iter().map(|(epoch, r)| wire::range_to_message(r, *epoch)).collect())
-                }
+                Some(Stream::Range) => (
+                    MAV_RESULT_ACCEPTED,
+                    self.last_ranges.iter().map(|(epoch, r)| self.personality.range_message(r, *epoch)).collect(),
+                ),
                 None => (MAV_RESULT_DENIED, vec![]),
             },
         }
@@ -581,6 +701,7 @@ mod tests {
             imu_period_us: 5_000,
             odometer_period_us: 100_000,
             range_period_us: Some(1_000_000),
+            autopilot: Autopilot::Cooploc,
         })
         .unwrap()
     }
@@ -610,6 +731,51 @@ mod tests {
         Some((ack.result, it.map(|o| o.message).collect()))
     }
 
+    fn personality_core(autopilot: Autopilot) -> VehicleCore {
+        let mut c = core(1);
+        c = VehicleCore::new(VehicleConfig { autopilot, ..c.config.clone() }).unwrap();
+        c
+    }
+
+    #[test]
+    fn personalities_map_message_ids_to_their_streams_and_cap_the_rates() {
+        let w = world();
+        let mut ap = personality_core(Autopilot::ArduPilot);
+        // ArduPilot streams its IMU at 1 Hz until asked; 200 Hz is accepted and capped at 40 Hz
+        assert_eq!(ap.interval(Stream::HighresImu), Interval::Every(1_000_000));
+        assert_eq!(
+            ask(&mut ap, &w, long(1, MavCmd::MAV_CMD_SET_MESSAGE_INTERVAL, 27.0, 5_000.0)).unwrap().0,
+            MavResult::MAV_RESULT_ACCEPTED
+        );
+        assert_eq!(ap.interval(Stream::HighresImu), Interval::Every(25_000));
+        // HIGHRES_IMU is not an ArduPilot Rover stream here; WHEEL_DISTANCE is its odometer
+        assert_eq!(
+            ask(&mut ap, &w, long(1, MavCmd::MAV_CMD_SET_MESSAGE_INTERVAL, 105.0, 5_000.0)).unwrap().0,
+            MavResult::MAV_RESULT_DENIED
+        );
+        assert_eq!(ap.stream_of(9000), Some(Stream::Odometry));
+        let times = imu_times(&mut ap, (1..=40).map(|k| k * 5_000));
+        assert!(
+            times.len() == 9 && times.windows(2).skip(1).all(|w| w[1] - w[0] == 25_000),
+            "200 Hz samples sent at 40 Hz: {times:?}"
+        );
+        // RAW_IMU is stamped when sent: in the vehicle's boot clock, after the sample
+        assert_eq!(
+            times[1],
+            25_000 + super::super::personality::boot_offset_us(1) + super::super::personality::ARDUPILOT_SEND_LATENCY_US
+        );
+        // PX4: HIGHRES_IMU at 50 Hz until asked; a request for ODOMETRY paces its own EKF output
+        let mut px4 = personality_core(Autopilot::Px4);
+        assert_eq!(px4.interval(Stream::HighresImu), Interval::Every(20_000));
+        assert_eq!(px4.stream_of(331), Some(Stream::AutopilotOdometry));
+        assert_eq!(
+            ask(&mut px4, &w, long(1, MavCmd::MAV_CMD_SET_MESSAGE_INTERVAL, 105.0, 1_000.0)).unwrap().0,
+            MavResult::MAV_RESULT_ACCEPTED
+        );
+        assert_eq!(px4.interval(Stream::HighresImu), Interval::Every(5_000));
+        assert!(px4.preset_rate(27, 40.0).is_err(), "RAW_IMU is not a PX4 stream here");
+    }
+
     fn imu(t: u64) -> ImuSample {
         ImuSample {
             t: TimeUs(t),
@@ -624,6 +790,7 @@ mod tests {
         out.iter()
             .filter_map(|o| match &o.message {
                 MavMessage::HIGHRES_IMU(d) => Some(d.time_usec),
+                MavMessage::RAW_IMU(d) => Some(d.time_usec),
                 _ => None,
             })
             .collect()
