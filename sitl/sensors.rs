@@ -189,6 +189,11 @@ impl<'a> ImuStream<'a> {
         }
     }
 
+    /// The accelerometer and gyro biases now (they walk when a bias walk is configured).
+    pub fn biases(&self) -> (Vector3<f64>, Vector3<f64>) {
+        (self.accel_bias, self.gyro_bias)
+    }
+
     /// Time stamp of the next sample, if any.
     pub fn peek_time(&self) -> Option<TimeUs> {
         (self.next_us <= self.model.end.0).then_some(TimeUs(self.next_us))

@@ -25,6 +25,8 @@ pub struct PlatformRun {
     pub id: PlatformId,
     /// The sensor errors drawn for this run.
     pub errors: SensorErrors,
+    /// The sensor errors at the end of the run (the biases walk when a bias walk is configured).
+    pub final_errors: SensorErrors,
     pub imu: Vec<ImuSample>,
     pub odometer: Vec<OdometerSample>,
     /// Truth at `k / truth_rate_hz`, `k = 0..`, up to the end of the run, for error evaluation.
@@ -161,12 +163,19 @@ impl World {
         let platforms = self
             .trajectories
             .iter()
-            .map(|traj| PlatformRun {
-                id: traj.id(),
-                errors: sensors::draw_errors(&self.model, seed, run, traj.id()),
-                imu: ImuStream::new(traj, &self.model, seed, run).collect(),
-                odometer: OdometerStream::new(traj, &self.model, seed, run).collect(),
-                truth: self.truth_of(traj),
+            .map(|traj| {
+                let errors = sensors::draw_errors(&self.model, seed, run, traj.id());
+                let mut stream = ImuStream::new(traj, &self.model, seed, run);
+                let imu: Vec<ImuSample> = stream.by_ref().collect();
+                let (accel_bias_m_s2, gyro_bias_rad_s) = stream.biases();
+                PlatformRun {
+                    id: traj.id(),
+                    errors,
+                    final_errors: SensorErrors { accel_bias_m_s2, gyro_bias_rad_s, ..errors },
+                    imu,
+                    odometer: OdometerStream::new(traj, &self.model, seed, run).collect(),
+                    truth: self.truth_of(traj),
+                }
             })
             .collect();
         RunInputs { seed, run, platforms }

@@ -6,7 +6,9 @@ use std::time::Instant;
 use anyhow::{Context, bail};
 use cooploc::estimation::Method;
 use cooploc::experiment::report::{self, Tracks};
-use cooploc::experiment::{ExperimentSpec, run_experiment};
+use cooploc::experiment::{ExperimentSpec, InputSource, run_experiment};
+use cooploc::node::autopilot::RateRequests;
+use cooploc::node::profile::{Inputs, VehicleProfile};
 use cooploc::sitl::scenario::Scenario;
 use cooploc::sitl::world::World;
 
@@ -36,6 +38,17 @@ pub struct Args {
     /// Skip the plots (tables, CSV and JSON only).
     #[arg(long)]
     no_plots: bool,
+    /// A vehicle profile (sitl/vehicles/*.toml) whose vehicle replaces the scenario's.
+    #[arg(long)]
+    vehicle_config: Option<PathBuf>,
+    /// Feed the filters what this autopilot sends (ardupilot, px4, cooploc), as the node
+    /// decodes it with the profile (needs --vehicle-config).
+    #[arg(long)]
+    autopilot: Option<cooploc::simulator::Autopilot>,
+    /// The autopilot's stream rates, repeatable `MESSAGE=HZ` (default: the rates the profile
+    /// asks for, as if the request had landed at boot).
+    #[arg(long = "stream-rate", value_name = "MESSAGE=HZ", value_parser = crate::sitl_cmd::parse_stream_rate)]
+    stream_rates: Vec<(u32, f64)>,
 }
 
 pub fn run(args: Args) -> anyhow::Result<()> {
@@ -47,14 +60,38 @@ pub fn run(args: Args) -> anyhow::Result<()> {
             None => bail!("unknown method {m:?}: expected one of dr, naive, dcl, centralized, ci"),
         }
     }
-    let scenario = Scenario::from_path(&args.scenario)?;
+    let mut scenario = Scenario::from_path(&args.scenario)?;
+    // A vehicle profile replaces the scenario's vehicle; an autopilot sends its samples.
+    let source = match (&args.vehicle_config, args.autopilot) {
+        (Some(path), autopilot) => {
+            let profile = VehicleProfile::from_path(path)?;
+            profile.apply_to(&mut scenario).with_context(|| format!("the scenario with the vehicle of {}", profile.name))?;
+            match autopilot {
+                Some(autopilot) => {
+                    let rates = if args.stream_rates.is_empty() {
+                        let asked = VehicleProfile {
+                            inputs: Inputs { request_rates: true, ..profile.inputs.clone() },
+                            ..profile.clone()
+                        };
+                        RateRequests::new(&asked, 1).requests.iter().map(|r| (r.message_id, r.rate_hz)).collect()
+                    } else {
+                        args.stream_rates.clone()
+                    };
+                    InputSource::Autopilot { autopilot, inputs: profile.inputs.clone(), rates }
+                }
+                None => InputSource::World,
+            }
+        }
+        (None, Some(_)) => bail!("--autopilot needs --vehicle-config (the profile says how the node reads the autopilot)"),
+        (None, None) => InputSource::World,
+    };
     let world = World::new(&scenario)?;
     let schedules = if args.schedules.is_empty() {
         scenario.ranging.schedules.iter().map(|s| s.name.clone()).collect()
     } else {
         args.schedules.clone()
     };
-    let spec = ExperimentSpec { runs: args.runs, seed: args.seed, methods, schedules };
+    let spec = ExperimentSpec { runs: args.runs, seed: args.seed, methods, schedules, source };
     if let Some(n) = args.threads {
         rayon::ThreadPoolBuilder::new().num_threads(n).build_global().context("setting the thread count")?;
     }

@@ -77,7 +77,7 @@ pub struct Args {
     stream_rates: Vec<(u32, f64)>,
 }
 
-fn parse_stream_rate(s: &str) -> Result<(u32, f64), String> {
+pub(crate) fn parse_stream_rate(s: &str) -> Result<(u32, f64), String> {
     let (name, hz) = s.split_once('=').ok_or_else(|| format!("{s:?} is not MESSAGE=HZ"))?;
     let id = match name {
         "RAW_IMU" => 27,

@@ -110,8 +110,9 @@ fn error15(f: &InsFilter, run: &PlatformRun, k: usize) -> DVector<f64> {
     e.fixed_rows_mut::<3>(ins::POS).copy_from(&(truth.pos_ned_m - position_at(f, truth.t)));
     e.fixed_rows_mut::<3>(ins::VEL).copy_from(&(truth.vel_ned_m_s - x.vel_ned_m_s));
     e.fixed_rows_mut::<3>(ins::ATT).copy_from(&ins::attitude_error_ned(&truth.attitude, &x.att_frd_to_ned));
-    e.fixed_rows_mut::<3>(ins::ACCEL_BIAS).copy_from(&(run.errors.accel_bias_m_s2 - x.accel_bias_frd_m_s2));
-    e.fixed_rows_mut::<3>(ins::GYRO_BIAS).copy_from(&(run.errors.gyro_bias_rad_s - x.gyro_bias_frd_rad_s));
+    // the biases at the end of the run: error15 is taken there (they walk when configured)
+    e.fixed_rows_mut::<3>(ins::ACCEL_BIAS).copy_from(&(run.final_errors.accel_bias_m_s2 - x.accel_bias_frd_m_s2));
+    e.fixed_rows_mut::<3>(ins::GYRO_BIAS).copy_from(&(run.final_errors.gyro_bias_rad_s - x.gyro_bias_frd_rad_s));
     e
 }
 
@@ -233,6 +234,17 @@ pub fn run_filter(
     Ok(FilterRun { method, platforms: outcomes })
 }
 
+/// Where a run's filter inputs come from.
+#[derive(Debug, Clone, PartialEq, Default)]
+pub enum InputSource {
+    /// The world's samples as they are (the paper's experiment).
+    #[default]
+    World,
+    /// As an autopilot sends them and a node decodes them (see
+    /// [`crate::simulator::personality::decoded_run`]).
+    Autopilot { autopilot: crate::simulator::Autopilot, inputs: crate::node::profile::Inputs, rates: Vec<(u32, f64)> },
+}
+
 /// What to run.
 #[derive(Debug, Clone, PartialEq)]
 pub struct ExperimentSpec {
@@ -241,6 +253,7 @@ pub struct ExperimentSpec {
     pub methods: Vec<Method>,
     /// Names of ranging schedules of the scenario.
     pub schedules: Vec<String>,
+    pub source: InputSource,
 }
 
 /// Every filter run of one Monte Carlo run, by schedule.
@@ -253,11 +266,20 @@ pub struct RunResult {
 
 /// One Monte Carlo run: inputs drawn once, every method over every schedule.
 pub fn run_once(world: &World, spec: &ExperimentSpec, run: u32) -> Result<RunResult, ExperimentError> {
-    let inputs = world.run_inputs(spec.seed, run);
+    let mut inputs = world.run_inputs(spec.seed, run);
     let mut dead_reckoning = None;
     let mut schedules = Vec::new();
     for name in &spec.schedules {
-        let ranges = world.ranges(name, spec.seed, run)?;
+        let ranges = match &spec.source {
+            InputSource::World => world.ranges(name, spec.seed, run)?,
+            InputSource::Autopilot { autopilot, inputs: profile_inputs, rates } => {
+                let (decoded, ranges) =
+                    crate::simulator::personality::decoded_run(world, spec.seed, run, name, *autopilot, profile_inputs, rates)
+                        .map_err(ExperimentError::Settings)?;
+                inputs = decoded;
+                ranges
+            }
+        };
         let mut runs = Vec::new();
         for &method in &spec.methods {
             let r = if method == Method::DeadReckoning {
