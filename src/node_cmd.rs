@@ -252,11 +252,12 @@ pub fn run_cmd(args: Args) -> anyhow::Result<()> {
     );
     println!("node {} stats {:?}", e.platform, st);
     println!(
-        "node {} vehicle imu_rate_hz {} odometry_sent {} odometry_resets {} inputs {:?}",
+        "node {} vehicle imu_rate_hz {} odometry_sent {} odometry_resets {} gps_input_sent {} inputs {:?}",
         e.platform,
         summary.imu_rate_hz.map_or("-".into(), |r| format!("{r:.1}")),
         summary.odometry_sent,
         summary.odometry_resets,
+        summary.gps_input_sent,
         summary.inputs
     );
     for r in &summary.rate_requests {

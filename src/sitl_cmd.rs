@@ -279,6 +279,9 @@ pub fn run(args: Args) -> anyhow::Result<()> {
                 );
             }
             let k = &v.checker;
+            if k.gps_input_accepted + k.gps_input_ignored > 0 {
+                println!("vehicle {} gps_input_check accepted {} ignored {}", v.platform, k.gps_input_accepted, k.gps_input_ignored);
+            }
             if k.accepted + k.ignored.values().sum::<u64>() > 0 {
                 println!(
                     "vehicle {} odometry_check accepted {} ignored {} rate_hz {} without_covariance {} off_clock {} reasons {:?}",

@@ -203,14 +203,22 @@ fn a_bad_profile_is_refused_before_any_socket_opens_naming_its_field() {
 /// `rates`, each node told the same profile: their final positions against the offline
 /// experiment (decentralized) of the same inputs, as the personality sends them and the node's
 /// decoder reads them; and what the personality's checker made of their ODOMETRY.
-fn team_against(autopilot: &str, profile: &str, rates: &[&str]) {
+fn team_against(autopilot: &str, profile: &str, rates: &[&str], edits: &[(&str, &str)]) {
     use cooploc::estimation::Method;
     use cooploc::experiment::{initial_state, run_filter};
     use cooploc::node::profile::VehicleProfile;
     use cooploc::simulator::personality::{SIM_UNIX_EPOCH_US, decoded_run};
     use cooploc::sitl::{PAPER_TOML, Scenario, World};
     let root = env!("CARGO_MANIFEST_DIR");
-    let profile_path = format!("{root}/sitl/vehicles/{profile}.toml");
+    let mut text = std::fs::read_to_string(format!("{root}/sitl/vehicles/{profile}.toml")).unwrap();
+    for (from, to) in edits {
+        assert!(text.contains(from), "{from}");
+        text = text.replacen(from, to, 1);
+    }
+    let dir = std::env::temp_dir().join(format!("cooploc-team-{autopilot}-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    let profile_path = dir.join("vehicle.toml").display().to_string();
+    std::fs::write(&profile_path, text).unwrap();
     let vehicle = VehicleProfile::from_path(&profile_path).unwrap();
     let mut scenario = Scenario::from_toml_str(PAPER_TOML).unwrap();
     vehicle.apply_to(&mut scenario).unwrap();
@@ -267,8 +275,15 @@ fn team_against(autopilot: &str, profile: &str, rates: &[&str]) {
         }
         finals.push((*id, position(&done)));
     }
-    // what the autopilots made of the nodes' ODOMETRY
+    // what the autopilots made of the nodes' ODOMETRY (and GPS_INPUT, when sent)
     for id in world.platform_ids() {
+        if vehicle.output.gps_input_rate_hz > 0.0 {
+            let line = wait_line(&sitl_out, &format!("vehicle {id} gps_input_check"), Duration::from_secs(30));
+            eprintln!("{line}");
+            let n = |k: usize| line.split_whitespace().nth(k).unwrap().parse::<u64>().unwrap();
+            let expected = (380.0 * vehicle.output.gps_input_rate_hz) as u64;
+            assert!(n(4) + 2 >= expected && n(6) == 0, "GPS_INPUT: {line}");
+        }
         let line = wait_line(&sitl_out, &format!("vehicle {id} odometry_check"), Duration::from_secs(30));
         eprintln!("{line}");
         let words: Vec<&str> = line.split_whitespace().collect();
@@ -313,14 +328,21 @@ fn team_against(autopilot: &str, profile: &str, rates: &[&str]) {
     }
     eprintln!("{autopilot}: nodes {node_err:.2} m, dead reckoning {dr_err:.2} m (sum of final errors)");
     assert!(node_err < dr_err, "decentralized nodes {node_err:.2} m should beat dead reckoning {dr_err:.2} m");
+    let _ = std::fs::remove_dir_all(&dir);
 }
 
 #[test]
 fn three_nodes_against_the_ardupilot_personality_match_the_offline_run() {
-    team_against("ardupilot", "ardupilot-rover", &["RAW_IMU=40", "WHEEL_DISTANCE=20"]);
+    // with GPS_INPUT at 5 Hz beside ODOMETRY
+    team_against(
+        "ardupilot",
+        "ardupilot-rover",
+        &["RAW_IMU=40", "WHEEL_DISTANCE=20"],
+        &[("gps_input_rate_hz = 0.0", "gps_input_rate_hz = 5.0")],
+    );
 }
 
 #[test]
 fn three_nodes_against_the_px4_personality_match_the_offline_run() {
-    team_against("px4", "px4-rover", &["HIGHRES_IMU=200"]);
+    team_against("px4", "px4-rover", &["HIGHRES_IMU=200"], &[]);
 }

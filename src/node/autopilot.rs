@@ -184,6 +184,38 @@ impl OdometryOutput {
     }
 }
 
+/// GPS_INPUT to the autopilot at a steady vehicle-time rate.
+#[derive(Debug, Clone)]
+pub struct GpsInputOutput {
+    period_us: u64,
+    next: Option<TimeUs>,
+    origin: crate::protocol::wire::GeoOrigin,
+    pub sent: u64,
+}
+
+impl GpsInputOutput {
+    /// None when the rate is 0 (off) or there is no origin.
+    pub fn new(rate_hz: f64, origin: Option<crate::protocol::wire::GeoOrigin>) -> Option<Self> {
+        let origin = origin?;
+        (rate_hz > 0.0).then(|| GpsInputOutput { period_us: (1e6 / rate_hz).round() as u64, next: None, origin, sent: 0 })
+    }
+
+    /// The GPS_INPUT due now, if any; `to_vehicle` maps the team clock to the vehicle's. The GPS
+    /// time goes with it when the team's clock is Unix time.
+    pub fn poll(&mut self, nav: &Navigation, to_vehicle: impl Fn(TimeUs) -> u64) -> Option<MavMessage> {
+        let unix = nav.t.0 >= super::inputs::UNIX_TIME_FROM_US;
+        if self.next.is_some_and(|next| nav.t < next) {
+            return None;
+        }
+        let base = self.next.unwrap_or(nav.t).0;
+        let periods = (nav.t.0.saturating_sub(base)) / self.period_us + 1;
+        self.next = Some(TimeUs(base + periods * self.period_us));
+        self.sent += 1;
+        let gps_time = unix.then(|| wire::gps_week_time(nav.t.0));
+        Some(wire::navigation_to_gps_input(nav, &self.origin, to_vehicle(nav.t), gps_time))
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -271,5 +303,39 @@ mod tests {
         // a 40 m correction is a reset, not motion
         let Some(MavMessage::ODOMETRY(m)) = o.poll(&nav(2_000_000, 50.0), |t| t.0) else { panic!() };
         assert_eq!(m.reset_counter, 1);
+    }
+
+    #[test]
+    fn gps_input_carries_the_position_about_the_origin_its_accuracy_and_gps_time() {
+        use crate::protocol::wire::GeoOrigin;
+        let origin = GeoOrigin { lat_deg: -35.363262, lon_deg: 149.165237, alt_m: 584.0 };
+        let mut g = GpsInputOutput::new(5.0, Some(origin)).unwrap();
+        let unix = 1_795_000_000_000_000u64;
+        let mut n = nav(unix, 111.0);
+        n.pose_covariance[(0, 0)] = 4.0; // 2 m north sigma, 0.1 m east
+        let Some(MavMessage::GPS_INPUT(m)) = g.poll(&n, |t| t.0 - unix + 60_000_000) else { panic!() };
+        assert_eq!(m.time_usec, 60_000_000);
+        let back = crate::protocol::wire::geodetic_to_ned(
+            &origin,
+            &crate::protocol::wire::Geodetic {
+                lat_deg: crate::protocol::wire::e7_to_deg(m.lat),
+                lon_deg: crate::protocol::wire::e7_to_deg(m.lon),
+                alt_m: f64::from(m.alt),
+            },
+        );
+        assert!((back - n.position_ned_m).norm() < 0.02, "{back}");
+        assert!((m.horiz_accuracy - 2.0).abs() < 1e-6 && (m.vert_accuracy - 0.1).abs() < 1e-6);
+        assert_eq!(m.fix_type, crate::protocol::dialect::cooploc::GpsFixType::GPS_FIX_TYPE_3D_FIX);
+        // 2026-11-18 11:06:40 UTC: 397 weeks after the week-2048 rollover of 2019-04-07
+        assert_eq!(m.time_week, 2445);
+        assert_eq!(m.time_week_ms, 299_218_000, "Wednesday 11:06:58 GPS time (18 leap seconds ahead of UTC)");
+        assert_eq!(m.yaw, (0.5f64.to_degrees() * 100.0).round() as u16);
+        // at 5 Hz: the next one 200 ms on
+        assert!(g.poll(&nav(unix + 100_000, 112.0), |t| t.0).is_none());
+        assert!(g.poll(&nav(unix + 200_000, 113.0), |t| t.0).is_some());
+        // a team clock that is not Unix time gives no GPS time
+        let mut g = GpsInputOutput::new(5.0, Some(origin)).unwrap();
+        let Some(MavMessage::GPS_INPUT(m)) = g.poll(&nav(5_000_000, 0.0), |t| t.0) else { panic!() };
+        assert_eq!((m.time_week, m.time_week_ms), (0, 0));
     }
 }

@@ -20,7 +20,9 @@
 //!   clock, `unix` when they count from each autopilot's boot and SYSTEM_TIME maps them to Unix
 //!   time), and whether to ask for the rates (`request_rates`).
 //! - `[output]`: what the node sends back to the autopilot: ODOMETRY at `odometry_rate_hz`
-//!   (0: none), and LOCAL_POSITION_NED after every cooperative update (`local_position_ned`).
+//!   (0: none), LOCAL_POSITION_NED after every cooperative update (`local_position_ned`), and
+//!   GPS_INPUT at `gps_input_rate_hz` (0, the default: none; ArduPilot's path for an absolute
+//!   position, needs `[origin]`).
 //!
 //! Every key is checked (an unknown one is an error naming it), every value is validated with
 //! its field named (`sensors.accel_noise_ug_per_sqrt_hz: ...`), and figures no real sensor can
@@ -264,6 +266,10 @@ pub struct Output {
     /// LOCAL_POSITION_NED after every cooperative update (ground stations show it).
     #[serde(default = "yes")]
     pub local_position_ned: bool,
+    /// GPS_INPUT (ArduPilot's GPS type 14) with the estimate as an absolute position about
+    /// `[origin]`, vehicle time, Hz; 0: none.
+    #[serde(default)]
+    pub gps_input_rate_hz: f64,
 }
 
 fn default_odometry_rate() -> f64 {
@@ -272,7 +278,7 @@ fn default_odometry_rate() -> f64 {
 
 impl Default for Output {
     fn default() -> Self {
-        Output { odometry_rate_hz: default_odometry_rate(), local_position_ned: true }
+        Output { odometry_rate_hz: default_odometry_rate(), local_position_ned: true, gps_input_rate_hz: 0.0 }
     }
 }
 
@@ -470,6 +476,16 @@ impl VehicleProfile {
             return Err(invalid(
                 "output.odometry_rate_hz",
                 format!("0 (off) or 4-200 Hz (ArduPilot ignores ODOMETRY below 4 Hz), got {}", o.odometry_rate_hz),
+            ));
+        }
+        non_negative("output.gps_input_rate_hz", o.gps_input_rate_hz)?;
+        if o.gps_input_rate_hz > 50.0 {
+            return Err(invalid("output.gps_input_rate_hz", format!("0 (off) or up to 50 Hz, got {}", o.gps_input_rate_hz)));
+        }
+        if o.gps_input_rate_hz > 0.0 && self.origin.is_none() {
+            return Err(invalid(
+                "output.gps_input_rate_hz",
+                "GPS_INPUT needs [origin] (positions go out as latitude and longitude)",
             ));
         }
         Ok(())

@@ -23,7 +23,7 @@ use std::time::Duration;
 use mavlink_core::MavHeader;
 use tokio::net::UdpSocket;
 
-use super::autopilot::{OdometryOutput, RateOutcome, RateRequest, RateRequests};
+use super::autopilot::{GpsInputOutput, OdometryOutput, RateOutcome, RateRequest, RateRequests};
 use super::core::{NodeConfig, NodeCore, NodeInput, NodeOutput, NodeStats};
 use super::inputs::{InputCounters, VehicleEvent, VehicleInputs};
 use super::profile::VehicleProfile;
@@ -197,6 +197,8 @@ pub struct NodeSummary {
     /// ODOMETRY messages sent to the autopilot, and their last reset counter.
     pub odometry_sent: u64,
     pub odometry_resets: u8,
+    /// GPS_INPUT messages sent to the autopilot.
+    pub gps_input_sent: u64,
 }
 
 struct Sequences {
@@ -335,6 +337,7 @@ pub async fn run(
     let mut rates = RateRequests::new(&links.profile, sysid);
     let mut odometry = OdometryOutput::new(links.profile.output.odometry_rate_hz);
     let lpn = links.profile.output.local_position_ned;
+    let mut gps_input = GpsInputOutput::new(links.profile.output.gps_input_rate_hz, links.profile.geo_origin());
     let profile_origin = links.profile.geo_origin();
     let mut vehicle_origin_checked = false;
 
@@ -546,11 +549,13 @@ pub async fn run(
         for input in inputs {
             out.extend(core.handle(input));
         }
-        if vehicle_input
-            && let Some(o) = odometry.as_mut()
-            && let Some(msg) = o.poll(&core.navigation(), |t| decoder.to_vehicle_time(t))
-        {
-            to_vehicle(&vehicle, &mut seqs, &recorder, sysid, &msg).await;
+        if vehicle_input {
+            let nav = core.navigation();
+            let odo = odometry.as_mut().and_then(|o| o.poll(&nav, |t| decoder.to_vehicle_time(t)));
+            let gps = gps_input.as_mut().and_then(|g| g.poll(&nav, |t| decoder.to_vehicle_time(t)));
+            for msg in odo.iter().chain(&gps) {
+                to_vehicle(&vehicle, &mut seqs, &recorder, sysid, msg).await;
+            }
         }
         send_all(
             &coop,
@@ -581,5 +586,6 @@ pub async fn run(
         rate_requests: rates.requests.clone(),
         odometry_sent: odometry.as_ref().map_or(0, |o| o.sent),
         odometry_resets: odometry.as_ref().map_or(0, |o| o.reset_counter),
+        gps_input_sent: gps_input.as_ref().map_or(0, |g| g.sent),
     })
 }

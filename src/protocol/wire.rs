@@ -431,6 +431,56 @@ pub fn navigation_to_odometry(n: &Navigation, time_usec: u64, reset_counter: u8)
     })
 }
 
+/// Unix time of the GPS epoch (1980-01-06), s, and GPS time's lead over UTC (leap seconds since
+/// then: 18, unchanged since 2017).
+const GPS_EPOCH_UNIX_S: u64 = 315_964_800;
+const GPS_LEAP_S: u64 = 18;
+
+/// GPS week and time of week (ms) of a Unix time in microseconds.
+pub fn gps_week_time(unix_us: u64) -> (u16, u32) {
+    let gps_ms = (unix_us / 1000).saturating_sub(GPS_EPOCH_UNIX_S * 1000) + GPS_LEAP_S * 1000;
+    const WEEK_MS: u64 = 7 * 24 * 3600 * 1000;
+    ((gps_ms / WEEK_MS) as u16, (gps_ms % WEEK_MS) as u32)
+}
+
+/// The navigation solution as GPS_INPUT (ArduPilot's GPS type 14, MAV): the position as latitude,
+/// longitude and altitude about `origin`, the NED velocity, and its accuracies (1 sigma: the
+/// horizontal one is the larger axis of the position covariance) instead of dilutions of
+/// precision (HDOP and VDOP are flagged ignored), a 3D fix, satellites unknown (255), the yaw in
+/// centidegrees (36000 = north). `gps_time` (week, ms of week) when the team's clock is Unix time.
+pub fn navigation_to_gps_input(n: &Navigation, origin: &GeoOrigin, time_usec: u64, gps_time: Option<(u16, u32)>) -> MavMessage {
+    use super::dialect::cooploc::{GPS_INPUT_DATA, GpsFixType, GpsInputIgnoreFlags};
+    let g = ned_to_geodetic(origin, &n.position_ned_m);
+    let p = n.pose_covariance.fixed_view::<2, 2>(0, 0).into_owned();
+    let horizontal = p.symmetric_eigenvalues().max().max(0.0).sqrt();
+    let vertical = n.pose_covariance[(2, 2)].max(0.0).sqrt();
+    let speed = n.velocity_covariance_ned.fixed_view::<2, 2>(0, 0).symmetric_eigenvalues().max().max(0.0).sqrt();
+    let (_, _, yaw) = n.attitude_frd_to_ned.euler_angles();
+    let cdeg = (yaw.to_degrees().rem_euclid(360.0) * 100.0).round() as u16;
+    let (week, week_ms) = gps_time.unwrap_or((0, 0));
+    MavMessage::GPS_INPUT(GPS_INPUT_DATA {
+        time_usec,
+        gps_id: 0,
+        ignore_flags: GpsInputIgnoreFlags::GPS_INPUT_IGNORE_FLAG_HDOP | GpsInputIgnoreFlags::GPS_INPUT_IGNORE_FLAG_VDOP,
+        time_week_ms: week_ms,
+        time_week: week,
+        fix_type: GpsFixType::GPS_FIX_TYPE_3D_FIX,
+        lat: deg_to_e7(g.lat_deg),
+        lon: deg_to_e7(g.lon_deg),
+        alt: g.alt_m as f32,
+        hdop: 0.0,
+        vdop: 0.0,
+        vn: n.velocity_ned_m_s[0] as f32,
+        ve: n.velocity_ned_m_s[1] as f32,
+        vd: n.velocity_ned_m_s[2] as f32,
+        speed_accuracy: speed as f32,
+        horiz_accuracy: horizontal as f32,
+        vert_accuracy: vertical as f32,
+        satellites_visible: u8::MAX,
+        yaw: if cdeg == 0 { 36000 } else { cdeg },
+    })
+}
+
 // ---- vehicle sensor streams ----
 
 /// Largest plausible specific force and angular rate from a vehicle (beyond: a corrupt sample).

@@ -32,7 +32,8 @@ use crate::protocol::wire;
 use crate::sitl::TruthState;
 use crate::time::TimeUs;
 
-/// Unix time of simulated time zero, us (2026-11-17): what the personalities' SYSTEM_TIME says.
+/// Unix time of simulated time zero, us (2026-11-18 11:06:40 UTC): what the personalities'
+/// SYSTEM_TIME says.
 pub const SIM_UNIX_EPOCH_US: u64 = 1_795_000_000_000_000;
 /// ArduPilot stamps RAW_IMU when it sends it, this long after the sample, us.
 pub const ARDUPILOT_SEND_LATENCY_US: u64 = 2_000;
@@ -262,6 +263,10 @@ pub struct Checker {
     /// First and last `time_usec` accepted (the vehicle's clock).
     pub first_us: Option<u64>,
     pub last_us: Option<u64>,
+    /// GPS_INPUT messages a GPS driver would take (a 3D fix, a position on the Earth, a
+    /// horizontal accuracy), and those it would not.
+    pub gps_input_accepted: u64,
+    pub gps_input_ignored: u64,
 }
 
 impl Checker {
@@ -280,6 +285,24 @@ impl Checker {
         self.accepted += 1;
         self.first_us = Some(self.first_us.map_or(m.time_usec, |f| f.min(m.time_usec)));
         self.last_us = Some(self.last_us.map_or(m.time_usec, |l| l.max(m.time_usec)));
+    }
+
+    /// Checks one GPS_INPUT from the node.
+    pub fn check_gps_input(&mut self, m: &crate::protocol::dialect::cooploc::GPS_INPUT_DATA) {
+        use crate::protocol::dialect::cooploc::GpsFixType;
+        let fix = matches!(
+            m.fix_type,
+            GpsFixType::GPS_FIX_TYPE_3D_FIX
+                | GpsFixType::GPS_FIX_TYPE_DGPS
+                | GpsFixType::GPS_FIX_TYPE_RTK_FLOAT
+                | GpsFixType::GPS_FIX_TYPE_RTK_FIXED
+        );
+        let on_earth = m.lat.unsigned_abs() <= 900_000_000 && m.lon.unsigned_abs() <= 1_800_000_000 && (m.lat, m.lon) != (0, 0);
+        if fix && on_earth && m.horiz_accuracy.is_finite() && m.horiz_accuracy > 0.0 {
+            self.gps_input_accepted += 1;
+        } else {
+            self.gps_input_ignored += 1;
+        }
     }
 
     fn refusal(autopilot: Autopilot, m: &Odometry) -> Option<&'static str> {

@@ -492,6 +492,10 @@ impl VehicleCore {
                 self.checker.check(self.config.autopilot, m, self.personality.clock_us(now));
                 return;
             }
+            MavMessage::GPS_INPUT(m) => {
+                self.checker.check_gps_input(m);
+                return;
+            }
             MavMessage::COMMAND_LONG(c) => (
                 c.command,
                 [c.param1, c.param2, c.param3, c.param4, c.param5, c.param6, c.param7],

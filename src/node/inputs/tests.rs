@@ -129,7 +129,7 @@ fn a_unix_team_clock_maps_boot_stamps_with_system_time_and_back() {
     // a SYSTEM_TIME without Unix time (no RTC yet) does not help
     d.decode(&system_time(0, 5_010));
     assert_eq!(d.decode(&raw(5_020_000, [0, 0, -1000], [0; 3])), VehicleEvent::Nothing);
-    let unix0 = 1_795_000_000_000_000u64; // 2026-11
+    let unix0 = 1_795_000_000_000_000u64; // 2026-11-18
     d.decode(&system_time(unix0, 5_030));
     let s = imu(d.decode(&raw(5_040_000, [0, 0, -1000], [0; 3])));
     assert_eq!(s.t, TimeUs(unix0 + 10_000));
