@@ -133,8 +133,10 @@ pub fn run_cmd(args: Args) -> anyhow::Result<()> {
     };
     let scenario = Scenario::from_path(&args.scenario)?;
     let world = World::new(&scenario)?;
-    let latitude = profile.latitude().context("the vehicle profile gives no latitude")?;
-    let (ins, initial_sigma) = profile.ins_settings(latitude);
+    // Without a latitude in the profile, the node takes the vehicle's origin (GPS_GLOBAL_ORIGIN
+    // or HOME_POSITION) before it starts; the INS gets that latitude.
+    let latitude = profile.latitude();
+    let (ins, initial_sigma) = profile.ins_settings(latitude.unwrap_or(0.0));
     let initial = match from_run {
         Some((seed, run)) => Some(
             cooploc::experiment::initial_state(&world, seed, run, args.id)
@@ -166,14 +168,22 @@ pub fn run_cmd(args: Args) -> anyhow::Result<()> {
     cfg.retry_us = args.retry_ms * 1000;
     cfg.range_grace_us = args.range_grace_ms * 1000;
     cfg.gate_probability = args.gate_probability;
-    let origin = profile.geo_origin().unwrap_or(GeoOrigin { lat_deg: latitude, lon_deg: args.origin_lon_deg, alt_m: 0.0 });
+    let origin = profile.geo_origin().or(latitude.map(|lat_deg| GeoOrigin { lat_deg, lon_deg: args.origin_lon_deg, alt_m: 0.0 }));
     let recorder = match &args.log {
         Some(path) => {
-            let options = RecorderOptions { geo_origin: Some(origin), ..RecorderOptions::default() };
+            let options = RecorderOptions { geo_origin: origin, ..RecorderOptions::default() };
             let mut rec = Recorder::create(path, options).with_context(|| format!("--log {}", path.display()))?;
             let mut meta = node_metadata(&cfg, initial.as_ref().map(|(t0, s)| (*t0, s)));
-            meta.insert("origin_lat_deg".into(), origin.lat_deg.to_string());
-            meta.insert("origin_lon_deg".into(), origin.lon_deg.to_string());
+            match origin {
+                Some(o) => {
+                    meta.insert("origin_lat_deg".into(), o.lat_deg.to_string());
+                    meta.insert("origin_lon_deg".into(), o.lon_deg.to_string());
+                    meta.insert("origin_alt_m".into(), o.alt_m.to_string());
+                }
+                None => {
+                    meta.insert("origin".into(), "vehicle".into());
+                }
+            }
             rec.metadata(&metadata_name(args.id), meta)?;
             let toml = std::fs::read(&args.scenario).with_context(|| format!("reading {}", args.scenario.display()))?;
             rec.attachment("scenario.toml", "application/toml", &toml)?;
@@ -183,12 +193,12 @@ pub fn run_cmd(args: Args) -> anyhow::Result<()> {
         }
         None => None,
     };
-    let init = match initial {
-        Some((t0, state)) => NodeInit::Ready(Box::new(NodeCore::new(cfg, t0, state).context("node configuration")?)),
-        None => {
-            // Checked now rather than at the first SIM_STATE.
+    let init = match (initial, origin) {
+        (Some((t0, state)), Some(_)) => NodeInit::Ready(Box::new(NodeCore::new(cfg, t0, state).context("node configuration")?)),
+        (state, origin) => {
+            // Checked now rather than when the vehicle has said what is missing.
             NodeCore::new(cfg.clone(), TimeUs(0), InsState::at_rest(UnitQuaternion::identity())).context("node configuration")?;
-            NodeInit::FromSimState { config: Box::new(cfg), origin }
+            NodeInit::Pending { config: Box::new(cfg), origin, state }
         }
     };
     let links = Links {
@@ -220,10 +230,18 @@ pub fn run_cmd(args: Args) -> anyhow::Result<()> {
         let stats = rec.into_inner().map_err(|_| anyhow::anyhow!("recorder lock poisoned"))?.finish()?;
         println!("node {} log {} messages", args.id, stats.messages_written);
     }
+    if let Some(o) = &summary.origin_from_vehicle {
+        println!(
+            "node {} origin from the vehicle: lat_deg {:.7} lon_deg {:.7} alt_m {:.3}",
+            args.id, o.lat_deg, o.lon_deg, o.alt_m
+        );
+    }
     let Some(e) = &summary.estimate else {
         println!(
-            "node {} done: never initialised (no SIM_STATE from the vehicle); {} inputs ignored",
-            args.id, summary.before_init
+            "node {} done: never initialised (no {} from the vehicle); {} inputs ignored",
+            args.id,
+            if summary.origin_from_vehicle.is_none() && profile.latitude().is_none() { "GPS_GLOBAL_ORIGIN" } else { "SIM_STATE" },
+            summary.before_init
         );
         return Ok(());
     };

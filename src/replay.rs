@@ -154,17 +154,28 @@ fn replay_node(log: &Log, world: &World, id: PlatformId) -> Result<NodeReplay, R
         cfg.independent_start = field(&record, m, "independent_start")?;
     }
     let node_err = |e: String| ReplayError::Node(id, e);
-    let mut core = match field::<String>(&record, m, "init")?.as_str() {
+    // The origin: in the metadata, or (`origin` = `vehicle`) from the Init event.
+    let origin = if m.get("origin").is_some_and(|o| o == "vehicle") {
+        None
+    } else {
+        let alt_m = if m.contains_key("origin_alt_m") { field(&record, m, "origin_alt_m")? } else { 0.0 };
+        Some(GeoOrigin { lat_deg: field(&record, m, "origin_lat_deg")?, lon_deg: field(&record, m, "origin_lon_deg")?, alt_m })
+    };
+    let initial_state: Option<(u64, crate::estimation::ins::InsState)> = match field::<String>(&record, m, "init")?.as_str() {
         "state" => {
             let t0: u64 = field(&record, m, "t0_us")?;
             let state =
                 serde_json::from_str(&field::<String>(&record, m, "initial_state")?).map_err(|e| node_err(e.to_string()))?;
-            Some(NodeCore::new(cfg.clone(), TimeUs(t0), state).map_err(|e| node_err(e.to_string()))?)
+            Some((t0, state))
         }
         _ => None,
     };
-    let origin =
-        GeoOrigin { lat_deg: field(&record, m, "origin_lat_deg")?, lon_deg: field(&record, m, "origin_lon_deg")?, alt_m: 0.0 };
+    let mut core = match (&initial_state, origin) {
+        (Some((t0, state)), Some(_)) => {
+            Some(NodeCore::new(cfg.clone(), TimeUs(*t0), *state).map_err(|e| node_err(e.to_string()))?)
+        }
+        _ => None,
+    };
     let sysid = id as u8;
     let vehicle_rx = topics::frames(Link::Vehicle(sysid), Direction::Rx);
     let coop_rx = topics::frames(Link::Coop(sysid), Direction::Rx);
@@ -207,10 +218,24 @@ fn replay_node(log: &Log, world: &World, id: PlatformId) -> Result<NodeReplay, R
         } else if topic == events {
             let event: NodeEvent = msg.json().map_err(|e| node_err(format!("event: {e}")))?;
             match (event, core.as_mut()) {
-                (NodeEvent::Init { t0_us }, None) => {
-                    let s = last_sim_state.as_ref().ok_or_else(|| node_err("Init event before any SIM_STATE".into()))?;
-                    let state = state_from_sim_state(s, &origin).map_err(|e| node_err(e.to_string()))?;
-                    core = Some(NodeCore::new(cfg.clone(), TimeUs(t0_us), state).map_err(|e| node_err(e.to_string()))?);
+                (NodeEvent::Init { t0_us, origin: from_vehicle }, None) => {
+                    let mut cfg = cfg.clone();
+                    let origin = match (from_vehicle, origin) {
+                        (Some([lat_deg, lon_deg, alt_m]), _) => {
+                            cfg.ins.latitude_deg = lat_deg;
+                            GeoOrigin { lat_deg, lon_deg, alt_m }
+                        }
+                        (None, Some(o)) => o,
+                        (None, None) => return Err(node_err("Init event without the vehicle's origin".into())),
+                    };
+                    let state = match &initial_state {
+                        Some((_, state)) => *state,
+                        None => {
+                            let s = last_sim_state.as_ref().ok_or_else(|| node_err("Init event before any SIM_STATE".into()))?;
+                            state_from_sim_state(s, &origin).map_err(|e| node_err(e.to_string()))?
+                        }
+                    };
+                    core = Some(NodeCore::new(cfg, TimeUs(t0_us), state).map_err(|e| node_err(e.to_string()))?);
                     continue;
                 }
                 (NodeEvent::Poll { wall_us }, Some(c)) => c.poll(wall_us),

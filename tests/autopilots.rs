@@ -58,6 +58,8 @@ impl Drop for Kill {
 }
 
 struct Outcome {
+    /// The node's line about the origin the vehicle gave, if any.
+    origin: Option<String>,
     done: String,
     vehicle: String,
     requests: Vec<String>,
@@ -73,6 +75,11 @@ fn drive(kind: &str, profile_edits: &[(&str, &str)], example: &str) -> Option<Ou
     for (from, to) in edits.iter().chain(profile_edits) {
         assert!(profile.contains(from), "{from}");
         profile = profile.replacen(from, to, 1);
+    }
+    if kind == "origin" {
+        // no [origin] and no latitude: the node waits for the vehicle's GPS_GLOBAL_ORIGIN
+        let (a, b) = (profile.find("[origin]").unwrap(), profile.find("[sensors]").unwrap());
+        profile.replace_range(a..b, "");
     }
     let dir = std::env::temp_dir().join(format!("cooploc-autopilot-{kind}-{}", std::process::id()));
     std::fs::create_dir_all(&dir).unwrap();
@@ -93,12 +100,21 @@ fn drive(kind: &str, profile_edits: &[(&str, &str)], example: &str) -> Option<Ou
         .arg(&path)
         .args(["--init-ned", "0,0,0", "--init-vel-ned", "0,0,0", "--init-rpy-deg", "0,0,0"])
         .arg("--init-time-us")
-        .arg((UNIX0_US + boot0_us - 1000).to_string());
+        .arg((UNIX0_US + boot0_us - 1000).to_string())
+        .arg("--log")
+        .arg(dir.join("node.mcap"));
     let (node_proc, nrx) = spawn_lines(node);
     kill.0.push(node_proc);
     let script: serde_json::Value =
         serde_json::from_str(&wait_line(&vrx, "{", Duration::from_secs(60))).expect("the script's JSON report");
-    let done = wait_line(&nrx, "node 1 done", Duration::from_secs(30));
+    let mut done = wait_line(&nrx, "node 1 ", Duration::from_secs(30));
+    while done.contains(" coop udp ") || done.contains(" log ") {
+        done = wait_line(&nrx, "node 1 ", Duration::from_secs(30));
+    }
+    let origin = done.starts_with("node 1 origin from the vehicle").then(|| done.clone());
+    if origin.is_some() {
+        done = wait_line(&nrx, "node 1 done", Duration::from_secs(30));
+    }
     let _stats = wait_line(&nrx, "node 1 stats", Duration::from_secs(5));
     let vehicle = wait_line(&nrx, "node 1 vehicle", Duration::from_secs(5));
     let mut requests = Vec::new();
@@ -107,8 +123,24 @@ fn drive(kind: &str, profile_edits: &[(&str, &str)], example: &str) -> Option<Ou
             requests.push(line);
         }
     }
+    // the log rebuilds the node: same final position
+    let replay = Command::new(env!("CARGO_BIN_EXE_cooploc")).arg("replay").arg(dir.join("node.mcap")).output().unwrap();
+    let replay = String::from_utf8_lossy(&replay.stdout).to_string();
+    let line = replay.lines().find(|l| l.starts_with("node 1 ")).unwrap_or_else(|| panic!("replay: {replay}"));
+    let replayed: Vec<f64> = line
+        .split("final N/E [")
+        .nth(1)
+        .unwrap()
+        .split(']')
+        .next()
+        .unwrap()
+        .split(',')
+        .map(|v| v.trim().parse().unwrap())
+        .collect();
+    let p = position(&done);
+    assert!((replayed[0] - p[0]).abs() < 1e-4 && (replayed[1] - p[1]).abs() < 1e-4, "replay {line} vs {done}");
     let _ = std::fs::remove_dir_all(&dir);
-    Some(Outcome { done, vehicle, requests, script })
+    Some(Outcome { done, vehicle, requests, script, origin })
 }
 
 fn position(done: &str) -> Vec<f64> {
@@ -165,6 +197,14 @@ fn scaled_imu2_across_a_time_boot_ms_wrap() {
     assert!(count(&o.vehicle, "time_wraps") >= 1, "{}", o.vehicle);
     assert_eq!(count(&o.vehicle, "imu_out_of_order"), 0, "{}", o.vehicle);
     assert!(count(&o.vehicle, "imu") >= 500, "{}", o.vehicle);
+}
+
+#[test]
+fn a_profile_without_an_origin_takes_the_vehicles() {
+    let Some(o) = drive("origin", &[], "ardupilot-rover") else { return };
+    check_common(&o, 100_000_000);
+    let line = o.origin.expect("the node says where its origin came from");
+    assert!(line.contains("lat_deg -35.3632620 lon_deg 149.1652370 alt_m 584.000"), "{line}");
 }
 
 #[test]

@@ -175,7 +175,7 @@ fn a_node_killed_with_sigkill_leaves_a_log_that_replays() {
     let t0 = log
         .topic("/vehicle_1/node/events")
         .find_map(|m| match m.json::<cooploc::node::runner::NodeEvent>() {
-            Ok(cooploc::node::runner::NodeEvent::Init { t0_us }) => Some(t0_us),
+            Ok(cooploc::node::runner::NodeEvent::Init { t0_us, .. }) => Some(t0_us),
             _ => None,
         })
         .expect("the node initialised");

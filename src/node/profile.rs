@@ -10,7 +10,8 @@
 //!
 //! - `[origin]`: the geodetic point of the local NED frame (`lat_deg`, `lon_deg`, `alt_m`).
 //!   The node compares it with the vehicle's GPS_GLOBAL_ORIGIN and HOME_POSITION and warns when
-//!   they are far apart. Either `[origin]` or `latitude_deg` is required.
+//!   they are far apart. Without `[origin]` or `latitude_deg` the node waits for the vehicle's
+//!   GPS_GLOBAL_ORIGIN (or HOME_POSITION) before it starts, and its INS takes that latitude.
 //! - `[inputs]`: which messages carry the IMU (`imu`: `highres_imu`, `raw_imu`, `scaled_imu`,
 //!   `scaled_imu2`, `scaled_imu3`; `imu_id` for HIGHRES_IMU and RAW_IMU; `imu_samples`:
 //!   `average` over the interval as PX4 sends, or `instantaneous` as ArduPilot does), the
@@ -443,9 +444,6 @@ impl VehicleProfile {
                 ));
             }
         }
-        if self.latitude().is_none() {
-            return Err(invalid("origin", "give [origin] (lat_deg, lon_deg, alt_m) or latitude_deg"));
-        }
         let i = &self.inputs;
         if i.imu_id != 0 && !matches!(i.imu, ImuMessage::HighresImu | ImuMessage::RawImu) {
             return Err(invalid(
@@ -491,7 +489,7 @@ impl VehicleProfile {
         Ok(())
     }
 
-    /// The latitude the INS uses: `latitude_deg` or the origin's.
+    /// The latitude the INS uses: `latitude_deg` or the origin's; None: the vehicle's.
     pub fn latitude(&self) -> Option<f64> {
         self.latitude_deg.or(self.origin.map(|o| o.lat_deg))
     }

@@ -52,7 +52,7 @@ pub fn events_topic(id: PlatformId) -> String {
 /// Schema name of [`NodeEvent`] records.
 pub const NODE_EVENT_SCHEMA_NAME: &str = "cooploc.NodeEvent";
 /// JSON schema of [`NodeEvent`].
-pub const NODE_EVENT_SCHEMA: &str = r#"{"type":"object","title":"cooploc.NodeEvent","properties":{"kind":{"type":"string","enum":["poll","end_of_input","run_pending","init"]},"wall_us":{"type":"integer"},"t0_us":{"type":"integer"}},"required":["kind"]}"#;
+pub const NODE_EVENT_SCHEMA: &str = r#"{"type":"object","title":"cooploc.NodeEvent","properties":{"kind":{"type":"string","enum":["poll","end_of_input","run_pending","init"]},"wall_us":{"type":"integer"},"t0_us":{"type":"integer"},"origin":{"type":"array","items":{"type":"number"},"description":"latitude, longitude (deg) and altitude (m) of the origin, when it came from the vehicle"}},"required":["kind"]}"#;
 
 /// One call the runner made on its core other than `handle` (whose inputs are the frames).
 #[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
@@ -63,9 +63,12 @@ pub enum NodeEvent {
     },
     EndOfInput,
     RunPending,
-    /// The core was created from the SIM_STATE frame just recorded, at `t0_us`.
+    /// The core was created at `t0_us` (from the SIM_STATE frame last recorded, when the
+    /// metadata says so), about the vehicle's origin when it came from the vehicle.
     Init {
         t0_us: u64,
+        #[serde(default, skip_serializing_if = "Option::is_none")]
+        origin: Option<[f64; 3]>,
     },
 }
 
@@ -131,9 +134,12 @@ pub fn node_metadata(cfg: &NodeConfig, init: Option<(TimeUs, &InsState)>) -> std
 pub enum NodeInit {
     /// Already initialised (command-line state).
     Ready(Box<NodeCore>),
-    /// From the first SIM_STATE the vehicle sends (simulated vehicles): its position (about
-    /// `origin`), NED velocity and attitude, at the time of the last IMU sample before it.
-    FromSimState { config: Box<NodeConfig>, origin: wire::GeoOrigin },
+    /// Waiting for what it lacks. `origin` None: the vehicle's GPS_GLOBAL_ORIGIN (or
+    /// HOME_POSITION) gives it, and its latitude goes into the INS configuration. `state` None:
+    /// the first SIM_STATE the vehicle sends after the origin is known (simulated vehicles): its
+    /// position about the origin, NED velocity and attitude, at the time of the last IMU sample
+    /// before it.
+    Pending { config: Box<NodeConfig>, origin: Option<wire::GeoOrigin>, state: Option<(TimeUs, InsState)> },
 }
 
 pub fn state_from_sim_state(m: &SIM_STATE_DATA, origin: &wire::GeoOrigin) -> anyhow::Result<InsState> {
@@ -199,6 +205,8 @@ pub struct NodeSummary {
     pub odometry_resets: u8,
     /// GPS_INPUT messages sent to the autopilot.
     pub gps_input_sent: u64,
+    /// The origin the vehicle gave, when the profile had none.
+    pub origin_from_vehicle: Option<wire::GeoOrigin>,
 }
 
 struct Sequences {
@@ -313,8 +321,10 @@ pub async fn run(
     use anyhow::Context as _;
     let (id, mut core, mut pending_init) = match init {
         NodeInit::Ready(core) => (core.id(), Some(*core), None),
-        NodeInit::FromSimState { config, origin } => (config.id, None, Some((*config, origin))),
+        NodeInit::Pending { config, origin, state } => (config.id, None, Some((*config, origin, state))),
     };
+    // The origin came from the vehicle (recorded with the Init event, for replay).
+    let mut origin_from_vehicle: Option<wire::GeoOrigin> = None;
     let sysid = u8::try_from(id).context("a node's platform id is a MAVLink system id (1..=255)")?;
     let mut last_imu_t: Option<TimeUs> = None;
     let mut before_init = 0u64;
@@ -454,23 +464,29 @@ pub async fn run(
                     }
                 }
                 if let MavMessage::SIM_STATE(m) = &msg
-                    && let Some((config, origin)) = &pending_init
+                    && let Some((_, Some(origin), state @ None)) = &mut pending_init
                 {
                     match state_from_sim_state(m, origin) {
-                        Ok(state) => {
+                        Ok(s) => {
                             let t0 = last_imu_t.unwrap_or(TimeUs(0));
-                            let made = NodeCore::new(config.clone(), t0, state).context("node configuration")?;
-                            tracing::info!(platform = id, t0 = %t0, pos = ?made.filter().position_ned_m(), "initialised from SIM_STATE");
-                            sim_state_init = Some((t0, made.filter().position_ned_m()));
-                            record_event(&recorder, id, &NodeEvent::Init { t0_us: t0.0 });
-                            core = Some(made);
-                            pending_init = None;
+                            *state = Some((t0, s));
+                            sim_state_init = Some((t0, s.pos_ned_m));
                         }
                         Err(e) => {
                             summary_counts.1 += 1;
                             tracing::warn!(platform = id, error = %e, "SIM_STATE refused for initialisation");
                         }
                     }
+                }
+                if let Some((config, Some(origin), Some((t0, state)))) = &pending_init {
+                    let made = NodeCore::new(config.clone(), *t0, *state).context("node configuration")?;
+                    tracing::info!(platform = id, t0 = %t0, pos = ?made.filter().position_ned_m(), lat_deg = origin.lat_deg, "initialised");
+                    let o = origin_from_vehicle.map(|o| [o.lat_deg, o.lon_deg, o.alt_m]);
+                    record_event(&recorder, id, &NodeEvent::Init { t0_us: t0.0, origin: o });
+                    core = Some(made);
+                    pending_init = None;
+                }
+                if matches!(msg, MavMessage::SIM_STATE(_)) {
                     continue;
                 }
                 let input = match decoder.decode(&msg) {
@@ -485,6 +501,13 @@ pub async fn run(
                         continue;
                     }
                     VehicleEvent::Origin(o) => {
+                        if let Some((config, origin @ None, _)) = &mut pending_init {
+                            tracing::info!(platform = id, lat_deg = o.lat_deg, lon_deg = o.lon_deg, alt_m = o.alt_m, "origin from the vehicle");
+                            config.ins.latitude_deg = o.lat_deg;
+                            *origin = Some(o);
+                            origin_from_vehicle = Some(o);
+                            vehicle_origin_checked = true;
+                        }
                         if let (Some(mine), false) = (profile_origin, vehicle_origin_checked) {
                             vehicle_origin_checked = true;
                             let apart = wire::geodetic_to_ned(&mine, &wire::Geodetic { lat_deg: o.lat_deg, lon_deg: o.lon_deg, alt_m: o.alt_m }).xy().norm();
@@ -587,5 +610,6 @@ pub async fn run(
         odometry_sent: odometry.as_ref().map_or(0, |o| o.sent),
         odometry_resets: odometry.as_ref().map_or(0, |o| o.reset_counter),
         gps_input_sent: gps_input.as_ref().map_or(0, |g| g.sent),
+        origin_from_vehicle,
     })
 }

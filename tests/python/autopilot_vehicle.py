@@ -12,6 +12,8 @@ KIND: ardupilot  RAW_IMU (int16 mG / mrad/s, the latest sample, time_usec since 
                  wheel-odometry source (estimator NAIVE); time since boot; SYSTEM_TIME.
       scaled2    SCALED_IMU2 (time_boot_ms) at 50 Hz starting 5 s before time_boot_ms wraps
                  (49.7 days of uptime), WHEEL_DISTANCE, SYSTEM_TIME.
+      origin     as ardupilot, with GPS_GLOBAL_ORIGIN at 1 Hz (the EKF origin, for a node whose
+                 profile gives none).
 The vehicle drives straight north at 2 m/s on level ground for 10 s (at 10x real time), the node
 starting at rest: only a working odometer gets it to 20 m. Binds 127.0.0.1:0, prints
 "port N", waits for the node's HEARTBEAT, answers its SET_MESSAGE_INTERVAL requests with
@@ -35,7 +37,7 @@ SYSID = 1
 
 def main():
     kind = sys.argv[1]
-    lat = {"ardupilot": -35.363262, "scaled2": -35.363262, "px4": 47.397742}[kind]
+    lat = {"ardupilot": -35.363262, "origin": -35.363262, "scaled2": -35.363262, "px4": 47.397742}[kind]
     sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
     sock.bind(("127.0.0.1", 0))
     print("port %d" % sock.getsockname()[1], flush=True)
@@ -63,7 +65,7 @@ def main():
                 t = msg.get_type()
                 if t == "COMMAND_LONG" and msg.command == mav.MAV_CMD_SET_MESSAGE_INTERVAL:
                     asked = int(msg.param1)
-                    refuse = kind == "ardupilot" and asked == 9000
+                    refuse = kind in ("ardupilot", "origin") and asked == 9000
                     report["requests"].append([asked, msg.param2])
                     result = mav.MAV_RESULT_DENIED if refuse else mav.MAV_RESULT_ACCEPTED
                     m.command_ack_send(msg.command, result)
@@ -75,8 +77,8 @@ def main():
                     report["odometry_n"].append(msg.x)
 
     # (vehicle time since boot, us) of the first sample, and the sample period per stream
-    boot0_us = {"ardupilot": 100_000_000, "px4": 100_000_000, "scaled2": (2**32 - 5000) * 1000}[kind]
-    imu_period = {"ardupilot": 25_000, "px4": 5_000, "scaled2": 20_000}[kind]
+    boot0_us = {"ardupilot": 100_000_000, "origin": 100_000_000, "px4": 100_000_000, "scaled2": (2**32 - 5000) * 1000}[kind]
+    imu_period = {"ardupilot": 25_000, "origin": 25_000, "px4": 5_000, "scaled2": 20_000}[kind]
     wheel_period = 50_000
     w_earth = (EARTH_RATE * math.cos(math.radians(lat)), 0.0, -EARTH_RATE * math.sin(math.radians(lat)))
     t_us = 0
@@ -90,8 +92,10 @@ def main():
         boot_ms = (boot_us // 1000) % 2**32
         if t_us >= next_time:
             m.system_time_send(UNIX0_US + boot_us, boot_ms)
+            if kind == "origin":
+                m.gps_global_origin_send(round(lat * 1e7), round(149.165237 * 1e7), 584_000, boot_us)
             next_time += 1_000_000
-        if kind == "ardupilot":
+        if kind in ("ardupilot", "origin"):
             m.raw_imu_send(boot_us, 0, 0, -1000, round(w_earth[0] * 1e3), 0, round(w_earth[2] * 1e3), 0, 0, 0, 0)
             m.scaled_imu2_send(boot_ms, 300, 0, -1000, 0, 0, 200, 0, 0, 0)
             m.highres_imu_send(boot_us, 3.0, 0, -G, 0, 0, 0.2, 0, 0, 0, 0, 0, 0, 0, 0x3F, 0)
