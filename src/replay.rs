@@ -139,8 +139,8 @@ fn replay_node(log: &Log, world: &World, id: PlatformId) -> Result<NodeReplay, R
     };
     let team: Vec<PlatformId> = field::<String>(&record, m, "team")?.split(',').filter_map(|s| s.parse().ok()).collect();
     let profile = profile_of(log, world, id)?;
-    let latitude = profile.latitude().ok_or_else(|| ReplayError::Node(id, "its vehicle profile gives no latitude".into()))?;
-    let (ins, sigma) = profile.ins_settings(latitude);
+    // No latitude in the profile: the node took the vehicle's origin (its Init event says which).
+    let (ins, sigma) = profile.ins_settings(profile.latitude().unwrap_or(0.0));
     let mut cfg = NodeConfig::new(id, method, ins, sigma, encoding, team);
     cfg.epoch_timeout_us = field(&record, m, "epoch_timeout_us")?;
     cfg.retry_us = field(&record, m, "retry_us")?;

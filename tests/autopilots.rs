@@ -9,52 +9,16 @@
 
 mod common;
 
-use std::io::{BufRead, BufReader};
-use std::process::{Child, Command, Stdio};
-use std::sync::mpsc;
+use common::{Kill, spawn_lines, wait_line};
+
+use std::process::Command;
 use std::time::Duration;
 
 const UNIX0_US: u64 = 1_795_000_000_000_000;
 
-fn spawn_lines(mut cmd: Command) -> (Child, mpsc::Receiver<String>) {
-    let mut child = cmd.current_dir(env!("CARGO_MANIFEST_DIR")).stdout(Stdio::piped()).stderr(Stdio::null()).spawn().unwrap();
-    let out = child.stdout.take().unwrap();
-    let (tx, rx) = mpsc::channel();
-    std::thread::spawn(move || {
-        for line in BufReader::new(out).lines().map_while(Result::ok) {
-            if tx.send(line).is_err() {
-                break;
-            }
-        }
-    });
-    (child, rx)
-}
-
-fn wait_line(rx: &mpsc::Receiver<String>, prefix: &str, timeout: Duration) -> String {
-    let deadline = std::time::Instant::now() + timeout;
-    loop {
-        let left = deadline.saturating_duration_since(std::time::Instant::now());
-        match rx.recv_timeout(left) {
-            Ok(line) if line.starts_with(prefix) => return line,
-            Ok(_) => {}
-            Err(e) => panic!("no line starting with {prefix:?}: {e}"),
-        }
-    }
-}
-
 /// Field `name: N` of a Debug-printed struct on a node's output line.
 fn count(line: &str, name: &str) -> u64 {
     line.split(&format!(" {name}: ")).nth(1).unwrap().split(|c: char| !c.is_ascii_digit()).next().unwrap().parse().unwrap()
-}
-
-struct Kill(Vec<Child>);
-impl Drop for Kill {
-    fn drop(&mut self) {
-        for c in &mut self.0 {
-            let _ = c.kill();
-            let _ = c.wait();
-        }
-    }
 }
 
 struct Outcome {
@@ -125,8 +89,8 @@ fn drive(kind: &str, profile_edits: &[(&str, &str)], example: &str) -> Option<Ou
     }
     // the log rebuilds the node: same final position
     let replay = Command::new(env!("CARGO_BIN_EXE_cooploc")).arg("replay").arg(dir.join("node.mcap")).output().unwrap();
-    let replay = String::from_utf8_lossy(&replay.stdout).to_string();
-    let line = replay.lines().find(|l| l.starts_with("node 1 ")).unwrap_or_else(|| panic!("replay: {replay}"));
+    let (stdout, stderr) = (String::from_utf8_lossy(&replay.stdout).to_string(), String::from_utf8_lossy(&replay.stderr));
+    let line = stdout.lines().find(|l| l.starts_with("node 1 ")).unwrap_or_else(|| panic!("replay: {stdout} {stderr}"));
     let replayed: Vec<f64> = line
         .split("final N/E [")
         .nth(1)

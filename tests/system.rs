@@ -4,12 +4,13 @@
 //! `cooploc experiment`'s run of the same method on the same world, seed, run and schedule, fed the
 //! samples as they went on the wire (f32). Stated tolerance: 1 mm in position.
 
-use std::io::{BufRead, BufReader};
-use std::process::{Child, Command, Stdio};
+use std::process::{Child, Command};
 use std::sync::mpsc;
 use std::time::Duration;
 
 mod common;
+
+use common::{Kill, spawn_lines, wait_line};
 
 use cooploc::estimation::Method;
 use cooploc::experiment::{initial_state, run_filter};
@@ -18,33 +19,6 @@ use cooploc::sitl::{PAPER_TOML, Scenario, World};
 
 fn bin() -> Command {
     Command::new(env!("CARGO_BIN_EXE_cooploc"))
-}
-
-/// Spawns `cmd`, forwarding its stdout lines to a channel.
-fn spawn_lines(mut cmd: Command) -> (Child, mpsc::Receiver<String>) {
-    let mut child = cmd.current_dir(env!("CARGO_MANIFEST_DIR")).stdout(Stdio::piped()).stderr(Stdio::null()).spawn().unwrap();
-    let out = child.stdout.take().unwrap();
-    let (tx, rx) = mpsc::channel();
-    std::thread::spawn(move || {
-        for line in BufReader::new(out).lines().map_while(Result::ok) {
-            if tx.send(line).is_err() {
-                break;
-            }
-        }
-    });
-    (child, rx)
-}
-
-fn wait_line(rx: &mpsc::Receiver<String>, prefix: &str, timeout: Duration) -> String {
-    let deadline = std::time::Instant::now() + timeout;
-    loop {
-        let left = deadline.saturating_duration_since(std::time::Instant::now());
-        match rx.recv_timeout(left) {
-            Ok(line) if line.starts_with(prefix) => return line,
-            Ok(_) => {}
-            Err(e) => panic!("no line starting with {prefix:?}: {e}"),
-        }
-    }
 }
 
 /// The numbers between the first `[` and `]` of a node's output line (its position).
@@ -62,16 +36,6 @@ fn stat(stats: &str, name: &str) -> u64 {
 fn horizontal_error(line: &str, truth: nalgebra::Vector3<f64>) -> f64 {
     let pos = bracket(line);
     ((truth[0] - pos[0]).powi(2) + (truth[1] - pos[1]).powi(2)).sqrt()
-}
-
-struct Kill(Vec<Child>);
-impl Drop for Kill {
-    fn drop(&mut self) {
-        for c in &mut self.0 {
-            let _ = c.kill();
-            let _ = c.wait();
-        }
-    }
 }
 
 /// `cooploc sitl` on the paper scenario (seed 1, run 0) at 20x real time on ephemeral ports,

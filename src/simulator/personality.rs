@@ -25,8 +25,8 @@ use nalgebra::Vector3;
 use crate::estimation::{ImuSample, OdometerSample, RangeSample};
 use crate::protocol::MavMessage;
 use crate::protocol::dialect::cooploc::{
-    HIGHRES_IMU_DATA, HighresImuUpdatedFlags, MavAutopilot, MavEstimatorType, MavFrame, MavType, ODOMETRY_DATA,
-    ODOMETRY_DATA as Odometry, SYSTEM_TIME_DATA, WHEEL_DISTANCE_DATA,
+    HighresImuUpdatedFlags, MavAutopilot, MavEstimatorType, MavFrame, MavType, ODOMETRY_DATA as Odometry, SYSTEM_TIME_DATA,
+    WHEEL_DISTANCE_DATA,
 };
 use crate::protocol::wire;
 use crate::sitl::TruthState;
@@ -167,18 +167,14 @@ impl Personality {
             Autopilot::ArduPilot => wire::imu_to_raw_imu(s, self.clock_us(s.t) + ARDUPILOT_SEND_LATENCY_US, 0),
             Autopilot::Px4 => {
                 let n = f64::from(n.max(1));
-                let (f, w) = ((f / n).map(|v| v as f32), (w / n).map(|v| v as f32));
-                MavMessage::HIGHRES_IMU(HIGHRES_IMU_DATA {
-                    time_usec: self.clock_us(s.t),
-                    xacc: f[0],
-                    yacc: f[1],
-                    zacc: f[2],
-                    xgyro: w[0],
-                    ygyro: w[1],
-                    zgyro: w[2],
-                    fields_updated: HighresImuUpdatedFlags::from_bits_truncate(0x1fff),
-                    ..Default::default()
-                })
+                let mean =
+                    ImuSample { t: TimeUs(self.clock_us(s.t)), specific_force_frd_m_s2: f / n, angular_rate_frd_rad_s: w / n };
+                let mut m = wire::imu_to_highres(&mean);
+                if let MavMessage::HIGHRES_IMU(h) = &mut m {
+                    // PX4 marks every field it fills (magnetometer, pressure, temperature too)
+                    h.fields_updated = HighresImuUpdatedFlags::from_bits_truncate(0x1fff);
+                }
+                m
             }
         }
     }
@@ -226,27 +222,20 @@ impl Personality {
     /// PX4's own EKF output as ODOMETRY (estimator AUTOPILOT): the truth, which no node may take
     /// for an odometer.
     pub fn autopilot_odometry(&self, truth: &TruthState) -> MavMessage {
-        let q = truth.attitude.quaternion();
-        let v_body = truth.attitude.inverse() * truth.vel_ned_m_s;
-        MavMessage::ODOMETRY(ODOMETRY_DATA {
-            time_usec: self.clock_us(truth.t),
-            frame_id: MavFrame::MAV_FRAME_LOCAL_NED,
-            child_frame_id: MavFrame::MAV_FRAME_BODY_FRD,
-            x: truth.pos_ned_m[0] as f32,
-            y: truth.pos_ned_m[1] as f32,
-            z: truth.pos_ned_m[2] as f32,
-            q: [q.w as f32, q.i as f32, q.j as f32, q.k as f32],
-            vx: v_body[0] as f32,
-            vy: v_body[1] as f32,
-            vz: v_body[2] as f32,
-            rollspeed: f32::NAN,
-            pitchspeed: f32::NAN,
-            yawspeed: f32::NAN,
-            pose_covariance: [f32::NAN; 21],
-            velocity_covariance: [f32::NAN; 21],
-            estimator_type: MavEstimatorType::MAV_ESTIMATOR_TYPE_AUTOPILOT,
-            ..Default::default()
-        })
+        let nav = wire::Navigation {
+            t: truth.t,
+            position_ned_m: truth.pos_ned_m,
+            velocity_ned_m_s: truth.vel_ned_m_s,
+            attitude_frd_to_ned: truth.attitude,
+            pose_covariance: nalgebra::Matrix6::from_element(f64::NAN),
+            velocity_covariance_ned: nalgebra::Matrix3::from_element(f64::NAN),
+        };
+        let mut m = wire::navigation_to_odometry(&nav, self.clock_us(truth.t), 0);
+        if let MavMessage::ODOMETRY(o) = &mut m {
+            o.frame_id = MavFrame::MAV_FRAME_LOCAL_NED;
+            o.estimator_type = MavEstimatorType::MAV_ESTIMATOR_TYPE_AUTOPILOT;
+        }
+        m
     }
 }
 

@@ -40,3 +40,49 @@ pub fn chromium(what: &str) -> Option<std::path::PathBuf> {
     eprintln!("SKIPPED: {what} needs Chromium (`apt-get install chromium`, or run tests/run-all.sh)");
     None
 }
+
+/// Spawns `cmd` in the repository root, forwarding its stdout lines to a channel (stderr is
+/// dropped).
+pub fn spawn_lines(mut cmd: std::process::Command) -> (std::process::Child, std::sync::mpsc::Receiver<String>) {
+    use std::io::BufRead;
+    let mut child = cmd
+        .current_dir(env!("CARGO_MANIFEST_DIR"))
+        .stdout(std::process::Stdio::piped())
+        .stderr(std::process::Stdio::null())
+        .spawn()
+        .unwrap();
+    let out = child.stdout.take().unwrap();
+    let (tx, rx) = std::sync::mpsc::channel();
+    std::thread::spawn(move || {
+        for line in std::io::BufReader::new(out).lines().map_while(Result::ok) {
+            if tx.send(line).is_err() {
+                break;
+            }
+        }
+    });
+    (child, rx)
+}
+
+/// The first line starting with `prefix` within `timeout` (the lines before it are skipped).
+pub fn wait_line(rx: &std::sync::mpsc::Receiver<String>, prefix: &str, timeout: std::time::Duration) -> String {
+    let deadline = std::time::Instant::now() + timeout;
+    loop {
+        let left = deadline.saturating_duration_since(std::time::Instant::now());
+        match rx.recv_timeout(left) {
+            Ok(line) if line.starts_with(prefix) => return line,
+            Ok(_) => {}
+            Err(e) => panic!("no line starting with {prefix:?}: {e}"),
+        }
+    }
+}
+
+/// Kills and reaps its processes when dropped (a failing test leaves none behind).
+pub struct Kill(pub Vec<std::process::Child>);
+impl Drop for Kill {
+    fn drop(&mut self) {
+        for c in &mut self.0 {
+            let _ = c.kill();
+            let _ = c.wait();
+        }
+    }
+}
