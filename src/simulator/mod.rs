@@ -2,7 +2,10 @@
 //!
 //! Each platform of the world becomes one MAVLink system (sysid = platform id, compid 1,
 //! MAV_TYPE_GROUND_ROVER) on its own link, and streams what its sensors measure, in simulated
-//! time, paced by a speed factor:
+//! time, paced by a speed factor. With `--autopilot ardupilot|px4` it sends what that autopilot
+//! sends instead (RAW_IMU and WHEEL_DISTANCE, or averaged HIGHRES_IMU; boot clocks and
+//! SYSTEM_TIME; see [`personality`]) and checks the ODOMETRY and GPS_INPUT it gets back. The
+//! simulator's own message set:
 //!
 //! | message | when (default) |
 //! |---|---|
@@ -24,6 +27,8 @@
 //! without waiting. With `wait_for_peers` the clock holds at zero until every vehicle has a peer.
 //!
 //! - [`vehicle`]: the sans-io core of one vehicle (streams, intervals, commands, sequence numbers).
+//! - [`personality`]: the autopilots' message sets, their acceptance checks, and
+//!   [`personality::decoded_run`], the offline experiment of what a node decodes from them.
 //! - [`Simulator`]: the tokio runner that owns the links and the clock.
 //!
 //! ## Links
