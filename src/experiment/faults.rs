@@ -147,7 +147,7 @@ pub struct RunOutcome {
     pub last_divergent_epoch: Option<u32>,
     /// The last epoch at or before the end of the faults (0: none).
     pub fault_end_epoch: u32,
-    /// The team's joint horizontal NEES at the end (see [`team_nees`]).
+    /// The team's joint horizontal NEES at the end (see `team_nees`).
     pub team_nees: f64,
     /// Disagreements the nodes detected themselves (reported disagreements plus store
     /// mismatches, summed over nodes).
@@ -508,7 +508,7 @@ pub struct CaseSummary {
     /// RMS of dead reckoning's final error on the same inputs, m.
     pub dr_rms_m: f64,
     /// Average final 2-D NEES over runs and nodes, and the 95% band it would have if the nodes'
-    /// errors were independent (they are not: see [`team_nees`]).
+    /// errors were independent (they are not: see `team_nees`).
     pub avg_nees: f64,
     pub nees_band: (f64, f64),
     /// Average over runs of the team's joint NEES (`2 x nodes` degrees of freedom), and its 95%
