@@ -198,9 +198,17 @@ fn replay_node(log: &Log, world: &World, id: PlatformId) -> Result<NodeReplay, R
                 continue;
             }
             // every frame goes through the decoder, as in the node (it keeps state)
-            let VehicleEvent::Input(input) = decoder.decode(&m) else { continue };
-            let Some(core) = core.as_mut() else { continue };
-            core.handle(input)
+            let Some(core) = core.as_mut() else {
+                decoder.decode(&m);
+                continue;
+            };
+            let mut outputs = Vec::new();
+            for event in decoder.decode(&m) {
+                if let VehicleEvent::Input(input) = event {
+                    outputs.extend(core.handle(input));
+                }
+            }
+            outputs
         } else if topic == coop_rx {
             let Ok((header, m)) = wire::from_any_frame(&msg.data) else { continue };
             let (Some(core), Ok(from)) = (core.as_mut(), PlatformId::try_from(header.system_id)) else { continue };
@@ -277,11 +285,13 @@ pub fn compare_methods(log: &Log, methods: &[Method]) -> Result<Vec<FilterRun>, 
             if header.system_id != u32::from(p.id) {
                 continue;
             }
-            match decoder.decode(&m) {
-                VehicleEvent::Input(NodeInput::Imu(s)) => imu.push(s),
-                VehicleEvent::Input(NodeInput::Odometer(s)) => odometer.push(s),
-                VehicleEvent::Input(NodeInput::OwnRange { range, .. }) => ranges.entry(range.t.0).or_default().push(range),
-                _ => {}
+            for event in decoder.decode(&m) {
+                match event {
+                    VehicleEvent::Input(NodeInput::Imu(s)) => imu.push(s),
+                    VehicleEvent::Input(NodeInput::Odometer(s)) => odometer.push(s),
+                    VehicleEvent::Input(NodeInput::OwnRange { range, .. }) => ranges.entry(range.t.0).or_default().push(range),
+                    _ => {}
+                }
             }
         }
         odometer.sort_by_key(|s| s.t);

@@ -19,7 +19,7 @@
 //! - **Time**: `time_boot_ms` (u32 milliseconds, wrapping after 49.7 days: unwrapped),
 //!   `time_usec` since boot, and `time_usec` in Unix time (from 2001 on) alike. With
 //!   `clock = "unix"`, stamps since boot are mapped to Unix time by the vehicle's SYSTEM_TIME
-//!   (until the first one, samples are counted and dropped); a boot clock that goes back more
+//!   (until the first one, inputs are held, up to 10 s of them); a boot clock that goes back more
 //!   than a second (three stamps in a row) is an autopilot reboot, and the mapping is taken again from the next
 //!   SYSTEM_TIME. [`VehicleInputs::to_vehicle_time`] maps back, for what the node sends.
 //! - **Origin**: GPS_GLOBAL_ORIGIN, else HOME_POSITION, when the profile gives none.
@@ -42,6 +42,8 @@ pub const MAX_TRAPEZOID_GAP_US: u64 = 100_000;
 /// reboot (less: a late or reordered frame).
 const REBOOT_BACKSTEP_US: u64 = 1_000_000;
 const REBOOT_CONFIRMATIONS: u32 = 3;
+/// Inputs stamped since boot are held this long (vehicle time) for a SYSTEM_TIME to map them.
+pub const MAX_HELD_US: u64 = 10_000_000;
 /// Fastest a land vehicle's wheel turns, m/s (a faster change of a wheel's distance is a reset).
 const MAX_WHEEL_SPEED_M_S: f64 = 60.0;
 /// WHEEL_DISTANCE messages further apart than this give no speed (the interval restarts).
@@ -90,7 +92,8 @@ pub struct InputCounters {
     pub reboots: u64,
     /// Stamps more than a second behind the boot clock, not (yet) a reboot: dropped.
     pub stale_stamps: u64,
-    /// Samples dropped because the team clock is not known yet (no SYSTEM_TIME).
+    /// Inputs dropped because no SYSTEM_TIME gave the team clock within [`MAX_HELD_US`] (they
+    /// are held until then).
     pub waiting_for_clock: u64,
     /// SYSTEM_TIME messages whose mapping disagrees with the one in use by more than 50 ms.
     pub clock_disagreements: u64,
@@ -106,6 +109,8 @@ pub struct VehicleInputs {
     last_boot_us: Option<u64>,
     /// Consecutive stamps far behind `last_boot_us`.
     backsteps: u32,
+    /// Inputs stamped since boot waiting for the team clock (vehicle time, in order).
+    held: Vec<VehicleEvent>,
     /// Unix time minus boot time, us, from SYSTEM_TIME.
     unix_offset_us: Option<i64>,
     /// The previous IMU sample (instantaneous reading), team time.
@@ -127,6 +132,7 @@ impl VehicleInputs {
             boot_ms: None,
             last_boot_us: None,
             backsteps: 0,
+            held: Vec::new(),
             unix_offset_us: None,
             prev_imu: None,
             imu_interval: None,
@@ -142,8 +148,40 @@ impl VehicleInputs {
         self.imu_interval.map(|us| 1e6 / us)
     }
 
-    /// Decodes one message from the vehicle's system.
-    pub fn decode(&mut self, msg: &MavMessage) -> VehicleEvent {
+    /// Decodes one message from the vehicle's system: what it means, in the team's clock, and
+    /// the inputs held while the team clock was unknown once a SYSTEM_TIME gives it (in order).
+    pub fn decode(&mut self, msg: &MavMessage) -> Vec<VehicleEvent> {
+        let event = self.decode_local(msg);
+        let mut out = Vec::new();
+        if let Some(o) = self.unix_offset_us {
+            out.extend(self.held.drain(..).filter_map(|e| map_event(e, o)));
+        }
+        match event {
+            VehicleEvent::Nothing => {}
+            e if self.cfg.clock == TeamClock::Unix && event_time(&e).is_some_and(|t| t.0 < UNIX_TIME_FROM_US) => {
+                match self.unix_offset_us {
+                    Some(o) => out.extend(map_event(e, o)),
+                    None => self.hold(e),
+                }
+            }
+            e => out.push(e),
+        }
+        out
+    }
+
+    /// Holds an input stamped since boot until SYSTEM_TIME says what Unix time that is (at
+    /// most [`MAX_HELD_US`] of them: older ones are dropped and counted).
+    fn hold(&mut self, e: VehicleEvent) {
+        let newest = event_time(&e).map_or(0, |t| t.0);
+        self.held.push(e);
+        while self.held.first().and_then(event_time).is_some_and(|t| t.0 + MAX_HELD_US < newest) {
+            self.held.remove(0);
+            self.counters.waiting_for_clock += 1;
+        }
+    }
+
+    /// [`Self::decode`] in the vehicle's own clock.
+    fn decode_local(&mut self, msg: &MavMessage) -> VehicleEvent {
         match msg {
             MavMessage::SYSTEM_TIME(m) => {
                 self.system_time(m.time_unix_usec, m.time_boot_ms);
@@ -397,6 +435,9 @@ impl VehicleInputs {
             self.backsteps = 0;
             self.counters.reboots += 1;
             self.unix_offset_us = None;
+            // held inputs of the boot before never get a Unix time
+            self.counters.waiting_for_clock += self.held.len() as u64;
+            self.held.clear();
             self.prev_imu = None;
             self.prev_wheels = None;
             self.boot_ms = None;
@@ -408,21 +449,9 @@ impl VehicleInputs {
         true
     }
 
-    /// A stamp since boot, us, in the team's clock.
+    /// A stamp since boot, us (mapped to the team's clock on the way out, see [`Self::decode`]).
     fn boot_us(&mut self, us: u64) -> Option<TimeUs> {
-        if !self.note_boot(us) {
-            return None;
-        }
-        match self.cfg.clock {
-            TeamClock::Vehicle => Some(TimeUs(us)),
-            TeamClock::Unix => match self.unix_offset_us {
-                Some(o) => u64::try_from(us as i64 + o).ok().map(TimeUs),
-                None => {
-                    self.counters.waiting_for_clock += 1;
-                    None
-                }
-            },
-        }
+        self.note_boot(us).then_some(TimeUs(us))
     }
 
     /// A team-clock time in the vehicle's own clock (`time_usec` since its boot when the team
@@ -433,6 +462,32 @@ impl VehicleInputs {
             _ => t.0,
         }
     }
+}
+
+/// The time stamp of an input event.
+fn event_time(e: &VehicleEvent) -> Option<TimeUs> {
+    match e {
+        VehicleEvent::Input(NodeInput::Imu(s)) => Some(s.t),
+        VehicleEvent::Input(NodeInput::Odometer(s)) => Some(s.t),
+        VehicleEvent::Input(NodeInput::OwnRange { range, .. }) => Some(range.t),
+        _ => None,
+    }
+}
+
+/// An input stamped since boot moved to Unix time by `offset_us`.
+fn map_event(e: VehicleEvent, offset_us: i64) -> Option<VehicleEvent> {
+    let map = |t: TimeUs| u64::try_from(t.0 as i64 + offset_us).ok().map(TimeUs);
+    Some(match e {
+        VehicleEvent::Input(NodeInput::Imu(s)) => VehicleEvent::Input(NodeInput::Imu(ImuSample { t: map(s.t)?, ..s })),
+        VehicleEvent::Input(NodeInput::Odometer(s)) => {
+            VehicleEvent::Input(NodeInput::Odometer(OdometerSample { t: map(s.t)?, ..s }))
+        }
+        VehicleEvent::Input(NodeInput::OwnRange { epoch, range }) => VehicleEvent::Input(NodeInput::OwnRange {
+            epoch,
+            range: crate::estimation::RangeSample { t: map(range.t)?, ..range },
+        }),
+        other => other,
+    })
 }
 
 fn origin(lat_e7: i32, lon_e7: i32, alt_mm: i32) -> VehicleEvent {

@@ -489,8 +489,19 @@ pub async fn run(
                 if matches!(msg, MavMessage::SIM_STATE(_)) {
                     continue;
                 }
-                let input = match decoder.decode(&msg) {
-                    VehicleEvent::Input(i) => i,
+                let mut inputs = Vec::new();
+                for event in decoder.decode(&msg) {
+                match event {
+                    VehicleEvent::Input(input) => {
+                        if core.is_none() {
+                            if let NodeInput::Imu(s) = &input {
+                                last_imu_t = Some(s.t);
+                            }
+                            before_init += 1;
+                        } else {
+                            inputs.push(input);
+                        }
+                    }
                     VehicleEvent::Ack(ack) => {
                         if let Some(r) = rates.on_ack(&ack) {
                             match &r.outcome {
@@ -498,7 +509,6 @@ pub async fn run(
                                 other => tracing::warn!(platform = id, message = r.message, rate_hz = r.rate_hz, outcome = ?other, "the autopilot refused the rate; navigating on what it sends"),
                             }
                         }
-                        continue;
                     }
                     VehicleEvent::Origin(o) => {
                         if let Some((config, origin @ None, _)) = &mut pending_init {
@@ -515,18 +525,14 @@ pub async fn run(
                                 tracing::warn!(platform = id, apart_m = apart, "the vehicle's origin is far from the profile's [origin]: positions sent back are in the profile's frame");
                             }
                         }
-                        continue;
                     }
-                    VehicleEvent::Nothing => continue,
-                };
-                if core.is_none() {
-                    if let NodeInput::Imu(s) = &input {
-                        last_imu_t = Some(s.t);
-                    }
-                    before_init += 1;
+                    VehicleEvent::Nothing => {}
+                }
+                }
+                if inputs.is_empty() {
                     continue;
                 }
-                vec![input]
+                inputs
             }
             r = coop.recv_from(&mut buf) => {
                 let Ok((n, from)) = r else { continue };

@@ -380,13 +380,15 @@ pub fn decoded_run(
     let mut out = Vec::new();
     let mut take = |i: usize, out: &mut Vec<super::Outgoing>, decoders: &mut Vec<VehicleInputs>| {
         for o in out.drain(..) {
-            match decoders[i].decode(&o.message) {
-                VehicleEvent::Input(NodeInput::Imu(s)) => imu[i].push(ImuSample { t: at(s.t), ..s }),
-                VehicleEvent::Input(NodeInput::Odometer(s)) => odo[i].push(OdometerSample { t: at(s.t), ..s }),
-                VehicleEvent::Input(NodeInput::OwnRange { range, .. }) => {
-                    ranges.entry(at(range.t).0).or_default().push(RangeSample { t: at(range.t), ..range })
+            for event in decoders[i].decode(&o.message) {
+                match event {
+                    VehicleEvent::Input(NodeInput::Imu(s)) => imu[i].push(ImuSample { t: at(s.t), ..s }),
+                    VehicleEvent::Input(NodeInput::Odometer(s)) => odo[i].push(OdometerSample { t: at(s.t), ..s }),
+                    VehicleEvent::Input(NodeInput::OwnRange { range, .. }) => {
+                        ranges.entry(at(range.t).0).or_default().push(RangeSample { t: at(range.t), ..range })
+                    }
+                    _ => {}
                 }
-                _ => {}
             }
         }
     };

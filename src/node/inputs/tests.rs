@@ -10,17 +10,17 @@ fn inputs(edit: impl FnOnce(&mut Inputs)) -> VehicleInputs {
     VehicleInputs::new(cfg)
 }
 
-fn imu(e: VehicleEvent) -> ImuSample {
-    match e {
-        VehicleEvent::Input(NodeInput::Imu(s)) => s,
-        other => panic!("expected an IMU sample, got {other:?}"),
+fn imu(e: Vec<VehicleEvent>) -> ImuSample {
+    match e.as_slice() {
+        [VehicleEvent::Input(NodeInput::Imu(s))] => *s,
+        other => panic!("expected one IMU sample, got {other:?}"),
     }
 }
 
-fn odo(e: VehicleEvent) -> OdometerSample {
-    match e {
-        VehicleEvent::Input(NodeInput::Odometer(s)) => s,
-        other => panic!("expected an odometer sample, got {other:?}"),
+fn odo(e: Vec<VehicleEvent>) -> OdometerSample {
+    match e.as_slice() {
+        [VehicleEvent::Input(NodeInput::Odometer(s))] => *s,
+        other => panic!("expected one odometer sample, got {other:?}"),
     }
 }
 
@@ -77,23 +77,23 @@ fn raw_imu_is_scaled_and_instantaneous_samples_are_averaged_over_their_interval(
     let s = imu(d.decode(&raw(1_525_000, [200, 0, -1000], [0, 0, 0])));
     assert!((s.specific_force_frd_m_s2[0] - 2.0 * 0.980665).abs() < 1e-12);
     // a saturated axis and a repeat are refused and counted
-    assert_eq!(d.decode(&raw(1_550_000, [i16::MIN, 0, -1000], [0, 0, 0])), VehicleEvent::Nothing);
-    assert_eq!(d.decode(&raw(1_525_000, [0, 0, -1000], [0, 0, 0])), VehicleEvent::Nothing);
+    assert!(d.decode(&raw(1_550_000, [i16::MIN, 0, -1000], [0, 0, 0])).is_empty());
+    assert!(d.decode(&raw(1_525_000, [0, 0, -1000], [0, 0, 0])).is_empty());
     assert_eq!((d.counters.imu, d.counters.imu_invalid, d.counters.imu_out_of_order), (3, 1, 1));
     // another IMU's RAW_IMU is not ours
     let mut other = RAW_IMU_DATA { time_usec: 1_600_000, id: 1, ..Default::default() };
     other.zacc = -1000;
-    assert_eq!(d.decode(&MavMessage::RAW_IMU(other)), VehicleEvent::Nothing);
+    assert!(d.decode(&MavMessage::RAW_IMU(other)).is_empty());
     assert_eq!(d.counters.imu_other, 1);
 }
 
 #[test]
 fn highres_imu_honours_its_id_and_fields_updated() {
     let mut d = inputs(|c| c.imu_id = 2);
-    assert_eq!(d.decode(&highres(10, 0, 0x3f, -9.8)), VehicleEvent::Nothing);
+    assert!(d.decode(&highres(10, 0, 0x3f, -9.8)).is_empty());
     assert_eq!(d.counters.imu_other, 1);
     // only the magnetometer is fresh: a repeat of the last IMU values
-    assert_eq!(d.decode(&highres(20, 2, 0b1_1100_0000, -9.8)), VehicleEvent::Nothing);
+    assert!(d.decode(&highres(20, 2, 0b1_1100_0000, -9.8)).is_empty());
     assert_eq!(d.counters.imu_not_updated, 1);
     let s = imu(d.decode(&highres(30, 2, 0x3f, -9.8)));
     assert_eq!(s.t, TimeUs(30));
@@ -111,7 +111,7 @@ fn time_boot_ms_wraps_without_a_step() {
     assert_eq!(t1.0 - t0.0, 20_000, "20 ms across the wrap");
     assert_eq!(d.counters.time_wraps, 1);
     // a frame from before the wrap that arrives late is placed before it, not 49 days ahead
-    assert_eq!(d.decode(&scaled2(before + 5, -1000)), VehicleEvent::Nothing);
+    assert!(d.decode(&scaled2(before + 5, -1000)).is_empty());
     assert_eq!(d.counters.imu_out_of_order, 1);
     let t2 = imu(d.decode(&scaled2(before.wrapping_add(40), -1000))).t;
     assert_eq!(t2.0 - t1.0, 20_000);
@@ -123,24 +123,36 @@ fn a_unix_team_clock_maps_boot_stamps_with_system_time_and_back() {
         c.imu = ImuMessage::RawImu;
         c.clock = TeamClock::Unix;
     });
-    // before any SYSTEM_TIME the team time of a boot stamp is unknown
-    assert_eq!(d.decode(&raw(5_000_000, [0, 0, -1000], [0; 3])), VehicleEvent::Nothing);
-    assert_eq!(d.counters.waiting_for_clock, 1);
+    // before any SYSTEM_TIME the team time of a boot stamp is unknown: held
+    assert!(d.decode(&raw(5_000_000, [0, 0, -1000], [0; 3])).is_empty());
     // a SYSTEM_TIME without Unix time (no RTC yet) does not help
-    d.decode(&system_time(0, 5_010));
-    assert_eq!(d.decode(&raw(5_020_000, [0, 0, -1000], [0; 3])), VehicleEvent::Nothing);
+    assert!(d.decode(&system_time(0, 5_010)).is_empty());
+    assert!(d.decode(&raw(5_020_000, [0, 0, -1000], [0; 3])).is_empty());
     let unix0 = 1_795_000_000_000_000u64; // 2026-11-18
-    d.decode(&system_time(unix0, 5_030));
+    // the first one with Unix time releases what was held, in order, in Unix time
+    let released: Vec<TimeUs> = d
+        .decode(&system_time(unix0, 5_030))
+        .into_iter()
+        .map(|e| match e {
+            VehicleEvent::Input(NodeInput::Imu(s)) => s.t,
+            other => panic!("{other:?}"),
+        })
+        .collect();
+    assert_eq!(released, [TimeUs(unix0 - 30_000), TimeUs(unix0 - 10_000)]);
+    assert_eq!(d.counters.waiting_for_clock, 0);
     let s = imu(d.decode(&raw(5_040_000, [0, 0, -1000], [0; 3])));
     assert_eq!(s.t, TimeUs(unix0 + 10_000));
     assert_eq!(d.to_vehicle_time(s.t), 5_040_000);
-    // stamps already in Unix time are used as they are
-    let s = imu(d.decode(&raw(unix0 + 30_000, [0, 0, -1000], [0; 3])));
-    assert_eq!(s.t, TimeUs(unix0 + 30_000));
     // a SYSTEM_TIME that disagrees by a second is counted, not adopted (the filter's time would jump)
     d.decode(&system_time(unix0 + 1_050_000, 5_050));
     assert_eq!(d.counters.clock_disagreements, 1);
     assert_eq!(imu(d.decode(&raw(5_070_000, [0, 0, -1000], [0; 3]))).t, TimeUs(unix0 + 40_000));
+    // a source that stamps in Unix time already needs no SYSTEM_TIME
+    let mut u = inputs(|c| {
+        c.imu = ImuMessage::RawImu;
+        c.clock = TeamClock::Unix;
+    });
+    assert_eq!(imu(u.decode(&raw(unix0 + 30_000, [0, 0, -1000], [0; 3]))).t, TimeUs(unix0 + 30_000));
 }
 
 #[test]
@@ -154,12 +166,12 @@ fn an_autopilot_reboot_is_told_from_a_late_frame() {
     let s = imu(d.decode(&raw(600_000_000, [0, 0, -1000], [0; 3])));
     assert_eq!(s.t, TimeUs(unix0));
     // one frame 2 s old: dropped, not a reboot
-    assert_eq!(d.decode(&raw(598_000_000, [0, 0, -1000], [0; 3])), VehicleEvent::Nothing);
+    assert!(d.decode(&raw(598_000_000, [0, 0, -1000], [0; 3])).is_empty());
     assert_eq!((d.counters.stale_stamps, d.counters.reboots), (1, 0));
-    assert!(matches!(d.decode(&raw(600_010_000, [0, 0, -1000], [0; 3])), VehicleEvent::Input(_)));
+    assert_eq!(d.decode(&raw(600_010_000, [0, 0, -1000], [0; 3])).len(), 1);
     // the autopilot reboots: its clock restarts; three stamps confirm it
     for k in 0..3 {
-        assert_eq!(d.decode(&raw(2_000_000 + k * 10_000, [0, 0, -1000], [0; 3])), VehicleEvent::Nothing);
+        assert!(d.decode(&raw(2_000_000 + k * 10_000, [0, 0, -1000], [0; 3])).is_empty());
     }
     assert_eq!(d.counters.reboots, 1);
     // the new boot's mapping comes from its SYSTEM_TIME: 10 min later in Unix time
@@ -176,21 +188,21 @@ fn wheel_distances_are_differentiated_with_resets_bridged() {
         c.wheels = vec![0, 1];
         c.wheel_track_m = Some(0.5);
     });
-    assert_eq!(d.decode(&wheels(1_000_000, 2, &[10.0, 10.0])), VehicleEvent::Nothing);
+    assert!(d.decode(&wheels(1_000_000, 2, &[10.0, 10.0])).is_empty());
     // 50 ms: left 0.11 m, right 0.09 m: 2 m/s, turning right at 0.8 rad/s
     let s = odo(d.decode(&wheels(1_050_000, 2, &[10.11, 10.09])));
     assert_eq!(s.t, TimeUs(1_025_000), "stamped at the middle of the interval");
     assert!((s.speed_m_s - 2.0).abs() < 1e-9);
     assert!((d.last_wheel_yaw_rate_rad_s.unwrap() - 0.8).abs() < 1e-9);
     // the encoder counters reset to zero: counted, and the next interval starts from there
-    assert_eq!(d.decode(&wheels(1_100_000, 2, &[0.0, 0.0])), VehicleEvent::Nothing);
+    assert!(d.decode(&wheels(1_100_000, 2, &[0.0, 0.0])).is_empty());
     assert_eq!(d.counters.wheel_resets, 1);
     let s = odo(d.decode(&wheels(1_150_000, 2, &[0.1, 0.1])));
     assert!((s.speed_m_s - 2.0).abs() < 1e-9);
     // a message without the wheel, a count change, a gap
-    assert_eq!(d.decode(&wheels(1_200_000, 1, &[0.2])), VehicleEvent::Nothing);
+    assert!(d.decode(&wheels(1_200_000, 1, &[0.2])).is_empty());
     assert_eq!(d.counters.odometer_invalid, 1);
-    assert_eq!(d.decode(&wheels(3_000_000, 2, &[3.0, 3.0])), VehicleEvent::Nothing);
+    assert!(d.decode(&wheels(3_000_000, 2, &[3.0, 3.0])).is_empty());
     assert_eq!(d.counters.wheel_gaps, 1);
     // driving backwards is a negative speed, not a reset
     let s = odo(d.decode(&wheels(3_100_000, 2, &[2.9, 2.9])));
@@ -208,7 +220,7 @@ fn odometry_from_the_autopilots_own_ekf_is_not_an_odometer() {
         estimator_type: MavEstimatorType::MAV_ESTIMATOR_TYPE_AUTOPILOT,
         ..Default::default()
     };
-    assert_eq!(d.decode(&MavMessage::ODOMETRY(m.clone())), VehicleEvent::Nothing);
+    assert!(d.decode(&MavMessage::ODOMETRY(m.clone())).is_empty());
     assert_eq!(d.counters.odometry_from_autopilot, 1);
     m.estimator_type = MavEstimatorType::MAV_ESTIMATOR_TYPE_UNKNOWN;
     assert_eq!(odo(d.decode(&MavMessage::ODOMETRY(m))).speed_m_s, 3.0);
@@ -236,4 +248,22 @@ fn an_imu_rate_change_is_measured_and_counted() {
         imu(d.decode(&highres(t, 0, 0x3f, -9.8)));
     }
     assert_eq!(d.counters.imu_rate_changes, 1);
+}
+
+#[test]
+fn inputs_wait_at_most_ten_seconds_for_the_team_clock() {
+    let mut d = inputs(|c| {
+        c.imu = ImuMessage::RawImu;
+        c.clock = TeamClock::Unix;
+    });
+    // 12 s of 40 Hz IMU and no SYSTEM_TIME (lost, or the autopilot has no RTC yet)
+    for k in 0..480u64 {
+        assert!(d.decode(&raw(1_000_000 + k * 25_000, [0, 0, -1000], [0; 3])).is_empty());
+    }
+    let unix0 = 1_795_000_000_000_000u64;
+    let released = d.decode(&system_time(unix0, 13_000));
+    // the last 10 s are kept (401 samples), the 2 s before dropped and counted
+    assert_eq!(released.len() as u64 + d.counters.waiting_for_clock, 480);
+    assert_eq!(released.len(), 401);
+    assert_eq!(d.counters.waiting_for_clock, 79);
 }
