@@ -491,43 +491,43 @@ pub async fn run(
                 }
                 let mut inputs = Vec::new();
                 for event in decoder.decode(&msg) {
-                match event {
-                    VehicleEvent::Input(input) => {
-                        if core.is_none() {
-                            if let NodeInput::Imu(s) = &input {
-                                last_imu_t = Some(s.t);
-                            }
-                            before_init += 1;
-                        } else {
-                            inputs.push(input);
-                        }
-                    }
-                    VehicleEvent::Ack(ack) => {
-                        if let Some(r) = rates.on_ack(&ack) {
-                            match &r.outcome {
-                                Some(RateOutcome::Accepted) => tracing::info!(platform = id, message = r.message, rate_hz = r.rate_hz, "the autopilot accepted the rate"),
-                                other => tracing::warn!(platform = id, message = r.message, rate_hz = r.rate_hz, outcome = ?other, "the autopilot refused the rate; navigating on what it sends"),
+                    match event {
+                        VehicleEvent::Input(input) => {
+                            if core.is_none() {
+                                if let NodeInput::Imu(s) = &input {
+                                    last_imu_t = Some(s.t);
+                                }
+                                before_init += 1;
+                            } else {
+                                inputs.push(input);
                             }
                         }
-                    }
-                    VehicleEvent::Origin(o) => {
-                        if let Some((config, origin @ None, _)) = &mut pending_init {
-                            tracing::info!(platform = id, lat_deg = o.lat_deg, lon_deg = o.lon_deg, alt_m = o.alt_m, "origin from the vehicle");
-                            config.ins.latitude_deg = o.lat_deg;
-                            *origin = Some(o);
-                            origin_from_vehicle = Some(o);
-                            vehicle_origin_checked = true;
-                        }
-                        if let (Some(mine), false) = (profile_origin, vehicle_origin_checked) {
-                            vehicle_origin_checked = true;
-                            let apart = wire::geodetic_to_ned(&mine, &wire::Geodetic { lat_deg: o.lat_deg, lon_deg: o.lon_deg, alt_m: o.alt_m }).xy().norm();
-                            if apart > 1000.0 {
-                                tracing::warn!(platform = id, apart_m = apart, "the vehicle's origin is far from the profile's [origin]: positions sent back are in the profile's frame");
+                        VehicleEvent::Ack(ack) => {
+                            if let Some(r) = rates.on_ack(&ack) {
+                                match &r.outcome {
+                                    Some(RateOutcome::Accepted) => tracing::info!(platform = id, message = r.message, rate_hz = r.rate_hz, "the autopilot accepted the rate"),
+                                    other => tracing::warn!(platform = id, message = r.message, rate_hz = r.rate_hz, outcome = ?other, "the autopilot refused the rate; navigating on what it sends"),
+                                }
                             }
                         }
+                        VehicleEvent::Origin(o) => {
+                            if let Some((config, origin @ None, _)) = &mut pending_init {
+                                tracing::info!(platform = id, lat_deg = o.lat_deg, lon_deg = o.lon_deg, alt_m = o.alt_m, "origin from the vehicle");
+                                config.ins.latitude_deg = o.lat_deg;
+                                *origin = Some(o);
+                                origin_from_vehicle = Some(o);
+                                vehicle_origin_checked = true;
+                            }
+                            if let (Some(mine), false) = (profile_origin, vehicle_origin_checked) {
+                                vehicle_origin_checked = true;
+                                let apart = wire::geodetic_to_ned(&mine, &wire::Geodetic { lat_deg: o.lat_deg, lon_deg: o.lon_deg, alt_m: o.alt_m }).xy().norm();
+                                if apart > 1000.0 {
+                                    tracing::warn!(platform = id, apart_m = apart, "the vehicle's origin is far from the profile's [origin]: positions sent back are in the profile's frame");
+                                }
+                            }
+                        }
+                        VehicleEvent::Nothing => {}
                     }
-                    VehicleEvent::Nothing => {}
-                }
                 }
                 if inputs.is_empty() {
                     continue;
