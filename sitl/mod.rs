@@ -33,7 +33,7 @@ pub mod sensors;
 pub mod truth;
 pub mod world;
 
-pub use scenario::{ASYNC_TOML, PAPER_TOML, Scenario, ScenarioError};
+pub use scenario::{ASYNC_TOML, MIXED_TOML, PAPER_TOML, Scenario, ScenarioError};
 pub use sensors::{SensorErrors, SensorModel};
 pub use truth::{Earth, Trajectory, TruthState};
 pub use world::{InitialEstimate, PlatformRun, RunInputs, SimEvent, SimEvents, World};

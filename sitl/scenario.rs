@@ -62,7 +62,36 @@ pub struct Scenario {
     pub ranging: Ranging,
     pub initial: InitialUncertainty,
     pub filter: FilterTuning,
+    /// Wheel odometry of the wheeled robots (platforms with `model = "planar"`).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub wheels: Option<Wheels>,
     pub platforms: Vec<PlatformSpec>,
+}
+
+/// The wheel odometry of a wheeled robot without IMU: a differential drive whose two wheels'
+/// distances give, over each interval, the mean forward speed and yaw rate.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Wheels {
+    /// Rate of the wheel samples, Hz.
+    pub rate_hz: f64,
+    /// White noise on each sample's mean forward speed, m/s.
+    pub speed_sigma_m_s: f64,
+    /// White noise on each sample's mean yaw rate, deg/s.
+    pub yaw_rate_sigma_deg_s: f64,
+    /// Distance between the two wheels, m (what WHEEL_DISTANCE's two counters are apart).
+    pub track_m: f64,
+}
+
+/// What a platform navigates with.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum PlatformModel {
+    /// An IMU (strapdown INS) and an odometer.
+    #[default]
+    Ins,
+    /// A wheeled robot: wheel odometry only (`[wheels]`), a planar filter.
+    Planar,
 }
 
 fn default_gravity() -> f64 {
@@ -70,7 +99,7 @@ fn default_gravity() -> f64 {
 }
 
 /// Sensor error models, the same for every platform (each platform draws its own errors).
-#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+#[derive(Debug, Clone, Copy, PartialEq, Default, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct Sensors {
     /// IMU sample rate, Hz. Each sample is the mean over its interval.
@@ -144,7 +173,7 @@ pub struct InitialUncertainty {
 }
 
 /// Filter tuning that is not a sensor property.
-#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+#[derive(Debug, Clone, Copy, PartialEq, Default, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct FilterTuning {
     /// Non-holonomic constraint: body-right (lateral) velocity is zero with this sigma, m/s.
@@ -163,6 +192,9 @@ pub struct FilterTuning {
 pub struct PlatformSpec {
     /// Platform id (its MAVLink system id).
     pub id: PlatformId,
+    /// `"ins"` (the default) or `"planar"` (a wheeled robot: needs `[wheels]`).
+    #[serde(default, skip_serializing_if = "is_ins")]
+    pub model: PlatformModel,
     /// Initial position in the local NED frame, m. D stays constant (level ground).
     pub start_ned_m: [f64; 3],
     /// Initial yaw, deg from north, clockwise seen from above.
@@ -183,6 +215,10 @@ pub struct Segment {
     pub accel_m_s2: f64,
     /// Rate of change of yaw, deg/s (positive turns right, seen from above).
     pub yaw_rate_deg_s: f64,
+}
+
+fn is_ins(m: &PlatformModel) -> bool {
+    *m == PlatformModel::Ins
 }
 
 impl Scenario {
@@ -265,8 +301,22 @@ impl Scenario {
             }
             sched.epochs_checked(&field, duration_us, imu_period_us)?;
         }
+        if let Some(w) = &self.wheels {
+            period_us("wheels.rate_hz", w.rate_hz)?;
+            if w.rate_hz > 1000.0 {
+                return Err(invalid("wheels.rate_hz", format!("must be at most 1 kHz, got {}", w.rate_hz)));
+            }
+            non_negative("wheels.speed_sigma_m_s", w.speed_sigma_m_s)?;
+            non_negative("wheels.yaw_rate_sigma_deg_s", w.yaw_rate_sigma_deg_s)?;
+            positive("wheels.track_m", w.track_m)?;
+        }
         if self.platforms.is_empty() {
             return Err(invalid("platforms", "at least one platform is required"));
+        }
+        if let Some(i) = self.platforms.iter().position(|p| p.model == PlatformModel::Planar)
+            && self.wheels.is_none()
+        {
+            return Err(invalid(format!("platforms[{i}].model"), "a planar platform needs a [wheels] section"));
         }
         for (i, p) in self.platforms.iter().enumerate() {
             let field = format!("platforms[{i}]");
@@ -516,6 +566,8 @@ pub const PAPER_TOML: &str = include_str!("scenarios/paper.toml");
 /// The paper scenario with unsynchronised sensors (100 Hz IMU, 15 Hz odometer, ranging jitter),
 /// as shipped in `sitl/scenarios/async.toml`.
 pub const ASYNC_TOML: &str = include_str!("scenarios/async.toml");
+/// A mixed team: two INS vehicles and two wheeled robots (sitl/scenarios/mixed.toml).
+pub const MIXED_TOML: &str = include_str!("scenarios/mixed.toml");
 
 #[cfg(test)]
 pub(crate) mod tests {

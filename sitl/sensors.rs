@@ -11,6 +11,10 @@
 //! - Odometer (rate `odometer_rate_hz`, samples at `m / rate`, `m >= 1`): the true forward speed
 //!   at that instant times `1 + scale_error` (`scale_error ~ N(0, odometer_scale_sigma)` per run)
 //!   plus white noise `odometer_sigma_m_s`.
+//! - Wheels (the wheeled robots, `model = "planar"`; rate `wheels.rate_hz`, samples at
+//!   `m / rate`): each sample's forward speed and yaw rate are the true means over its interval
+//!   (the distance the robot covered and the heading it turned, divided by the interval) plus
+//!   white noise `speed_sigma_m_s` and `yaw_rate_sigma_deg_s`.
 //! - Ranging: at each epoch of a schedule, one range per unordered pair of platforms, measured by
 //!   the lower id (`from`) to the higher (`to`): the true 3-D distance plus N(0, `sigma_m`).
 //!
@@ -27,7 +31,8 @@ use rand_distr::StandardNormal;
 
 use super::scenario::Scenario;
 use super::truth::Trajectory;
-use crate::estimation::{ImuSample, OdometerSample, PlatformId, RangeSample};
+use crate::estimation::unicycle::wrap_angle;
+use crate::estimation::{ImuSample, OdometerSample, PlatformId, RangeSample, WheelSample};
 use crate::time::TimeUs;
 
 /// One micro-g in m/s^2 (standard gravity 9.80665 m/s^2).
@@ -65,6 +70,17 @@ pub struct SensorModel {
     pub odometer_sigma_m_s: f64,
     pub odometer_scale_sigma: f64,
     pub range_sigma_m: f64,
+    /// The wheeled robots' odometry, when the scenario has any.
+    pub wheels: Option<WheelModel>,
+}
+
+/// The wheel odometry model in SI units.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct WheelModel {
+    pub rate_hz: f64,
+    pub speed_sigma_m_s: f64,
+    pub yaw_rate_sigma_rad_s: f64,
+    pub track_m: f64,
 }
 
 impl SensorModel {
@@ -89,6 +105,12 @@ impl SensorModel {
             odometer_sigma_m_s: s.odometer_sigma_m_s,
             odometer_scale_sigma: s.odometer_scale_sigma,
             range_sigma_m: scenario.ranging.sigma_m,
+            wheels: scenario.wheels.map(|w| WheelModel {
+                rate_hz: w.rate_hz,
+                speed_sigma_m_s: w.speed_sigma_m_s,
+                yaw_rate_sigma_rad_s: w.yaw_rate_sigma_deg_s.to_radians(),
+                track_m: w.track_m,
+            }),
         }
     }
 }
@@ -119,6 +141,8 @@ pub(crate) enum Stream {
     OdometerNoise = 8,
     Range = 9,
     Initial = 10,
+    WheelSpeed = 11,
+    WheelYawRate = 12,
 }
 
 /// SplitMix64 finaliser: a bijective mix of 64 bits.
@@ -278,6 +302,63 @@ impl Iterator for OdometerStream<'_> {
         self.m += 1;
         self.next_us = odometer_time_us(self.model.odometer_rate_hz, self.m);
         Some(OdometerSample { t, speed_m_s: self.scale * speed + self.model.odometer_sigma_m_s * normal(&mut self.noise) })
+    }
+}
+
+/// One wheeled robot's wheel samples for one run, lazily: at `round(m / rate)`, `m = 1..`, up
+/// to the end of the run. Empty when the scenario has no `[wheels]`.
+#[derive(Debug, Clone)]
+pub struct WheelStream<'a> {
+    traj: &'a Trajectory,
+    end: TimeUs,
+    model: Option<WheelModel>,
+    m: u64,
+    prev_us: u64,
+    next_us: u64,
+    speed_noise: ChaCha8Rng,
+    yaw_noise: ChaCha8Rng,
+}
+
+impl<'a> WheelStream<'a> {
+    pub fn new(traj: &'a Trajectory, model: &SensorModel, seed: u64, run: u32) -> Self {
+        let key = [u64::from(traj.id())];
+        WheelStream {
+            traj,
+            end: model.end,
+            model: model.wheels,
+            m: 1,
+            prev_us: 0,
+            next_us: model.wheels.map_or(u64::MAX, |w| odometer_time_us(w.rate_hz, 1)),
+            speed_noise: stream_rng(seed, run, Stream::WheelSpeed, &key),
+            yaw_noise: stream_rng(seed, run, Stream::WheelYawRate, &key),
+        }
+    }
+
+    /// Time stamp of the next sample, if any.
+    pub fn peek_time(&self) -> Option<TimeUs> {
+        (self.model.is_some() && self.next_us <= self.end.0).then_some(TimeUs(self.next_us))
+    }
+}
+
+impl Iterator for WheelStream<'_> {
+    type Item = WheelSample;
+
+    fn next(&mut self) -> Option<WheelSample> {
+        let t = self.peek_time()?;
+        let w = self.model?;
+        let (a, b) = (self.traj.truth_at(TimeUs(self.prev_us)), self.traj.truth_at(t));
+        let dt = (t.0 - self.prev_us) as f64 * 1e-6;
+        // Speed is linear within a segment: the mean of the ends is the mean over the interval.
+        let speed = 0.5 * (a.speed_m_s + b.speed_m_s);
+        let yaw_rate = wrap_angle(b.yaw_rad - a.yaw_rad) / dt;
+        self.prev_us = t.0;
+        self.m += 1;
+        self.next_us = odometer_time_us(w.rate_hz, self.m);
+        Some(WheelSample {
+            t,
+            speed_m_s: speed + w.speed_sigma_m_s * normal(&mut self.speed_noise),
+            yaw_rate_rad_s: yaw_rate + w.yaw_rate_sigma_rad_s * normal(&mut self.yaw_noise),
+        })
     }
 }
 

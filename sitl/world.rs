@@ -2,10 +2,10 @@
 
 use nalgebra::{UnitQuaternion, Vector3};
 
-use super::scenario::{Scenario, ScenarioError};
-use super::sensors::{self, ImuStream, OdometerStream, SensorErrors, SensorModel, Stream};
+use super::scenario::{PlatformModel, Scenario, ScenarioError};
+use super::sensors::{self, ImuStream, OdometerStream, SensorErrors, SensorModel, Stream, WheelStream};
 use super::truth::{Earth, Trajectory, TruthState};
-use crate::estimation::{ImuSample, OdometerSample, PlatformId, RangeSample};
+use crate::estimation::{ImuSample, OdometerSample, PlatformId, RangeSample, WheelSample};
 use crate::time::TimeUs;
 
 /// A validated scenario made into trajectories and sensor models. Cheap to query; every run is a
@@ -27,8 +27,11 @@ pub struct PlatformRun {
     pub errors: SensorErrors,
     /// The sensor errors at the end of the run (the biases walk when a bias walk is configured).
     pub final_errors: SensorErrors,
+    /// An INS platform's IMU and odometer samples (empty for a wheeled robot).
     pub imu: Vec<ImuSample>,
     pub odometer: Vec<OdometerSample>,
+    /// A wheeled robot's wheel samples (empty for an INS platform).
+    pub wheel: Vec<WheelSample>,
     /// Truth at `k / truth_rate_hz`, `k = 0..`, up to the end of the run, for error evaluation.
     pub truth: Vec<TruthState>,
 }
@@ -77,6 +80,7 @@ impl InitialEstimate {
 pub enum SimEvent {
     Imu(PlatformId, ImuSample),
     Odometer(PlatformId, OdometerSample),
+    Wheel(PlatformId, WheelSample),
     /// All ranges of one epoch.
     Ranges(TimeUs, Vec<RangeSample>),
 }
@@ -86,6 +90,7 @@ impl SimEvent {
         match self {
             SimEvent::Imu(_, s) => s.t,
             SimEvent::Odometer(_, s) => s.t,
+            SimEvent::Wheel(_, s) => s.t,
             SimEvent::Ranges(t, _) => *t,
         }
     }
@@ -116,6 +121,11 @@ impl World {
     /// The trajectories, in increasing id order.
     pub fn platforms(&self) -> &[Trajectory] {
         &self.trajectories
+    }
+
+    /// What platform `id` navigates with.
+    pub fn platform_model(&self, id: PlatformId) -> PlatformModel {
+        self.scenario.platforms.iter().find(|p| p.id == id).map_or(PlatformModel::Ins, |p| p.model)
     }
 
     /// Platform ids, increasing.
@@ -165,6 +175,12 @@ impl World {
             .iter()
             .map(|traj| {
                 let errors = sensors::draw_errors(&self.model, seed, run, traj.id());
+                let truth = self.truth_of(traj);
+                if self.platform_model(traj.id()) == PlatformModel::Planar {
+                    let wheel = WheelStream::new(traj, &self.model, seed, run).collect();
+                    let (imu, odometer) = (Vec::new(), Vec::new());
+                    return PlatformRun { id: traj.id(), errors, final_errors: errors, imu, odometer, wheel, truth };
+                }
                 let mut stream = ImuStream::new(traj, &self.model, seed, run);
                 let imu: Vec<ImuSample> = stream.by_ref().collect();
                 let (accel_bias_m_s2, gyro_bias_rad_s) = stream.biases();
@@ -174,7 +190,8 @@ impl World {
                     final_errors: SensorErrors { accel_bias_m_s2, gyro_bias_rad_s, ..errors },
                     imu,
                     odometer: OdometerStream::new(traj, &self.model, seed, run).collect(),
-                    truth: self.truth_of(traj),
+                    wheel: Vec::new(),
+                    truth,
                 }
             })
             .collect();
@@ -190,18 +207,20 @@ impl World {
             .collect())
     }
 
-    /// Every sensor event of one run, merged in time order. At equal times, IMU samples come
-    /// first (a filter propagates to `t` before it takes a measurement at `t`), then odometer
-    /// samples, then the ranges; within a kind, increasing platform id. The samples are those of
+    /// Every sensor event of one run, merged in time order. At equal times, IMU and wheel
+    /// samples come first (a filter propagates to `t` before it takes a measurement at `t`), then
+    /// odometer samples, then the ranges; within a kind, increasing platform id. The samples are those of
     /// [`World::run_inputs`] and [`World::ranges`] for the same `(seed, run)`.
     pub fn events(&self, schedule: &str, seed: u64, run: u32) -> Result<SimEvents<'_>, ScenarioError> {
         let epochs = self.scenario.range_epochs(schedule)?;
+        let ins = |t: &Trajectory| self.platform_model(t.id()) == PlatformModel::Ins;
         Ok(SimEvents {
             world: self,
             seed,
             run,
-            imu: self.trajectories.iter().map(|t| ImuStream::new(t, &self.model, seed, run)).collect(),
-            odometer: self.trajectories.iter().map(|t| OdometerStream::new(t, &self.model, seed, run)).collect(),
+            imu: self.trajectories.iter().map(|t| ins(t).then(|| ImuStream::new(t, &self.model, seed, run))).collect(),
+            odometer: self.trajectories.iter().map(|t| ins(t).then(|| OdometerStream::new(t, &self.model, seed, run))).collect(),
+            wheel: self.trajectories.iter().map(|t| (!ins(t)).then(|| WheelStream::new(t, &self.model, seed, run))).collect(),
             epochs: epochs.into_iter().peekable(),
         })
     }
@@ -237,7 +256,11 @@ impl World {
         let init = &self.scenario.initial;
         let mut rng = sensors::stream_rng(seed, run, Stream::Initial, key);
         let mut draw3 = |sigma: [f64; 3]| Vector3::from_fn(|k, _| sigma[k] * sensors::normal(&mut rng));
-        let pos_error_ned_m = draw3([init.position_sigma_m; 3]);
+        let mut pos_error_ned_m = draw3([init.position_sigma_m; 3]);
+        if self.platform_model(id) == PlatformModel::Planar {
+            // a wheeled robot on level ground knows its height
+            pos_error_ned_m[2] = 0.0;
+        }
         let vel_error_ned_m_s = draw3([init.velocity_sigma_m_s; 3]);
         let rp = init.roll_pitch_sigma_deg.to_radians();
         let attitude_error_rad = draw3([rp, rp, init.yaw_sigma_deg.to_radians()]);
@@ -251,8 +274,9 @@ pub struct SimEvents<'a> {
     world: &'a World,
     seed: u64,
     run: u32,
-    imu: Vec<ImuStream<'a>>,
-    odometer: Vec<OdometerStream<'a>>,
+    imu: Vec<Option<ImuStream<'a>>>,
+    odometer: Vec<Option<OdometerStream<'a>>>,
+    wheel: Vec<Option<WheelStream<'a>>>,
     epochs: std::iter::Peekable<std::vec::IntoIter<TimeUs>>,
 }
 
@@ -260,15 +284,24 @@ impl Iterator for SimEvents<'_> {
     type Item = SimEvent;
 
     fn next(&mut self) -> Option<SimEvent> {
-        // (time, kind, index): the smallest goes next; kind 0 = IMU, 1 = odometer, 2 = ranges.
-        let imu = self.imu.iter().enumerate().filter_map(|(i, s)| s.peek_time().map(|t| (t, 0u8, i)));
-        let odo = self.odometer.iter().enumerate().filter_map(|(i, s)| s.peek_time().map(|t| (t, 1u8, i)));
+        // (time, kind, index): the smallest goes next; kind 0 = IMU or wheels (a platform has
+        // one or the other), 1 = odometer, 2 = ranges.
+        let peek = |i: usize| {
+            let imu = self.imu[i].as_ref().and_then(|s| s.peek_time());
+            imu.or_else(|| self.wheel[i].as_ref().and_then(|s| s.peek_time())).map(|t| (t, 0u8, i))
+        };
+        let drive = (0..self.imu.len()).filter_map(peek);
+        let odo = self.odometer.iter().enumerate().filter_map(|(i, s)| s.as_ref()?.peek_time().map(|t| (t, 1u8, i)));
         let rng = self.epochs.peek().map(|&t| (t, 2u8, 0));
-        let (t, kind, i) = imu.chain(odo).chain(rng).min()?;
+        let (t, kind, i) = drive.chain(odo).chain(rng).min()?;
         let ids = &self.world.trajectories;
         match kind {
-            0 => self.imu[i].next().map(|s| SimEvent::Imu(ids[i].id(), s)),
-            1 => self.odometer[i].next().map(|s| SimEvent::Odometer(ids[i].id(), s)),
+            0 => match (&mut self.imu[i], &mut self.wheel[i]) {
+                (Some(imu), _) => imu.next().map(|s| SimEvent::Imu(ids[i].id(), s)),
+                (None, Some(wheel)) => wheel.next().map(|s| SimEvent::Wheel(ids[i].id(), s)),
+                (None, None) => None,
+            },
+            1 => self.odometer[i].as_mut()?.next().map(|s| SimEvent::Odometer(ids[i].id(), s)),
             _ => {
                 self.epochs.next();
                 Some(SimEvent::Ranges(t, sensors::ranges_at(ids, self.world.model.range_sigma_m, t, self.seed, self.run)))
@@ -362,6 +395,7 @@ mod tests {
         let rank = |e: &SimEvent| match e {
             SimEvent::Imu(id, s) => (s.t, 0, *id),
             SimEvent::Odometer(id, s) => (s.t, 1, *id),
+            SimEvent::Wheel(id, s) => (s.t, 0, *id),
             SimEvent::Ranges(t, _) => (*t, 2, 0),
         };
         assert!(events.windows(2).all(|w| rank(&w[0]) < rank(&w[1])), "strictly ordered by (t, kind, id)");

@@ -7,6 +7,7 @@ use std::time::Duration;
 use anyhow::{Context, bail};
 use cooploc::estimation::Method;
 use cooploc::estimation::ins::InsState;
+use cooploc::estimation::nav::NavState;
 use cooploc::node::core::{NodeConfig, NodeCore};
 use cooploc::node::profile::VehicleProfile;
 use cooploc::node::runner::{Links, NodeInit, metadata_name, node_metadata, run, vehicle_attachment_name};
@@ -129,14 +130,14 @@ pub fn run_cmd(args: Args) -> anyhow::Result<()> {
     // The profile first: a bad one is refused before any socket opens.
     let profile = match &args.vehicle_config {
         Some(path) => VehicleProfile::from_path(path)?,
-        None => VehicleProfile::from_scenario(&Scenario::from_path(&args.scenario)?),
+        None => VehicleProfile::from_scenario_platform(&Scenario::from_path(&args.scenario)?, args.id),
     };
     let scenario = Scenario::from_path(&args.scenario)?;
     let world = World::new(&scenario)?;
     // Without a latitude in the profile, the node takes the vehicle's origin (GPS_GLOBAL_ORIGIN
     // or HOME_POSITION) before it starts; the INS gets that latitude.
     let latitude = profile.latitude();
-    let (ins, initial_sigma) = profile.ins_settings(latitude.unwrap_or(0.0));
+    let model = profile.nav_model(latitude.unwrap_or(0.0));
     let initial = match from_run {
         Some((seed, run)) => Some(
             cooploc::experiment::initial_state(&world, seed, run, args.id)
@@ -163,7 +164,7 @@ pub fn run_cmd(args: Args) -> anyhow::Result<()> {
     if !(args.origin_lon_deg.is_finite() && (-180.0..=180.0).contains(&args.origin_lon_deg)) {
         bail!("--origin-lon-deg must be in [-180, 180], got {}", args.origin_lon_deg);
     }
-    let mut cfg = NodeConfig::new(args.id, method, ins, initial_sigma, encoding, team);
+    let mut cfg = NodeConfig::for_model(args.id, method, model, encoding, team);
     cfg.epoch_timeout_us = args.epoch_timeout_ms * 1000;
     cfg.retry_us = args.retry_ms * 1000;
     cfg.range_grace_us = args.range_grace_ms * 1000;
@@ -194,10 +195,14 @@ pub fn run_cmd(args: Args) -> anyhow::Result<()> {
         None => None,
     };
     let init = match (initial, origin) {
-        (Some((t0, state)), Some(_)) => NodeInit::Ready(Box::new(NodeCore::new(cfg, t0, state).context("node configuration")?)),
+        (Some((t0, state)), Some(_)) => {
+            let state = NavState::for_model(&cfg.model, state);
+            NodeInit::Ready(Box::new(NodeCore::new(cfg, t0, state).context("node configuration")?))
+        }
         (state, origin) => {
             // Checked now rather than when the vehicle has said what is missing.
-            NodeCore::new(cfg.clone(), TimeUs(0), InsState::at_rest(UnitQuaternion::identity())).context("node configuration")?;
+            let at_rest = NavState::for_model(&cfg.model, InsState::at_rest(UnitQuaternion::identity()));
+            NodeCore::new(cfg.clone(), TimeUs(0), at_rest).context("node configuration")?;
             NodeInit::Pending { config: Box::new(cfg), origin, state }
         }
     };

@@ -12,6 +12,7 @@
 
 use std::collections::BTreeMap;
 
+use crate::estimation::nav::NavState;
 use crate::estimation::{Method, PlatformId, RangeSample};
 use crate::experiment::{FilterRun, run_filter};
 use crate::node::core::{NodeConfig, NodeCore, NodeInput, NodeOutput};
@@ -63,7 +64,7 @@ pub fn profile_of(log: &Log, world: &World, id: PlatformId) -> Result<VehiclePro
             let text = std::str::from_utf8(&a.data).map_err(|e| ReplayError::Node(id, format!("vehicle profile: {e}")))?;
             VehicleProfile::from_toml_str(text).map_err(|e| ReplayError::Node(id, e.to_string()))
         }
-        None => Ok(VehicleProfile::from_scenario(world.scenario())),
+        None => Ok(VehicleProfile::from_scenario_platform(world.scenario(), id)),
     }
 }
 
@@ -140,8 +141,8 @@ fn replay_node(log: &Log, world: &World, id: PlatformId) -> Result<NodeReplay, R
     let team: Vec<PlatformId> = field::<String>(&record, m, "team")?.split(',').filter_map(|s| s.parse().ok()).collect();
     let profile = profile_of(log, world, id)?;
     // No latitude in the profile: the node took the vehicle's origin (its Init event says which).
-    let (ins, sigma) = profile.ins_settings(profile.latitude().unwrap_or(0.0));
-    let mut cfg = NodeConfig::new(id, method, ins, sigma, encoding, team);
+    let model = profile.nav_model(profile.latitude().unwrap_or(0.0));
+    let mut cfg = NodeConfig::for_model(id, method, model, encoding, team);
     cfg.epoch_timeout_us = field(&record, m, "epoch_timeout_us")?;
     cfg.retry_us = field(&record, m, "retry_us")?;
     cfg.history_us = field(&record, m, "history_us")?;
@@ -172,7 +173,8 @@ fn replay_node(log: &Log, world: &World, id: PlatformId) -> Result<NodeReplay, R
     };
     let mut core = match (&initial_state, origin) {
         (Some((t0, state)), Some(_)) => {
-            Some(NodeCore::new(cfg.clone(), TimeUs(*t0), *state).map_err(|e| node_err(e.to_string()))?)
+            let state = NavState::for_model(&cfg.model, *state);
+            Some(NodeCore::new(cfg.clone(), TimeUs(*t0), state).map_err(|e| node_err(e.to_string()))?)
         }
         _ => None,
     };
@@ -183,7 +185,7 @@ fn replay_node(log: &Log, world: &World, id: PlatformId) -> Result<NodeReplay, R
     let events = events_topic(id);
     let mut out = NodeReplay { id, method, recorded: Vec::new(), replayed: Vec::new(), last: None, imu_replayed: 0 };
     let mut last_sim_state = None;
-    let mut decoder = VehicleInputs::new(profile.inputs.clone());
+    let mut decoder = profile.decoder();
     for msg in &log.messages {
         let topic = msg.topic();
         let outputs = if topic == vehicle_rx {
@@ -230,7 +232,7 @@ fn replay_node(log: &Log, world: &World, id: PlatformId) -> Result<NodeReplay, R
                     let mut cfg = cfg.clone();
                     let origin = match (from_vehicle, origin) {
                         (Some([lat_deg, lon_deg, alt_m]), _) => {
-                            cfg.ins.latitude_deg = lat_deg;
+                            cfg.model.set_latitude(lat_deg);
                             GeoOrigin { lat_deg, lon_deg, alt_m }
                         }
                         (None, Some(o)) => o,
@@ -243,6 +245,7 @@ fn replay_node(log: &Log, world: &World, id: PlatformId) -> Result<NodeReplay, R
                             state_from_sim_state(s, &origin).map_err(|e| node_err(e.to_string()))?
                         }
                     };
+                    let state = NavState::for_model(&cfg.model, state);
                     core = Some(NodeCore::new(cfg, TimeUs(t0_us), state).map_err(|e| node_err(e.to_string()))?);
                     continue;
                 }

@@ -6,13 +6,13 @@
 use std::collections::VecDeque;
 
 use cooploc::estimation::{ImuSample, Method, RangeSample};
-use cooploc::experiment::{initial_state, ins_settings, run_filter};
+use cooploc::experiment::{initial_nav_state, initial_state, ins_settings, nav_model, run_filter};
 use cooploc::node::core::{NodeConfig, NodeCore, NodeInput, NodeOutput};
 use cooploc::protocol::MavMessage;
 use cooploc::protocol::record::Encoding;
 use cooploc::protocol::wire::{self, from_frame, to_frame};
 use cooploc::sitl::world::SimEvent;
-use cooploc::sitl::{ASYNC_TOML, PAPER_TOML, Scenario, World};
+use cooploc::sitl::{ASYNC_TOML, MIXED_TOML, PAPER_TOML, Scenario, World};
 use cooploc::time::TimeUs;
 use mavlink_core::MavHeader;
 
@@ -70,13 +70,12 @@ fn run_network_with(
     dead: Option<(usize, TimeUs)>,
     net: &mut Network<'_>,
 ) -> (Vec<NodeCore>, Vec<(TimeUs, Vec<RangeSample>)>) {
-    let (ins, initial_sigma) = ins_settings(world);
     let mut nodes: Vec<NodeCore> = world
         .platform_ids()
         .into_iter()
         .map(|id| {
-            let (t0, state) = initial_state(world, seed, run, id).unwrap();
-            let cfg = NodeConfig::new(id, method, ins, initial_sigma, Encoding::F64, world.platform_ids());
+            let (t0, state) = initial_nav_state(world, seed, run, id).unwrap();
+            let cfg = NodeConfig::for_model(id, method, nav_model(world, id), Encoding::F64, world.platform_ids());
             NodeCore::new(cfg, t0, state).unwrap()
         })
         .collect();
@@ -92,6 +91,10 @@ fn run_network_with(
                 queue.push_back(Item::Input(index(id), NodeInput::Imu(s)))
             }
             SimEvent::Odometer(id, s) => queue.push_back(Item::Input(index(id), NodeInput::Odometer(s))),
+            SimEvent::Wheel(id, s) => {
+                now = now.max(s.t);
+                queue.push_back(Item::Input(index(id), NodeInput::Wheel(s)))
+            }
             SimEvent::Ranges(t, samples) => {
                 epoch += 1;
                 sent_ranges.push((t, samples.iter().map(wire::range_as_sent).collect()));
@@ -155,6 +158,33 @@ fn three_nodes_reproduce_the_experiment_bit_for_bit() {
             assert_eq!([err[0], err[1]], reference_err, "{method} node {}: final error differs from the experiment's", node.id());
         }
     }
+}
+
+/// A mixed team (sitl/scenarios/mixed.toml): two INS vehicles and two wheeled robots running
+/// the planar filter on their wheel samples, ranging to each other. The nodes equal the offline
+/// run of the same team bit for bit, and cooperation beats each one's dead reckoning.
+#[test]
+fn a_mixed_team_of_ins_vehicles_and_wheeled_robots_equals_the_offline_run() {
+    let world = World::new(&Scenario::from_toml_str(MIXED_TOML).unwrap()).unwrap();
+    let inputs = world.run_inputs(3, 0);
+    let kinds: Vec<(usize, usize)> = inputs.platforms.iter().map(|p| (p.imu.len(), p.wheel.len())).collect();
+    assert_eq!(kinds, vec![(24_000, 0), (24_000, 0), (0, 2_400), (0, 2_400)]);
+    let (nodes, sent_ranges) = run_network(&world, Method::Decentralized, "1hz", 3, 0);
+    let reference = run_filter(&world, &inputs, &sent_ranges, Method::Decentralized).unwrap();
+    let dr = run_filter(&world, &inputs, &[], Method::DeadReckoning).unwrap();
+    let (mut coop_sum, mut dr_sum) = (0.0, 0.0);
+    for (k, (node, (p, outcome))) in nodes.iter().zip(inputs.platforms.iter().zip(&reference.platforms)).enumerate() {
+        let st = &node.stats;
+        assert_eq!(st.epochs_applied, 120, "node {}: {st:?}", node.id());
+        assert_eq!(st.dropped_inputs() + st.epochs_partial + st.epoch_disagreements, 0, "{st:?}");
+        assert_eq!(node.filter().planar().is_some(), k >= 2, "platforms 3 and 4 run the planar filter");
+        let err = p.truth.last().unwrap().pos_ned_m - node.filter().position_ned_m();
+        assert_eq!([err[0], err[1]], outcome.final_error().pos_err_ne_m, "node {}: differs from the offline filter", node.id());
+        assert!(outcome.final_nees.is_finite() && outcome.final_nees > 0.0);
+        coop_sum += outcome.final_error().pos_err_m;
+        dr_sum += dr.platforms[k].final_error().pos_err_m;
+    }
+    assert!(coop_sum < dr_sum, "cooperation {coop_sum:.2} m vs dead reckoning {dr_sum:.2} m, summed over the team");
 }
 
 /// Unsynchronised sensors (sitl/scenarios/async.toml): a 100 Hz IMU, a 15 Hz odometer whose

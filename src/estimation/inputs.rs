@@ -26,6 +26,16 @@ pub struct OdometerSample {
     pub speed_m_s: f64,
 }
 
+/// One wheel-odometry drive sample of a planar robot: the mean forward speed and yaw rate over
+/// the interval that ends at `t` (WHEEL_DISTANCE of a differential drive, differentiated).
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct WheelSample {
+    pub t: TimeUs,
+    pub speed_m_s: f64,
+    /// Yaw rate, rad/s, positive turning right (clockwise seen from above).
+    pub yaw_rate_rad_s: f64,
+}
+
 /// One inter-platform range (the cooploc range message).
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
 pub struct RangeSample {

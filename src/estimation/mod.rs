@@ -6,6 +6,8 @@
 //! | [`platform`] | the [`PlatformFilter`] trait every platform model implements; broadcasts |
 //! | [`ins`] | strapdown INS error-state EKF for land vehicles (odometer + non-holonomic constraints) |
 //! | [`unicycle`] | planar unicycle robot |
+//! | [`planar`] | a wheeled robot on the team's clock, driven by wheel odometry (what a node runs without an IMU) |
+//! | [`nav`] | the navigation filter a node runs: the INS or the planar robot, one type |
 //! | [`linear`] | generic linear-Gaussian platform |
 //! | [`coop`] | the paper's cooperative joint update and the cross-covariance store (Eq. 10) |
 //! | [`ci`] | covariance-intersection baseline |
@@ -23,6 +25,8 @@ pub mod inputs;
 pub mod ins;
 pub mod kalman;
 pub mod linear;
+pub mod nav;
+pub mod planar;
 pub mod platform;
 pub mod team;
 pub mod unicycle;
@@ -32,7 +36,7 @@ pub use coop::{
     UpdateOptions, cooperative_update, cooperative_update_with,
 };
 pub use error::EstimationError;
-pub use inputs::{ImuSample, OdometerSample, RangeSample};
+pub use inputs::{ImuSample, OdometerSample, RangeSample, WheelSample};
 pub use kalman::{LinearizedMeasurement, UpdateDiagnostics};
 pub use platform::{Geometry, Heading, PlatformFilter, PlatformId, Snapshot};
 pub use team::{Method, Team};

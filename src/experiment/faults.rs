@@ -16,7 +16,8 @@ use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use serde::Serialize;
 
-use super::{ExperimentError, ins_settings, run_filter, state_from};
+use super::{ExperimentError, nav_model, run_filter, state_from};
+use crate::estimation::nav::NavState;
 use crate::estimation::{Method, PlatformId};
 use crate::node::core::{NodeConfig, NodeCore, NodeInput, NodeOutput, NodeStats};
 use crate::protocol::MavMessage;
@@ -256,7 +257,7 @@ fn horizontal_error(world: &World, id: PlatformId, core: &NodeCore) -> (f64, f64
     let f = core.filter();
     let truth = world.trajectory(id).expect("team member").truth_at(f.time());
     let e = truth.pos_ned_m - f.position_ned_m();
-    let p = f.covariance16();
+    let p = f.position_covariance();
     let cov = nalgebra::DMatrix::from_fn(2, 2, |r, c| p[(r, c)]);
     let nees = crate::estimation::consistency::nees(&nalgebra::DVector::from_column_slice(e.xy().as_slice()), &cov);
     (e.xy().norm(), nees.unwrap_or(f64::INFINITY))
@@ -326,15 +327,16 @@ pub fn run_case(
     run: u32,
 ) -> Result<RunOutcome, ExperimentError> {
     let ids = world.platform_ids();
-    let (ins, sigma) = ins_settings(world);
     let make = |id: PlatformId, at: Option<TimeUs>| -> Result<NodeCore, ExperimentError> {
         let init = match at {
             None => world.initial_estimate(seed, run, id)?,
             Some(t) => world.estimate_at(seed, run, id, t, 1)?,
         };
         let (t0, state) = state_from(init)?;
-        let cfg = NodeConfig::new(id, method, ins, sigma, Encoding::F64, ids.clone());
-        NodeCore::new(cfg, t0, state).map_err(|e| ExperimentError::Settings(format!("node {id}: {e}")))
+        let model = nav_model(world, id);
+        let cfg = NodeConfig::for_model(id, method, model, Encoding::F64, ids.clone());
+        NodeCore::new(cfg, t0, NavState::for_model(&model, state))
+            .map_err(|e| ExperimentError::Settings(format!("node {id}: {e}")))
     };
     let mut nodes = Vec::new();
     for (k, &id) in ids.iter().enumerate() {
@@ -413,6 +415,12 @@ pub fn run_case(
                     sim.deliver(index(id), NodeInput::Odometer(s), now);
                 }
             }
+            SimEvent::Wheel(id, s) => {
+                let k = index(id);
+                if dropped_imu != Some((k, s.t)) && !sim.lose_vehicle_frame(s.t) {
+                    sim.deliver(k, NodeInput::Wheel(s), now);
+                }
+            }
             SimEvent::Ranges(t, samples) => {
                 epoch += 1;
                 for r in samples {
@@ -461,7 +469,7 @@ pub fn run_case(
         };
         let (final_err_m, final_nees) = horizontal_error(world, ids[k], core);
         let (fault_end_err_m, fault_end_nees) = at_fault_end[k].unwrap_or((final_err_m, final_nees));
-        let p = core.filter().covariance16();
+        let p = core.filter().position_covariance();
         detections += core.stats.epoch_disagreements + core.stats.store_mismatches;
         outcomes.push(NodeOutcome {
             id: ids[k],

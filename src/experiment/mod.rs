@@ -15,10 +15,12 @@ use nalgebra::{DVector, Vector3};
 use serde::Serialize;
 
 use crate::estimation::consistency::nees;
-use crate::estimation::ins::{self, InsConfig, InsFilter, InsInitialSigma, InsState};
+use crate::estimation::ins::{self, InsConfig, InsInitialSigma, InsState};
+use crate::estimation::nav::{Drive, NavFilter, NavModel, NavState};
+use crate::estimation::planar::{PlanarConfig, PlanarSigma};
 use crate::estimation::unicycle::wrap_angle;
-use crate::estimation::{CoopMeasurement, EstimationError, ImuSample, Method, PlatformFilter, PlatformId, RangeSample, Team};
-use crate::sitl::scenario::{Scenario, ScenarioError};
+use crate::estimation::{CoopMeasurement, EstimationError, Method, PlatformFilter, PlatformId, RangeSample, Team};
+use crate::sitl::scenario::{PlatformModel, Scenario, ScenarioError};
 use crate::sitl::world::{PlatformRun, RunInputs, World};
 use crate::time::TimeUs;
 
@@ -38,6 +40,33 @@ pub enum ExperimentError {
 pub fn ins_settings(world: &World) -> (InsConfig, InsInitialSigma) {
     let s: &Scenario = world.scenario();
     crate::node::profile::VehicleProfile::from_scenario(s).ins_settings(s.latitude_deg)
+}
+
+/// The navigation model platform `id` runs: the INS of [`ins_settings`], or, for a wheeled
+/// robot, the planar filter with the noise of the scenario's `[wheels]` and its `[initial]`
+/// position and yaw sigmas.
+pub fn nav_model(world: &World, id: PlatformId) -> NavModel {
+    let s = world.scenario();
+    match (world.platform_model(id), s.wheels) {
+        (PlatformModel::Planar, Some(w)) => NavModel::Planar {
+            config: PlanarConfig {
+                max_gap_s: crate::estimation::planar::DEFAULT_MAX_GAP_S,
+                ..PlanarConfig::from_sample_sigmas(w.speed_sigma_m_s, w.yaw_rate_sigma_deg_s.to_radians(), w.rate_hz)
+            },
+            initial_sigma: PlanarSigma { pos_m: s.initial.position_sigma_m, yaw_rad: s.initial.yaw_sigma_deg.to_radians() },
+        },
+        _ => {
+            let (config, initial_sigma) = ins_settings(world);
+            NavModel::Ins { config, initial_sigma }
+        }
+    }
+}
+
+/// Platform `id`'s initial state in run `run` for its model ([`initial_state`]; a wheeled
+/// robot keeps the position and the heading).
+pub fn initial_nav_state(world: &World, seed: u64, run: u32, id: PlatformId) -> Result<(TimeUs, NavState), ScenarioError> {
+    let (t0, s) = initial_state(world, seed, run, id)?;
+    Ok((t0, NavState::for_model(&nav_model(world, id), s)))
 }
 
 /// A platform's initial filter state in run `run` (truth at time zero plus the errors the
@@ -77,7 +106,8 @@ pub struct PlatformOutcome {
     pub id: PlatformId,
     /// Error at every truth sample.
     pub trace: Vec<ErrorSample>,
-    /// NEES of the 15 navigation and bias error states at the end of the run.
+    /// NEES of the 15 navigation and bias error states at the end of the run (a wheeled
+    /// robot: its 3 states).
     pub final_nees: f64,
     /// Estimated horizontal track at every truth sample (N, E), m.
     pub track_ne_m: Vec<[f64; 2]>,
@@ -102,29 +132,40 @@ pub struct FilterRun {
     pub platforms: Vec<PlatformOutcome>,
 }
 
-/// The error state of an INS estimate against the truth (15 states: no odometer scale).
-fn error15(f: &InsFilter, run: &PlatformRun, k: usize) -> DVector<f64> {
+/// The error state of an estimate against the truth, and its covariance: the INS's 15 states
+/// (no odometer scale), the planar robot's 3.
+fn final_error(f: &NavFilter, run: &PlatformRun, k: usize) -> (DVector<f64>, nalgebra::DMatrix<f64>) {
+    let f = match f {
+        NavFilter::Ins(f) => f,
+        NavFilter::Planar(p) => {
+            let truth = &run.truth[k];
+            let d = truth.pos_ned_m - position_at(f, truth.t);
+            let e = DVector::from_vec(vec![d[0], d[1], wrap_angle(truth.yaw_rad - p.yaw_rad())]);
+            return (e, p.covariance());
+        }
+    };
     let truth = &run.truth[k];
     let x = f.state();
     let mut e = DVector::zeros(15);
-    e.fixed_rows_mut::<3>(ins::POS).copy_from(&(truth.pos_ned_m - position_at(f, truth.t)));
+    e.fixed_rows_mut::<3>(ins::POS)
+        .copy_from(&(truth.pos_ned_m - f.position_ned_m() - f.velocity_ned_m_s() * truth.t.secs_since(f.time())));
     e.fixed_rows_mut::<3>(ins::VEL).copy_from(&(truth.vel_ned_m_s - x.vel_ned_m_s));
     e.fixed_rows_mut::<3>(ins::ATT).copy_from(&ins::attitude_error_ned(&truth.attitude, &x.att_frd_to_ned));
     // the biases at the end of the run: error15 is taken there (they walk when configured)
     e.fixed_rows_mut::<3>(ins::ACCEL_BIAS).copy_from(&(run.final_errors.accel_bias_m_s2 - x.accel_bias_frd_m_s2));
     e.fixed_rows_mut::<3>(ins::GYRO_BIAS).copy_from(&(run.final_errors.gyro_bias_rad_s - x.gyro_bias_frd_rad_s));
-    e
+    (e, f.covariance().view((0, 0), (15, 15)).into_owned())
 }
 
 /// The filter's position at `t`, moved from its own time along its velocity: a truth sample
 /// that falls between two IMU samples (an autopilot's IMU stamps need not fall on the truth
 /// grid) is compared with the estimate at the truth's instant. Zero shift on the grid.
-fn position_at(f: &InsFilter, t: TimeUs) -> Vector3<f64> {
+fn position_at(f: &NavFilter, t: TimeUs) -> Vector3<f64> {
     let dt = t.secs_since(f.time());
     if dt == 0.0 { f.position_ned_m() } else { f.position_ned_m() + f.velocity_ned_m_s() * dt }
 }
 
-fn error_sample(f: &InsFilter, run: &PlatformRun, k: usize) -> ErrorSample {
+fn error_sample(f: &NavFilter, run: &PlatformRun, k: usize) -> ErrorSample {
     let truth = &run.truth[k];
     let d = truth.pos_ned_m - position_at(f, truth.t);
     ErrorSample {
@@ -142,13 +183,16 @@ pub fn run_filter(
     ranges: &[(TimeUs, Vec<RangeSample>)],
     method: Method,
 ) -> Result<FilterRun, ExperimentError> {
-    let (config, sigma) = ins_settings(world);
     let fail = |platform, t, source| ExperimentError::Filter { run: inputs.run, method, platform, t, source };
     let mut members = Vec::new();
     for p in &inputs.platforms {
-        let (t0, state) = initial_state(world, inputs.seed, inputs.run, p.id)?;
-        members.push((p.id, InsFilter::new(config, t0, state, sigma).map_err(|e| fail(p.id, t0, e))?));
+        let (t0, state) = initial_nav_state(world, inputs.seed, inputs.run, p.id)?;
+        members.push((p.id, NavFilter::new(nav_model(world, p.id), t0, state).map_err(|e| fail(p.id, t0, e))?));
     }
+    // A platform is driven by its IMU samples, or a wheeled robot by its wheel samples.
+    let drive = |p: &PlatformRun, k: usize| {
+        if p.wheel.is_empty() { p.imu.get(k).copied().map(Drive::Imu) } else { p.wheel.get(k).copied().map(Drive::Wheel) }
+    };
     let mut team = Team::new(method, members).map_err(|e| fail(0, TimeUs(0), e))?;
     let n = inputs.platforms.len();
     let mut outcomes: Vec<PlatformOutcome> = inputs
@@ -170,7 +214,7 @@ pub fn run_filter(
         // The next instant anything happens.
         let mut t = TimeUs(u64::MAX);
         for (i, p) in inputs.platforms.iter().enumerate() {
-            for next in [p.imu.get(imu[i]).map(|s| s.t), p.odometer.get(odo[i]).map(|s| s.t), p.truth.get(truth[i]).map(|s| s.t)]
+            for next in [drive(p, imu[i]).map(|s| s.t()), p.odometer.get(odo[i]).map(|s| s.t), p.truth.get(truth[i]).map(|s| s.t)]
             {
                 t = t.min(next.unwrap_or(TimeUs(u64::MAX)));
             }
@@ -186,13 +230,13 @@ pub fn run_filter(
         // holding the next sample's rates over the cut (as a node does).
         let epoch_now = ranges.get(epoch).is_some_and(|(te, _)| *te == t);
         for (i, p) in inputs.platforms.iter().enumerate() {
-            let Some(s) = p.imu.get(imu[i]) else { continue };
+            let Some(s) = drive(p, imu[i]) else { continue };
             let f = team.filter_mut(p.id).expect("member");
-            if s.t == t {
-                f.propagate(s).map_err(|e| fail(p.id, t, e))?;
+            if s.t() == t {
+                f.propagate(&s).map_err(|e| fail(p.id, t, e))?;
                 imu[i] += 1;
             } else if f.time() < t && (epoch_now || p.odometer.get(odo[i]).is_some_and(|o| o.t == t)) {
-                f.propagate(&ImuSample { t, ..*s }).map_err(|e| fail(p.id, t, e))?;
+                f.propagate(&s.at(t)).map_err(|e| fail(p.id, t, e))?;
             }
         }
         let mut batch = Vec::new();
@@ -225,8 +269,7 @@ pub fn run_filter(
     }
     for (i, p) in inputs.platforms.iter().enumerate() {
         let f = team.filter(p.id).expect("member");
-        let e = error15(f, p, p.truth.len() - 1);
-        let cov = f.covariance().view((0, 0), (15, 15)).into_owned();
+        let (e, cov) = final_error(f, p, p.truth.len() - 1);
         outcomes[i].final_position_ned_m = f.position_ned_m();
         outcomes[i].final_t = f.time();
         outcomes[i].final_nees = nees(&e, &cov).map_err(|e| fail(p.id, f.time(), e))?;

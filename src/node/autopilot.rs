@@ -57,20 +57,26 @@ pub struct RateRequests {
 }
 
 impl RateRequests {
-    /// The IMU and odometer messages at the profile's `[sensors]` rates (none if the profile
-    /// says `request_rates = false`).
+    /// The IMU and odometer messages at the profile's `[sensors]` rates, or a planar robot's
+    /// WHEEL_DISTANCE at its `[wheels]` rate (none if the profile says `request_rates = false`).
     pub fn new(profile: &VehicleProfile, target_system: u8) -> Self {
         let mut requests = Vec::new();
         if profile.inputs.request_rates {
-            let imu = profile.inputs.imu;
-            requests.push(RateRequest::new(imu.name(), imu.message_id(), profile.sensors.imu_rate_hz));
-            let odo = match profile.inputs.odometer {
-                OdometerMessage::WheelDistance => Some(("WHEEL_DISTANCE", WHEEL_DISTANCE_ID)),
-                OdometerMessage::Odometry => Some(("ODOMETRY", ODOMETRY_ID)),
-                OdometerMessage::None => None,
-            };
-            if let Some((name, id)) = odo {
-                requests.push(RateRequest::new(name, id, profile.sensors.odometer_rate_hz));
+            if let Some(sensors) = &profile.sensors {
+                let imu = profile.inputs.imu;
+                requests.push(RateRequest::new(imu.name(), imu.message_id(), sensors.imu_rate_hz));
+                let odo = match profile.inputs.odometer {
+                    OdometerMessage::WheelDistance => Some(("WHEEL_DISTANCE", WHEEL_DISTANCE_ID)),
+                    OdometerMessage::Odometry => Some(("ODOMETRY", ODOMETRY_ID)),
+                    OdometerMessage::None => None,
+                };
+                if let Some((name, id)) = odo {
+                    requests.push(RateRequest::new(name, id, sensors.odometer_rate_hz));
+                }
+            }
+            // a planar robot: its wheels at the rate of [wheels]
+            if let Some(wheels) = &profile.wheels {
+                requests.push(RateRequest::new("WHEEL_DISTANCE", WHEEL_DISTANCE_ID, wheels.rate_hz));
             }
         }
         RateRequests { target_system, requests }

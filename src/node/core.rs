@@ -71,10 +71,11 @@
 use std::collections::{BTreeMap, BTreeSet, VecDeque};
 
 use crate::estimation::ci::ci_update;
-use crate::estimation::ins::{InsConfig, InsFilter, InsInitialSigma, InsState};
+use crate::estimation::ins::{InsConfig, InsInitialSigma};
+use crate::estimation::nav::{Drive, NavFilter, NavModel, NavState};
 use crate::estimation::{
     BoundScope, CoopMeasurement, Correction, CrossCovariances, CrossMode, EstimationError, ImuSample, JointPrior, Method,
-    OdometerSample, PlatformFilter, PlatformId, RangeSample, StoreRef, UpdateOptions, cooperative_update_with,
+    OdometerSample, PlatformFilter, PlatformId, RangeSample, StoreRef, UpdateOptions, WheelSample, cooperative_update_with,
 };
 use crate::protocol::MavMessage;
 use crate::protocol::fragment::{Payload, Pushed, Reassembler, fragment};
@@ -90,8 +91,8 @@ pub struct NodeConfig {
     /// One of dead reckoning, no-propagation, decentralized, covariance intersection (the
     /// centralized EKF needs a centre).
     pub method: Method,
-    pub ins: InsConfig,
-    pub initial_sigma: InsInitialSigma,
+    /// The navigation model: the INS, or the planar robot of a wheeled vehicle without IMU.
+    pub model: NavModel,
     pub encoding: Encoding,
     /// Every platform of the team, this one included: the records an epoch waits for.
     /// Messages from other platforms are counted and dropped.
@@ -129,11 +130,15 @@ impl NodeConfig {
         encoding: Encoding,
         team: Vec<PlatformId>,
     ) -> Self {
+        Self::for_model(id, method, NavModel::Ins { config: ins, initial_sigma }, encoding, team)
+    }
+
+    /// The same defaults for any navigation model.
+    pub fn for_model(id: PlatformId, method: Method, model: NavModel, encoding: Encoding, team: Vec<PlatformId>) -> Self {
         Self {
             id,
             method,
-            ins,
-            initial_sigma,
+            model,
             encoding,
             team,
             epoch_timeout_us: 2_000_000,
@@ -168,7 +173,10 @@ pub enum NodeConfigError {
 /// What the node feeds in.
 #[derive(Debug, Clone, PartialEq)]
 pub enum NodeInput {
+    /// What drives an INS node.
     Imu(ImuSample),
+    /// What drives a planar node (a wheeled robot without IMU).
+    Wheel(WheelSample),
     Odometer(OdometerSample),
     /// A range the node's own vehicle measured (its radio), with its epoch id.
     OwnRange {
@@ -273,14 +281,14 @@ impl NodeStats {
 
 #[derive(Debug, Clone)]
 enum Stamped {
-    Imu(ImuSample),
+    Drive(Drive),
     Odometer(OdometerSample),
 }
 
 impl Stamped {
     fn t(&self) -> TimeUs {
         match self {
-            Stamped::Imu(s) => s.t,
+            Stamped::Drive(s) => s.t(),
             Stamped::Odometer(s) => s.t,
         }
     }
@@ -288,7 +296,7 @@ impl Stamped {
     /// Order within one instant: the IMU sample, then the odometer.
     fn key(&self) -> (TimeUs, u8) {
         match self {
-            Stamped::Imu(s) => (s.t, 0),
+            Stamped::Drive(s) => (s.t(), 0),
             Stamped::Odometer(s) => (s.t, 1),
         }
     }
@@ -438,9 +446,9 @@ fn choose_store(records: &[StateRecord]) -> Option<StoreChoice> {
 #[derive(Debug)]
 pub struct NodeCore {
     cfg: NodeConfig,
-    filter: InsFilter,
+    filter: NavFilter,
     /// Checkpoints at the end of instants, oldest first.
-    history: VecDeque<(TimeUs, InsFilter)>,
+    history: VecDeque<(TimeUs, NavFilter)>,
     /// Vehicle inputs after the oldest checkpoint, in time order (odometer samples ahead of the
     /// filter included: they wait for the IMU sample that covers them).
     inputs: VecDeque<Stamped>,
@@ -451,7 +459,7 @@ pub struct NodeCore {
     /// The vehicle's stream has ended.
     ended: bool,
     /// IMU samples after a clock jump, waiting for confirmation.
-    jump: Vec<ImuSample>,
+    jump: Vec<Drive>,
     epochs: BTreeMap<u32, Epoch>,
     /// Id and time of the last epoch resolved.
     last_applied: Option<(u32, TimeUs)>,
@@ -492,7 +500,7 @@ pub struct NodeCore {
 
 impl NodeCore {
     /// A node whose filter starts at `t0` from `initial`.
-    pub fn new(mut cfg: NodeConfig, t0: TimeUs, initial: InsState) -> Result<Self, NodeConfigError> {
+    pub fn new(mut cfg: NodeConfig, t0: TimeUs, initial: impl Into<NavState>) -> Result<Self, NodeConfigError> {
         if !matches!(
             cfg.method,
             Method::DeadReckoning | Method::NoPropagation | Method::Decentralized | Method::CovarianceIntersection
@@ -513,7 +521,7 @@ impl NodeCore {
         if !(0.0..1.0).contains(&cfg.gate_probability) {
             return Err(NodeConfigError::Gate(cfg.gate_probability));
         }
-        let mut filter = InsFilter::new(cfg.ins, t0, initial, cfg.initial_sigma)?;
+        let mut filter = NavFilter::new(cfg.model, t0, initial.into())?;
         filter.set_track_psi(cfg.method.needs_psi());
         let history = VecDeque::from([(t0, filter.clone())]);
         let gate = UpdateOptions::gate_for_probability(cfg.gate_probability);
@@ -559,7 +567,7 @@ impl NodeCore {
     }
 
     /// The filter as of the last input.
-    pub fn filter(&self) -> &InsFilter {
+    pub fn filter(&self) -> &NavFilter {
         &self.filter
     }
 
@@ -594,7 +602,8 @@ impl NodeCore {
     pub fn handle(&mut self, input: NodeInput) -> Vec<NodeOutput> {
         let mut out = Vec::new();
         match input {
-            NodeInput::Imu(s) => self.vehicle_imu(s, &mut out),
+            NodeInput::Imu(s) => self.vehicle_drive(Drive::Imu(s), &mut out),
+            NodeInput::Wheel(s) => self.vehicle_drive(Drive::Wheel(s), &mut out),
             NodeInput::Odometer(s) => self.vehicle_odometer(s, &mut out),
             NodeInput::OwnRange { epoch, range } => {
                 if range.from != self.cfg.id || range.to == self.cfg.id || !self.in_team(range.to) {
@@ -629,19 +638,19 @@ impl NodeCore {
 
     // ---- the vehicle's inputs ----
 
-    fn vehicle_imu(&mut self, s: ImuSample, out: &mut Vec<NodeOutput>) {
+    fn vehicle_drive(&mut self, s: Drive, out: &mut Vec<NodeOutput>) {
         let now = self.filter.time();
-        if s.t <= now {
+        if s.t() <= now || !self.filter.takes(&s) {
             self.stats.imu_rejected += 1;
             return;
         }
-        let max_gap_us = (self.cfg.ins.max_imu_gap_s * 1e6) as u64;
-        let gap = s.t.0 - now.0;
+        let max_gap_us = (self.filter.max_gap_s() * 1e6) as u64;
+        let gap = s.t().0 - now.0;
         if gap > max_gap_us {
             if self.stats.imu == 0 {
                 // A start long before the vehicle's clock: the initial state is for "now".
-                self.filter.restart_clock(s.t);
-                self.history = VecDeque::from([(s.t, self.filter.clone())]);
+                self.filter.restart_clock(s.t());
+                self.history = VecDeque::from([(s.t(), self.filter.clone())]);
                 self.inputs.clear();
                 self.marks.clear();
                 self.stats.clock_restarts += 1;
@@ -649,7 +658,7 @@ impl NodeCore {
                 return;
             }
             // A jump: believed once the samples after it continue from it.
-            let continues = self.jump.last().is_some_and(|last| s.t > last.t && s.t.0 - last.t.0 <= max_gap_us);
+            let continues = self.jump.last().is_some_and(|last| s.t() > last.t() && s.t().0 - last.t().0 <= max_gap_us);
             if !continues {
                 self.stats.imu_clock_jumps_refused += self.jump.len() as u64;
                 self.jump.clear();
@@ -677,11 +686,11 @@ impl NodeCore {
         self.after_input(out);
     }
 
-    fn take_imu(&mut self, s: ImuSample) {
+    fn take_imu(&mut self, s: Drive) {
         match self.integrate(&s, true) {
             Ok(()) => {
                 self.stats.imu += 1;
-                self.insert_input(Stamped::Imu(s));
+                self.insert_input(Stamped::Drive(s));
             }
             Err(_) => self.stats.imu_rejected += 1,
         }
@@ -731,7 +740,7 @@ impl NodeCore {
     /// instant it closes. On error the filter, its checkpoints and its open instant are as they
     /// were (the filter is copied only when the interval is cut: one propagation that fails
     /// changes nothing by itself).
-    fn integrate(&mut self, s: &ImuSample, live: bool) -> Result<(), EstimationError> {
+    fn integrate(&mut self, s: &Drive, live: bool) -> Result<(), EstimationError> {
         let (history_len, open) = (self.history.len(), self.open_instant);
         let cut = self.integrate_pieces(s, live);
         let Err((e, before)) = cut else { return Ok(()) };
@@ -745,35 +754,35 @@ impl NodeCore {
 
     /// [`Self::integrate`]'s work; on error, the filter from before the first piece when there
     /// were several.
-    fn integrate_pieces(&mut self, s: &ImuSample, live: bool) -> Result<(), (EstimationError, Option<Box<InsFilter>>)> {
+    fn integrate_pieces(&mut self, s: &Drive, live: bool) -> Result<(), (EstimationError, Option<Box<NavFilter>>)> {
         let t0 = self.filter.time();
         let from = self.inputs.partition_point(|i| i.t() <= t0);
         let odometers: Vec<OdometerSample> = self
             .inputs
             .range(from..)
-            .take_while(|i| i.t() <= s.t)
+            .take_while(|i| i.t() <= s.t())
             .filter_map(|i| match i {
                 Stamped::Odometer(o) => Some(*o),
-                Stamped::Imu(_) => None,
+                Stamped::Drive(_) => None,
             })
             .collect();
-        let mut cuts: Vec<TimeUs> = self.marks.range(TimeUs(t0.0 + 1)..s.t).copied().collect();
-        cuts.extend(odometers.iter().map(|o| o.t).filter(|t| *t < s.t));
-        let step_us = ((self.cfg.ins.max_imu_gap_s * 1e6) as u64 / 2).max(1);
-        if s.t.0 - t0.0 > 2 * step_us {
+        let mut cuts: Vec<TimeUs> = self.marks.range(TimeUs(t0.0 + 1)..s.t()).copied().collect();
+        cuts.extend(odometers.iter().map(|o| o.t).filter(|t| *t < s.t()));
+        let step_us = ((self.filter.max_gap_s() * 1e6) as u64 / 2).max(1);
+        if s.t().0 - t0.0 > 2 * step_us {
             let mut t = t0.0 + step_us;
-            while t < s.t.0 {
+            while t < s.t().0 {
                 cuts.push(TimeUs(t));
                 t += step_us;
             }
         }
         cuts.sort_unstable();
         cuts.dedup();
-        cuts.push(s.t);
+        cuts.push(s.t());
         let before = (cuts.len() > 1).then(|| Box::new(self.filter.clone()));
         for t in cuts {
             self.checkpoint_open();
-            if let Err(e) = self.filter.propagate(&ImuSample { t, ..*s }) {
+            if let Err(e) = self.filter.propagate(&s.at(t)) {
                 return Err((e, before));
             }
             self.open_instant = Some(t);
@@ -829,11 +838,11 @@ impl NodeCore {
         self.history.truncate(pos);
         self.history.push_back((tc, f));
         self.open_instant = None;
-        let replay: Vec<ImuSample> = self
+        let replay: Vec<Drive> = self
             .inputs
             .iter()
             .filter_map(|i| match i {
-                Stamped::Imu(s) if s.t > tc => Some(*s),
+                Stamped::Drive(s) if s.t() > tc => Some(*s),
                 _ => None,
             })
             .collect();
@@ -1077,7 +1086,7 @@ impl NodeCore {
         self.stats.records_resent += 1;
     }
 
-    fn checkpoint_at(&self, t: TimeUs) -> Option<&InsFilter> {
+    fn checkpoint_at(&self, t: TimeUs) -> Option<&NavFilter> {
         self.history.iter().rev().find(|(tc, _)| *tc == t).map(|(_, f)| f)
     }
 
@@ -1626,27 +1635,19 @@ impl NodeCore {
     /// The node's current navigation solution (what it feeds back to its autopilot).
     pub fn navigation(&self) -> wire::Navigation {
         let f = &self.filter;
-        let p = f.covariance16();
-        let mut pose = nalgebra::Matrix6::zeros();
-        for (r, pr) in [(0, 0), (3, 6)] {
-            for (c, pc) in [(0, 0), (3, 6)] {
-                pose.fixed_view_mut::<3, 3>(r, c).copy_from(&p.fixed_view::<3, 3>(pr, pc));
-            }
-        }
         wire::Navigation {
             t: f.time(),
             position_ned_m: f.position_ned_m(),
             velocity_ned_m_s: f.velocity_ned_m_s(),
             attitude_frd_to_ned: f.attitude(),
-            pose_covariance: pose,
-            velocity_covariance_ned: p.fixed_view::<3, 3>(3, 3).into_owned(),
+            pose_covariance: f.pose_covariance(),
+            velocity_covariance_ned: f.velocity_covariance_ned(),
         }
     }
 
     /// The estimate report of the node's current state.
     pub fn estimate(&self) -> wire::EstimateReport {
         let f = &self.filter;
-        let p = f.covariance16();
         let (epoch, nis, participants, ranges) = self.last_event.unwrap_or((0, f64::NAN, 0, 0));
         wire::EstimateReport {
             platform: self.cfg.id,
@@ -1656,8 +1657,8 @@ impl NodeCore {
             position_ned_m: f.position_ned_m(),
             velocity_ned_m_s: f.velocity_ned_m_s(),
             yaw_rad: f.yaw_rad(),
-            position_covariance_m2: p.fixed_view::<3, 3>(0, 0).into_owned(),
-            yaw_variance_rad2: p[(8, 8)],
+            position_covariance_m2: f.position_covariance(),
+            yaw_variance_rad2: f.yaw_variance(),
             nis,
             participants,
             ranges,

@@ -28,7 +28,7 @@ use nalgebra::Vector3;
 
 use super::core::NodeInput;
 use super::profile::{ImuMessage, Inputs, OdometerMessage, SampleKind, TeamClock};
-use crate::estimation::{ImuSample, OdometerSample};
+use crate::estimation::{ImuSample, OdometerSample, WheelSample};
 use crate::protocol::MavMessage;
 use crate::protocol::dialect::cooploc::{COMMAND_ACK_DATA, MavEstimatorType};
 use crate::protocol::wire::{self, GeoOrigin};
@@ -122,6 +122,9 @@ pub struct VehicleInputs {
     prev_wheels: Option<(TimeUs, u8, Vec<f64>)>,
     /// The yaw rate of the last differential-drive interval, rad/s (FRD: positive turns right).
     pub last_wheel_yaw_rate_rad_s: Option<f64>,
+    /// The wheels drive the navigation (a planar robot): each WHEEL_DISTANCE interval is a
+    /// [`WheelSample`] stamped at its end, not an odometer sample at its middle.
+    wheel_drive: bool,
     pub counters: InputCounters,
 }
 
@@ -139,8 +142,15 @@ impl VehicleInputs {
             recent_intervals: Vec::new(),
             prev_wheels: None,
             last_wheel_yaw_rate_rad_s: None,
+            wheel_drive: false,
             counters: InputCounters::default(),
         }
+    }
+
+    /// A planar robot's decoder: its wheels drive the navigation (see [`WheelSample`]).
+    pub fn wheel_drive(mut self) -> Self {
+        self.wheel_drive = true;
+        self
     }
 
     /// The arriving IMU rate, Hz, once established.
@@ -362,6 +372,15 @@ impl VehicleInputs {
             ([left, right], Some(track)) => Some((left - right) / track / dt),
             _ => None,
         };
+        if self.wheel_drive {
+            let Some(yaw_rate) = self.last_wheel_yaw_rate_rad_s else {
+                // the profile is checked to name two wheels and a track for a planar robot
+                self.counters.odometer_invalid += 1;
+                return VehicleEvent::Nothing;
+            };
+            self.counters.odometer += 1;
+            return VehicleEvent::Input(NodeInput::Wheel(WheelSample { t, speed_m_s: speed, yaw_rate_rad_s: yaw_rate }));
+        }
         self.counters.odometer += 1;
         VehicleEvent::Input(NodeInput::Odometer(OdometerSample { t: TimeUs(t0.0 + dt_us / 2), speed_m_s: speed }))
     }
@@ -469,6 +488,7 @@ fn event_time(e: &VehicleEvent) -> Option<TimeUs> {
     match e {
         VehicleEvent::Input(NodeInput::Imu(s)) => Some(s.t),
         VehicleEvent::Input(NodeInput::Odometer(s)) => Some(s.t),
+        VehicleEvent::Input(NodeInput::Wheel(s)) => Some(s.t),
         VehicleEvent::Input(NodeInput::OwnRange { range, .. }) => Some(range.t),
         _ => None,
     }
@@ -482,6 +502,7 @@ fn map_event(e: VehicleEvent, offset_us: i64) -> Option<VehicleEvent> {
         VehicleEvent::Input(NodeInput::Odometer(s)) => {
             VehicleEvent::Input(NodeInput::Odometer(OdometerSample { t: map(s.t)?, ..s }))
         }
+        VehicleEvent::Input(NodeInput::Wheel(s)) => VehicleEvent::Input(NodeInput::Wheel(WheelSample { t: map(s.t)?, ..s })),
         VehicleEvent::Input(NodeInput::OwnRange { epoch, range }) => VehicleEvent::Input(NodeInput::OwnRange {
             epoch,
             range: crate::estimation::RangeSample { t: map(range.t)?, ..range },

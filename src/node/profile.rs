@@ -8,6 +8,11 @@
 //! ([`VehicleProfile::from_scenario`]), so the simulator and the node read one format. A profile
 //! adds what only a real vehicle has:
 //!
+//! - `model`: `"ins"` (the default: the autopilot streams its IMU and the node runs the strapdown
+//!   INS, with `[sensors]` and `[filter]`) or `"planar"` (a wheeled robot without IMU in the
+//!   navigation: the node runs the planar filter of [`crate::estimation::planar`] on the
+//!   differential drive's WHEEL_DISTANCE, with the scenario's `[wheels]` section: rate, speed
+//!   and yaw-rate noise, track; no `[sensors]` or `[filter]`).
 //! - `[origin]`: the geodetic point of the local NED frame (`lat_deg`, `lon_deg`, `alt_m`).
 //!   The node compares it with the vehicle's GPS_GLOBAL_ORIGIN and HOME_POSITION and warns when
 //!   they are far apart. Without `[origin]` or `latitude_deg` the node waits for the vehicle's
@@ -28,16 +33,22 @@
 //! Every key is checked (an unknown one is an error naming it), every value is validated with
 //! its field named (`sensors.accel_noise_ug_per_sqrt_hz: ...`), and figures no real sensor can
 //! have (zero or absurd noise) are refused, all before any socket opens. The examples in
-//! `sitl/vehicles/` are a PX4 rover and an ArduPilot Rover.
+//! `sitl/vehicles/` are a PX4 rover, an ArduPilot Rover and a wheeled robot without IMU.
 
 use std::path::Path;
 
 use nalgebra::Vector3;
 use serde::{Deserialize, Serialize};
 
+use crate::estimation::PlatformId;
 use crate::estimation::ins::{InsConfig, InsInitialSigma};
+use crate::estimation::nav::NavModel;
+use crate::estimation::planar::{DEFAULT_MAX_GAP_S, PlanarConfig, PlanarSigma};
+use crate::node::inputs::VehicleInputs;
 use crate::protocol::wire::GeoOrigin;
-use crate::sitl::scenario::{FilterTuning, InitialUncertainty, Scenario, ScenarioError, Sensors, finite, non_negative, positive};
+use crate::sitl::scenario::{
+    FilterTuning, InitialUncertainty, PlatformModel, Scenario, ScenarioError, Sensors, Wheels, finite, non_negative, positive,
+};
 use crate::sitl::sensors::{DEG_PER_H_RAD_S, DEG_PER_SQRT_H_RAD_PER_SQRT_S, MICRO_G_M_S2};
 
 /// Why a profile is refused.
@@ -78,9 +89,19 @@ pub struct VehicleProfile {
     /// Magnitude of gravity, m/s^2.
     #[serde(default = "default_gravity")]
     pub gravity_m_s2: f64,
-    pub sensors: Sensors,
+    /// `ins` (the default) or `planar`.
+    #[serde(default)]
+    pub model: PlatformModel,
+    /// The IMU and odometer (an INS vehicle).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub sensors: Option<Sensors>,
     pub initial: InitialUncertainty,
-    pub filter: FilterTuning,
+    /// Non-holonomic constraints and covariance rate (an INS vehicle).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub filter: Option<FilterTuning>,
+    /// The wheel odometry (a planar robot).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub wheels: Option<Wheels>,
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub origin: Option<OriginSpec>,
     #[serde(default)]
@@ -218,6 +239,14 @@ pub struct Inputs {
     pub request_rates: bool,
 }
 
+impl Inputs {
+    /// These inputs for a wheeled robot: WHEEL_DISTANCE of wheels 0 (left) and 1 (right),
+    /// `track_m` apart, the clock and rate requests kept.
+    pub fn planar_wheels(&self, track_m: f64) -> Inputs {
+        Inputs { odometer: OdometerMessage::WheelDistance, wheels: vec![0, 1], wheel_track_m: Some(track_m), ..self.clone() }
+    }
+}
+
 fn default_imu() -> ImuMessage {
     ImuMessage::HighresImu
 }
@@ -318,14 +347,32 @@ impl VehicleProfile {
             name: s.name.clone(),
             latitude_deg: Some(s.latitude_deg),
             gravity_m_s2: s.gravity_m_s2,
-            sensors: s.sensors,
+            model: PlatformModel::Ins,
+            sensors: Some(s.sensors),
             initial: s.initial,
-            filter: s.filter,
+            filter: Some(s.filter),
+            wheels: None,
             origin: None,
             // the simulator streams at the scenario's rates already
             inputs: Inputs { request_rates: false, ..Inputs::default() },
             output: Output::default(),
         }
+    }
+
+    /// The vehicle part of a scenario for platform `id`: [`Self::from_scenario`], or for a
+    /// wheeled robot (`model = "planar"`) the planar profile with the scenario's `[wheels]`,
+    /// reading WHEEL_DISTANCE's wheels 0 and 1.
+    pub fn from_scenario_platform(s: &Scenario, id: PlatformId) -> Self {
+        let mut p = Self::from_scenario(s);
+        let planar = s.platforms.iter().any(|q| q.id == id && q.model == PlatformModel::Planar);
+        if let (true, Some(w)) = (planar, s.wheels) {
+            p.model = PlatformModel::Planar;
+            p.sensors = None;
+            p.filter = None;
+            p.wheels = Some(w);
+            p.inputs = p.inputs.planar_wheels(w.track_m);
+        }
+        p
     }
 
     /// Puts this vehicle into a scenario: its sensors, initial uncertainty, filter tuning,
@@ -337,9 +384,16 @@ impl VehicleProfile {
             s.latitude_deg = lat;
         }
         s.gravity_m_s2 = self.gravity_m_s2;
-        s.sensors = self.sensors;
+        if let Some(sensors) = self.sensors {
+            s.sensors = sensors;
+        }
+        if let Some(filter) = self.filter {
+            s.filter = filter;
+        }
+        if self.wheels.is_some() {
+            s.wheels = self.wheels;
+        }
         s.initial = self.initial;
-        s.filter = self.filter;
         s.validate()
     }
 
@@ -355,7 +409,89 @@ impl VehicleProfile {
         if self.name.trim().is_empty() {
             return Err(invalid("name", "must not be empty"));
         }
-        let s = &self.sensors;
+        positive("gravity_m_s2", self.gravity_m_s2)?;
+        if !(9.7..=9.9).contains(&self.gravity_m_s2) {
+            return Err(invalid("gravity_m_s2", format!("{} m/s^2 is not the Earth's gravity (9.78-9.84)", self.gravity_m_s2)));
+        }
+        for (field, v) in [
+            ("initial.position_sigma_m", self.initial.position_sigma_m),
+            ("initial.velocity_sigma_m_s", self.initial.velocity_sigma_m_s),
+            ("initial.roll_pitch_sigma_deg", self.initial.roll_pitch_sigma_deg),
+            ("initial.yaw_sigma_deg", self.initial.yaw_sigma_deg),
+        ] {
+            non_negative(field, v)?;
+        }
+        match self.model {
+            PlatformModel::Ins => self.validate_ins()?,
+            PlatformModel::Planar => self.validate_planar()?,
+        }
+        self.validate_rest()
+    }
+
+    /// A wheeled robot: `[wheels]` with plausible figures, WHEEL_DISTANCE of two wheels, no IMU.
+    fn validate_planar(&self) -> Result<(), ProfileError> {
+        if self.sensors.is_some() {
+            return Err(invalid("sensors", "a planar robot has no IMU in its navigation: give [wheels], not [sensors]"));
+        }
+        if self.filter.is_some() {
+            return Err(invalid("filter", "a planar robot has no INS to tune: remove [filter]"));
+        }
+        let Some(w) = &self.wheels else {
+            return Err(invalid(
+                "wheels",
+                "a planar robot needs [wheels] (rate_hz, speed_sigma_m_s, yaw_rate_sigma_deg_s, track_m)",
+            ));
+        };
+        positive("wheels.rate_hz", w.rate_hz)?;
+        if w.rate_hz > MAX_IMU_RATE_HZ {
+            return Err(invalid("wheels.rate_hz", format!("must be at most {MAX_IMU_RATE_HZ} Hz, got {}", w.rate_hz)));
+        }
+        for (field, v, max) in [
+            ("wheels.speed_sigma_m_s", w.speed_sigma_m_s, 5.0),
+            ("wheels.yaw_rate_sigma_deg_s", w.yaw_rate_sigma_deg_s, 90.0),
+            ("wheels.track_m", w.track_m, 10.0),
+        ] {
+            positive(field, v)
+                .map_err(|_| invalid(field, format!("must be positive (real wheels have noise and width), got {v}")))?;
+            if v > max {
+                return Err(invalid(
+                    field,
+                    format!("{v} is beyond any wheeled robot (at most {max}); check the unit in the key name"),
+                ));
+            }
+        }
+        let i = &self.inputs;
+        if i.odometer != OdometerMessage::WheelDistance || i.wheels.len() != 2 {
+            return Err(invalid(
+                "inputs.odometer",
+                "a planar robot is driven by WHEEL_DISTANCE of its left and right wheels: odometer = \"wheel_distance\", wheels = [left, right]",
+            ));
+        }
+        if let Some(track) = i.wheel_track_m
+            && (track - w.track_m).abs() > 1e-9
+        {
+            return Err(invalid(
+                "inputs.wheel_track_m",
+                format!("{track} m differs from wheels.track_m {} m; give one", w.track_m),
+            ));
+        }
+        Ok(())
+    }
+
+    /// An INS vehicle: `[sensors]` and `[filter]` with figures a real IMU can have.
+    fn validate_ins(&self) -> Result<(), ProfileError> {
+        if self.wheels.is_some() {
+            return Err(invalid(
+                "wheels",
+                "[wheels] is a planar robot's: set model = \"planar\" (and drop [sensors] and [filter])",
+            ));
+        }
+        let Some(s) = &self.sensors else {
+            return Err(invalid("sensors", "an INS vehicle needs [sensors] (its IMU and odometer figures)"));
+        };
+        let Some(filter) = &self.filter else {
+            return Err(invalid("filter", "an INS vehicle needs [filter] (its non-holonomic constraints)"));
+        };
         positive("sensors.imu_rate_hz", s.imu_rate_hz)?;
         if s.imu_rate_hz > MAX_IMU_RATE_HZ {
             return Err(invalid("sensors.imu_rate_hz", format!("must be at most {MAX_IMU_RATE_HZ} Hz, got {}", s.imu_rate_hz)));
@@ -366,10 +502,6 @@ impl VehicleProfile {
                 "sensors.odometer_rate_hz",
                 format!("must be at most {MAX_IMU_RATE_HZ} Hz, got {}", s.odometer_rate_hz),
             ));
-        }
-        positive("gravity_m_s2", self.gravity_m_s2)?;
-        if !(9.7..=9.9).contains(&self.gravity_m_s2) {
-            return Err(invalid("gravity_m_s2", format!("{} m/s^2 is not the Earth's gravity (9.78-9.84)", self.gravity_m_s2)));
         }
         for (field, v, max) in [
             ("sensors.accel_bias_ug", s.accel_bias_ug, MAX_ACCEL_BIAS_UG),
@@ -390,12 +522,8 @@ impl VehicleProfile {
             ("sensors.accel_bias_walk_ug_per_sqrt_s", s.accel_bias_walk_ug_per_sqrt_s),
             ("sensors.gyro_bias_walk_deg_h_per_sqrt_s", s.gyro_bias_walk_deg_h_per_sqrt_s),
             ("sensors.odometer_scale_sigma", s.odometer_scale_sigma),
-            ("initial.position_sigma_m", self.initial.position_sigma_m),
-            ("initial.velocity_sigma_m_s", self.initial.velocity_sigma_m_s),
-            ("initial.roll_pitch_sigma_deg", self.initial.roll_pitch_sigma_deg),
-            ("initial.yaw_sigma_deg", self.initial.yaw_sigma_deg),
-            ("filter.nhc_lateral_sigma_m_s", self.filter.nhc_lateral_sigma_m_s),
-            ("filter.nhc_vertical_sigma_m_s", self.filter.nhc_vertical_sigma_m_s),
+            ("filter.nhc_lateral_sigma_m_s", filter.nhc_lateral_sigma_m_s),
+            ("filter.nhc_vertical_sigma_m_s", filter.nhc_vertical_sigma_m_s),
         ] {
             non_negative(field, v)?;
         }
@@ -410,7 +538,7 @@ impl VehicleProfile {
                 format!("{} is a fraction (0.01 = 1%), at most 0.5", s.odometer_scale_sigma),
             ));
         }
-        if let Some(rate) = self.filter.covariance_rate_hz {
+        if let Some(rate) = filter.covariance_rate_hz {
             positive("filter.covariance_rate_hz", rate)?;
             if rate > s.imu_rate_hz {
                 return Err(invalid(
@@ -419,6 +547,11 @@ impl VehicleProfile {
                 ));
             }
         }
+        Ok(())
+    }
+
+    /// What every profile has: latitude, origin, inputs, output.
+    fn validate_rest(&self) -> Result<(), ProfileError> {
         if let Some(lat) = self.latitude_deg {
             finite("latitude_deg", lat)?;
             if lat.abs() > 90.0 {
@@ -501,15 +634,47 @@ impl VehicleProfile {
 
     /// How many IMU samples one covariance step spans at the configured rates.
     pub fn covariance_decimation(&self) -> u32 {
-        match self.filter.covariance_rate_hz {
-            Some(rate) => ((self.sensors.imu_rate_hz / rate).round() as u32).max(1),
-            None => 1,
+        match (self.filter.and_then(|f| f.covariance_rate_hz), &self.sensors) {
+            (Some(rate), Some(s)) => ((s.imu_rate_hz / rate).round() as u32).max(1),
+            _ => 1,
         }
     }
 
-    /// The INS noise model and initial uncertainty, at latitude `latitude_deg`.
+    /// The navigation model the node runs, at latitude `latitude_deg` (the INS's Earth rate).
+    pub fn nav_model(&self, latitude_deg: f64) -> NavModel {
+        match (self.model, self.wheels) {
+            (PlatformModel::Planar, Some(w)) => NavModel::Planar {
+                config: PlanarConfig {
+                    max_gap_s: DEFAULT_MAX_GAP_S,
+                    ..PlanarConfig::from_sample_sigmas(w.speed_sigma_m_s, w.yaw_rate_sigma_deg_s.to_radians(), w.rate_hz)
+                },
+                initial_sigma: PlanarSigma {
+                    pos_m: self.initial.position_sigma_m,
+                    yaw_rad: self.initial.yaw_sigma_deg.to_radians(),
+                },
+            },
+            _ => {
+                let (config, initial_sigma) = self.ins_settings(latitude_deg);
+                NavModel::Ins { config, initial_sigma }
+            }
+        }
+    }
+
+    /// The decoder of this vehicle's messages: a planar robot's wheels drive its filter.
+    pub fn decoder(&self) -> VehicleInputs {
+        match (self.model, self.wheels) {
+            (PlatformModel::Planar, Some(w)) => {
+                VehicleInputs::new(self.inputs.planar_wheels(self.inputs.wheel_track_m.unwrap_or(w.track_m))).wheel_drive()
+            }
+            _ => VehicleInputs::new(self.inputs.clone()),
+        }
+    }
+
+    /// The INS noise model and initial uncertainty, at latitude `latitude_deg` (a validated INS
+    /// profile has `[sensors]` and `[filter]`; without them, zero figures).
     pub fn ins_settings(&self, latitude_deg: f64) -> (InsConfig, InsInitialSigma) {
-        let s = &self.sensors;
+        let s = &self.sensors.unwrap_or_default();
+        let filter = self.filter.unwrap_or_default();
         let config = InsConfig {
             latitude_deg,
             gravity_m_s2: self.gravity_m_s2,
@@ -518,8 +683,8 @@ impl VehicleProfile {
             accel_bias_random_walk_m_s3_per_sqrt_hz: s.accel_bias_walk_ug_per_sqrt_s * MICRO_G_M_S2,
             gyro_bias_random_walk_rad_s2_per_sqrt_hz: s.gyro_bias_walk_deg_h_per_sqrt_s * DEG_PER_H_RAD_S,
             sigma_odometer_m_s: s.odometer_sigma_m_s,
-            sigma_nhc_lateral_m_s: self.filter.nhc_lateral_sigma_m_s,
-            sigma_nhc_vertical_m_s: self.filter.nhc_vertical_sigma_m_s,
+            sigma_nhc_lateral_m_s: filter.nhc_lateral_sigma_m_s,
+            sigma_nhc_vertical_m_s: filter.nhc_vertical_sigma_m_s,
             max_imu_gap_s: 0.5,
             covariance_decimation: self.covariance_decimation(),
         };

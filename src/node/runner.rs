@@ -30,6 +30,7 @@ use super::profile::VehicleProfile;
 use super::vehicle_link::{Received, VehicleLink};
 use crate::estimation::PlatformId;
 use crate::estimation::ins::InsState;
+use crate::estimation::nav::NavState;
 use crate::protocol::MavMessage;
 use crate::protocol::dialect::cooploc::{MavAutopilot, MavType, SIM_STATE_DATA};
 use crate::protocol::wire;
@@ -106,6 +107,7 @@ pub fn node_metadata(cfg: &NodeConfig, init: Option<(TimeUs, &InsState)>) -> std
     let mut m = std::collections::BTreeMap::new();
     m.insert("id".into(), cfg.id.to_string());
     m.insert("method".into(), cfg.method.short_name().into());
+    m.insert("model".into(), cfg.model.name().into());
     m.insert("encoding".into(), format!("{:?}", cfg.encoding).to_lowercase());
     m.insert("team".into(), cfg.team.iter().map(|p| p.to_string()).collect::<Vec<_>>().join(","));
     m.insert("epoch_timeout_us".into(), cfg.epoch_timeout_us.to_string());
@@ -343,7 +345,7 @@ pub async fn run(
     let _ = bound.send(local);
     tracing::info!(platform = id, vehicle = %links.vehicle, coop = %local, "node started");
     let mut peers: BTreeSet<SocketAddr> = links.peers.iter().copied().collect();
-    let mut decoder = VehicleInputs::new(links.profile.inputs.clone());
+    let mut decoder = links.profile.decoder();
     let mut rates = RateRequests::new(&links.profile, sysid);
     let mut odometry = OdometryOutput::new(links.profile.output.odometry_rate_hz);
     let lpn = links.profile.output.local_position_ned;
@@ -479,7 +481,7 @@ pub async fn run(
                     }
                 }
                 if let Some((config, Some(origin), Some((t0, state)))) = &pending_init {
-                    let made = NodeCore::new(config.clone(), *t0, *state).context("node configuration")?;
+                    let made = NodeCore::new(config.clone(), *t0, NavState::for_model(&config.model, *state)).context("node configuration")?;
                     tracing::info!(platform = id, t0 = %t0, pos = ?made.filter().position_ned_m(), lat_deg = origin.lat_deg, "initialised");
                     let o = origin_from_vehicle.map(|o| [o.lat_deg, o.lon_deg, o.alt_m]);
                     record_event(&recorder, id, &NodeEvent::Init { t0_us: t0.0, origin: o });
@@ -494,8 +496,10 @@ pub async fn run(
                     match event {
                         VehicleEvent::Input(input) => {
                             if core.is_none() {
-                                if let NodeInput::Imu(s) = &input {
-                                    last_imu_t = Some(s.t);
+                                match &input {
+                                    NodeInput::Imu(s) => last_imu_t = Some(s.t),
+                                    NodeInput::Wheel(s) => last_imu_t = Some(s.t),
+                                    _ => {}
                                 }
                                 before_init += 1;
                             } else {
@@ -513,7 +517,7 @@ pub async fn run(
                         VehicleEvent::Origin(o) => {
                             if let Some((config, origin @ None, _)) = &mut pending_init {
                                 tracing::info!(platform = id, lat_deg = o.lat_deg, lon_deg = o.lon_deg, alt_m = o.alt_m, "origin from the vehicle");
-                                config.ins.latitude_deg = o.lat_deg;
+                                config.model.set_latitude(o.lat_deg);
                                 *origin = Some(o);
                                 origin_from_vehicle = Some(o);
                                 vehicle_origin_checked = true;
@@ -574,7 +578,7 @@ pub async fn run(
             record_event(&recorder, id, &NodeEvent::Poll { wall_us: now });
             out.extend(core.poll(now));
         }
-        let vehicle_input = inputs.iter().any(|i| matches!(i, NodeInput::Imu(_)));
+        let vehicle_input = inputs.iter().any(|i| matches!(i, NodeInput::Imu(_) | NodeInput::Wheel(_)));
         for input in inputs {
             out.extend(core.handle(input));
         }

@@ -221,6 +221,10 @@ pub fn vehicle_config(
             .and_then(|s| s.every_s)
             .map(|p| TimeUs::from_secs_f64(p).0),
         autopilot,
+        wheel_track_m: match world.platform_model(id) {
+            crate::sitl::scenario::PlatformModel::Planar => scenario.wheels.map(|w| w.track_m),
+            crate::sitl::scenario::PlatformModel::Ins => None,
+        },
     }
 }
 
@@ -521,6 +525,12 @@ impl Simulator {
                 SimEvent::Odometer(id, s) => {
                     if let Some(i) = index_of(*id) {
                         self.cores[i].on_odometer(s, &mut out);
+                        self.flush(i, &mut out, None).await;
+                    }
+                }
+                SimEvent::Wheel(id, s) => {
+                    if let Some(i) = index_of(*id) {
+                        self.cores[i].on_wheel(s, &mut out);
                         self.flush(i, &mut out, None).await;
                     }
                 }

@@ -22,7 +22,7 @@ use std::collections::BTreeMap;
 
 use nalgebra::Vector3;
 
-use crate::estimation::{ImuSample, OdometerSample, RangeSample};
+use crate::estimation::{ImuSample, OdometerSample, RangeSample, WheelSample};
 use crate::protocol::MavMessage;
 use crate::protocol::dialect::cooploc::{
     HighresImuUpdatedFlags, MavAutopilot, MavEstimatorType, MavFrame, MavType, ODOMETRY_DATA as Odometry, SYSTEM_TIME_DATA,
@@ -133,6 +133,10 @@ pub struct Personality {
     imu_sum: (Vector3<f64>, Vector3<f64>, u32),
     /// Cumulative wheel distance, m (ArduPilot).
     wheel_m: f64,
+    /// A wheeled robot's two wheels' cumulative distances (left, right), m, and the time of
+    /// the last wheel sample.
+    wheels_m: [f64; 2],
+    wheel_t: TimeUs,
     odometer_period_s: f64,
 }
 
@@ -143,6 +147,8 @@ impl Personality {
             boot_offset_us: if autopilot.boot_clock() { boot_offset_us(platform) } else { 0 },
             imu_sum: (Vector3::zeros(), Vector3::zeros(), 0),
             wheel_m: 0.0,
+            wheels_m: [0.0; 2],
+            wheel_t: TimeUs(0),
             odometer_period_s: odometer_period_us as f64 * 1e-6,
         }
     }
@@ -204,6 +210,24 @@ impl Personality {
                 m
             }
         }
+    }
+
+    /// Takes a wheeled robot's wheel sample (every one of the world's): its two wheels turn
+    /// the sample's mean speed plus and minus half the track times its yaw rate (turning right,
+    /// the left wheel runs faster).
+    pub fn take_wheel(&mut self, s: &WheelSample, track_m: f64) {
+        let dt = s.t.secs_since(self.wheel_t);
+        self.wheel_t = s.t;
+        let half = 0.5 * s.yaw_rate_rad_s * track_m;
+        self.wheels_m[0] += (s.speed_m_s + half) * dt;
+        self.wheels_m[1] += (s.speed_m_s - half) * dt;
+    }
+
+    /// WHEEL_DISTANCE of the wheeled robot's two wheels, at its latest sample `s`.
+    pub fn wheel_message(&self, s: &WheelSample) -> MavMessage {
+        let mut distance = [0.0; 16];
+        distance[..2].copy_from_slice(&self.wheels_m);
+        MavMessage::WHEEL_DISTANCE(WHEEL_DISTANCE_DATA { time_usec: self.clock_us(s.t), distance, count: 2 })
     }
 
     /// A range this vehicle's radio measured, stamped in its clock.
@@ -371,11 +395,21 @@ pub fn decoded_run(
     }
     let trajectories: Vec<_> =
         ids.iter().map(|&id| world.trajectory(id).cloned()).collect::<Result<_, _>>().map_err(|e| e.to_string())?;
-    let mut decoders: Vec<VehicleInputs> = ids.iter().map(|_| VehicleInputs::new(inputs.clone())).collect();
+    // A wheeled robot's decoder reads its two wheels as its drive, as its profile would say.
+    let mut decoders: Vec<VehicleInputs> = ids
+        .iter()
+        .map(|&id| match (world.platform_model(id), world.scenario().wheels) {
+            (crate::sitl::scenario::PlatformModel::Planar, Some(w)) => {
+                VehicleInputs::new(inputs.planar_wheels(w.track_m)).wheel_drive()
+            }
+            _ => VehicleInputs::new(inputs.clone()),
+        })
+        .collect();
     let shift = if inputs.clock == TeamClock::Unix && autopilot.boot_clock() { SIM_UNIX_EPOCH_US } else { 0 };
     let at = |t: TimeUs| TimeUs(t.0.saturating_sub(shift));
     let (mut imu, mut odo): (Vec<Vec<ImuSample>>, Vec<Vec<OdometerSample>>) =
         (vec![Vec::new(); ids.len()], vec![Vec::new(); ids.len()]);
+    let mut wheel: Vec<Vec<WheelSample>> = vec![Vec::new(); ids.len()];
     let mut ranges: BTreeMap<u64, Vec<RangeSample>> = BTreeMap::new();
     let mut out = Vec::new();
     let mut take = |i: usize, out: &mut Vec<super::Outgoing>, decoders: &mut Vec<VehicleInputs>| {
@@ -384,6 +418,7 @@ pub fn decoded_run(
                 match event {
                     VehicleEvent::Input(NodeInput::Imu(s)) => imu[i].push(ImuSample { t: at(s.t), ..s }),
                     VehicleEvent::Input(NodeInput::Odometer(s)) => odo[i].push(OdometerSample { t: at(s.t), ..s }),
+                    VehicleEvent::Input(NodeInput::Wheel(s)) => wheel[i].push(WheelSample { t: at(s.t), ..s }),
                     VehicleEvent::Input(NodeInput::OwnRange { range, .. }) => {
                         ranges.entry(at(range.t).0).or_default().push(RangeSample { t: at(range.t), ..range })
                     }
@@ -410,6 +445,11 @@ pub fn decoded_run(
                 cores[i].on_odometer(s, &mut out);
                 take(i, &mut out, &mut decoders);
             }
+            SimEvent::Wheel(id, s) => {
+                let i = ids.iter().position(|p| p == id).expect("a platform");
+                cores[i].on_wheel(s, &mut out);
+                take(i, &mut out, &mut decoders);
+            }
             SimEvent::Ranges(t, rs) => {
                 epoch += 1;
                 for (i, core) in cores.iter_mut().enumerate() {
@@ -423,6 +463,7 @@ pub fn decoded_run(
         p.imu = std::mem::take(&mut imu[k]);
         odo[k].sort_by_key(|s| s.t);
         p.odometer = std::mem::take(&mut odo[k]);
+        p.wheel = std::mem::take(&mut wheel[k]);
     }
     let ranges = ranges
         .into_iter()

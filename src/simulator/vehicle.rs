@@ -9,7 +9,7 @@
 use mavlink_core::MavHeader;
 
 use super::personality::{Autopilot, Checker, Personality, WHEEL_ODOMETRY_COMPID};
-use crate::estimation::{ImuSample, OdometerSample, PlatformId, RangeSample};
+use crate::estimation::{ImuSample, OdometerSample, PlatformId, RangeSample, WheelSample};
 use crate::protocol::MavMessage;
 use crate::protocol::dialect::cooploc::{
     AUTOPILOT_VERSION_DATA, COMMAND_ACK_DATA, MESSAGE_INTERVAL_DATA, MavCmd, MavProtocolCapability, MavResult,
@@ -130,6 +130,9 @@ pub struct VehicleConfig {
     pub range_period_us: Option<u64>,
     /// Which autopilot the vehicle behaves as.
     pub autopilot: Autopilot,
+    /// A wheeled robot without IMU (a planar platform): the distance between its two wheels, m.
+    /// Its odometer stream is WHEEL_DISTANCE whatever the autopilot, and it sends no IMU.
+    pub wheel_track_m: Option<f64>,
 }
 
 /// Where an outgoing message goes.
@@ -203,6 +206,7 @@ pub struct VehicleCore {
     streams: [StreamState; 7],
     last_imu: Option<ImuSample>,
     last_odometer: Option<OdometerSample>,
+    last_wheel: Option<WheelSample>,
     last_ranges: Vec<(u32, RangeSample)>,
     counters: VehicleCounters,
     personality: Personality,
@@ -250,6 +254,7 @@ impl VehicleCore {
             streams,
             last_imu: None,
             last_odometer: None,
+            last_wheel: None,
             last_ranges: Vec::new(),
             counters: VehicleCounters::default(),
         })
@@ -290,7 +295,8 @@ impl VehicleCore {
         let ap = self.config.autopilot;
         match id {
             _ if id == ap.imu_message_id() => Some(Stream::HighresImu),
-            _ if Some(id) == ap.odometer_message_id() => Some(Stream::Odometry),
+            9000 if self.config.wheel_track_m.is_some() => Some(Stream::Odometry),
+            _ if Some(id) == ap.odometer_message_id() && self.config.wheel_track_m.is_none() => Some(Stream::Odometry),
             331 if ap == Autopilot::Px4 => Some(Stream::AutopilotOdometry),
             2 if ap.boot_clock() => Some(Stream::SystemTime),
             0 | 108 | 61001 => Stream::from_message_id(id),
@@ -426,6 +432,22 @@ impl VehicleCore {
         self.personality.take_odometer(s);
         if self.sample_due(Stream::Odometry, s.t.0) {
             let m = self.personality.odometer_message(s, self.config.odometer_sigma_m_s);
+            if self.config.autopilot == Autopilot::Px4 {
+                self.emit_peripheral(m, out);
+            } else {
+                self.emit(Destination::AllPeers, m, out);
+            }
+        }
+    }
+
+    /// A wheel sample of this wheeled robot: WHEEL_DISTANCE (the two wheels' cumulative
+    /// distances) if due, from the odometer's component.
+    pub fn on_wheel(&mut self, s: &WheelSample, out: &mut Vec<Outgoing>) {
+        let track = self.config.wheel_track_m.unwrap_or(0.5);
+        self.personality.take_wheel(s, track);
+        self.last_wheel = Some(*s);
+        if self.sample_due(Stream::Odometry, s.t.0) {
+            let m = self.personality.wheel_message(s);
             if self.config.autopilot == Autopilot::Px4 {
                 self.emit_peripheral(m, out);
             } else {
@@ -655,6 +677,10 @@ impl VehicleCore {
                     Some(s) => (MAV_RESULT_ACCEPTED, vec![self.personality.clone().imu_message(&s)]),
                     None => not_yet,
                 },
+                Some(Stream::Odometry) if self.config.wheel_track_m.is_some() => match self.last_wheel {
+                    Some(s) => (MAV_RESULT_ACCEPTED, vec![self.personality.wheel_message(&s)]),
+                    None => not_yet,
+                },
                 Some(Stream::Odometry) => match self.last_odometer {
                     Some(s) => (MAV_RESULT_ACCEPTED, vec![self.personality.odometer_message(&s, self.config.odometer_sigma_m_s)]),
                     None => not_yet,
@@ -706,6 +732,7 @@ mod tests {
             odometer_period_us: 100_000,
             range_period_us: Some(1_000_000),
             autopilot: Autopilot::Cooploc,
+            wheel_track_m: None,
         })
         .unwrap()
     }
