@@ -115,8 +115,17 @@ fn position(done: &str) -> Vec<f64> {
 /// What every kind must show: the vehicle's 20 m north, and ODOMETRY back at >= 10 Hz in the
 /// frames the autopilots fuse, stamped in the vehicle's own clock.
 fn check_common(o: &Outcome, boot0_us: u64) {
+    check_at(o, boot0_us, [20.0, 0.0], 1.0);
+}
+
+/// [`check_common`] for a vehicle that ends at `ne` (N, E, m), within `tolerance_m`.
+fn check_at(o: &Outcome, boot0_us: u64, ne: [f64; 2], tolerance_m: f64) {
     let p = position(&o.done);
-    assert!((p[0] - 20.0).abs() < 1.0 && p[1].abs() < 1.0, "the node should be 20 m north: {}", o.done);
+    assert!(
+        (p[0] - ne[0]).abs() < tolerance_m && (p[1] - ne[1]).abs() < tolerance_m,
+        "the node should be at N/E {ne:?}: {}",
+        o.done
+    );
     let s = &o.script;
     assert_eq!(s["bad_frames"], serde_json::json!([]), "{s}");
     let (first, last) = (s["odometry_first_us"].as_u64().unwrap(), s["odometry_last_us"].as_u64().unwrap());
@@ -152,6 +161,24 @@ fn px4_highres_imu_of_the_right_id_and_odometry_from_a_wheel_source_only() {
     assert!(count(&o.vehicle, "odometer") >= 190, "{}", o.vehicle);
     let reqs = o.script["requests"].as_array().unwrap();
     assert!(reqs.iter().any(|r| r[0] == 105 && r[1] == 5_000.0), "HIGHRES_IMU at 200 Hz asked: {reqs:?}");
+}
+
+/// A wheeled robot without IMU (sitl/vehicles/wheeled-robot.toml): its node runs the planar
+/// filter on WHEEL_DISTANCE alone (left and right wheel, counters reset half way) over a quarter
+/// circle to the right, and ends where the arc does, heading east.
+#[test]
+fn a_wheeled_robot_navigates_on_its_two_wheels_across_a_counter_reset() {
+    let Some(o) = drive("robot", &[], "wheeled-robot") else { return };
+    let radius = 20.0 / std::f64::consts::FRAC_PI_2;
+    check_at(&o, 100_000_000, [radius, radius], 0.2);
+    let yaw: f64 = o.done.split(" yaw_deg ").nth(1).unwrap().split_whitespace().next().unwrap().parse().unwrap();
+    assert!((yaw - 90.0).abs() < 0.5, "heading east at the end: {}", o.done);
+    assert_eq!(count(&o.vehicle, "wheel_resets"), 1, "{}", o.vehicle);
+    assert!(count(&o.vehicle, "odometer") >= 190, "{}", o.vehicle);
+    assert_eq!(count(&o.vehicle, "imu"), 0, "{}", o.vehicle);
+    let reqs = o.script["requests"].as_array().unwrap();
+    assert_eq!(reqs.len(), 1, "only WHEEL_DISTANCE is asked for: {reqs:?}");
+    assert!(reqs[0][0] == 9000 && reqs[0][1] == 50_000.0, "WHEEL_DISTANCE at 20 Hz: {reqs:?}");
 }
 
 #[test]

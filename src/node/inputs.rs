@@ -16,6 +16,10 @@
 //!   middle, and with two wheels the differential-drive yaw rate. A wheel that runs backwards
 //!   further or faster than a vehicle can, or a change of `count`, is a counter reset: counted,
 //!   and the next interval starts from the new reading.
+//! - **Wheels as the drive** (a planar robot, [`VehicleInputs::wheel_drive`]): each
+//!   WHEEL_DISTANCE interval of the left and right wheel is a [`WheelSample`] (mean speed and
+//!   yaw rate) stamped at the interval's *end*, the sample that carries the filter through it;
+//!   IMU messages are counted and ignored.
 //! - **Time**: `time_boot_ms` (u32 milliseconds, wrapping after 49.7 days: unwrapped),
 //!   `time_usec` since boot, and `time_usec` in Unix time (from 2001 on) alike. With
 //!   `clock = "unix"`, stamps since boot are mapped to Unix time by the vehicle's SYSTEM_TIME
@@ -192,6 +196,19 @@ impl VehicleInputs {
 
     /// [`Self::decode`] in the vehicle's own clock.
     fn decode_local(&mut self, msg: &MavMessage) -> VehicleEvent {
+        let imu_message = matches!(
+            msg,
+            MavMessage::HIGHRES_IMU(_)
+                | MavMessage::RAW_IMU(_)
+                | MavMessage::SCALED_IMU(_)
+                | MavMessage::SCALED_IMU2(_)
+                | MavMessage::SCALED_IMU3(_)
+        );
+        if self.wheel_drive && imu_message {
+            // a planar robot navigates on its wheels alone
+            self.counters.imu_other += 1;
+            return VehicleEvent::Nothing;
+        }
         match msg {
             MavMessage::SYSTEM_TIME(m) => {
                 self.system_time(m.time_unix_usec, m.time_boot_ms);

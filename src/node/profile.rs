@@ -713,7 +713,7 @@ mod tests {
 
     #[test]
     fn the_examples_are_valid() {
-        for name in ["px4-rover", "ardupilot-rover"] {
+        for name in ["px4-rover", "ardupilot-rover", "wheeled-robot"] {
             let p = VehicleProfile::from_toml_str(&example(name)).unwrap_or_else(|e| panic!("{name}: {e}"));
             assert_eq!(p.name, name);
         }
@@ -771,6 +771,50 @@ mod tests {
         assert_eq!(field_of(with("gravity_m_s2 = ", "gravity_m_s2 = 1.0 #")), "gravity_m_s2");
         let bad_msg = with("imu = \"highres_imu\"", "imu = \"highres\"").unwrap_err();
         assert!(bad_msg.to_string().contains("highres"), "{bad_msg}");
+    }
+
+    #[test]
+    fn a_planar_profile_has_wheels_and_no_imu() {
+        let text = example("wheeled-robot");
+        let edit = |a: &str, b: &str| {
+            assert!(text.contains(a), "{a}");
+            VehicleProfile::from_toml_str(&text.replacen(a, b, 1))
+        };
+        let p = edit("", "").unwrap();
+        let NavModel::Planar { config, initial_sigma } = p.nav_model(0.0) else { panic!("a planar model") };
+        // 1 deg/s per 20 Hz sample: a density of 1 deg/s / sqrt(20 Hz)
+        assert!((config.yaw_rate_noise_rad_s_per_sqrt_hz - 1f64.to_radians() / 20f64.sqrt()).abs() < 1e-15);
+        assert!((initial_sigma.yaw_rad - 2f64.to_radians()).abs() < 1e-15);
+        assert_eq!(RateRequestsView::of(&p), vec![("WHEEL_DISTANCE", 20.0)]);
+        let wheels = &text[text.find("\n[wheels]").unwrap()..text.find("\n[initial]").unwrap()];
+        assert_eq!(field_of(edit(wheels, "")), "wheels", "no [wheels]");
+        assert!(matches!(edit("\n[wheels]", "\n[unused]"), Err(ProfileError::Parse { .. })), "an unknown section");
+        assert_eq!(field_of(edit("speed_sigma_m_s = 0.05", "speed_sigma_m_s = 0.0")), "wheels.speed_sigma_m_s");
+        assert_eq!(field_of(edit("yaw_rate_sigma_deg_s = 1.0", "yaw_rate_sigma_deg_s = 500.0")), "wheels.yaw_rate_sigma_deg_s");
+        assert_eq!(field_of(edit("track_m = 0.5", "track_m = -0.5")), "wheels.track_m");
+        assert_eq!(field_of(edit("odometer = \"wheel_distance\"", "odometer = \"odometry\"")), "inputs.odometer");
+        assert_eq!(field_of(edit("wheels = [0, 1]", "wheels = [0]")), "inputs.odometer");
+        assert_eq!(field_of(edit("wheels = [0, 1]", "wheels = [0, 1]\nwheel_track_m = 0.4")), "inputs.wheel_track_m");
+        let sensors = example("px4-rover");
+        let block = &sensors[sensors.find("[sensors]").unwrap()..sensors.find("[initial]").unwrap()];
+        assert_eq!(
+            field_of(VehicleProfile::from_toml_str(&format!("{text}\n{block}"))),
+            "sensors",
+            "[sensors] on a planar robot"
+        );
+        // and an INS vehicle with [wheels] is told to say model = "planar"
+        let ins = example("px4-rover");
+        assert_eq!(field_of(VehicleProfile::from_toml_str(&format!("{ins}\n{wheels}"))), "wheels");
+        let no_sensors = ins.replacen("[sensors]", "[unused_sensors]", 1);
+        assert!(VehicleProfile::from_toml_str(&no_sensors).is_err());
+    }
+
+    /// The rate requests a profile makes, as (message, Hz).
+    struct RateRequestsView;
+    impl RateRequestsView {
+        fn of(p: &VehicleProfile) -> Vec<(&'static str, f64)> {
+            crate::node::autopilot::RateRequests::new(p, 1).requests.iter().map(|r| (r.message, r.rate_hz)).collect()
+        }
     }
 
     #[test]

@@ -12,6 +12,9 @@ KIND: ardupilot  RAW_IMU (int16 mG / mrad/s, the latest sample, time_usec since 
                  wheel-odometry source (estimator NAIVE); time since boot; SYSTEM_TIME.
       scaled2    SCALED_IMU2 (time_boot_ms) at 50 Hz starting 5 s before time_boot_ms wraps
                  (49.7 days of uptime), WHEEL_DISTANCE, SYSTEM_TIME.
+      robot      a wheeled robot without IMU: WHEEL_DISTANCE of its left and right wheels (0.5 m
+                 apart) at 20 Hz over a quarter circle to the right (20 m of arc, reset to zero
+                 half way), SYSTEM_TIME at 1 Hz.
       origin     as ardupilot, with GPS_GLOBAL_ORIGIN at 1 Hz (the EKF origin, for a node whose
                  profile gives none).
 The vehicle drives straight north at 2 m/s on level ground for 10 s (at 10x real time), the node
@@ -32,12 +35,13 @@ EARTH_RATE = 7.292115e-5
 UNIX0_US = 1_795_000_000_000_000  # Unix time of the autopilot's boot, us (2026-11)
 SPEED = 2.0
 DURATION_S = 10.0
+TRACK = 0.5  # the robot's wheels apart, m
 SYSID = 1
 
 
 def main():
     kind = sys.argv[1]
-    lat = {"ardupilot": -35.363262, "origin": -35.363262, "scaled2": -35.363262, "px4": 47.397742}[kind]
+    lat = {"ardupilot": -35.363262, "origin": -35.363262, "scaled2": -35.363262, "px4": 47.397742, "robot": -35.363262}[kind]
     sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
     sock.bind(("127.0.0.1", 0))
     print("port %d" % sock.getsockname()[1], flush=True)
@@ -77,8 +81,9 @@ def main():
                     report["odometry_n"].append(msg.x)
 
     # (vehicle time since boot, us) of the first sample, and the sample period per stream
-    boot0_us = {"ardupilot": 100_000_000, "origin": 100_000_000, "px4": 100_000_000, "scaled2": (2**32 - 5000) * 1000}[kind]
-    imu_period = {"ardupilot": 25_000, "origin": 25_000, "px4": 5_000, "scaled2": 20_000}[kind]
+    boot0_us = {"ardupilot": 100_000_000, "origin": 100_000_000, "px4": 100_000_000, "scaled2": (2**32 - 5000) * 1000,
+                "robot": 100_000_000}[kind]
+    imu_period = {"ardupilot": 25_000, "origin": 25_000, "px4": 5_000, "scaled2": 20_000, "robot": 25_000}[kind]
     wheel_period = 50_000
     w_earth = (EARTH_RATE * math.cos(math.radians(lat)), 0.0, -EARTH_RATE * math.sin(math.radians(lat)))
     t_us = 0
@@ -99,6 +104,8 @@ def main():
             m.raw_imu_send(boot_us, 0, 0, -1000, round(w_earth[0] * 1e3), 0, round(w_earth[2] * 1e3), 0, 0, 0, 0)
             m.scaled_imu2_send(boot_ms, 300, 0, -1000, 0, 0, 200, 0, 0, 0)
             m.highres_imu_send(boot_us, 3.0, 0, -G, 0, 0, 0.2, 0, 0, 0, 0, 0, 0, 0, 0x3F, 0)
+        elif kind == "robot":
+            pass  # no IMU in the navigation
         elif kind == "px4":
             m.highres_imu_send(boot_us, 0, 0, -G, w_earth[0], 0, 0.2, 0, 0, 0, 0, 0, 0, 0, 0x3F, 0)
             m.highres_imu_send(boot_us, 0, 0, -G, w_earth[0], 0, w_earth[2], 0, 0, 0, 0, 0, 0, 0, 0x3F, 1)
@@ -119,7 +126,15 @@ def main():
                     wheel_base = dist  # the encoder counters reset to zero
                     reset_done = True
                 d = dist - wheel_base
-                m.wheel_distance_send(boot_us, 2, [d, d] + [0.0] * 14)
+                if kind == "robot":
+                    # turning right on a circle of radius R: the left wheel runs outside
+                    radius = SPEED * DURATION_S / (math.pi / 2)
+                    turn = dist / radius
+                    left = (radius + TRACK / 2) * turn - wheel_base * (radius + TRACK / 2) / radius
+                    right = (radius - TRACK / 2) * turn - wheel_base * (radius - TRACK / 2) / radius
+                    m.wheel_distance_send(boot_us, 2, [left, right] + [0.0] * 14)
+                else:
+                    m.wheel_distance_send(boot_us, 2, [d, d] + [0.0] * 14)
             next_wheel += wheel_period
         t_us += imu_period
         receive()

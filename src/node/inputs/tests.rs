@@ -210,6 +210,27 @@ fn wheel_distances_are_differentiated_with_resets_bridged() {
     assert_eq!(d.counters.wheel_resets, 1);
 }
 
+/// A planar robot's decoder: each WHEEL_DISTANCE interval is a drive sample stamped at its end,
+/// with the differential drive's yaw rate; IMU messages are not its input.
+#[test]
+fn a_planar_robots_wheels_are_its_drive_samples() {
+    let cfg = Inputs::default().planar_wheels(0.5);
+    let mut d = VehicleInputs::new(cfg).wheel_drive();
+    assert!(d.decode(&wheels(1_000_000, 2, &[10.0, 10.0])).is_empty());
+    let e = d.decode(&wheels(1_050_000, 2, &[10.11, 10.09]));
+    let [VehicleEvent::Input(NodeInput::Wheel(s))] = e.as_slice() else { panic!("one wheel sample, got {e:?}") };
+    assert_eq!(s.t, TimeUs(1_050_000), "stamped at the end of its interval");
+    assert!((s.speed_m_s - 2.0).abs() < 1e-9 && (s.yaw_rate_rad_s - 0.8).abs() < 1e-9, "{s:?}");
+    // a reset is bridged as for an odometer
+    assert!(d.decode(&wheels(1_100_000, 2, &[0.0, 0.0])).is_empty());
+    assert_eq!(d.counters.wheel_resets, 1);
+    let e = d.decode(&wheels(1_150_000, 2, &[0.1, 0.1]));
+    assert!(matches!(e.as_slice(), [VehicleEvent::Input(NodeInput::Wheel(s))] if (s.speed_m_s - 2.0).abs() < 1e-9));
+    // the IMU is not a planar robot's input
+    assert!(d.decode(&highres(1_150_000, 0, 0x3F, -9.8)).is_empty());
+    assert_eq!(d.counters.imu, 0);
+}
+
 #[test]
 fn odometry_from_the_autopilots_own_ekf_is_not_an_odometer() {
     let mut d = inputs(|_| {});
