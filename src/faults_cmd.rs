@@ -43,10 +43,16 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         bail!("--runs must be at least 1");
     }
     let world = World::new(&Scenario::from_path(&args.scenario)?)?;
-    let cases: Vec<_> =
-        standard_cases().into_iter().filter(|c| args.only.as_ref().is_none_or(|o| c.name.contains(o.as_str()))).collect();
+    let duration_s = world.scenario().duration_s;
+    let (cases, too_long): (Vec<_>, Vec<_>) = standard_cases()
+        .into_iter()
+        .filter(|c| args.only.as_ref().is_none_or(|o| c.name.contains(o.as_str())))
+        .partition(|c| c.faults.fits(duration_s));
+    for c in &too_long {
+        eprintln!("skipped {:?}: its outage ends after the scenario's {duration_s} s", c.name);
+    }
     if cases.is_empty() {
-        bail!("no case matches --only");
+        bail!("no case matches --only and fits the scenario's {duration_s} s");
     }
     let started = Instant::now();
     let mut summaries: Vec<CaseSummary> = Vec::new();

@@ -76,6 +76,16 @@ impl Faults {
     }
 }
 
+impl Faults {
+    /// Whether every outage and join of the case is over before `duration_s` (the scenario's
+    /// end): a case whose node comes back after the end says nothing about recovery. Link faults
+    /// fit any scenario (they last to its end when it is shorter than `links_until_s`).
+    pub fn fits(&self, duration_s: f64) -> bool {
+        [self.stall, self.kill, self.leave].iter().flatten().all(|o| o.until_s < duration_s)
+            && self.join.is_none_or(|(_, t)| t < duration_s)
+    }
+}
+
 /// A named case.
 #[derive(Debug, Clone, PartialEq, Serialize)]
 pub struct FaultCase {
