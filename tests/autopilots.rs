@@ -181,6 +181,23 @@ fn a_wheeled_robot_navigates_on_its_two_wheels_across_a_counter_reset() {
     assert!(reqs[0][0] == 9000 && reqs[0][1] == 50_000.0, "WHEEL_DISTANCE at 20 Hz: {reqs:?}");
 }
 
+/// The same robot with a yaw-rate gyro (`yaw_rate = "gyro"`, SCALED_IMU2): its wheels turn
+/// alike, so only the gyro knows it turns; the node follows the arc on the gyro's z rate (157
+/// mrad/s, the int16 rounding of 0.15708 rad/s).
+#[test]
+fn a_wheeled_robot_with_a_yaw_rate_gyro_turns_on_the_gyro() {
+    let gyro = [("wheels = [0, 1]", "wheels = [0, 1]\nyaw_rate = \"gyro\"\nimu = \"scaled_imu2\"")];
+    let Some(o) = drive("robot-gyro", &gyro, "wheeled-robot") else { return };
+    let radius = 20.0 / std::f64::consts::FRAC_PI_2;
+    check_at(&o, 100_000_000, [radius, radius], 0.2);
+    let yaw: f64 = o.done.split(" yaw_deg ").nth(1).unwrap().split_whitespace().next().unwrap().parse().unwrap();
+    assert!((yaw - 90.0).abs() < 0.5, "heading east at the end: {}", o.done);
+    assert!(count(&o.vehicle, "imu") >= 390, "the gyro's samples: {}", o.vehicle);
+    assert!(count(&o.vehicle, "gyro_missing") <= 1, "{}", o.vehicle);
+    let reqs = o.script["requests"].as_array().unwrap();
+    assert!(reqs.iter().any(|r| r[0] == 116 && r[1] == 20_000.0), "SCALED_IMU2 at 50 Hz asked: {reqs:?}");
+}
+
 #[test]
 fn scaled_imu2_across_a_time_boot_ms_wrap() {
     let Some(o) = drive("scaled2", &[("imu = \"raw_imu\"", "imu = \"scaled_imu2\"")], "ardupilot-rover") else { return };

@@ -74,9 +74,14 @@ impl RateRequests {
                     requests.push(RateRequest::new(name, id, sensors.odometer_rate_hz));
                 }
             }
-            // a planar robot: its wheels at the rate of [wheels]
+            // a planar robot: its wheels at the rate of [wheels], its gyro (if it has one) at
+            // 50 Hz or the wheels' rate if higher
             if let Some(wheels) = &profile.wheels {
                 requests.push(RateRequest::new("WHEEL_DISTANCE", WHEEL_DISTANCE_ID, wheels.rate_hz));
+                if profile.inputs.yaw_rate == super::profile::YawRateSource::Gyro {
+                    let imu = profile.inputs.imu;
+                    requests.push(RateRequest::new(imu.name(), imu.message_id(), wheels.rate_hz.max(50.0)));
+                }
             }
         }
         RateRequests { target_system, requests }

@@ -31,7 +31,9 @@
 use nalgebra::Vector3;
 
 use super::core::NodeInput;
-use super::profile::{ImuMessage, Inputs, OdometerMessage, SampleKind, TeamClock};
+use std::collections::VecDeque;
+
+use super::profile::{ImuMessage, Inputs, OdometerMessage, SampleKind, TeamClock, YawRateSource};
 use crate::estimation::{ImuSample, OdometerSample, WheelSample};
 use crate::protocol::MavMessage;
 use crate::protocol::dialect::cooploc::{COMMAND_ACK_DATA, MavEstimatorType};
@@ -101,7 +103,17 @@ pub struct InputCounters {
     pub waiting_for_clock: u64,
     /// SYSTEM_TIME messages whose mapping disagrees with the one in use by more than 50 ms.
     pub clock_disagreements: u64,
+    /// A planar robot's wheel intervals the yaw-rate gyro did not cover within
+    /// [`MAX_GYRO_WAIT_US`]: the wheels' own yaw rate taken (two wheels), or the sample dropped.
+    pub gyro_missing: u64,
 }
+
+/// Most gyro samples kept (10 s at 200 Hz).
+const MAX_GYRO_KEPT: usize = 2000;
+
+/// How long (vehicle time, by the wheels' stamps) a wheel interval waits for the gyro samples
+/// that cover it.
+pub const MAX_GYRO_WAIT_US: u64 = 500_000;
 
 /// The decoder (see the module documentation).
 #[derive(Debug, Clone)]
@@ -129,6 +141,15 @@ pub struct VehicleInputs {
     /// The wheels drive the navigation (a planar robot): each WHEEL_DISTANCE interval is a
     /// [`WheelSample`] stamped at its end, not an odometer sample at its middle.
     wheel_drive: bool,
+    /// With a yaw-rate gyro: its samples (end of interval, mean z rate over the interval since
+    /// the previous one), vehicle clock, oldest first.
+    gyro: VecDeque<(TimeUs, f64)>,
+    /// Wheel intervals waiting for the gyro: start, and the sample (with the wheels' yaw rate,
+    /// NaN for one wheel).
+    pending_wheels: VecDeque<(TimeUs, WheelSample)>,
+    /// Events released by the last message beside the one it returns (wheel samples the gyro
+    /// now covers).
+    released: Vec<VehicleEvent>,
     pub counters: InputCounters,
 }
 
@@ -147,6 +168,9 @@ impl VehicleInputs {
             prev_wheels: None,
             last_wheel_yaw_rate_rad_s: None,
             wheel_drive: false,
+            gyro: VecDeque::new(),
+            pending_wheels: VecDeque::new(),
+            released: Vec::new(),
             counters: InputCounters::default(),
         }
     }
@@ -170,15 +194,19 @@ impl VehicleInputs {
         if let Some(o) = self.unix_offset_us {
             out.extend(self.held.drain(..).filter_map(|e| map_event(e, o)));
         }
-        match event {
-            VehicleEvent::Nothing => {}
-            e if self.cfg.clock == TeamClock::Unix && event_time(&e).is_some_and(|t| t.0 < UNIX_TIME_FROM_US) => {
-                match self.unix_offset_us {
-                    Some(o) => out.extend(map_event(e, o)),
-                    None => self.hold(e),
+        let mut events = std::mem::take(&mut self.released);
+        events.push(event);
+        for event in events {
+            match event {
+                VehicleEvent::Nothing => {}
+                e if self.cfg.clock == TeamClock::Unix && event_time(&e).is_some_and(|t| t.0 < UNIX_TIME_FROM_US) => {
+                    match self.unix_offset_us {
+                        Some(o) => out.extend(map_event(e, o)),
+                        None => self.hold(e),
+                    }
                 }
+                e => out.push(e),
             }
-            e => out.push(e),
         }
         out
     }
@@ -204,11 +232,24 @@ impl VehicleInputs {
                 | MavMessage::SCALED_IMU2(_)
                 | MavMessage::SCALED_IMU3(_)
         );
-        if self.wheel_drive && imu_message {
+        if self.wheel_drive && imu_message && self.cfg.yaw_rate != YawRateSource::Gyro {
             // a planar robot navigates on its wheels alone
             self.counters.imu_other += 1;
             return VehicleEvent::Nothing;
         }
+        let event = self.decode_imu_and_wheels(msg);
+        match event {
+            VehicleEvent::Input(NodeInput::Imu(s)) if self.wheel_drive => {
+                // a planar robot's yaw-rate gyro: its z rate gives the wheel intervals' yaw rate
+                self.take_gyro(s.t, s.angular_rate_frd_rad_s[2]);
+                VehicleEvent::Nothing
+            }
+            e => e,
+        }
+    }
+
+    /// [`Self::decode_local`] before a planar robot's gyro takes the IMU samples.
+    fn decode_imu_and_wheels(&mut self, msg: &MavMessage) -> VehicleEvent {
         match msg {
             MavMessage::SYSTEM_TIME(m) => {
                 self.system_time(m.time_unix_usec, m.time_boot_ms);
@@ -390,16 +431,79 @@ impl VehicleInputs {
             _ => None,
         };
         if self.wheel_drive {
-            let Some(yaw_rate) = self.last_wheel_yaw_rate_rad_s else {
+            let yaw_rate = self.last_wheel_yaw_rate_rad_s;
+            self.counters.odometer += 1;
+            let sample = WheelSample { t, speed_m_s: speed, yaw_rate_rad_s: yaw_rate.unwrap_or(f64::NAN) };
+            if self.cfg.yaw_rate == YawRateSource::Gyro {
+                self.pending_wheels.push_back((t0, sample));
+                self.release_wheels();
+                return VehicleEvent::Nothing;
+            }
+            if yaw_rate.is_none() {
                 // the profile is checked to name two wheels and a track for a planar robot
                 self.counters.odometer_invalid += 1;
                 return VehicleEvent::Nothing;
-            };
-            self.counters.odometer += 1;
-            return VehicleEvent::Input(NodeInput::Wheel(WheelSample { t, speed_m_s: speed, yaw_rate_rad_s: yaw_rate }));
+            }
+            return VehicleEvent::Input(NodeInput::Wheel(sample));
         }
         self.counters.odometer += 1;
         VehicleEvent::Input(NodeInput::Odometer(OdometerSample { t: TimeUs(t0.0 + dt_us / 2), speed_m_s: speed }))
+    }
+
+    /// A gyro sample: the mean z rate over the interval since the previous one, ending at `t`.
+    fn take_gyro(&mut self, t: TimeUs, z_rad_s: f64) {
+        if self.gyro.back().is_some_and(|(last, _)| t <= *last) {
+            return; // counted as out of order by the IMU path already
+        }
+        self.gyro.push_back((t, z_rad_s));
+        self.release_wheels();
+    }
+
+    /// The mean gyro z rate over `(a, b]`, if the gyro samples cover it.
+    fn gyro_mean(&self, a: TimeUs, b: TimeUs) -> Option<f64> {
+        let first = self.gyro.front()?.0;
+        if first > a || self.gyro.back()?.0 < b || b <= a {
+            return None;
+        }
+        let mut sum = 0.0;
+        let mut start = first;
+        for &(end, z) in self.gyro.iter().skip(1) {
+            let (lo, hi) = (start.max(a), end.min(b));
+            if hi > lo {
+                sum += z * (hi.0 - lo.0) as f64;
+            }
+            start = end;
+        }
+        Some(sum / (b.0 - a.0) as f64)
+    }
+
+    /// Emits (into `released`) the pending wheel intervals the gyro now covers, in order; one
+    /// the gyro has not covered while the wheels moved on by [`MAX_GYRO_WAIT_US`] takes the
+    /// wheels' yaw rate (or is dropped with one wheel). Forgets the gyro samples no interval needs.
+    fn release_wheels(&mut self) {
+        let newest = self.pending_wheels.back().map(|(_, s)| s.t);
+        while let Some(&(t0, sample)) = self.pending_wheels.front() {
+            let yaw_rate = match self.gyro_mean(t0, sample.t) {
+                Some(z) => z,
+                None if newest.is_some_and(|n| n.0 >= sample.t.0 + MAX_GYRO_WAIT_US) => {
+                    self.counters.gyro_missing += 1;
+                    sample.yaw_rate_rad_s
+                }
+                None => break,
+            };
+            self.pending_wheels.pop_front();
+            if yaw_rate.is_finite() {
+                let s = WheelSample { yaw_rate_rad_s: yaw_rate, ..sample };
+                self.released.push(VehicleEvent::Input(NodeInput::Wheel(s)));
+            }
+        }
+        let keep_from = self.pending_wheels.front().map_or(newest.unwrap_or(TimeUs(0)), |(t0, _)| *t0);
+        while self.gyro.len() > 1 && self.gyro[1].0 <= keep_from {
+            self.gyro.pop_front();
+        }
+        while self.gyro.len() > MAX_GYRO_KEPT {
+            self.gyro.pop_front();
+        }
     }
 
     fn system_time(&mut self, unix_us: u64, boot_ms: u32) {

@@ -12,7 +12,9 @@
 //!   INS, with `[sensors]` and `[filter]`) or `"planar"` (a wheeled robot without IMU in the
 //!   navigation: the node runs the planar filter of [`crate::estimation::planar`] on the
 //!   differential drive's WHEEL_DISTANCE, with the scenario's `[wheels]` section: rate, speed
-//!   and yaw-rate noise, track; no `[sensors]` or `[filter]`).
+//!   and yaw-rate noise, track; no `[sensors]` or `[filter]`). With `[inputs] yaw_rate = "gyro"`
+//!   the yaw rate comes from the z rate of the IMU message `imu` names (a yaw-rate gyro; the
+//!   `[wheels]` yaw-rate figure is then the gyro's), the wheels give the speed.
 //! - `[origin]`: the geodetic point of the local NED frame (`lat_deg`, `lon_deg`, `alt_m`).
 //!   The node compares it with the vehicle's GPS_GLOBAL_ORIGIN and HOME_POSITION and warns when
 //!   they are far apart. Without `[origin]` or `latitude_deg` the node waits for the vehicle's
@@ -237,6 +239,22 @@ pub struct Inputs {
     /// Ask the autopilot for the IMU and odometer rates of `[sensors]` (SET_MESSAGE_INTERVAL).
     #[serde(default = "yes")]
     pub request_rates: bool,
+    /// A planar robot's yaw rate: from its two wheels, or from the z rate of the IMU message
+    /// `imu` names (a yaw-rate gyro; the wheels then give the speed only).
+    #[serde(default)]
+    pub yaw_rate: YawRateSource,
+}
+
+/// Where a planar robot's yaw rate comes from.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum YawRateSource {
+    /// The difference of the left and right wheels over the track.
+    #[default]
+    Wheels,
+    /// The IMU's z rate, averaged over each wheel interval (its bias and the Earth's rate are
+    /// not estimated: the planar model has no bias state).
+    Gyro,
 }
 
 impl Inputs {
@@ -274,6 +292,7 @@ impl Default for Inputs {
             wheel_track_m: None,
             clock: default_clock(),
             request_rates: true,
+            yaw_rate: YawRateSource::Wheels,
         }
     }
 }
@@ -461,10 +480,11 @@ impl VehicleProfile {
             }
         }
         let i = &self.inputs;
-        if i.odometer != OdometerMessage::WheelDistance || i.wheels.len() != 2 {
+        let gyro = i.yaw_rate == YawRateSource::Gyro;
+        if i.odometer != OdometerMessage::WheelDistance || !(i.wheels.len() == 2 || gyro && i.wheels.len() == 1) {
             return Err(invalid(
                 "inputs.odometer",
-                "a planar robot is driven by WHEEL_DISTANCE of its left and right wheels: odometer = \"wheel_distance\", wheels = [left, right]",
+                "a planar robot is driven by WHEEL_DISTANCE of its left and right wheels (one wheel with yaw_rate = \"gyro\"): odometer = \"wheel_distance\", wheels = [left, right]",
             ));
         }
         if let Some(track) = i.wheel_track_m
@@ -480,6 +500,9 @@ impl VehicleProfile {
 
     /// An INS vehicle: `[sensors]` and `[filter]` with figures a real IMU can have.
     fn validate_ins(&self) -> Result<(), ProfileError> {
+        if self.inputs.yaw_rate != YawRateSource::Wheels {
+            return Err(invalid("inputs.yaw_rate", "a planar robot's (model = \"planar\"): an INS takes the whole IMU"));
+        }
         if self.wheels.is_some() {
             return Err(invalid(
                 "wheels",
@@ -664,7 +687,8 @@ impl VehicleProfile {
     pub fn decoder(&self) -> VehicleInputs {
         match (self.model, self.wheels) {
             (PlatformModel::Planar, Some(w)) => {
-                VehicleInputs::new(self.inputs.planar_wheels(self.inputs.wheel_track_m.unwrap_or(w.track_m))).wheel_drive()
+                let track = self.inputs.wheel_track_m.unwrap_or(w.track_m);
+                VehicleInputs::new(Inputs { wheel_track_m: Some(track), ..self.inputs.clone() }).wheel_drive()
             }
             _ => VehicleInputs::new(self.inputs.clone()),
         }
@@ -805,6 +829,10 @@ mod tests {
         // and an INS vehicle with [wheels] is told to say model = "planar"
         let ins = example("px4-rover");
         assert_eq!(field_of(VehicleProfile::from_toml_str(&format!("{ins}\n{wheels}"))), "wheels");
+        assert_eq!(field_of(with("[inputs]", "[inputs]\nyaw_rate = \"gyro\"")), "inputs.yaw_rate", "an INS with a yaw-rate gyro");
+        // a robot with a yaw-rate gyro may read one wheel; it asks for the gyro too
+        let gyro = edit("wheels = [0, 1]", "wheels = [0]\nyaw_rate = \"gyro\"\nimu = \"scaled_imu2\"").unwrap();
+        assert_eq!(RateRequestsView::of(&gyro), vec![("WHEEL_DISTANCE", 20.0), ("SCALED_IMU2", 50.0)]);
         let no_sensors = ins.replacen("[sensors]", "[unused_sensors]", 1);
         assert!(VehicleProfile::from_toml_str(&no_sensors).is_err());
     }

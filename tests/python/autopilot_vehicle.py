@@ -15,6 +15,8 @@ KIND: ardupilot  RAW_IMU (int16 mG / mrad/s, the latest sample, time_usec since 
       robot      a wheeled robot without IMU: WHEEL_DISTANCE of its left and right wheels (0.5 m
                  apart) at 20 Hz over a quarter circle to the right (20 m of arc, reset to zero
                  half way), SYSTEM_TIME at 1 Hz.
+      robot-gyro the same quarter circle, but the wheels turn alike (they give the speed) and a
+                 yaw-rate gyro (SCALED_IMU2 z, mrad/s, 40 Hz) gives the turn.
       origin     as ardupilot, with GPS_GLOBAL_ORIGIN at 1 Hz (the EKF origin, for a node whose
                  profile gives none).
 The vehicle drives straight north at 2 m/s on level ground for 10 s (at 10x real time), the node
@@ -41,7 +43,8 @@ SYSID = 1
 
 def main():
     kind = sys.argv[1]
-    lat = {"ardupilot": -35.363262, "origin": -35.363262, "scaled2": -35.363262, "px4": 47.397742, "robot": -35.363262}[kind]
+    lat = {"ardupilot": -35.363262, "origin": -35.363262, "scaled2": -35.363262, "px4": 47.397742, "robot": -35.363262,
+           "robot-gyro": -35.363262}[kind]
     sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
     sock.bind(("127.0.0.1", 0))
     print("port %d" % sock.getsockname()[1], flush=True)
@@ -82,8 +85,8 @@ def main():
 
     # (vehicle time since boot, us) of the first sample, and the sample period per stream
     boot0_us = {"ardupilot": 100_000_000, "origin": 100_000_000, "px4": 100_000_000, "scaled2": (2**32 - 5000) * 1000,
-                "robot": 100_000_000}[kind]
-    imu_period = {"ardupilot": 25_000, "origin": 25_000, "px4": 5_000, "scaled2": 20_000, "robot": 25_000}[kind]
+                "robot": 100_000_000, "robot-gyro": 100_000_000}[kind]
+    imu_period = {"ardupilot": 25_000, "origin": 25_000, "px4": 5_000, "scaled2": 20_000, "robot": 25_000, "robot-gyro": 25_000}[kind]
     wheel_period = 50_000
     w_earth = (EARTH_RATE * math.cos(math.radians(lat)), 0.0, -EARTH_RATE * math.sin(math.radians(lat)))
     t_us = 0
@@ -106,6 +109,9 @@ def main():
             m.highres_imu_send(boot_us, 3.0, 0, -G, 0, 0, 0.2, 0, 0, 0, 0, 0, 0, 0, 0x3F, 0)
         elif kind == "robot":
             pass  # no IMU in the navigation
+        elif kind == "robot-gyro":
+            turn_rate = SPEED / (SPEED * DURATION_S / (math.pi / 2))
+            m.scaled_imu2_send(boot_ms, 0, 0, -1000, 0, 0, round(turn_rate * 1e3), 0, 0, 0)
         elif kind == "px4":
             m.highres_imu_send(boot_us, 0, 0, -G, w_earth[0], 0, 0.2, 0, 0, 0, 0, 0, 0, 0, 0x3F, 0)
             m.highres_imu_send(boot_us, 0, 0, -G, w_earth[0], 0, w_earth[2], 0, 0, 0, 0, 0, 0, 0, 0x3F, 1)

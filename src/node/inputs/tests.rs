@@ -1,4 +1,5 @@
 use super::*;
+use crate::node::profile::YawRateSource;
 use crate::protocol::dialect::cooploc::{
     HIGHRES_IMU_DATA, HighresImuUpdatedFlags, MavFrame, ODOMETRY_DATA, RAW_IMU_DATA, SCALED_IMU2_DATA, SYSTEM_TIME_DATA,
     WHEEL_DISTANCE_DATA,
@@ -229,6 +230,61 @@ fn a_planar_robots_wheels_are_its_drive_samples() {
     // the IMU is not a planar robot's input
     assert!(d.decode(&highres(1_150_000, 0, 0x3F, -9.8)).is_empty());
     assert_eq!(d.counters.imu, 0);
+}
+
+fn highres_gyro(time_usec: u64, z: f32) -> MavMessage {
+    let mut m = highres(time_usec, 0, 0x3F, -9.8);
+    if let MavMessage::HIGHRES_IMU(h) = &mut m {
+        h.zgyro = z;
+    }
+    m
+}
+
+fn wheel_sample(e: &[VehicleEvent]) -> Vec<WheelSample> {
+    e.iter()
+        .map(|e| match e {
+            VehicleEvent::Input(NodeInput::Wheel(s)) => *s,
+            other => panic!("expected wheel samples, got {other:?}"),
+        })
+        .collect()
+}
+
+/// A planar robot with a yaw-rate gyro: each wheel interval's yaw rate is the gyro's mean over
+/// that interval, whichever of the two streams comes first; an interval the gyro never covers
+/// falls back to the wheels' own yaw rate after half a second, counted.
+#[test]
+fn a_yaw_rate_gyro_gives_the_wheel_intervals_their_yaw_rate() {
+    let cfg = Inputs { yaw_rate: YawRateSource::Gyro, ..Inputs::default().planar_wheels(0.5) };
+    let mut d = VehicleInputs::new(cfg).wheel_drive();
+    // gyro at 100 Hz: 0.2 rad/s until 1.02 s, then 0.4 rad/s
+    for k in 95..=102u64 {
+        assert!(d.decode(&highres_gyro(k * 10_000, 0.2)).is_empty());
+    }
+    assert!(d.decode(&wheels(1_000_000, 2, &[10.0, 10.0])).is_empty());
+    // the wheels say straight ahead; the gyro knows better. (1.0, 1.02] is covered: released now
+    let got = wheel_sample(&d.decode(&wheels(1_020_000, 2, &[10.04, 10.04])));
+    assert_eq!(got.len(), 1);
+    assert!((got[0].speed_m_s - 2.0).abs() < 1e-9 && (got[0].yaw_rate_rad_s - 0.2).abs() < 1e-7, "{got:?}");
+    // a wheel interval before its gyro samples: held, then released with the gyro's mean
+    assert!(d.decode(&wheels(1_060_000, 2, &[10.12, 10.12])).is_empty());
+    assert!(d.decode(&highres_gyro(1_030_000, 0.4)).is_empty());
+    assert!(d.decode(&highres_gyro(1_040_000, 0.4)).is_empty());
+    assert!(d.decode(&highres_gyro(1_050_000, 0.4)).is_empty());
+    let got = wheel_sample(&d.decode(&highres_gyro(1_060_000, 0.4)));
+    assert_eq!(got.len(), 1);
+    assert_eq!(got[0].t, TimeUs(1_060_000));
+    assert!((got[0].yaw_rate_rad_s - 0.4).abs() < 1e-7, "{got:?}");
+    // the gyro stops: after 0.5 s of wheels the wheels' yaw rate is taken, counted
+    let mut out = Vec::new();
+    for k in 1..=30u64 {
+        let dist = 10.12 + 0.04 * k as f64;
+        out.extend(d.decode(&wheels(1_060_000 + k * 20_000, 2, &[dist + 0.001 * k as f64, dist - 0.001 * k as f64])));
+    }
+    let got = wheel_sample(&out);
+    assert!(!got.is_empty() && d.counters.gyro_missing as usize == got.len(), "{:?}", d.counters);
+    // 2 mm more on the left per 20 ms over a 0.5 m track: 0.2 rad/s to the right
+    assert!(got.iter().all(|s| (s.yaw_rate_rad_s - 0.2).abs() < 1e-6), "{got:?}");
+    assert!(got.windows(2).all(|w| w[0].t < w[1].t));
 }
 
 #[test]
