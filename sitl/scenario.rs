@@ -303,6 +303,12 @@ impl Scenario {
         }
         if let Some(w) = &self.wheels {
             period_us("wheels.rate_hz", w.rate_hz)?;
+            if w.rate_hz < 1.0 {
+                return Err(invalid(
+                    "wheels.rate_hz",
+                    format!("at least 1 Hz (a wheel sample drives at most 1.1 s), got {}", w.rate_hz),
+                ));
+            }
             if w.rate_hz > 1000.0 {
                 return Err(invalid("wheels.rate_hz", format!("must be at most 1 kHz, got {}", w.rate_hz)));
             }

@@ -12,9 +12,10 @@
 //!   at that instant times `1 + scale_error` (`scale_error ~ N(0, odometer_scale_sigma)` per run)
 //!   plus white noise `odometer_sigma_m_s`.
 //! - Wheels (the wheeled robots, `model = "planar"`; rate `wheels.rate_hz`, samples at
-//!   `m / rate`): each sample's forward speed and yaw rate are the true means over its interval
-//!   (the distance the robot covered and the heading it turned, divided by the interval) plus
-//!   white noise `speed_sigma_m_s` and `yaw_rate_sigma_deg_s`.
+//!   `m / rate`): each sample's forward speed is the mean of the true speeds at the ends of its
+//!   interval (the mean over the interval within a segment of constant acceleration) and its yaw
+//!   rate the heading turned divided by the interval (exact), plus white noise `speed_sigma_m_s`
+//!   and `yaw_rate_sigma_deg_s`.
 //! - Ranging: at each epoch of a schedule, one range per unordered pair of platforms, measured by
 //!   the lower id (`from`) to the higher (`to`): the true 3-D distance plus N(0, `sigma_m`).
 //!

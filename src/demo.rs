@@ -12,7 +12,7 @@ use std::time::Duration;
 use anyhow::Context;
 
 use crate::estimation::{Method, PlatformId};
-use crate::experiment::{FilterRun, initial_state, ins_settings};
+use crate::experiment::{FilterRun, initial_state};
 use crate::gcs::GcsSink;
 use crate::gcs::runner::{GcsLinks, run as run_gcs};
 use crate::gcs::state::GcsConfig;
@@ -131,13 +131,14 @@ pub async fn run_demo(cfg: DemoConfig, ready: impl FnOnce(&DemoAddresses)) -> an
         .collect();
 
     // One node per vehicle, each knowing the nodes started before it.
-    let (ins, sigma) = ins_settings(&world);
     let mut node_addrs: Vec<(PlatformId, SocketAddr)> = Vec::new();
     let mut node_tasks = Vec::new();
     let (stop_tx, stop_rx) = tokio::sync::watch::channel(false);
     for &(id, addr) in &vehicles {
         let (t0, state) = initial_state(&world, cfg.seed, cfg.run, id)?;
-        let node_cfg = NodeConfig::new(id, cfg.method, ins, sigma, Encoding::F64, ids.clone());
+        // an INS vehicle or a wheeled robot, as the scenario says
+        let model = crate::experiment::nav_model(&world, id);
+        let node_cfg = NodeConfig::for_model(id, cfg.method, model, Encoding::F64, ids.clone());
         let mut meta = node_metadata(&node_cfg, Some((t0, &state)));
         meta.insert("origin_lat_deg".into(), origin.lat_deg.to_string());
         meta.insert("origin_lon_deg".into(), origin.lon_deg.to_string());
@@ -146,6 +147,7 @@ pub async fn run_demo(cfg: DemoConfig, ready: impl FnOnce(&DemoAddresses)) -> an
             r.metadata(&metadata_name(id), meta)?;
             r.declare_link(Link::Vehicle(id as u8), format!("udpout:{addr}"));
         }
+        let state = crate::estimation::nav::NavState::for_model(&model, state);
         let core = NodeCore::new(node_cfg, t0, state).context("node configuration")?;
         let links = Links {
             vehicle: format!("udpout:{addr}"),
@@ -153,7 +155,7 @@ pub async fn run_demo(cfg: DemoConfig, ready: impl FnOnce(&DemoAddresses)) -> an
             peers: node_addrs.iter().map(|(_, a)| *a).collect(),
             idle_exit: Some(Duration::from_millis(1500)),
             grace: Duration::from_millis(500),
-            profile: crate::node::profile::VehicleProfile::from_scenario(&scenario),
+            profile: crate::node::profile::VehicleProfile::from_scenario_platform(&scenario, id),
         };
         let (bound_tx, bound_rx) = tokio::sync::oneshot::channel();
         let mut stop = stop_rx.clone();

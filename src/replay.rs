@@ -16,7 +16,7 @@ use crate::estimation::nav::NavState;
 use crate::estimation::{Method, PlatformId, RangeSample};
 use crate::experiment::{FilterRun, run_filter};
 use crate::node::core::{NodeConfig, NodeCore, NodeInput, NodeOutput};
-use crate::node::inputs::{VehicleEvent, VehicleInputs};
+use crate::node::inputs::VehicleEvent;
 use crate::node::profile::VehicleProfile;
 use crate::node::runner::{NodeEvent, events_topic, state_from_sim_state, vehicle_attachment_name};
 use crate::protocol::MavMessage;
@@ -281,8 +281,8 @@ pub fn compare_methods(log: &Log, methods: &[Method]) -> Result<Vec<FilterRun>, 
     let mut ranges: BTreeMap<u64, Vec<RangeSample>> = BTreeMap::new();
     for p in &mut inputs.platforms {
         let topic = topics::frames(Link::Vehicle(p.id as u8), Direction::Rx);
-        let (mut imu, mut odometer) = (Vec::new(), Vec::new());
-        let mut decoder = VehicleInputs::new(profile_of(log, &world, p.id)?.inputs);
+        let (mut imu, mut odometer, mut wheel) = (Vec::new(), Vec::new(), Vec::new());
+        let mut decoder = profile_of(log, &world, p.id)?.decoder();
         for msg in log.topic(&topic) {
             let Ok((header, m)) = wire::from_any_frame(&msg.data) else { continue };
             if header.system_id != u32::from(p.id) {
@@ -292,17 +292,19 @@ pub fn compare_methods(log: &Log, methods: &[Method]) -> Result<Vec<FilterRun>, 
                 match event {
                     VehicleEvent::Input(NodeInput::Imu(s)) => imu.push(s),
                     VehicleEvent::Input(NodeInput::Odometer(s)) => odometer.push(s),
+                    VehicleEvent::Input(NodeInput::Wheel(s)) => wheel.push(s),
                     VehicleEvent::Input(NodeInput::OwnRange { range, .. }) => ranges.entry(range.t.0).or_default().push(range),
                     _ => {}
                 }
             }
         }
         odometer.sort_by_key(|s| s.t);
-        if imu.is_empty() {
-            return Err(ReplayError::Offline(format!("platform {}: no HIGHRES_IMU on {topic}", p.id)));
+        if imu.is_empty() && wheel.is_empty() {
+            return Err(ReplayError::Offline(format!("platform {}: no IMU or wheel samples on {topic}", p.id)));
         }
         p.imu = imu;
         p.odometer = odometer;
+        p.wheel = wheel;
     }
     let ranges: Vec<(TimeUs, Vec<RangeSample>)> = ranges
         .into_iter()

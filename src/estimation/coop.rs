@@ -623,6 +623,20 @@ pub fn cooperative_update_with(
     let mut passive_ids = Vec::new();
     let mut passive = None;
     if mode == CrossMode::Propagate && !bound {
+        // A broadcast whose size is not the one the store holds for its platform (a forged or
+        // mistaken record; a platform that changed its model without a fresh start) is refused,
+        // not multiplied.
+        for (id, d) in cross.known_platforms() {
+            if let Some(&(_, ds)) = offset.get(&id)
+                && ds != d
+            {
+                return Err(EstimationError::DimensionMismatch {
+                    what: "broadcast state against the stored cross-covariances",
+                    expected: d,
+                    got: ds,
+                });
+            }
+        }
         for (a, sa) in snapshots.iter().enumerate() {
             for sb in &snapshots[a + 1..] {
                 if let Some(c) = cross.get(sa.id, sb.id) {
@@ -892,6 +906,23 @@ mod tests {
         // Without the gate the forged range pulls platform 1 by metres.
         let ungated = cooperative_update(&mut CrossCovariances::new(), &snaps, &ranges, CrossMode::Propagate).unwrap();
         assert!(ungated.corrections[0].dx.rows(0, 3).norm() > 10.0 * a.corrections[0].dx.rows(0, 3).norm());
+    }
+
+    /// A broadcast of another size than the store holds for its platform (a forged record) is a
+    /// typed error, not a panic, and leaves the store as it was.
+    #[test]
+    fn a_broadcast_of_the_wrong_size_is_refused() {
+        let mut rng = ChaCha8Rng::seed_from_u64(9);
+        let (_, snaps) = joint(&mut rng, 3, 4);
+        let ranges = [CoopMeasurement::Range { from: 1, to: 2, range_m: 100.0, sigma_m: 0.1 }];
+        let mut store = CrossCovariances::new();
+        cooperative_update(&mut store, &snaps, &ranges, CrossMode::Propagate).unwrap();
+        let before = store.digest();
+        let (_, other) = joint(&mut rng, 3, 6);
+        let mixed = vec![snaps[0].clone(), other[1].clone(), snaps[2].clone()];
+        let e = cooperative_update(&mut store, &mixed, &ranges, CrossMode::Propagate).unwrap_err();
+        assert!(matches!(e, EstimationError::DimensionMismatch { expected: 4, got: 6, .. }), "{e}");
+        assert_eq!(store.digest(), before);
     }
 
     /// Equal stores have equal digests; any change of a block, or of its pair, changes it.

@@ -19,8 +19,11 @@
 //! ```
 //!
 //! The input noise is a density (`q = sigma^2 T` for a sample of period `T` and standard
-//! deviation `sigma`), so an interval cut in pieces gets the noise the whole interval would:
-//! the result does not depend on where a node had to stop.
+//! deviation `sigma`), so an interval cut in pieces (a node stops at every epoch) gets the speed
+//! noise the whole interval would; the yaw-rate noise's effect on position and the mid-point
+//! state differ from the uncut interval only at third order in the piece length (for 20 Hz
+//! samples, far below the noise). A node and the offline experiment cut at the same instants,
+//! so they agree exactly.
 
 use nalgebra::{DMatrix, DVector, Matrix2, Matrix3, Matrix3x2, UnitQuaternion, Vector3};
 use serde::{Deserialize, Serialize};

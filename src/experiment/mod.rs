@@ -109,6 +109,8 @@ pub struct PlatformOutcome {
     /// NEES of the 15 navigation and bias error states at the end of the run (a wheeled
     /// robot: its 3 states).
     pub final_nees: f64,
+    /// How many error states that NEES has (its chi-square degrees of freedom).
+    pub nees_states: usize,
     /// Estimated horizontal track at every truth sample (N, E), m.
     pub track_ne_m: Vec<[f64; 2]>,
     /// The filter's position at its last input, and that input's time (what a node reports at
@@ -202,6 +204,7 @@ pub fn run_filter(
             id: p.id,
             trace: Vec::with_capacity(p.truth.len()),
             final_nees: f64::NAN,
+            nees_states: 0,
             track_ne_m: Vec::with_capacity(p.truth.len()),
             final_position_ned_m: Vector3::zeros(),
             final_t: TimeUs(0),
@@ -272,6 +275,7 @@ pub fn run_filter(
         let (e, cov) = final_error(f, p, p.truth.len() - 1);
         outcomes[i].final_position_ned_m = f.position_ned_m();
         outcomes[i].final_t = f.time();
+        outcomes[i].nees_states = e.len();
         outcomes[i].final_nees = nees(&e, &cov).map_err(|e| fail(p.id, f.time(), e))?;
     }
     Ok(FilterRun { method, platforms: outcomes })

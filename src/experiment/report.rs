@@ -27,8 +27,9 @@ pub struct PlatformStats {
     pub final_pos_err_rms_m: f64,
     pub final_heading_err_mean_abs_deg: f64,
     pub final_heading_err_rms_deg: f64,
-    /// Run average of the final 15-state NEES.
+    /// Run average of the final NEES (15 states for an INS, 3 for a wheeled robot).
     pub final_nees_mean: f64,
+    pub nees_states: usize,
 }
 
 /// One method under one schedule.
@@ -127,6 +128,7 @@ pub fn summarize(spec: &ExperimentSpec, results: &[RunResult]) -> Vec<ScheduleSu
                         final_heading_err_mean_abs_deg: mean(finals.clone().map(|e| e.heading_err_deg.abs())),
                         final_heading_err_rms_deg: rms(finals.clone().map(|e| e.heading_err_deg)),
                         final_nees_mean: mean(by_method(mi).map(|r| r.platforms[pi].final_nees)),
+                        nees_states: p.nees_states,
                     });
                     let len = p.trace.len();
                     let at = |k: usize| by_method(mi).map(move |r| r.platforms[pi].trace[k]);
@@ -217,23 +219,32 @@ pub fn table(s: &ScheduleSummary) -> String {
                 p.final_nees_mean
             );
         }
+        // NEES of different state sizes do not average (a mixed team)
+        let one_size = m.platforms.windows(2).all(|w| w[0].nees_states == w[1].nees_states);
+        let nees = if one_size { format!("{:>8.1}", m.average(|p| p.final_nees_mean)) } else { format!("{:>8}", "-") };
         let _ = writeln!(
             out,
-            "{:<12} {:>8} | {:>7.2} m {:>7.2} m | {:>7.3} deg {:>7.3} deg | {:>8.1}",
+            "{:<12} {:>8} | {:>7.2} m {:>7.2} m | {:>7.3} deg {:>7.3} deg | {nees}",
             m.method.short_name(),
             "avg",
             m.average(|p| p.final_pos_err_mean_m),
             m.average(|p| p.final_pos_err_rms_m),
             m.average(|p| p.final_heading_err_mean_abs_deg),
             m.average(|p| p.final_heading_err_rms_deg),
-            m.average(|p| p.final_nees_mean)
         );
     }
-    let _ = writeln!(
-        out,
-        "NEES of a consistent filter (15 states, run average): 95% band [{:.1}, {:.1}]",
-        s.nees_band.0, s.nees_band.1
-    );
+    let mut sizes: Vec<usize> = s.methods.iter().flat_map(|m| m.platforms.iter().map(|p| p.nees_states)).collect();
+    sizes.sort_unstable();
+    sizes.dedup();
+    for dim in sizes.into_iter().rev() {
+        let band = if dim == 15 { s.nees_band } else { crate::estimation::consistency::average_nees_band(dim, s.runs, 0.95) };
+        let who = if dim == 15 { "an INS" } else { "a wheeled robot" };
+        let _ = writeln!(
+            out,
+            "NEES of a consistent filter ({dim} states, {who}, run average): 95% band [{:.1}, {:.1}]",
+            band.0, band.1
+        );
+    }
     let _ = writeln!(
         out,
         "final position error split, RMS over runs: formation mean (common mode, unobservable from ranges) | about that mean"

@@ -19,7 +19,10 @@
 //! - **Wheels as the drive** (a planar robot, [`VehicleInputs::wheel_drive`]): each
 //!   WHEEL_DISTANCE interval of the left and right wheel is a [`WheelSample`] (mean speed and
 //!   yaw rate) stamped at the interval's *end*, the sample that carries the filter through it;
-//!   IMU messages are counted and ignored.
+//!   IMU messages are counted and ignored, unless the profile says `yaw_rate = "gyro"`: then the
+//!   IMU's z rate, averaged over each wheel interval, is its yaw rate (an interval waits up to
+//!   [`MAX_GYRO_WAIT_US`] of wheel time for the gyro samples that cover it, then takes the
+//!   wheels' own; an autopilot reboot drops what was waiting).
 //! - **Time**: `time_boot_ms` (u32 milliseconds, wrapping after 49.7 days: unwrapped),
 //!   `time_usec` since boot, and `time_usec` in Unix time (from 2001 on) alike. With
 //!   `clock = "unix"`, stamps since boot are mapped to Unix time by the vehicle's SYSTEM_TIME
@@ -53,7 +56,7 @@ pub const MAX_HELD_US: u64 = 10_000_000;
 /// Fastest a land vehicle's wheel turns, m/s (a faster change of a wheel's distance is a reset).
 const MAX_WHEEL_SPEED_M_S: f64 = 60.0;
 /// WHEEL_DISTANCE messages further apart than this give no speed (the interval restarts).
-const MAX_WHEEL_INTERVAL_US: u64 = 1_000_000;
+const MAX_WHEEL_INTERVAL_US: u64 = 1_100_000;
 
 /// What one vehicle message meant.
 #[derive(Debug, Clone, PartialEq)]
@@ -110,6 +113,8 @@ pub struct InputCounters {
 
 /// Most gyro samples kept (10 s at 200 Hz).
 const MAX_GYRO_KEPT: usize = 2000;
+/// Most wheel intervals waiting for the gyro (whatever their stamps say).
+const MAX_PENDING_WHEELS: usize = 64;
 
 /// How long (vehicle time, by the wheels' stamps) a wheel interval waits for the gyro samples
 /// that cover it.
@@ -432,9 +437,9 @@ impl VehicleInputs {
         };
         if self.wheel_drive {
             let yaw_rate = self.last_wheel_yaw_rate_rad_s;
-            self.counters.odometer += 1;
             let sample = WheelSample { t, speed_m_s: speed, yaw_rate_rad_s: yaw_rate.unwrap_or(f64::NAN) };
             if self.cfg.yaw_rate == YawRateSource::Gyro {
+                self.counters.odometer += 1;
                 self.pending_wheels.push_back((t0, sample));
                 self.release_wheels();
                 return VehicleEvent::Nothing;
@@ -444,6 +449,7 @@ impl VehicleInputs {
                 self.counters.odometer_invalid += 1;
                 return VehicleEvent::Nothing;
             }
+            self.counters.odometer += 1;
             return VehicleEvent::Input(NodeInput::Wheel(sample));
         }
         self.counters.odometer += 1;
@@ -483,9 +489,10 @@ impl VehicleInputs {
     fn release_wheels(&mut self) {
         let newest = self.pending_wheels.back().map(|(_, s)| s.t);
         while let Some(&(t0, sample)) = self.pending_wheels.front() {
+            let waited_enough = newest.is_some_and(|n| n.0 >= sample.t.0 + MAX_GYRO_WAIT_US);
             let yaw_rate = match self.gyro_mean(t0, sample.t) {
                 Some(z) => z,
-                None if newest.is_some_and(|n| n.0 >= sample.t.0 + MAX_GYRO_WAIT_US) => {
+                None if waited_enough || self.pending_wheels.len() > MAX_PENDING_WHEELS => {
                     self.counters.gyro_missing += 1;
                     sample.yaw_rate_rad_s
                 }
@@ -580,6 +587,10 @@ impl VehicleInputs {
             self.held.clear();
             self.prev_imu = None;
             self.prev_wheels = None;
+            // a gyro's samples and the wheel intervals waiting for them belong to the boot before
+            self.gyro.clear();
+            self.counters.gyro_missing += self.pending_wheels.len() as u64;
+            self.pending_wheels.clear();
             self.boot_ms = None;
             self.last_boot_us = Some(us);
         } else {

@@ -394,8 +394,8 @@ impl VehicleProfile {
         p
     }
 
-    /// Puts this vehicle into a scenario: its sensors, initial uncertainty, filter tuning,
-    /// latitude and gravity replace the scenario's (`cooploc sitl --vehicle-config`), so that
+    /// Puts this vehicle into a scenario: its sensors, initial uncertainty, filter tuning (or,
+    /// for a planar robot, its `[wheels]`), latitude and gravity replace the scenario's (`cooploc sitl --vehicle-config`), so that
     /// the simulated vehicles are the ones the nodes are told they run on. The result is
     /// validated as a scenario (sensor periods on the microsecond grid, epochs on the IMU grid).
     pub fn apply_to(&self, s: &mut Scenario) -> Result<(), ScenarioError> {
@@ -462,6 +462,12 @@ impl VehicleProfile {
             ));
         };
         positive("wheels.rate_hz", w.rate_hz)?;
+        if w.rate_hz < 1.0 {
+            return Err(invalid(
+                "wheels.rate_hz",
+                format!("at least 1 Hz (a wheel sample drives at most 1.1 s), got {}", w.rate_hz),
+            ));
+        }
         if w.rate_hz > MAX_IMU_RATE_HZ {
             return Err(invalid("wheels.rate_hz", format!("must be at most {MAX_IMU_RATE_HZ} Hz, got {}", w.rate_hz)));
         }

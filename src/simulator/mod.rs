@@ -212,7 +212,11 @@ pub fn vehicle_config(
         gravity_m_s2: scenario.gravity_m_s2,
         odometer_sigma_m_s: scenario.sensors.odometer_sigma_m_s,
         imu_period_us: scenario.imu_period_us(),
-        odometer_period_us: TimeUs::from_secs_f64(1.0 / scenario.sensors.odometer_rate_hz).0,
+        // a wheeled robot's odometer stream is its wheels
+        odometer_period_us: match (world.platform_model(id), scenario.wheels) {
+            (crate::sitl::scenario::PlatformModel::Planar, Some(w)) => TimeUs::from_secs_f64(1.0 / w.rate_hz).0,
+            _ => TimeUs::from_secs_f64(1.0 / scenario.sensors.odometer_rate_hz).0,
+        },
         range_period_us: scenario
             .ranging
             .schedules

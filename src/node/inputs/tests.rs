@@ -287,6 +287,30 @@ fn a_yaw_rate_gyro_gives_the_wheel_intervals_their_yaw_rate() {
     assert!(got.windows(2).all(|w| w[0].t < w[1].t));
 }
 
+/// An autopilot reboot drops the gyro samples and the wheel intervals of the boot before
+/// (counted), and the robot navigates on the new boot's gyro at once.
+#[test]
+fn a_reboot_does_not_leave_a_gyro_robot_waiting() {
+    let cfg = Inputs { yaw_rate: YawRateSource::Gyro, ..Inputs::default().planar_wheels(0.5) };
+    let mut d = VehicleInputs::new(cfg).wheel_drive();
+    for k in 0..=20u64 {
+        d.decode(&highres_gyro(100_000_000 + k * 10_000, 0.1));
+    }
+    assert!(d.decode(&wheels(100_000_000, 2, &[5.0, 5.0])).is_empty());
+    assert_eq!(wheel_sample(&d.decode(&wheels(100_050_000, 2, &[5.1, 5.1]))).len(), 1);
+    // a wheel interval the gyro has not reached when the autopilot reboots
+    assert!(d.decode(&wheels(100_300_000, 2, &[5.6, 5.6])).is_empty());
+    for k in 0..=12u64 {
+        d.decode(&highres_gyro(1_000_000 + k * 10_000, -0.3));
+    }
+    assert_eq!(d.counters.reboots, 1);
+    assert_eq!(d.counters.gyro_missing, 1, "the interval of the boot before: {:?}", d.counters);
+    assert!(d.decode(&wheels(1_050_000, 2, &[0.0, 0.0])).is_empty());
+    let got = wheel_sample(&d.decode(&wheels(1_100_000, 2, &[0.1, 0.1])));
+    assert_eq!(got.len(), 1, "released on the new boot's gyro");
+    assert!((got[0].yaw_rate_rad_s + 0.3).abs() < 1e-6 && (got[0].speed_m_s - 2.0).abs() < 1e-9, "{got:?}");
+}
+
 #[test]
 fn odometry_from_the_autopilots_own_ekf_is_not_an_odometer() {
     let mut d = inputs(|_| {});
