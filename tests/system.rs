@@ -62,8 +62,45 @@ fn start_sitl(
 
 #[test]
 fn sitl_and_three_nodes_match_the_experiment() {
+    three_nodes_against_the_experiment(false);
+}
+
+/// The same team with a signing key (`--team-key`), under attack: while it runs, a forger sends
+/// every node COOPLOC_RANGE frames claiming to come from platform 2 with a range 300 m off, and
+/// the same frames signed with another key. Every forged frame is refused and counted, and the
+/// team's estimates equal the clean experiment's to the millimetre.
+#[test]
+fn a_signed_team_refuses_forged_frames_and_matches_the_experiment() {
+    three_nodes_against_the_experiment(true);
+}
+
+/// A frame claiming to come from platform 2: a range to platform 1 of `epoch` at its time.
+fn forged_range(epoch: u32, signer: Option<&mut cooploc::protocol::signing::Signer>) -> Vec<u8> {
+    let range = cooploc::estimation::RangeSample {
+        t: cooploc::time::TimeUs(u64::from(epoch) * 1_000_000),
+        from: 2,
+        to: 1,
+        range_m: 300.0,
+        sigma_m: 0.1,
+    };
+    let msg = wire::range_to_message(&range, epoch);
+    let header = mavlink_core::MavHeader { system_id: 2, component_id: 191, sequence: 0 };
+    match signer {
+        Some(s) => {
+            let now = std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).unwrap().as_micros() as u64;
+            s.frame(header, &msg, now)
+        }
+        None => wire::to_frame(header, &msg),
+    }
+}
+
+fn three_nodes_against_the_experiment(signed: bool) {
     let world = World::new(&Scenario::from_toml_str(PAPER_TOML).unwrap()).unwrap();
     let (seed, run, schedule) = (1u64, 0u32, "1hz");
+    let dir = std::env::temp_dir().join(format!("cooploc-system-{signed}-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    let key_path = dir.join("team.key");
+    std::fs::write(&key_path, "a passphrase the team shares\n").unwrap();
     let (sitl_child, _sitl_out, vehicle_addr) = start_sitl(&world, schedule, &[]);
     let mut children = Kill(vec![sitl_child]);
     let mut node_outputs = Vec::new();
@@ -74,6 +111,9 @@ fn sitl_and_three_nodes_match_the_experiment() {
         let mut node = bin();
         node.args(["node", "--id", &id.to_string(), "--vehicle", &format!("udpout:{}", vehicle_addr[&id])]);
         node.args(["--method", "dcl", "--idle-exit-s", "1.5", "--init-time-us", &t0.0.to_string()]);
+        if signed {
+            node.arg("--team-key").arg(&key_path);
+        }
         let v3 = |v: nalgebra::Vector3<f64>| format!("{:.17e},{:.17e},{:.17e}", v[0], v[1], v[2]);
         node.arg(format!("--init-ned={}", v3(state.pos_ned_m)));
         node.arg(format!("--init-vel-ned={}", v3(state.vel_ned_m_s)));
@@ -87,6 +127,29 @@ fn sitl_and_three_nodes_match_the_experiment() {
         coop_addrs.push(line.split_whitespace().last().unwrap().to_string());
         node_outputs.push((id, out));
     }
+    // The forger: unsigned frames and frames signed with another key, at every node, while the
+    // team runs (380 s at 20x: one forged epoch every 50 ms of wall time).
+    let stop = std::sync::Arc::new(std::sync::atomic::AtomicBool::new(false));
+    let forger = signed.then(|| {
+        let (targets, stop) = (coop_addrs.clone(), stop.clone());
+        std::thread::spawn(move || {
+            let socket = std::net::UdpSocket::bind("127.0.0.1:0").unwrap();
+            let key = cooploc::protocol::signing::TeamKey::from_passphrase("not the team's");
+            let mut wrong = cooploc::protocol::signing::Signer::new(key, 2, 0);
+            let started = std::time::Instant::now();
+            let mut sent = 0u64;
+            while !stop.load(std::sync::atomic::Ordering::Relaxed) {
+                let epoch = 1 + (started.elapsed().as_secs_f64() * 20.0) as u32;
+                for t in &targets {
+                    let _ = socket.send_to(&forged_range(epoch, None), t);
+                    let _ = socket.send_to(&forged_range(epoch, Some(&mut wrong)), t);
+                    sent += 2;
+                }
+                std::thread::sleep(Duration::from_millis(50));
+            }
+            sent
+        })
+    });
     // 380 s at 20x: about 19 s, plus the nodes' idle exit.
     let mut finals = Vec::new();
     for (id, out) in &node_outputs {
@@ -102,8 +165,24 @@ fn sitl_and_three_nodes_match_the_experiment() {
         assert_eq!(count("vehicle_lost"), 0, "node {id} lost vehicle frames");
         assert_eq!(count("epochs_partial"), 0, "node {id} ran epochs without every team member");
         assert!(stats.contains("epoch_disagreements: 0,"), "node {id}: {stats}");
+        if signed {
+            let signing = wait_line(out, &format!("node {id} signing"), Duration::from_secs(5));
+            eprintln!("{signing}");
+            let n = |name: &str| -> u64 {
+                signing.split(&format!(" {name} ")).nth(1).unwrap().split_whitespace().next().unwrap().parse().unwrap()
+            };
+            assert!(n("unsigned") > 100 && n("bad_signature") > 100, "the forged frames were refused: {signing}");
+            assert!(n("accepted") > 1000, "the team's own frames were taken: {signing}");
+            assert_eq!(n("replayed") + n("stale") + n("malformed"), 0, "{signing}");
+        }
         finals.push((*id, pos, applied));
     }
+    stop.store(true, std::sync::atomic::Ordering::Relaxed);
+    if let Some(f) = forger {
+        let sent = f.join().unwrap();
+        eprintln!("forger sent {sent} frames");
+    }
+    let _ = std::fs::remove_dir_all(&dir);
     // The experiment on the same world, fed what went on the wire.
     let mut inputs = world.run_inputs(seed, run);
     for p in &mut inputs.platforms {
@@ -322,11 +401,15 @@ impl Drop for LossyNet {
 /// cooperative network loses 10% of the datagrams, and node 3 is killed at about 114 s and
 /// restarted (from its vehicle's SIM_STATE) 20 s later. No node diverges: each ends within a few
 /// metres, better than dead reckoning on the team; the restart is detected (store digests
-/// differ) and handled (the restarted node takes the others' store, or the team heals).
+/// differ) and handled (the restarted node takes the others' store, or the team heals). The team
+/// signs its traffic: the restarted node, same key and link id, is accepted by its peers (its
+/// new signing timestamps follow its old ones), and nothing is refused.
 #[test]
 fn lossy_links_and_a_restarted_node_do_not_break_the_team() {
     let world = World::new(&Scenario::from_toml_str(PAPER_TOML).unwrap()).unwrap();
     let (seed, run, schedule, speed) = (1u64, 0u32, "1hz", 20.0);
+    let key_path = std::env::temp_dir().join(format!("cooploc-restart-key-{}", std::process::id()));
+    std::fs::write(&key_path, "0123456789abcdef0123456789abcdef0123456789abcdef0123456789abcdef\n").unwrap();
     let (sitl_child, _sitl_out, vehicle_addr) = start_sitl(&world, schedule, &["--link-loss", "0.01"]);
     let mut children = Kill(vec![sitl_child]);
     let ids = world.platform_ids();
@@ -337,6 +420,7 @@ fn lossy_links_and_a_restarted_node_do_not_break_the_team() {
         // The protocol's clocks scaled with the simulation (20x): 200 ms retries and a 4 s
         // timeout in vehicle time.
         node.args(["--method", "dcl", "--idle-exit-s", "1.5", "--retry-ms", "10", "--epoch-timeout-ms", "200"]);
+        node.arg("--team-key").arg(&key_path);
         for j in (0..ids.len()).filter(|&j| j != k) {
             node.args(["--peer", &net.proxy(j)]);
         }
@@ -368,7 +452,14 @@ fn lossy_links_and_a_restarted_node_do_not_break_the_team() {
     for (k, (&id, out)) in ids.iter().zip(&outs).enumerate() {
         let line = wait_line(out, &format!("node {id} done:"), Duration::from_secs(240));
         let stats = wait_line(out, &format!("node {id} stats"), Duration::from_secs(5));
-        eprintln!("{line}\n{stats}");
+        let signing = wait_line(out, &format!("node {id} signing"), Duration::from_secs(5));
+        eprintln!("{line}\n{stats}\n{signing}");
+        let signed = |name: &str| -> u64 {
+            signing.split(&format!(" {name} ")).nth(1).unwrap().split_whitespace().next().unwrap().parse().unwrap()
+        };
+        assert!(signed("accepted") > 500, "{signing}");
+        let refused = ["unsigned", "bad_signature", "replayed", "stale", "malformed"].map(signed);
+        assert_eq!(refused.iter().sum::<u64>(), 0, "nothing of the team's was refused: {signing}");
         let err = horizontal_error(&line, inputs.platforms[k].truth.last().unwrap().pos_ned_m);
         let field = |name: &str| stat(&stats, name);
         detections += field("store_mismatches") + field("epoch_disagreements");
@@ -391,6 +482,7 @@ fn lossy_links_and_a_restarted_node_do_not_break_the_team() {
     assert!(restart_handled > 0, "the restarted node neither took the others' store nor healed");
     assert!(node_err < dr_err, "the team ({node_err:.2} m) should beat dead reckoning ({dr_err:.2} m)");
     drop(children);
+    let _ = std::fs::remove_file(&key_path);
 }
 
 /// A node frozen (SIGSTOP) for 1.5 s of wall time, 30 s of vehicle time at 20x, while the

@@ -33,6 +33,7 @@ use crate::estimation::ins::InsState;
 use crate::estimation::nav::NavState;
 use crate::protocol::MavMessage;
 use crate::protocol::dialect::cooploc::{MavAutopilot, MavType, SIM_STATE_DATA};
+use crate::protocol::signing::{Signer, SigningCounters, TeamKey, Verifier};
 use crate::protocol::wire;
 use crate::recording::{Direction, Link, Recorder, wall_now_ns};
 use crate::time::TimeUs;
@@ -177,6 +178,9 @@ pub struct Links {
     pub grace: Duration,
     /// The vehicle: which messages to read, what to ask for and send back.
     pub profile: VehicleProfile,
+    /// The team's signing key: every cooperative frame sent is signed with it, and only frames
+    /// signed with it are taken (see [`crate::protocol::signing`]). None: unsigned, as before.
+    pub team_key: Option<TeamKey>,
 }
 
 /// What a node did, when it stops.
@@ -195,6 +199,8 @@ pub struct NodeSummary {
     pub vehicle_lost: u64,
     pub coop_frames: u64,
     pub coop_rejected: u64,
+    /// What signing accepted and refused (unsigned, another key, replayed, stale; all zero without a team key).
+    pub coop_signing: SigningCounters,
     pub peers: Vec<SocketAddr>,
     /// What the vehicle's messages gave (see [`InputCounters`]).
     pub inputs: InputCounters,
@@ -215,12 +221,23 @@ struct Sequences {
     sysid: u32,
     coop: u8,
     vehicle: u8,
+    /// Signs the cooperative frames, when the team has a key.
+    signer: Option<Signer>,
 }
 
 impl Sequences {
     fn coop(&mut self) -> MavHeader {
         self.coop = self.coop.wrapping_add(1);
         MavHeader { system_id: self.sysid, component_id: COMPANION_COMPID, sequence: self.coop }
+    }
+
+    /// The next cooperative frame of `msg`, signed when the team has a key.
+    fn coop_frame(&mut self, msg: &MavMessage) -> Vec<u8> {
+        let header = self.coop();
+        match &mut self.signer {
+            Some(s) => s.frame(header, msg, wall_now_ns() / 1000),
+            None => wire::to_frame(header, msg),
+        }
     }
 
     fn vehicle(&mut self) -> MavHeader {
@@ -257,7 +274,7 @@ async fn send_all(
     for output in outputs {
         match output {
             NodeOutput::ToPeers(msg) => {
-                let frame = wire::to_frame(seqs.coop(), &msg);
+                let frame = seqs.coop_frame(&msg);
                 record_frame(rec, Link::Coop(sysid), Direction::Tx, &frame);
                 if let MavMessage::COOPLOC_ESTIMATE(m) = &msg
                     && vout.local_position_ned
@@ -378,7 +395,10 @@ pub async fn run(
     };
 
     // MAVLink numbers each link on its own: one sequence counter per link.
-    let mut seqs = Sequences { sysid: u32::from(id), coop: 0, vehicle: 0 };
+    // the link id is the node's system id: one signing stream per node
+    let signer = links.team_key.clone().map(|k| Signer::new(k, sysid, 0));
+    let mut verifier = links.team_key.clone().map(Verifier::new);
+    let mut seqs = Sequences { sysid: u32::from(id), coop: 0, vehicle: 0, signer };
     let mut summary_counts = (0u64, 0u64, 0u64, 0u64);
     let mut tick = tokio::time::interval(Duration::from_millis(25));
     let mut beats = 0u32;
@@ -436,7 +456,7 @@ pub async fn run(
                 }
                 let hb = heartbeat();
                 vehicle.send(&seqs.vehicle(), &hb).await;
-                let frame = wire::to_frame(seqs.coop(), &hb);
+                let frame = seqs.coop_frame(&hb);
                 for p in &peers {
                     let _ = coop.send_to(&frame, p).await;
                 }
@@ -541,14 +561,29 @@ pub async fn run(
             r = coop.recv_from(&mut buf) => {
                 let Ok((n, from)) = r else { continue };
                 summary_counts.2 += 1;
-                if recorder.is_some() {
-                    let mut rest = &buf[..n];
-                    while let Ok(len) = crate::recording::mavlink_frame_len(rest) {
-                        record_frame(&recorder, Link::Coop(sysid), Direction::Rx, &rest[..len]);
-                        rest = &rest[len..];
+                let frames = match &mut verifier {
+                    // only what the team key signed is logged and taken (a replay sees the same)
+                    Some(v) => {
+                        let got = v.datagram(&buf[..n], wall_now_ns() / 1000);
+                        if !got.refused.is_empty() {
+                            tracing::debug!(platform = id, %from, refused = ?got.refused, "cooperative frames refused by signing");
+                        }
+                        for span in &got.spans {
+                            record_frame(&recorder, Link::Coop(sysid), Direction::Rx, &buf[span.clone()]);
+                        }
+                        got.frames
                     }
-                }
-                let frames = wire::frames(&buf[..n]);
+                    None => {
+                        if recorder.is_some() {
+                            let mut rest = &buf[..n];
+                            while let Ok(len) = crate::recording::mavlink_frame_len(rest) {
+                                record_frame(&recorder, Link::Coop(sysid), Direction::Rx, &rest[..len]);
+                                rest = &rest[len..];
+                            }
+                        }
+                        wire::frames(&buf[..n])
+                    }
+                };
                 if frames.is_empty() {
                     summary_counts.3 += 1;
                     tracing::debug!(platform = id, %from, bytes = n, "cooperative datagram without a valid frame dropped");
@@ -613,6 +648,7 @@ pub async fn run(
         vehicle_lost,
         coop_frames: summary_counts.2,
         coop_rejected: summary_counts.3,
+        coop_signing: verifier.map(|v| v.counters).unwrap_or_default(),
         peers: peers.into_iter().collect(),
         inputs: decoder.counters.clone(),
         imu_rate_hz: decoder.imu_rate_hz(),

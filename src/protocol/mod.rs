@@ -8,6 +8,7 @@
 
 pub mod fragment;
 pub mod record;
+pub mod signing;
 pub mod wire;
 
 /// Generated bindings of `dialects/cooploc.xml`.

@@ -1,0 +1,139 @@
+use super::*;
+use crate::protocol::wire;
+
+const T0_US: u64 = 1_795_000_000_000_000;
+
+fn header(system_id: u32) -> MavHeader {
+    MavHeader { system_id, component_id: 191, sequence: 7 }
+}
+
+fn heartbeat() -> MavMessage {
+    wire::heartbeat(
+        crate::protocol::dialect::cooploc::MavType::MAV_TYPE_ONBOARD_CONTROLLER,
+        crate::protocol::dialect::cooploc::MavAutopilot::MAV_AUTOPILOT_INVALID,
+    )
+}
+
+#[test]
+fn keys_from_a_passphrase_hex_or_file() {
+    // SHA-256("secret"), as MAVProxy's `signing setup secret` makes it
+    let k = TeamKey::from_passphrase("secret");
+    let hex = "2bb80d537b1da3e38bd30361aa855686bde0eacd7162fef6a25fe97bf527a25b";
+    assert_eq!(TeamKey::from_hex(hex), Some(k.clone()));
+    assert_eq!(TeamKey::from_hex("2bb8"), None);
+    let dir = std::env::temp_dir().join(format!("cooploc-key-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    for (text, want) in [(format!("{hex}\n"), k.clone()), ("  secret  \nignored".into(), k.clone())] {
+        std::fs::write(dir.join("k"), text).unwrap();
+        assert_eq!(TeamKey::from_file(&dir.join("k")).unwrap(), want);
+    }
+    std::fs::write(dir.join("k"), "\n").unwrap();
+    assert!(matches!(TeamKey::from_file(&dir.join("k")), Err(KeyError::Empty(_))));
+    assert!(matches!(TeamKey::from_file(&dir.join("missing")), Err(KeyError::Io { .. })));
+    assert_eq!(format!("{k:?}"), "TeamKey(..)", "a key is never printed");
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+#[test]
+fn a_signed_frame_is_accepted_once_and_its_bytes_are_the_frame_plus_13() {
+    let key = TeamKey::from_passphrase("team");
+    let mut signer = Signer::new(key.clone(), 3, 0);
+    let mut v = Verifier::new(key);
+    let unsigned = wire::to_frame(header(2), &heartbeat());
+    let signed = signer.frame(header(2), &heartbeat(), T0_US);
+    assert_eq!(signed.len(), unsigned.len() + 13);
+    assert_eq!(signed[2], IFLAG_SIGNED);
+    assert_eq!(signed[signed.len() - 13], 3, "the link id");
+    let got = v.datagram(&signed, T0_US);
+    assert_eq!((got.frames.len(), got.refused.len()), (1, 0));
+    assert_eq!(got.frames[0].0, header(2));
+    assert_eq!(got.frames[0].1, heartbeat());
+    assert_eq!(got.spans, vec![0..signed.len()]);
+    // the same bytes again: a replay
+    assert_eq!(v.datagram(&signed, T0_US).refused, vec![Refusal::Replayed]);
+    // the reader of unsigned frames still reads a signed one (the ground station's tools do)
+    assert_eq!(wire::from_frame(&signed).unwrap().1, heartbeat());
+    // timestamps increase even when the clock does not
+    let a = signer.last_timestamp();
+    let again = signer.frame(header(2), &heartbeat(), T0_US - 5_000_000);
+    assert_eq!(signer.last_timestamp(), a + 1);
+    assert_eq!(v.datagram(&again, T0_US).frames.len(), 1);
+    assert_eq!(v.counters.accepted, 2);
+    assert_eq!(v.counters.replayed, 1);
+}
+
+#[test]
+fn unsigned_forged_altered_and_stale_frames_are_refused_and_counted() {
+    let key = TeamKey::from_passphrase("team");
+    let mut v = Verifier::new(key.clone());
+    let unsigned = wire::to_frame(header(2), &heartbeat());
+    assert_eq!(v.datagram(&unsigned, T0_US).refused, vec![Refusal::Unsigned]);
+    let mut other = Signer::new(TeamKey::from_passphrase("not the team"), 0, 0);
+    assert_eq!(v.datagram(&other.frame(header(2), &heartbeat(), T0_US), T0_US).refused, vec![Refusal::BadSignature]);
+    // a genuine frame with one byte of its header changed (the sender's system id) and its CRC
+    // made right again: the signature covers the header
+    let mut signer = Signer::new(key.clone(), 0, 0);
+    let genuine = signer.frame(header(2), &heartbeat(), T0_US);
+    let mut forged = genuine.clone();
+    forged[5] = 9;
+    let n = forged.len() - 13;
+    let crc = crc_x25(&forged[1..n - 2], <MavMessage as Message>::extra_crc(0));
+    forged[n - 2..n].copy_from_slice(&crc.to_le_bytes());
+    assert_eq!(v.datagram(&forged, T0_US).refused, vec![Refusal::BadSignature]);
+    // a CRC that does not match: not a frame at all
+    let mut broken = genuine.clone();
+    broken[n - 1] ^= 0xff;
+    assert_eq!(v.datagram(&broken, T0_US).refused, vec![Refusal::Malformed]);
+    assert!(v.datagram(&genuine, T0_US).refused.is_empty());
+    // a new stream signed two minutes ago (a recording replayed to a fresh node): stale
+    let mut fresh = Verifier::new(key.clone());
+    let mut old = Signer::new(key, 1, 0);
+    let frame = old.frame(header(3), &heartbeat(), T0_US - 120_000_000);
+    assert_eq!(fresh.datagram(&frame, T0_US).refused, vec![Refusal::Stale]);
+    let c = &v.counters;
+    assert_eq!((c.unsigned, c.bad_signature, c.malformed, c.accepted), (1, 2, 1, 1));
+    assert_eq!(c.refused(), 4);
+}
+
+#[test]
+fn a_datagram_of_several_frames_and_garbage() {
+    let key = TeamKey::from_passphrase("team");
+    let mut signer = Signer::new(key.clone(), 0, 0);
+    let mut v = Verifier::new(key);
+    let mut bytes = vec![0x00, 0x13, 0x37];
+    bytes.extend(signer.frame(header(1), &heartbeat(), T0_US));
+    bytes.extend(wire::to_frame(header(1), &heartbeat()));
+    bytes.extend(signer.frame(header(1), &heartbeat(), T0_US));
+    bytes.extend([0xfd, 0x09]); // a cut frame
+    let got = v.datagram(&bytes, T0_US);
+    assert_eq!(got.frames.len(), 2);
+    assert_eq!(got.refused, vec![Refusal::Malformed, Refusal::Unsigned, Refusal::Malformed]);
+    for span in &got.spans {
+        assert_eq!(wire::from_frame(&bytes[span.clone()]).unwrap().1, heartbeat(), "each span is one whole frame");
+    }
+}
+
+#[test]
+fn the_stream_table_is_bounded() {
+    let key = TeamKey::from_passphrase("team");
+    let mut v = Verifier::new(key.clone());
+    for link in 0..=255u8 {
+        for sys in 1..=5u32 {
+            let mut s = Signer::new(key.clone(), link, 0);
+            assert_eq!(v.datagram(&s.frame(header(sys), &heartbeat(), T0_US), T0_US).frames.len(), 1);
+        }
+    }
+    assert_eq!(v.streams.len(), MAX_STREAMS);
+    assert_eq!(v.counters.accepted, 256 * 5);
+}
+
+/// CRC-16/MCRF4XX (MAVLink's X.25) of `bytes` then `extra`.
+fn crc_x25(bytes: &[u8], extra: u8) -> u16 {
+    let mut crc: u16 = 0xffff;
+    for &b in bytes.iter().chain(std::iter::once(&extra)) {
+        let mut tmp = b ^ (crc & 0xff) as u8;
+        tmp ^= tmp << 4;
+        crc = (crc >> 8) ^ (u16::from(tmp) << 8) ^ (u16::from(tmp) << 3) ^ (u16::from(tmp) >> 4);
+    }
+    crc
+}
