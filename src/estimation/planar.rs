@@ -25,13 +25,12 @@
 //! samples, far below the noise). A node and the offline experiment cut at the same instants,
 //! so they agree exactly.
 
-use nalgebra::{DMatrix, DVector, Matrix2, Matrix3, Matrix3x2, UnitQuaternion, Vector3};
+use nalgebra::{Matrix2, Matrix3, Matrix3x2, UnitQuaternion, Vector3};
 use serde::{Deserialize, Serialize};
 
+use super::EstimationError;
 use super::inputs::WheelSample;
-use super::platform::{Geometry, Heading, PlatformFilter, check_joint_writeback};
-use super::unicycle::wrap_angle;
-use super::{EstimationError, LinearizedMeasurement, UpdateDiagnostics, kalman};
+use super::unicycle::PlanarCore;
 use crate::time::TimeUs;
 
 /// Fastest a wheeled robot drives, m/s: a faster sample is refused.
@@ -105,12 +104,8 @@ pub struct PlanarSigma {
 pub struct PlanarFilter {
     config: PlanarConfig,
     t: TimeUs,
-    /// Nominal `[N, E, yaw]`.
-    x: Vector3<f64>,
-    height_d_m: f64,
-    p: Matrix3<f64>,
-    psi: Matrix3<f64>,
-    track_psi: bool,
+    /// Nominal `[N, E, yaw]` at the known height, covariance, `Psi`.
+    core: PlanarCore,
     /// The last sample's speed and yaw rate, and its interval (for the reported velocity).
     last: (f64, f64, f64),
 }
@@ -118,27 +113,14 @@ pub struct PlanarFilter {
 impl PlanarFilter {
     pub fn new(config: PlanarConfig, t0: TimeUs, initial: PlanarState, sigma: PlanarSigma) -> Result<Self, EstimationError> {
         config.validate()?;
-        kalman::check_finite(&initial.pos_ned_m, "initial planar position")?;
-        if !initial.yaw_rad.is_finite() {
-            return Err(EstimationError::NonFinite { what: "initial planar yaw" });
-        }
         for (v, what) in [(sigma.pos_m, "initial planar position sigma"), (sigma.yaw_rad, "initial planar yaw sigma")] {
             if !v.is_finite() || v < 0.0 {
                 return Err(EstimationError::InvalidValue { what, value: v });
             }
         }
         let p = Matrix3::from_diagonal(&Vector3::new(sigma.pos_m.powi(2), sigma.pos_m.powi(2), sigma.yaw_rad.powi(2)));
-        let x = Vector3::new(initial.pos_ned_m[0], initial.pos_ned_m[1], wrap_angle(initial.yaw_rad));
-        Ok(Self {
-            config,
-            t: t0,
-            x,
-            height_d_m: initial.pos_ned_m[2],
-            p,
-            psi: Matrix3::identity(),
-            track_psi: true,
-            last: (0.0, 0.0, 0.0),
-        })
+        let x = Vector3::new(initial.pos_ned_m[0], initial.pos_ned_m[1], initial.yaw_rad);
+        Ok(Self { config, t: t0, core: PlanarCore::new(x, p, initial.pos_ned_m[2])?, last: (0.0, 0.0, 0.0) })
     }
 
     pub fn config(&self) -> &PlanarConfig {
@@ -156,20 +138,21 @@ impl PlanarFilter {
     }
 
     pub fn state(&self) -> PlanarState {
-        PlanarState { pos_ned_m: self.position_ned_m(), yaw_rad: self.x[2] }
+        PlanarState { pos_ned_m: self.position_ned_m(), yaw_rad: self.yaw_rad() }
     }
 
     pub fn position_ned_m(&self) -> Vector3<f64> {
-        Vector3::new(self.x[0], self.x[1], self.height_d_m)
+        let x = self.core.state();
+        Vector3::new(x[0], x[1], self.core.height_d_m())
     }
 
     pub fn yaw_rad(&self) -> f64 {
-        self.x[2]
+        self.core.state()[2]
     }
 
     /// Velocity of the last sample, along the current heading, m/s.
     pub fn velocity_ned_m_s(&self) -> Vector3<f64> {
-        let (s, c) = self.x[2].sin_cos();
+        let (s, c) = self.yaw_rad().sin_cos();
         Vector3::new(self.last.0 * c, self.last.0 * s, 0.0)
     }
 
@@ -178,19 +161,19 @@ impl PlanarFilter {
     pub fn velocity_covariance_ned(&self) -> Matrix3<f64> {
         let dt = self.last.2.max(1e-3);
         let along = self.config.speed_noise_m_s_per_sqrt_hz.powi(2) / dt;
-        let across = self.last.0.powi(2) * self.p[(2, 2)];
-        let (s, c) = self.x[2].sin_cos();
+        let across = self.last.0.powi(2) * self.core.covariance3()[(2, 2)];
+        let (s, c) = self.yaw_rad().sin_cos();
         let r = Matrix3x2::new(c, -s, s, c, 0.0, 0.0);
         r * Matrix2::new(along, 0.0, 0.0, across) * r.transpose()
     }
 
     /// Level attitude at the heading (a planar robot has no roll or pitch).
     pub fn attitude(&self) -> UnitQuaternion<f64> {
-        UnitQuaternion::from_euler_angles(0.0, 0.0, self.x[2])
+        UnitQuaternion::from_euler_angles(0.0, 0.0, self.yaw_rad())
     }
 
     pub fn covariance3(&self) -> Matrix3<f64> {
-        self.p
+        self.core.covariance3()
     }
 
     /// Integrates the interval from the filter's time to `s.t` at the sample's speed and yaw
@@ -213,7 +196,7 @@ impl PlanarFilter {
         if !w.is_finite() || w.abs() > MAX_YAW_RATE_RAD_S {
             return Err(EstimationError::InvalidValue { what: "wheel yaw rate (rad/s)", value: w });
         }
-        let (sn, cs) = (self.x[2] + 0.5 * w * dt).sin_cos();
+        let (sn, cs) = (self.yaw_rad() + 0.5 * w * dt).sin_cos();
         let phi = Matrix3::new(1.0, 0.0, -v * sn * dt, 0.0, 1.0, v * cs * dt, 0.0, 0.0, 1.0);
         let half_dt2 = 0.5 * dt * dt;
         let g = Matrix3x2::new(cs * dt, -v * sn * half_dt2, sn * dt, v * cs * half_dt2, 0.0, dt);
@@ -223,65 +206,20 @@ impl PlanarFilter {
             0.0,
             self.config.yaw_rate_noise_rad_s_per_sqrt_hz.powi(2) / dt,
         );
-        let p = phi * self.p * phi.transpose() + g * q * g.transpose();
-        self.p = 0.5 * (p + p.transpose());
-        if self.track_psi {
-            self.psi = phi * self.psi;
-        }
-        self.x += Vector3::new(v * cs * dt, v * sn * dt, w * dt);
-        self.x[2] = wrap_angle(self.x[2]);
+        self.core.step(&phi, &(g * q * g.transpose()), &Vector3::new(v * cs * dt, v * sn * dt, w * dt));
         self.t = s.t;
         self.last = (v, w, dt);
         Ok(())
     }
-
-    fn inject(&mut self, dx: &DVector<f64>) {
-        self.x += Vector3::new(dx[0], dx[1], dx[2]);
-        self.x[2] = wrap_angle(self.x[2]);
-    }
 }
 
-impl PlatformFilter for PlanarFilter {
-    fn dim(&self) -> usize {
-        3
-    }
-    fn covariance(&self) -> DMatrix<f64> {
-        DMatrix::from_column_slice(3, 3, self.p.as_slice())
-    }
-    fn psi(&self) -> DMatrix<f64> {
-        DMatrix::from_column_slice(3, 3, self.psi.as_slice())
-    }
-    fn geometry(&self) -> Geometry {
-        Geometry {
-            position_ned_m: self.position_ned_m(),
-            position_index: [Some(0), Some(1), None],
-            heading: Some(Heading { yaw_rad: self.x[2], index: 2 }),
-        }
-    }
-    fn update_local(&mut self, meas: &LinearizedMeasurement) -> Result<UpdateDiagnostics, EstimationError> {
-        let up = kalman::local_update(&self.covariance(), meas)?;
-        self.inject(&up.dx);
-        self.p = Matrix3::from_column_slice(up.p.as_slice());
-        if self.track_psi {
-            self.psi = Matrix3::from_column_slice(up.i_minus_kh.as_slice()) * self.psi;
-        }
-        Ok(up.diagnostics)
-    }
-    fn apply_joint(&mut self, dx: &DVector<f64>, p: &DMatrix<f64>) -> Result<(), EstimationError> {
-        check_joint_writeback(3, dx, p)?;
-        self.inject(dx);
-        self.p = Matrix3::from_column_slice(p.as_slice());
-        self.psi = Matrix3::identity();
-        Ok(())
-    }
-    fn set_track_psi(&mut self, on: bool) {
-        self.track_psi = on;
-    }
-}
+super::unicycle::planar_platform_filter!(PlanarFilter);
 
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::estimation::PlatformFilter;
+    use nalgebra::DMatrix;
 
     fn filter() -> PlanarFilter {
         let cfg = PlanarConfig::from_sample_sigmas(0.05, 0.01, 20.0);

@@ -37,32 +37,68 @@ pub struct UnicycleNoise {
     pub sigma_yaw_rate_rad_s: f64,
 }
 
+/// Implements [`PlatformFilter`] for a planar model by handing every call to its `core`
+/// ([`PlanarCore`]).
+macro_rules! planar_platform_filter {
+    ($model:ty) => {
+        impl $crate::estimation::platform::PlatformFilter for $model {
+            fn dim(&self) -> usize {
+                3
+            }
+            fn covariance(&self) -> nalgebra::DMatrix<f64> {
+                self.core.covariance()
+            }
+            fn psi(&self) -> nalgebra::DMatrix<f64> {
+                self.core.psi()
+            }
+            fn geometry(&self) -> $crate::estimation::platform::Geometry {
+                self.core.geometry()
+            }
+            fn update_local(
+                &mut self,
+                meas: &$crate::estimation::LinearizedMeasurement,
+            ) -> Result<$crate::estimation::UpdateDiagnostics, $crate::estimation::EstimationError> {
+                self.core.update_local(meas)
+            }
+            fn apply_joint(
+                &mut self,
+                dx: &nalgebra::DVector<f64>,
+                p: &nalgebra::DMatrix<f64>,
+            ) -> Result<(), $crate::estimation::EstimationError> {
+                self.core.apply_joint(dx, p)
+            }
+            fn set_track_psi(&mut self, on: bool) {
+                self.core.set_track_psi(on)
+            }
+        }
+    };
+}
+pub(crate) use planar_platform_filter;
+
+/// The error state both planar models share: nominal `[N, E, yaw]` at a fixed, known height,
+/// its covariance and `Psi`, and the cooperative layer's view of them ([`PlatformFilter`]). A
+/// model supplies only its propagation ([`PlanarCore::step`]).
 #[derive(Debug, Clone)]
-pub struct UnicycleFilter {
+pub struct PlanarCore {
     /// Nominal `[N, E, yaw]`.
     x: Vector3<f64>,
     p: Matrix3<f64>,
     psi: Matrix3<f64>,
     height_d_m: f64,
-    noise: UnicycleNoise,
     track_psi: bool,
 }
 
-impl UnicycleFilter {
-    /// A robot at `[N, E, yaw]` with covariance `p0`, at a fixed down coordinate `height_d_m`.
-    pub fn new(x0: Vector3<f64>, p0: Matrix3<f64>, height_d_m: f64, noise: UnicycleNoise) -> Result<Self, EstimationError> {
-        kalman::check_finite(&x0, "initial unicycle state")?;
-        kalman::check_finite(&p0, "initial unicycle covariance")?;
-        for (v, what) in
-            [(noise.sigma_speed_m_s, "speed sigma"), (noise.sigma_yaw_rate_rad_s, "yaw-rate sigma"), (height_d_m, "height")]
-        {
-            if !v.is_finite() || (what != "height" && v < 0.0) {
-                return Err(EstimationError::InvalidValue { what, value: v });
-            }
+impl PlanarCore {
+    /// At `[N, E, yaw]` with covariance `p0` and height `height_d_m` (checked finite).
+    pub fn new(x0: Vector3<f64>, p0: Matrix3<f64>, height_d_m: f64) -> Result<Self, EstimationError> {
+        kalman::check_finite(&x0, "initial planar state")?;
+        kalman::check_finite(&p0, "initial planar covariance")?;
+        if !height_d_m.is_finite() {
+            return Err(EstimationError::InvalidValue { what: "height", value: height_d_m });
         }
         let mut x = x0;
         x[2] = wrap_angle(x[2]);
-        Ok(Self { x, p: p0, psi: Matrix3::identity(), height_d_m, noise, track_psi: true })
+        Ok(Self { x, p: p0, psi: Matrix3::identity(), height_d_m, track_psi: true })
     }
 
     /// Nominal `[N, E, yaw]`.
@@ -70,37 +106,32 @@ impl UnicycleFilter {
         self.x
     }
 
-    /// Propagates over `dt_s` with forward speed `speed_m_s` and yaw rate `yaw_rate_rad_s`.
-    pub fn propagate(&mut self, speed_m_s: f64, yaw_rate_rad_s: f64, dt_s: f64) -> Result<(), EstimationError> {
-        for (v, what) in [(speed_m_s, "unicycle speed"), (yaw_rate_rad_s, "unicycle yaw rate"), (dt_s, "unicycle time step")] {
-            if !v.is_finite() {
-                return Err(EstimationError::NonFinite { what });
-            }
-        }
-        if dt_s < 0.0 {
-            return Err(EstimationError::InvalidValue { what: "unicycle time step", value: dt_s });
-        }
-        let (s, c) = self.x[2].sin_cos();
-        let phi = Matrix3::new(1.0, 0.0, -speed_m_s * s * dt_s, 0.0, 1.0, speed_m_s * c * dt_s, 0.0, 0.0, 1.0);
-        let g = Matrix3x2::new(c * dt_s, 0.0, s * dt_s, 0.0, 0.0, dt_s);
-        let q = Matrix2::new(self.noise.sigma_speed_m_s.powi(2), 0.0, 0.0, self.noise.sigma_yaw_rate_rad_s.powi(2));
-        let p = phi * self.p * phi.transpose() + g * q * g.transpose();
+    pub fn height_d_m(&self) -> f64 {
+        self.height_d_m
+    }
+
+    pub fn covariance3(&self) -> Matrix3<f64> {
+        self.p
+    }
+
+    /// One propagation: `P <- Phi P Phi^T + Qd`, `Psi <- Phi Psi`, the nominal state moved by
+    /// `dx` (yaw wrapped).
+    pub fn step(&mut self, phi: &Matrix3<f64>, qd: &Matrix3<f64>, dx: &Vector3<f64>) {
+        let p = phi * self.p * phi.transpose() + qd;
         self.p = 0.5 * (p + p.transpose());
         if self.track_psi {
             self.psi = phi * self.psi;
         }
-        self.x += Vector3::new(speed_m_s * c * dt_s, speed_m_s * s * dt_s, yaw_rate_rad_s * dt_s);
-        self.x[2] = wrap_angle(self.x[2]);
-        Ok(())
+        self.inject(dx);
     }
 
-    fn inject(&mut self, dx: &DVector<f64>) {
-        self.x += Vector3::new(dx[0], dx[1], dx[2]);
+    fn inject(&mut self, dx: &Vector3<f64>) {
+        self.x += dx;
         self.x[2] = wrap_angle(self.x[2]);
     }
 }
 
-impl PlatformFilter for UnicycleFilter {
+impl PlatformFilter for PlanarCore {
     fn dim(&self) -> usize {
         3
     }
@@ -119,7 +150,7 @@ impl PlatformFilter for UnicycleFilter {
     }
     fn update_local(&mut self, meas: &LinearizedMeasurement) -> Result<UpdateDiagnostics, EstimationError> {
         let up = kalman::local_update(&self.covariance(), meas)?;
-        self.inject(&up.dx);
+        self.inject(&Vector3::new(up.dx[0], up.dx[1], up.dx[2]));
         self.p = Matrix3::from_column_slice(up.p.as_slice());
         if self.track_psi {
             self.psi = Matrix3::from_column_slice(up.i_minus_kh.as_slice()) * self.psi;
@@ -128,15 +159,62 @@ impl PlatformFilter for UnicycleFilter {
     }
     fn apply_joint(&mut self, dx: &DVector<f64>, p: &DMatrix<f64>) -> Result<(), EstimationError> {
         check_joint_writeback(3, dx, p)?;
-        self.inject(dx);
+        self.inject(&Vector3::new(dx[0], dx[1], dx[2]));
         self.p = Matrix3::from_column_slice(p.as_slice());
         self.psi = Matrix3::identity();
         Ok(())
     }
     fn set_track_psi(&mut self, on: bool) {
         self.track_psi = on;
+        if !on {
+            self.psi = Matrix3::identity();
+        }
     }
 }
+
+#[derive(Debug, Clone)]
+pub struct UnicycleFilter {
+    core: PlanarCore,
+    noise: UnicycleNoise,
+}
+
+impl UnicycleFilter {
+    /// A robot at `[N, E, yaw]` with covariance `p0`, at a fixed down coordinate `height_d_m`.
+    pub fn new(x0: Vector3<f64>, p0: Matrix3<f64>, height_d_m: f64, noise: UnicycleNoise) -> Result<Self, EstimationError> {
+        for (v, what) in [(noise.sigma_speed_m_s, "speed sigma"), (noise.sigma_yaw_rate_rad_s, "yaw-rate sigma")] {
+            if !v.is_finite() || v < 0.0 {
+                return Err(EstimationError::InvalidValue { what, value: v });
+            }
+        }
+        Ok(Self { core: PlanarCore::new(x0, p0, height_d_m)?, noise })
+    }
+
+    /// Nominal `[N, E, yaw]`.
+    pub fn state(&self) -> Vector3<f64> {
+        self.core.state()
+    }
+
+    /// Propagates over `dt_s` with forward speed `speed_m_s` and yaw rate `yaw_rate_rad_s`.
+    pub fn propagate(&mut self, speed_m_s: f64, yaw_rate_rad_s: f64, dt_s: f64) -> Result<(), EstimationError> {
+        for (v, what) in [(speed_m_s, "unicycle speed"), (yaw_rate_rad_s, "unicycle yaw rate"), (dt_s, "unicycle time step")] {
+            if !v.is_finite() {
+                return Err(EstimationError::NonFinite { what });
+            }
+        }
+        if dt_s < 0.0 {
+            return Err(EstimationError::InvalidValue { what: "unicycle time step", value: dt_s });
+        }
+        let (s, c) = self.core.state()[2].sin_cos();
+        let phi = Matrix3::new(1.0, 0.0, -speed_m_s * s * dt_s, 0.0, 1.0, speed_m_s * c * dt_s, 0.0, 0.0, 1.0);
+        let g = Matrix3x2::new(c * dt_s, 0.0, s * dt_s, 0.0, 0.0, dt_s);
+        let q = Matrix2::new(self.noise.sigma_speed_m_s.powi(2), 0.0, 0.0, self.noise.sigma_yaw_rate_rad_s.powi(2));
+        let dx = Vector3::new(speed_m_s * c * dt_s, speed_m_s * s * dt_s, yaw_rate_rad_s * dt_s);
+        self.core.step(&phi, &(g * q * g.transpose()), &dx);
+        Ok(())
+    }
+}
+
+planar_platform_filter!(UnicycleFilter);
 
 #[cfg(test)]
 mod tests {
@@ -165,7 +243,7 @@ mod tests {
         let x = f.state();
         assert!((x[0] - r).abs() < 1e-3 && (x[1] - r).abs() < 1e-3, "{x}");
         assert!((x[2] - std::f64::consts::FRAC_PI_2).abs() < 1e-9);
-        assert!(f.p[(0, 0)] > 1e-4 && f.p[(2, 2)] > 1e-6);
+        assert!(f.core.covariance3()[(0, 0)] > 1e-4 && f.core.covariance3()[(2, 2)] > 1e-6);
         assert!(f.propagate(f64::NAN, 0.0, 0.1).is_err());
         assert_eq!(f.state(), x, "a rejected input leaves the state alone");
     }
