@@ -234,33 +234,12 @@ impl NavFilter {
         }
     }
 
-    /// Covariance of the horizontal position and the height, m^2. The planar robot's height
-    /// is not estimated: its variance is reported as [`PLANAR_UNESTIMATED_VARIANCE`].
-    pub fn position_covariance(&self) -> Matrix3<f64> {
-        match self {
-            NavFilter::Ins(f) => f.covariance16().fixed_view::<3, 3>(0, 0).into_owned(),
-            NavFilter::Planar(f) => {
-                let mut p = Matrix3::zeros();
-                p.fixed_view_mut::<2, 2>(0, 0).copy_from(&f.covariance3().fixed_view::<2, 2>(0, 0));
-                p[(2, 2)] = PLANAR_UNESTIMATED_VARIANCE;
-                p
-            }
-        }
-    }
-
-    pub fn yaw_variance(&self) -> f64 {
-        match self {
-            NavFilter::Ins(f) => f.covariance16()[(8, 8)],
-            NavFilter::Planar(f) => f.covariance3()[(2, 2)],
-        }
-    }
-
-    /// Covariance of (position NED, attitude error about N, E, D), what ODOMETRY's pose
-    /// covariance carries. The planar robot's height, roll and pitch are not estimated: their
-    /// variances are [`PLANAR_UNESTIMATED_VARIANCE`].
-    pub fn pose_covariance(&self) -> Matrix6<f64> {
+    /// The covariances a node reports, from one read of the filter's covariance (the INS's
+    /// applies its pending decimated steps on every read). The planar robot's height, roll and
+    /// pitch are not estimated: their variances are [`PLANAR_UNESTIMATED_VARIANCE`].
+    pub fn output_covariances(&self) -> NavCovariances {
         let mut pose = Matrix6::zeros();
-        match self {
+        let velocity_ned = match self {
             NavFilter::Ins(f) => {
                 let p = f.covariance16();
                 for (r, pr) in [(0, 0), (3, 6)] {
@@ -268,6 +247,7 @@ impl NavFilter {
                         pose.fixed_view_mut::<3, 3>(r, c).copy_from(&p.fixed_view::<3, 3>(pr, pc));
                     }
                 }
+                p.fixed_view::<3, 3>(3, 3).into_owned()
             }
             NavFilter::Planar(f) => {
                 let p = f.covariance3();
@@ -279,16 +259,30 @@ impl NavFilter {
                 for i in [2, 3, 4] {
                     pose[(i, i)] = PLANAR_UNESTIMATED_VARIANCE;
                 }
+                f.velocity_covariance_ned()
             }
-        }
-        pose
+        };
+        NavCovariances { pose, velocity_ned }
+    }
+}
+
+/// What a node reports of its filter's covariance.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct NavCovariances {
+    /// Position NED and attitude error about N, E, D: what ODOMETRY's pose covariance carries.
+    pub pose: Matrix6<f64>,
+    pub velocity_ned: Matrix3<f64>,
+}
+
+impl NavCovariances {
+    /// Position NED, m^2.
+    pub fn position(&self) -> Matrix3<f64> {
+        self.pose.fixed_view::<3, 3>(0, 0).into_owned()
     }
 
-    pub fn velocity_covariance_ned(&self) -> Matrix3<f64> {
-        match self {
-            NavFilter::Ins(f) => f.covariance16().fixed_view::<3, 3>(3, 3).into_owned(),
-            NavFilter::Planar(f) => f.velocity_covariance_ned(),
-        }
+    /// Yaw, rad^2.
+    pub fn yaw_variance(&self) -> f64 {
+        self.pose[(5, 5)]
     }
 }
 
@@ -370,6 +364,8 @@ mod tests {
         assert!((f.position_ned_m()[0] - 0.05 * 0.7f64.cos()).abs() < 1e-12);
         assert!(f.update_odometer(&OdometerSample { t: TimeUs(50_000), speed_m_s: 1.0 }).is_err());
         assert_eq!(f.dim(), 3);
-        assert_eq!(f.pose_covariance()[(5, 5)], f.yaw_variance());
+        let c = f.output_covariances();
+        assert_eq!(c.pose[(5, 5)], f.covariance()[(2, 2)]);
+        assert_eq!(c.position()[(2, 2)], PLANAR_UNESTIMATED_VARIANCE);
     }
 }

@@ -267,7 +267,7 @@ fn horizontal_error(world: &World, id: PlatformId, core: &NodeCore) -> (f64, f64
     let f = core.filter();
     let truth = world.trajectory(id).expect("team member").truth_at(f.time());
     let e = truth.pos_ned_m - f.position_ned_m();
-    let p = f.position_covariance();
+    let p = f.output_covariances().position();
     let cov = nalgebra::DMatrix::from_fn(2, 2, |r, c| p[(r, c)]);
     let nees = crate::estimation::consistency::nees(&nalgebra::DVector::from_column_slice(e.xy().as_slice()), &cov);
     (e.xy().norm(), nees.unwrap_or(f64::INFINITY))
@@ -479,7 +479,7 @@ pub fn run_case(
         };
         let (final_err_m, final_nees) = horizontal_error(world, ids[k], core);
         let (fault_end_err_m, fault_end_nees) = at_fault_end[k].unwrap_or((final_err_m, final_nees));
-        let p = core.filter().position_covariance();
+        let p = core.filter().output_covariances().position();
         detections += core.stats.epoch_disagreements + core.stats.store_mismatches;
         outcomes.push(NodeOutcome {
             id: ids[k],

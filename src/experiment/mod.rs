@@ -136,21 +136,19 @@ pub struct FilterRun {
 
 /// The error state of an estimate against the truth, and its covariance: the INS's 15 states
 /// (no odometer scale), the planar robot's 3.
-fn final_error(f: &NavFilter, run: &PlatformRun, k: usize) -> (DVector<f64>, nalgebra::DMatrix<f64>) {
-    let f = match f {
+fn final_error(nav: &NavFilter, run: &PlatformRun, k: usize) -> (DVector<f64>, nalgebra::DMatrix<f64>) {
+    let truth = &run.truth[k];
+    let d = truth.pos_ned_m - position_at(nav, truth.t);
+    let f = match nav {
         NavFilter::Ins(f) => f,
         NavFilter::Planar(p) => {
-            let truth = &run.truth[k];
-            let d = truth.pos_ned_m - position_at(f, truth.t);
             let e = DVector::from_vec(vec![d[0], d[1], wrap_angle(truth.yaw_rad - p.yaw_rad())]);
             return (e, p.covariance());
         }
     };
-    let truth = &run.truth[k];
     let x = f.state();
     let mut e = DVector::zeros(15);
-    e.fixed_rows_mut::<3>(ins::POS)
-        .copy_from(&(truth.pos_ned_m - f.position_ned_m() - f.velocity_ned_m_s() * truth.t.secs_since(f.time())));
+    e.fixed_rows_mut::<3>(ins::POS).copy_from(&d);
     e.fixed_rows_mut::<3>(ins::VEL).copy_from(&(truth.vel_ned_m_s - x.vel_ned_m_s));
     e.fixed_rows_mut::<3>(ins::ATT).copy_from(&ins::attitude_error_ned(&truth.attitude, &x.att_frd_to_ned));
     // the biases at the end of the run: error15 is taken there (they walk when configured)

@@ -190,6 +190,17 @@ pub enum NodeInput {
     },
 }
 
+impl NodeInput {
+    /// The time of a sample that drives the filter (IMU or wheels), if this is one.
+    pub fn drive_time(&self) -> Option<TimeUs> {
+        match self {
+            NodeInput::Imu(s) => Some(s.t),
+            NodeInput::Wheel(s) => Some(s.t),
+            _ => None,
+        }
+    }
+}
+
 /// What the node sends out.
 #[derive(Debug, Clone, PartialEq)]
 // A message is moved once, to the runner: boxing it would allocate for every one sent.
@@ -1635,19 +1646,21 @@ impl NodeCore {
     /// The node's current navigation solution (what it feeds back to its autopilot).
     pub fn navigation(&self) -> wire::Navigation {
         let f = &self.filter;
+        let cov = f.output_covariances();
         wire::Navigation {
             t: f.time(),
             position_ned_m: f.position_ned_m(),
             velocity_ned_m_s: f.velocity_ned_m_s(),
             attitude_frd_to_ned: f.attitude(),
-            pose_covariance: f.pose_covariance(),
-            velocity_covariance_ned: f.velocity_covariance_ned(),
+            pose_covariance: cov.pose,
+            velocity_covariance_ned: cov.velocity_ned,
         }
     }
 
     /// The estimate report of the node's current state.
     pub fn estimate(&self) -> wire::EstimateReport {
         let f = &self.filter;
+        let cov = f.output_covariances();
         let (epoch, nis, participants, ranges) = self.last_event.unwrap_or((0, f64::NAN, 0, 0));
         wire::EstimateReport {
             platform: self.cfg.id,
@@ -1657,8 +1670,8 @@ impl NodeCore {
             position_ned_m: f.position_ned_m(),
             velocity_ned_m_s: f.velocity_ned_m_s(),
             yaw_rad: f.yaw_rad(),
-            position_covariance_m2: f.position_covariance(),
-            yaw_variance_rad2: f.yaw_variance(),
+            position_covariance_m2: cov.position(),
+            yaw_variance_rad2: cov.yaw_variance(),
             nis,
             participants,
             ranges,

@@ -516,11 +516,7 @@ pub async fn run(
                     match event {
                         VehicleEvent::Input(input) => {
                             if core.is_none() {
-                                match &input {
-                                    NodeInput::Imu(s) => last_imu_t = Some(s.t),
-                                    NodeInput::Wheel(s) => last_imu_t = Some(s.t),
-                                    _ => {}
-                                }
+                                last_imu_t = input.drive_time().or(last_imu_t);
                                 before_init += 1;
                             } else {
                                 inputs.push(input);
@@ -613,7 +609,7 @@ pub async fn run(
             record_event(&recorder, id, &NodeEvent::Poll { wall_us: now });
             out.extend(core.poll(now));
         }
-        let vehicle_input = inputs.iter().any(|i| matches!(i, NodeInput::Imu(_) | NodeInput::Wheel(_)));
+        let vehicle_input = inputs.iter().any(|i| i.drive_time().is_some());
         for input in inputs {
             out.extend(core.handle(input));
         }
