@@ -56,6 +56,13 @@ pub struct Args {
     /// Stop when nothing has been heard for this long (s, after the first frame); 0: run until Ctrl-C.
     #[arg(long, default_value_t = 0.0)]
     idle_exit_s: f64,
+    /// The team's signing key (the nodes' --team-key file): only cooperative frames signed with
+    /// it are read, and the ground station's heartbeat is signed with it.
+    #[arg(long, value_name = "FILE")]
+    team_key: Option<std::path::PathBuf>,
+    /// Most vehicles shown (new system ids beyond it are refused and counted).
+    #[arg(long, default_value_t = 64)]
+    max_vehicles: usize,
 }
 
 fn parse_addr(s: &str) -> Result<SocketAddr, String> {
@@ -104,10 +111,22 @@ fn validate(args: Args) -> anyhow::Result<Validated> {
     if let Some(w) = ids.windows(2).find(|w| w[0] == w[1]) {
         bail!("--vehicle: platform {} given twice", w[0]);
     }
+    if args.max_vehicles == 0 || args.max_vehicles > 255 {
+        bail!("--max-vehicles {}: must be 1..=255 (MAVLink system ids)", args.max_vehicles);
+    }
+    if ids.len() > args.max_vehicles {
+        bail!("{} --vehicle links but --max-vehicles {}", ids.len(), args.max_vehicles);
+    }
+    let team_key = match &args.team_key {
+        Some(path) => Some(cooploc::protocol::signing::TeamKey::from_file(path).context("--team-key")?),
+        None => None,
+    };
     let config = GcsConfig {
         origin: GeoOrigin { lat_deg: args.origin_lat_deg, lon_deg: args.origin_lon_deg, alt_m: args.origin_alt_m },
         vehicles: ids,
         estimate_history: args.history,
+        team_key,
+        max_vehicles: args.max_vehicles,
         ..GcsConfig::default()
     };
     let links = GcsLinks {
@@ -172,6 +191,10 @@ pub fn run_cmd(args: Args) -> anyhow::Result<()> {
         c.rejected,
         c.ignored,
         summary.peers.len()
+    );
+    println!(
+        "gcs bounds: unauthenticated {} vehicles_refused {} sources_refused {} peers_refused {}",
+        c.unauthenticated, c.vehicles_refused, c.sources_refused, c.peers_refused
     );
     Ok(())
 }

@@ -285,6 +285,18 @@ pub fn run_cmd(args: Args) -> anyhow::Result<()> {
         summary.peers.len()
     );
     println!("node {} stats {:?}", e.platform, st);
+    let pc = &summary.peer_counters;
+    println!(
+        "node {} peers {} learned {} moved {} expired {} observers_refused {} resends {} resends_limited {}",
+        e.platform,
+        summary.peers.len(),
+        pc.learned,
+        pc.moved,
+        pc.expired,
+        pc.observers_refused,
+        st.records_resent,
+        st.resends_limited
+    );
     if args.team_key.is_some() {
         let c = &summary.coop_signing;
         println!(

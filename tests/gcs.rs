@@ -450,3 +450,66 @@ fn foxglove_client_receives_live_locations() {
     assert_eq!(c, vec![1.0, 0.5, 0.5, 0.5, 4.0, -0.25, 0.5, -0.25, 9.0]);
     let _ = gcs.lines.try_recv();
 }
+
+/// `cooploc gcs --team-key`: only signed cooperative frames make vehicles (an unsigned forger's
+/// estimates for platforms 7 and 8 and a replay of a genuine frame are refused and counted), the
+/// ground station's own heartbeat is signed with the team key (so nodes that read only signed
+/// frames learn it), and /api/state reports the signing counters.
+#[test]
+fn a_signed_ground_station_reads_only_the_teams_frames() {
+    use cooploc::protocol::signing::{Signer, TeamKey, Verifier};
+    let dir = tempdir("cooploc-gcs-key");
+    let key_path = dir.join("team.key");
+    std::fs::write(&key_path, "the team's passphrase\n").unwrap();
+    let key = TeamKey::from_passphrase("the team's passphrase");
+    let gcs = start_gcs(&["--team-key".into(), key_path.display().to_string()]);
+    let cov = Matrix3::identity();
+    let unix_us = || std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).unwrap().as_micros() as u64;
+    let mut team: Vec<(u8, UdpSocket, Signer)> = (1..=3).map(|id| (id, udp(), Signer::new(key.clone(), id, 0))).collect();
+    let forger = udp();
+    let mut genuine = Vec::new();
+    for member in team.iter_mut() {
+        for k in 0..5u8 {
+            let msg = wire::estimate_to_message(&report(u16::from(member.0), f64::from(k), Vector3::new(1.0, 2.0, 0.0), cov));
+            let header = MavHeader { system_id: u32::from(member.0), component_id: NODE_COMPID, sequence: k };
+            let signed = member.2.frame(header, &msg, unix_us());
+            member.1.send_to(&signed, gcs.coop).unwrap();
+            genuine.push(signed);
+            for fake in [7u8, 8] {
+                let msg = wire::estimate_to_message(&report(u16::from(fake), f64::from(k), Vector3::zeros(), cov));
+                forger.send_to(&frame(fake, NODE_COMPID, k, &msg), gcs.coop).unwrap();
+            }
+        }
+        member.1.send_to(&node_heartbeat_signed(&mut member.2, member.0, unix_us()), gcs.coop).unwrap();
+    }
+    forger.send_to(&genuine[0], gcs.coop).unwrap(); // a replay
+    let state = wait_state(&gcs, "three signed vehicles", |s| {
+        s["vehicles"].as_array().is_some_and(|v| v.len() == 3) && s["gcs"]["signing"]["replayed"] == 1
+    });
+    let ids: Vec<u64> = state["vehicles"].as_array().unwrap().iter().map(|v| v["id"].as_u64().unwrap()).collect();
+    assert_eq!(ids, vec![1, 2, 3], "only the team's vehicles: {state}");
+    let sg = &state["gcs"]["signing"];
+    assert_eq!((sg["accepted"].as_u64(), sg["unsigned"].as_u64()), (Some(18), Some(30)), "{sg}");
+    assert_eq!(state["counters"]["unauthenticated"], 31, "{}", state["counters"]);
+    // The ground station's heartbeat to a peer it learned is signed with the team key.
+    let listener = udp();
+    let mut member = Signer::new(key.clone(), 4, 0);
+    listener.send_to(&node_heartbeat_signed(&mut member, 4, unix_us()), gcs.coop).unwrap();
+    let mut verifier = Verifier::new(key);
+    let mut buf = [0u8; 512];
+    let deadline = Instant::now() + Duration::from_secs(10);
+    loop {
+        let (n, _) = listener.recv_from(&mut buf).expect("a heartbeat from the ground station");
+        let got = verifier.datagram(&buf[..n], unix_us());
+        if let Some((h, MavMessage::HEARTBEAT(_))) = got.frames.first() {
+            assert_eq!(h.system_id, 255);
+            break;
+        }
+        assert!(Instant::now() < deadline, "no signed heartbeat: refused {:?}", got.refused);
+    }
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+fn node_heartbeat_signed(s: &mut cooploc::protocol::signing::Signer, id: u8, unix_us: u64) -> Vec<u8> {
+    s.frame(MavHeader { system_id: u32::from(id), component_id: NODE_COMPID, sequence: 9 }, &node_heartbeat(), unix_us)
+}

@@ -423,3 +423,47 @@ fn forged_store_requests_and_snapshots_change_nothing() {
     }
     assert_eq!((node.stats.stores_adopted, node.store_digest()), (0, digest), "{:?}", node.stats);
 }
+
+/// Resend requests do not amplify: a peer (or a forger that got through) asking a node for its
+/// records of every remembered epoch a thousand times over one second of wall time gets at most
+/// [`RESENDS_PER_RETRY`] records per retry interval, and each epoch's at most twice per interval.
+#[test]
+fn a_flood_of_resend_requests_gets_a_bounded_number_of_resends() {
+    use cooploc::node::core::RESENDS_PER_RETRY;
+    use cooploc::protocol::dialect::cooploc::CooplocEpochState;
+    let world = World::new(&Scenario::from_toml_str(PAPER_TOML).unwrap()).unwrap();
+    let (mut nodes, epochs) = run_network(&world, Method::Decentralized, "1hz", 1, 0);
+    let last = epochs.len() as u32;
+    let node = &mut nodes[0];
+    let retry = node.config().retry_us;
+    let before = node.stats.records_resent;
+    let start = 10_000_000_000u64;
+    let (mut frames_out, mut requests) = (0usize, 0u64);
+    for k in 0..1000u64 {
+        let wall = start + k * 1_000; // one request per millisecond, for one second
+        node.poll(wall);
+        let e = last - (k % 32) as u32;
+        let ask = wire::EpochAnnouncement {
+            epoch: e,
+            t: TimeUs(u64::from(e) * 1_000_000),
+            announcer: 2,
+            participants: vec![2],
+            state: CooplocEpochState::COOPLOC_EPOCH_STATE_COLLECTING,
+            digest: 0,
+        };
+        let out = node.handle(NodeInput::Peer { from: 2, msg: Box::new(wire::epoch_to_message(&ask).unwrap()) });
+        frames_out += out.iter().filter(|o| matches!(o, NodeOutput::ToPeers(MavMessage::COOPLOC_STATE_FRAGMENT(_)))).count();
+        requests += 1;
+    }
+    let resent = node.stats.records_resent - before;
+    let intervals = 1_000_000u64.div_ceil(retry);
+    assert!(resent > 0, "a real request is still answered: {:?}", node.stats);
+    assert!(
+        resent <= RESENDS_PER_RETRY as u64 * intervals,
+        "{resent} resends for {requests} requests in {intervals} retry intervals"
+    );
+    assert_eq!(node.stats.resends_limited, requests - resent);
+    // The sent bytes: at most the limit's records' fragments.
+    let per_record = frames_out / resent as usize;
+    assert!(per_record > 0 && frames_out == per_record * resent as usize, "{frames_out} fragments for {resent} records");
+}

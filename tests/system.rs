@@ -150,6 +150,25 @@ fn three_nodes_against_the_experiment(signed: bool) {
             sent
         })
     });
+    // Unsigned, anyone may talk to the team: a flood of ground-station heartbeats from 300
+    // ports gets at most MAX_OBSERVERS of them sent to by each node (before, every port became
+    // a peer for ever and got the node's whole traffic).
+    let flood: Vec<std::net::UdpSocket> = if signed {
+        Vec::new()
+    } else {
+        let hb = cooploc::gcs::runner::heartbeat();
+        (0..300)
+            .map(|k| {
+                let s = std::net::UdpSocket::bind("127.0.0.1:0").unwrap();
+                s.set_nonblocking(true).unwrap();
+                let frame = wire::to_frame(mavlink_core::MavHeader { system_id: 200, component_id: 190, sequence: k as u8 }, &hb);
+                for t in &coop_addrs {
+                    s.send_to(&frame, t).unwrap();
+                }
+                s
+            })
+            .collect()
+    };
     // 380 s at 20x: about 19 s, plus the nodes' idle exit.
     let mut finals = Vec::new();
     for (id, out) in &node_outputs {
@@ -175,8 +194,28 @@ fn three_nodes_against_the_experiment(signed: bool) {
             assert!(n("accepted") > 1000, "the team's own frames were taken: {signing}");
             assert_eq!(n("replayed") + n("stale") + n("malformed"), 0, "{signing}");
         }
+        let peers = wait_line(out, &format!("node {id} peers"), Duration::from_secs(5));
+        eprintln!("{peers}");
+        let n = |name: &str| -> u64 {
+            peers.split(&format!(" {name} ")).nth(1).unwrap().split_whitespace().next().unwrap().parse().unwrap()
+        };
+        let max_peers = 2 + if signed { 0 } else { cooploc::node::peers::MAX_OBSERVERS as u64 };
+        assert!(n("peers") <= max_peers, "node {id}: {peers}");
+        if !signed {
+            assert!(n("observers_refused") >= 290, "node {id}: the flood was refused: {peers}");
+        }
         finals.push((*id, pos, applied));
     }
+    // The flood's sockets: at most MAX_OBSERVERS of them heard from each node.
+    let mut heard = 0;
+    for s in &flood {
+        let mut buf = [0u8; 2048];
+        if s.recv_from(&mut buf).is_ok() {
+            heard += 1;
+        }
+    }
+    eprintln!("{heard} of {} flooding sockets were sent to", flood.len());
+    assert!(heard <= 3 * cooploc::node::peers::MAX_OBSERVERS, "{heard} flooding sockets got traffic");
     stop.store(true, std::sync::atomic::Ordering::Relaxed);
     if let Some(f) = forger {
         let sent = f.join().unwrap();

@@ -214,6 +214,9 @@ pub async fn run(
     tracing::info!(coop = %coop_addr, http = %http_addr, "ground station started");
 
     let mut coop_seq = Sequence::default();
+    // With a team key the heartbeat is signed (link id: the ground station's system id), so that
+    // the nodes, which read only signed frames, learn where to send.
+    let mut signer = lock().config().team_key.clone().map(|k| crate::protocol::signing::Signer::new(k, GCS_SYSID, 0));
     let hb = heartbeat();
     let mut tick = tokio::time::interval(Duration::from_millis(250));
     let mut ticks = 0u32;
@@ -232,8 +235,16 @@ pub async fn run(
                 }
                 ticks += 1;
                 if ticks % 4 == 1 {
-                    let frame = wire::to_frame(coop_seq.next_header(), &hb);
-                    let peers: Vec<SocketAddr> = lock().peers().collect();
+                    let header = coop_seq.next_header();
+                    let frame = match &mut signer {
+                        Some(s) => s.frame(header, &hb, clock.now().0 / 1000),
+                        None => wire::to_frame(header, &hb),
+                    };
+                    let peers: Vec<SocketAddr> = {
+                        let mut st = lock();
+                        st.expire_peers(clock.now());
+                        st.peers().collect()
+                    };
                     for p in peers {
                         let _ = coop.send_to(&frame, p).await;
                     }

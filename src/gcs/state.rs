@@ -31,6 +31,7 @@ use super::link::{LinkStats, SourceKey};
 use super::{GCS_COMPID, GCS_SYSID, GcsEvent, Link, TruthPoint, WallNs};
 use crate::estimation::PlatformId;
 use crate::protocol::MavMessage;
+use crate::protocol::signing::{SigningCounters, TeamKey, Verifier};
 use crate::protocol::wire::{self, EstimateReport, GeoOrigin};
 use crate::time::TimeUs;
 
@@ -109,6 +110,16 @@ pub struct GcsConfig {
     pub max_truth_gap_us: u64,
     /// A vehicle time this much earlier than the last is a restarted source, us.
     pub restart_us: u64,
+    /// The team's signing key: only cooperative frames signed with it are read (see
+    /// [`crate::protocol::signing`]); None: every valid frame is.
+    pub team_key: Option<TeamKey>,
+    /// Most vehicles shown; a new system id beyond them is refused (counted).
+    pub max_vehicles: usize,
+    /// Most (link, system, component) sources with statistics.
+    pub max_sources: usize,
+    /// Most learned peers (addresses heartbeats go to); silent ones expire after `peer_expiry_ns`.
+    pub max_peers: usize,
+    pub peer_expiry_ns: u64,
 }
 
 impl Default for GcsConfig {
@@ -121,6 +132,11 @@ impl Default for GcsConfig {
             rate_window_ns: 5_000_000_000,
             max_truth_gap_us: 1_000_000,
             restart_us: 5_000_000,
+            team_key: None,
+            max_vehicles: 64,
+            max_sources: 1024,
+            max_peers: 64,
+            peer_expiry_ns: 30_000_000_000,
         }
     }
 }
@@ -142,6 +158,13 @@ pub struct GcsCounters {
     pub ignored: u64,
     /// Our own frames seen again (looped back).
     pub own: u64,
+    /// Cooperative frames refused by signing (unsigned, another key, replayed, stale).
+    pub unauthenticated: u64,
+    /// Messages of a new vehicle beyond `max_vehicles`, frames of a new source beyond
+    /// `max_sources`, new peers beyond `max_peers`: dropped, so no sender can grow the tables.
+    pub vehicles_refused: u64,
+    pub sources_refused: u64,
+    pub peers_refused: u64,
 }
 
 /// An estimate as kept in a vehicle's history.
@@ -226,7 +249,10 @@ pub struct GcsState {
     started: Option<WallNs>,
     pub vehicles: BTreeMap<PlatformId, Vehicle>,
     pub links: BTreeMap<SourceKey, LinkStats>,
-    peers: BTreeSet<SocketAddr>,
+    /// Given peers (kept) and learned ones with the time they were last heard (expiring).
+    given_peers: BTreeSet<SocketAddr>,
+    peers: BTreeMap<SocketAddr, WallNs>,
+    verifier: Option<Verifier>,
     pub counters: GcsCounters,
 }
 
@@ -279,12 +305,15 @@ impl GcsState {
             v.has_link = true;
             vehicles.insert(id, v);
         }
+        let verifier = config.team_key.clone().map(Verifier::new);
         GcsState {
             config,
             started: None,
             vehicles,
             links: BTreeMap::new(),
-            peers: BTreeSet::new(),
+            given_peers: BTreeSet::new(),
+            peers: BTreeMap::new(),
+            verifier,
             counters: GcsCounters::default(),
         }
     }
@@ -293,14 +322,55 @@ impl GcsState {
         &self.config
     }
 
-    /// Peers of the cooperative network: given ones and every address a valid frame came from.
+    /// Peers of the cooperative network: given ones and the addresses valid (with a team key:
+    /// signed) frames came from recently, at most `max_peers` of those.
     pub fn peers(&self) -> impl Iterator<Item = SocketAddr> + '_ {
-        self.peers.iter().copied()
+        self.given_peers.iter().copied().chain(self.peers.keys().copied().filter(|a| !self.given_peers.contains(a)))
     }
 
-    /// Adds a peer; true if it is new.
+    /// Adds a given peer (never expires); true if it is new.
     pub fn add_peer(&mut self, addr: SocketAddr) -> bool {
-        self.peers.insert(addr)
+        self.given_peers.insert(addr)
+    }
+
+    /// What signing accepted and refused (None without a team key).
+    pub fn signing(&self) -> Option<&SigningCounters> {
+        self.verifier.as_ref().map(|v| &v.counters)
+    }
+
+    /// Forgets learned peers silent for longer than `peer_expiry_ns`.
+    pub fn expire_peers(&mut self, now: WallNs) {
+        let expiry = self.config.peer_expiry_ns;
+        self.peers.retain(|_, at| now.0.saturating_sub(at.0) <= expiry);
+    }
+
+    fn learn_peer(&mut self, addr: SocketAddr, rx: WallNs) {
+        if let Some(at) = self.peers.get_mut(&addr) {
+            *at = rx;
+            return;
+        }
+        if self.given_peers.contains(&addr) {
+            return;
+        }
+        self.expire_peers(rx);
+        if self.peers.len() >= self.config.max_peers {
+            self.counters.peers_refused += 1;
+            return;
+        }
+        self.peers.insert(addr, rx);
+    }
+
+    /// Whether `id` has (or may now get) a place in the vehicle table.
+    fn admit(&mut self, id: PlatformId) -> bool {
+        if self.vehicles.contains_key(&id) {
+            return true;
+        }
+        if self.vehicles.len() >= self.config.max_vehicles {
+            self.counters.vehicles_refused += 1;
+            return false;
+        }
+        self.vehicles.insert(id, Vehicle::new(id));
+        true
     }
 
     /// Marks the start (for the uptime); the first input does it otherwise.
@@ -326,6 +396,24 @@ impl GcsState {
         self.start(rx);
         self.counters.datagrams += 1;
         self.counters.bytes += bytes.len() as u64;
+        // With a team key only signed cooperative frames are read, as the nodes do.
+        let accepted: Vec<u8>;
+        let bytes = match (&mut self.verifier, link) {
+            (Some(v), Link::Coop) => {
+                let got = v.datagram(bytes, rx.0 / 1000);
+                self.counters.unauthenticated += got.refused.len() as u64;
+                if got.spans.is_empty() {
+                    return vec![GcsEvent::Rejected {
+                        rx,
+                        link,
+                        reason: format!("no frame signed with the team key: {:?}", got.refused),
+                    }];
+                }
+                accepted = got.spans.iter().flat_map(|r| bytes[r.clone()].iter().copied()).collect();
+                &accepted[..]
+            }
+            _ => bytes,
+        };
         let mut frames = Vec::new();
         read_frames(bytes, |f| {
             frames.push((f.sysid, f.compid, f.seq, f.message_id, f.bytes.to_vec(), f.message));
@@ -343,10 +431,15 @@ impl GcsState {
                 continue;
             }
             let window = self.config.rate_window_ns;
-            let stats = self.links.entry(SourceKey { link, sysid, compid }).or_insert_with(|| LinkStats::new(rx, window));
-            stats.observe(rx, seq, frame_bytes.len(), message_name(&message), from);
+            let key = SourceKey { link, sysid, compid };
+            if !self.links.contains_key(&key) && self.links.len() >= self.config.max_sources {
+                self.counters.sources_refused += 1;
+            } else {
+                let stats = self.links.entry(key).or_insert_with(|| LinkStats::new(rx, window));
+                stats.observe(rx, seq, frame_bytes.len(), message_name(&message), from);
+            }
             if let (Link::Coop, Some(addr)) = (link, from) {
-                self.peers.insert(addr);
+                self.learn_peer(addr, rx);
             }
             events.push(GcsEvent::Frame { rx, link, from, sysid, compid, message_id, bytes: frame_bytes });
             let message = match message {
@@ -387,21 +480,47 @@ impl GcsState {
                 Err(e) => self.reject(rx, Link::Coop, e.to_string(), events),
             },
             MavMessage::COOPLOC_RANGE(m) => match wire::range_from_message(m) {
+                Ok((_, range)) if u32::from(range.from) != sysid => self.reject(
+                    rx,
+                    Link::Coop,
+                    format!("COOPLOC_RANGE from platform {} sent by system {sysid}", range.from),
+                    events,
+                ),
                 Ok((epoch, range)) => {
-                    self.vehicle(range.from).counts.ranges += 1;
-                    events.push(GcsEvent::Range { rx, epoch, range });
+                    if self.admit(range.from) {
+                        self.vehicle(range.from).counts.ranges += 1;
+                        events.push(GcsEvent::Range { rx, epoch, range });
+                    }
                 }
                 Err(e) => self.reject(rx, Link::Coop, e.to_string(), events),
             },
             MavMessage::COOPLOC_EPOCH(m) => match wire::epoch_from_message(m) {
+                Ok(a) if u32::from(a.announcer) != sysid => self.reject(
+                    rx,
+                    Link::Coop,
+                    format!("COOPLOC_EPOCH of platform {} sent by system {sysid}", a.announcer),
+                    events,
+                ),
                 Ok(announcement) => {
-                    self.vehicle(announcement.announcer).counts.epochs += 1;
-                    events.push(GcsEvent::Epoch { rx, announcement });
+                    if self.admit(announcement.announcer) {
+                        self.vehicle(announcement.announcer).counts.epochs += 1;
+                        events.push(GcsEvent::Epoch { rx, announcement });
+                    }
                 }
                 Err(e) => self.reject(rx, Link::Coop, e.to_string(), events),
             },
             MavMessage::COOPLOC_STATE_FRAGMENT(m) => match wire::fragment_from_message(m) {
-                Ok(f) => self.vehicle(f.platform).counts.state_fragments += 1,
+                Ok(f) if u32::from(f.platform) != sysid => self.reject(
+                    rx,
+                    Link::Coop,
+                    format!("COOPLOC_STATE_FRAGMENT of platform {} sent by system {sysid}", f.platform),
+                    events,
+                ),
+                Ok(f) => {
+                    if self.admit(f.platform) {
+                        self.vehicle(f.platform).counts.state_fragments += 1;
+                    }
+                }
                 Err(e) => self.reject(rx, Link::Coop, e.to_string(), events),
             },
             _ => {}
@@ -410,6 +529,9 @@ impl GcsState {
 
     fn on_estimate(&mut self, rx: WallNs, report: EstimateReport, events: &mut Vec<GcsEvent>) {
         let (history, restart_us, max_gap) = (self.config.estimate_history, self.config.restart_us, self.config.max_truth_gap_us);
+        if !self.admit(report.platform) {
+            return;
+        }
         let v = self.vehicle(report.platform);
         if let Some(last) = v.estimates.back().map(|e| e.report.t)
             && report.t < last
@@ -545,7 +667,8 @@ impl GcsState {
                 sysid: GCS_SYSID,
                 compid: GCS_COMPID,
                 uptime_s: self.started.map_or(0.0, since),
-                peers: self.peers.iter().map(|p| p.to_string()).collect(),
+                peers: self.peers().map(|p| p.to_string()).collect(),
+                signing: self.signing().cloned(),
             },
             origin: OriginJson {
                 lat_deg: self.config.origin.lat_deg,
@@ -697,6 +820,8 @@ pub struct GcsInfo {
     pub compid: u8,
     pub uptime_s: f64,
     pub peers: Vec<String>,
+    /// What signing accepted and refused; null without a team key.
+    pub signing: Option<SigningCounters>,
 }
 
 #[derive(Debug, Clone, Serialize)]
@@ -1045,5 +1170,67 @@ mod tests {
         assert!(track.len() <= 20 && track.len() >= 10, "{}", track.len());
         assert_eq!(track.last().unwrap()[1], 199.0, "the newest point is kept");
         assert_eq!(thin((0..5).collect(), 10), vec![0, 1, 2, 3, 4]);
+    }
+
+    /// Spoofed sources cannot grow the ground station: every system id sends an estimate, a
+    /// range, an epoch and a fragment series claiming other platforms, from a thousand ports.
+    /// Messages that claim a platform other than their sender are refused; the vehicle table
+    /// stops at `max_vehicles`, the peers at `max_peers`, and silent peers expire.
+    #[test]
+    fn spoofed_vehicles_and_peers_are_bounded() {
+        use crate::estimation::RangeSample;
+        let mut gcs = GcsState::new(GcsConfig::default());
+        let cov = Matrix3::identity();
+        let mut port = 20_000u16;
+        for sysid in 1..=254u8 {
+            let claims = u16::from(sysid).wrapping_mul(7) % 200 + 300; // platforms that do not exist
+            let range = RangeSample { t: TimeUs(1_000_000), from: claims, to: 1, range_m: 5.0, sigma_m: 0.1 };
+            let r = wire::range_to_message(&range, 1);
+            for msg in [wire::estimate_to_message(&report(u16::from(sysid), 1_000_000, 1.0, 1.0, cov)), r] {
+                port += 1;
+                gcs.on_coop_datagram(s(0.0), addr(port), &frame(sysid, NODE_COMPID, 0, &msg));
+            }
+        }
+        let c = gcs.counters;
+        assert_eq!(gcs.vehicles.len(), 64, "{c:?}");
+        assert_eq!(c.vehicles_refused, 254 - 64);
+        assert_eq!(c.rejected, 254, "every range claiming another platform refused: {c:?}");
+        assert_eq!(gcs.peers().count(), 64);
+        assert_eq!(c.peers_refused, 2 * 254 - 64);
+        assert!(gcs.snapshot(s(0.0), 100).vehicles.len() <= 64);
+        // Thirty seconds later the learned peers have expired; a given one stays.
+        gcs.add_peer(addr(9999));
+        gcs.expire_peers(s(31.0));
+        assert_eq!(gcs.peers().collect::<Vec<_>>(), vec![addr(9999)]);
+    }
+
+    /// With a team key the ground station reads only signed cooperative frames: an unsigned
+    /// estimate and one signed with another key make no vehicle; the team's does, and its
+    /// replay is refused.
+    #[test]
+    fn with_a_team_key_only_signed_frames_are_read() {
+        use crate::protocol::signing::{Signer, TeamKey};
+        let key = TeamKey::from_passphrase("team");
+        let mut gcs = GcsState::new(GcsConfig { team_key: Some(key.clone()), ..GcsConfig::default() });
+        let cov = Matrix3::identity();
+        let msg = wire::estimate_to_message(&report(1, 1_000_000, 1.0, 1.0, cov));
+        let header = MavHeader { system_id: 1, component_id: NODE_COMPID, sequence: 0 };
+        let now_us = s(0.0).0 / 1000;
+        let unsigned = frame(1, NODE_COMPID, 0, &msg);
+        let wrong = Signer::new(TeamKey::from_passphrase("not the team"), 1, 0).frame(header, &msg, now_us);
+        let good = Signer::new(key, 1, 0).frame(header, &msg, now_us);
+        for bad in [&unsigned, &wrong] {
+            let events = gcs.on_coop_datagram(s(0.0), addr(7000), bad);
+            assert!(matches!(events.as_slice(), [GcsEvent::Rejected { .. }]), "{events:?}");
+        }
+        assert!(gcs.vehicles.is_empty() && gcs.peers().next().is_none(), "nothing learned from unsigned frames");
+        gcs.on_coop_datagram(s(0.1), addr(7000), &good);
+        assert_eq!(gcs.vehicles[&1].counts.estimates, 1);
+        gcs.on_coop_datagram(s(0.2), addr(7001), &good);
+        assert_eq!(gcs.vehicles[&1].counts.estimates, 1, "a replayed frame is refused");
+        let signing = gcs.signing().unwrap();
+        assert_eq!((signing.accepted, signing.unsigned, signing.bad_signature, signing.replayed), (1, 1, 1, 1));
+        assert_eq!(gcs.counters.unauthenticated, 3);
+        assert_eq!(gcs.snapshot(s(0.3), 100).gcs.signing.as_ref().map(|c| c.accepted), Some(1));
     }
 }

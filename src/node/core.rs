@@ -232,6 +232,9 @@ pub struct NodeStats {
     pub odometer_rejected: u64,
     pub records_sent: u64,
     pub records_resent: u64,
+    /// Resend requests not answered: the epoch's record was resent less than half a retry
+    /// interval ago, or [`RESENDS_PER_RETRY`] resends went out in the last retry interval.
+    pub resends_limited: u64,
     pub records_received: u64,
     /// Records refused: not decodable, or a covariance that is not positive semi-definite.
     pub records_implausible: u64,
@@ -321,7 +324,6 @@ struct Epoch {
     /// Wall time a fragment of a record we lack last arrived (the wait is making progress).
     progress_at: u64,
     last_status_at: u64,
-    last_resend_at: Option<u64>,
     early_request_sent: bool,
     /// Ranges our vehicle measured at this epoch (they go into our record).
     own_ranges: Vec<RangeSample>,
@@ -340,7 +342,6 @@ impl Epoch {
             broadcast_at: None,
             progress_at: 0,
             last_status_at: 0,
-            last_resend_at: None,
             early_request_sent: false,
             own_ranges: Vec::new(),
             records: BTreeMap::new(),
@@ -358,6 +359,11 @@ const JUMP_CONFIRMATIONS: usize = 3;
 
 /// A wall-clock step between two polls longer than this is a freeze of the node itself.
 const FREEZE_US: u64 = 1_000_000;
+
+/// Most record resends in one retry interval, every epoch together: a resend goes to every
+/// peer, so no stream of requests (forged, replayed or from a confused peer) makes a node send
+/// more than this many records per retry interval besides its own broadcasts.
+pub const RESENDS_PER_RETRY: usize = 4;
 
 /// Epochs remembered after they are run (resends and agreement checks).
 const EPOCHS_REMEMBERED: usize = 32;
@@ -476,6 +482,10 @@ pub struct NodeCore {
     last_applied: Option<(u32, TimeUs)>,
     /// Our fragments of recent epochs, for resends.
     sent: VecDeque<(u32, Vec<MavMessage>)>,
+    /// Wall times of the resends of the last retry interval, and the last resend of each
+    /// epoch still remembered (the rate limits).
+    resent_at: VecDeque<u64>,
+    epoch_resent_at: BTreeMap<u32, u64>,
     /// What recent epochs ran on.
     ran_on: VecDeque<RanOn>,
     absent: BTreeSet<PlatformId>,
@@ -549,6 +559,8 @@ impl NodeCore {
             epochs: BTreeMap::new(),
             last_applied: None,
             sent: VecDeque::new(),
+            resent_at: VecDeque::new(),
+            epoch_resent_at: BTreeMap::new(),
             ran_on: VecDeque::new(),
             absent: BTreeSet::new(),
             heard_at: BTreeMap::new(),
@@ -1084,15 +1096,21 @@ impl NodeCore {
         }
     }
 
-    /// Sends our record of `epoch` again (at most once per half retry interval).
+    /// Sends our record of `epoch` again: at most once per half retry interval for one epoch,
+    /// open or run, and at most [`RESENDS_PER_RETRY`] per retry interval in all.
     fn resend(&mut self, epoch: u32, out: &mut Vec<NodeOutput>) {
         let Some((_, frags)) = self.sent.iter().find(|(e, _)| *e == epoch) else { return };
-        if let Some(e) = self.epochs.get_mut(&epoch) {
-            if e.last_resend_at.is_some_and(|at| self.wall_us < at + self.cfg.retry_us / 2) {
-                return;
-            }
-            e.last_resend_at = Some(self.wall_us);
+        let (wall, retry) = (self.wall_us, self.cfg.retry_us);
+        while self.resent_at.front().is_some_and(|&at| wall >= at + retry) {
+            self.resent_at.pop_front();
         }
+        let too_soon = self.epoch_resent_at.get(&epoch).is_some_and(|&at| wall < at + retry / 2);
+        if too_soon || self.resent_at.len() >= RESENDS_PER_RETRY {
+            self.stats.resends_limited += 1;
+            return;
+        }
+        self.resent_at.push_back(wall);
+        self.epoch_resent_at.insert(epoch, wall);
         out.extend(frags.iter().cloned().map(NodeOutput::ToPeers));
         self.stats.records_resent += 1;
     }
@@ -1280,8 +1298,10 @@ impl NodeCore {
             e.records.insert(self.cfg.id, own);
             self.stats.records_sent += 1;
             self.sent.push_back((epoch, msgs));
-            if self.sent.len() > EPOCHS_REMEMBERED {
-                self.sent.pop_front();
+            if self.sent.len() > EPOCHS_REMEMBERED
+                && let Some((old, _)) = self.sent.pop_front()
+            {
+                self.epoch_resent_at.remove(&old);
             }
         }
     }

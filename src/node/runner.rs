@@ -9,13 +9,14 @@
 //!   node sends HEARTBEAT (compid 191, ONBOARD_CONTROLLER) at 1 Hz, its rate requests
 //!   ([`super::autopilot`]), ODOMETRY at the profile's rate and, after every cooperative
 //!   update, LOCAL_POSITION_NED.
-//! - **Cooperative network**: one UDP socket. The node sends to every peer it knows: those given
-//!   on the command line and every address a valid cooploc frame from another platform arrived
-//!   from (so a node can be started knowing only one peer, and tests can use ephemeral ports).
+//! - **Cooperative network**: one UDP socket. The node sends to every peer of its
+//!   [`super::peers::PeerTable`]: those given on the command line, the last address of each team
+//!   member a valid frame came from (so a node can be started knowing only one peer, and tests
+//!   can use ephemeral ports) and a few ground stations that sent their HEARTBEAT; learned
+//!   addresses expire, strangers are never sent to.
 //! - Bad input (malformed frames, NaN or absurd values, time going backwards, unknown platforms)
 //!   is counted, logged and dropped; nothing from the network can panic the process.
 
-use std::collections::BTreeSet;
 use std::net::SocketAddr;
 use std::sync::Arc;
 use std::time::Duration;
@@ -26,6 +27,7 @@ use tokio::net::UdpSocket;
 use super::autopilot::{GpsInputOutput, OdometryOutput, RateOutcome, RateRequest, RateRequests};
 use super::core::{NodeConfig, NodeCore, NodeInput, NodeOutput, NodeStats};
 use super::inputs::{InputCounters, VehicleEvent, VehicleInputs};
+use super::peers::{Heard, PeerCounters, PeerTable};
 use super::profile::VehicleProfile;
 use super::vehicle_link::{Received, VehicleLink};
 use crate::estimation::PlatformId;
@@ -202,6 +204,8 @@ pub struct NodeSummary {
     /// What signing accepted and refused (unsigned, another key, replayed, stale; all zero without a team key).
     pub coop_signing: SigningCounters,
     pub peers: Vec<SocketAddr>,
+    /// Peers learned, moved, expired and ground stations refused (table full).
+    pub peer_counters: PeerCounters,
     /// What the vehicle's messages gave (see [`InputCounters`]).
     pub inputs: InputCounters,
     /// The IMU rate that arrived, Hz.
@@ -263,7 +267,7 @@ struct VehicleOutputs<'a> {
 #[allow(clippy::too_many_arguments)]
 async fn send_all(
     coop: &UdpSocket,
-    peers: &BTreeSet<SocketAddr>,
+    peers: &PeerTable,
     vehicle: &VehicleLink,
     seqs: &mut Sequences,
     outputs: Vec<NodeOutput>,
@@ -296,7 +300,7 @@ async fn send_all(
                     };
                     let _ = r.estimate(e.platform, wall_now_ns(), &est);
                 }
-                for p in peers {
+                for p in peers.addresses() {
                     let _ = coop.send_to(&frame, p).await;
                 }
             }
@@ -338,6 +342,10 @@ pub async fn run(
     shutdown: impl std::future::Future<Output = ()>,
 ) -> anyhow::Result<NodeSummary> {
     use anyhow::Context as _;
+    let team = match &init {
+        NodeInit::Ready(core) => core.config().team.clone(),
+        NodeInit::Pending { config, .. } => config.team.clone(),
+    };
     let (id, mut core, mut pending_init) = match init {
         NodeInit::Ready(core) => (core.id(), Some(*core), None),
         NodeInit::Pending { config, origin, state } => (config.id, None, Some((*config, origin, state))),
@@ -361,7 +369,7 @@ pub async fn run(
     let local = coop.local_addr()?;
     let _ = bound.send(local);
     tracing::info!(platform = id, vehicle = %links.vehicle, coop = %local, "node started");
-    let mut peers: BTreeSet<SocketAddr> = links.peers.iter().copied().collect();
+    let mut peers = PeerTable::new(id, &team, &links.peers);
     let mut decoder = links.profile.decoder();
     let mut rates = RateRequests::new(&links.profile, sysid);
     let mut odometry = OdometryOutput::new(links.profile.output.odometry_rate_hz);
@@ -457,7 +465,8 @@ pub async fn run(
                 let hb = heartbeat();
                 vehicle.send(&seqs.vehicle(), &hb).await;
                 let frame = seqs.coop_frame(&hb);
-                for p in &peers {
+                peers.expire(wall_us());
+                for p in peers.addresses() {
                     let _ = coop.send_to(&frame, p).await;
                 }
                 continue;
@@ -590,8 +599,12 @@ pub async fn run(
                     if header.system_id == u32::from(id) {
                         continue; // our own traffic, looped back
                     }
-                    if peers.insert(from) {
-                        tracing::info!(platform = id, peer = %from, sysid = header.system_id, "new peer");
+                    let gcs = matches!(&msg, MavMessage::HEARTBEAT(hb) if hb.mavtype == MavType::MAV_TYPE_GCS);
+                    match peers.heard(peers.sender(header.system_id, gcs), from, wall_us()) {
+                        Heard::New => tracing::info!(platform = id, peer = %from, sysid = header.system_id, "new peer"),
+                        Heard::Moved => tracing::info!(platform = id, peer = %from, sysid = header.system_id, "peer moved"),
+                        Heard::Refused => tracing::debug!(platform = id, peer = %from, "ground station refused: observer table full"),
+                        Heard::Known | Heard::Ignored => {}
                     }
                     let Ok(from) = PlatformId::try_from(header.system_id) else { continue };
                     inputs.push(NodeInput::Peer { from, msg: Box::new(msg) });
@@ -645,7 +658,8 @@ pub async fn run(
         coop_frames: summary_counts.2,
         coop_rejected: summary_counts.3,
         coop_signing: verifier.map(|v| v.counters).unwrap_or_default(),
-        peers: peers.into_iter().collect(),
+        peers: peers.addresses(),
+        peer_counters: peers.counters,
         inputs: decoder.counters.clone(),
         imu_rate_hz: decoder.imu_rate_hz(),
         rate_requests: rates.requests.clone(),

@@ -155,7 +155,7 @@ pub enum Refusal {
 }
 
 /// What a verifier accepted and refused.
-#[derive(Debug, Clone, Default, PartialEq, Eq)]
+#[derive(Debug, Clone, Default, PartialEq, Eq, serde::Serialize)]
 pub struct SigningCounters {
     pub accepted: u64,
     pub unsigned: u64,
