@@ -27,6 +27,9 @@ pub struct Args {
     /// Ranging schedule of the scenario.
     #[arg(long, default_value = "1hz")]
     schedule: String,
+    /// Number format of the nodes' records: f64, f32 or compact.
+    #[arg(long, default_value = "f64")]
+    encoding: String,
     /// Only the cases whose name contains this text.
     #[arg(long)]
     only: Option<String>,
@@ -39,6 +42,8 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     let method = Method::from_short_name(&args.method)
         .filter(|m| *m != Method::Centralized)
         .with_context(|| format!("unknown node method {:?}: expected dcl, naive, ci or dr", args.method))?;
+    let encoding = cooploc::protocol::record::Encoding::from_name(&args.encoding)
+        .with_context(|| format!("--encoding {:?}: expected f64, f32 or compact", args.encoding))?;
     if args.runs == 0 {
         bail!("--runs must be at least 1");
     }
@@ -59,16 +64,17 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     for case in &cases {
         let runs: Vec<_> = (0..args.runs)
             .into_par_iter()
-            .map(|run| run_case(&world, &case.faults, method, &args.schedule, args.seed, run))
+            .map(|run| run_case(&world, &case.faults, method, &args.schedule, args.seed, run, encoding))
             .collect::<Result<_, _>>()
             .with_context(|| format!("case {:?}", case.name))?;
         summaries.push(summarize(case.name, &runs));
     }
     println!(
-        "cooploc faults: {} cases x {} runs, method {}, schedule {}, seed {} ({:.1} s)",
+        "cooploc faults: {} cases x {} runs, method {}, encoding {}, schedule {}, seed {} ({:.1} s)",
         cases.len(),
         args.runs,
         method.short_name(),
+        encoding.name(),
         args.schedule,
         args.seed,
         started.elapsed().as_secs_f64()

@@ -1,6 +1,7 @@
 //! The `cooploc` command line. Thin: parses and validates arguments into the library's config
 //! types, calls the library, prints, and maps errors to an exit code.
 
+mod budget_cmd;
 mod demo_cmd;
 mod experiment_cmd;
 mod faults_cmd;
@@ -24,6 +25,10 @@ struct Cli {
 
 #[derive(Subcommand)]
 enum Command {
+    /// The cooperative network's byte budget: bytes per second per node and per team for a team
+    /// size, state size, epoch rate, encoding and signing, and the highest epoch rate a SiK
+    /// radio, Wi-Fi or an IP mesh carries.
+    Budget(budget_cmd::Args),
     /// The paper scenario end to end on loopback: simulator, one node per vehicle, ground station
     /// (web page and Foxglove), one MCAP log under logs/, and the final error table per method.
     Demo(demo_cmd::Args),
@@ -53,6 +58,7 @@ fn main() -> ExitCode {
         .with_env_filter(tracing_subscriber::EnvFilter::try_from_default_env().unwrap_or_else(|_| "warn".into()))
         .init();
     let result = match cli.command {
+        Command::Budget(args) => budget_cmd::run(args),
         Command::Demo(args) => demo_cmd::run(args),
         Command::Experiment(args) => experiment_cmd::run(args),
         Command::Faults(args) => faults_cmd::run(args),

@@ -51,7 +51,8 @@ pub struct Args {
     /// --init-from-run.
     #[arg(long, default_value = "sitl/scenarios/paper.toml")]
     scenario: PathBuf,
-    /// Number format of the broadcast matrices: f64 or f32.
+    /// Number format of the broadcast matrices: f64, f32 or compact (16-bit correlation form, a
+    /// fifth of f64's bytes: for radios; see `cooploc budget`).
     #[arg(long, default_value = "f64")]
     encoding: String,
     /// Platform ids of the team (every epoch waits for their records); default: the scenario's.
@@ -67,6 +68,11 @@ pub struct Args {
     /// epoch before it broadcasts its record, ms (raise it when ranges reach the node late).
     #[arg(long, default_value_t = 100)]
     range_grace_ms: u64,
+    /// Do not send each own range as a COOPLOC_RANGE besides the record (which carries them):
+    /// saves about 48 bytes per range on links that count every byte; ground stations then show
+    /// no range lines.
+    #[arg(long)]
+    no_range_echo: bool,
     /// Probability that the range gate rejects a good range (chi-square gate on each range's
     /// innovation); 0 turns the gate off.
     #[arg(long, default_value_t = 1e-6)]
@@ -105,10 +111,8 @@ pub fn run_cmd(args: Args) -> anyhow::Result<()> {
         Some(m @ (Method::DeadReckoning | Method::NoPropagation | Method::Decentralized | Method::CovarianceIntersection)) => m,
         _ => bail!("--method {:?}: a node runs dr, naive, dcl or ci", args.method),
     };
-    let encoding = match args.encoding.as_str() {
-        "f64" => Encoding::F64,
-        "f32" => Encoding::F32,
-        e => bail!("--encoding {e:?}: expected f64 or f32"),
+    let Some(encoding) = Encoding::from_name(&args.encoding) else {
+        bail!("--encoding {:?}: expected f64, f32 or compact", args.encoding)
     };
     if args.id == 0 || args.id > 255 {
         bail!("--id {}: a MAVLink system id is 1..=255", args.id);
@@ -174,10 +178,12 @@ pub fn run_cmd(args: Args) -> anyhow::Result<()> {
     if !(args.origin_lon_deg.is_finite() && (-180.0..=180.0).contains(&args.origin_lon_deg)) {
         bail!("--origin-lon-deg must be in [-180, 180], got {}", args.origin_lon_deg);
     }
+    let (budget_team, budget_dim) = (team.len(), model.error_dim());
     let mut cfg = NodeConfig::for_model(args.id, method, model, encoding, team);
     cfg.epoch_timeout_us = args.epoch_timeout_ms * 1000;
     cfg.retry_us = args.retry_ms * 1000;
     cfg.range_grace_us = args.range_grace_ms * 1000;
+    cfg.echo_ranges = !args.no_range_echo;
     cfg.gate_probability = args.gate_probability;
     let origin = profile.geo_origin().or(latitude.map(|lat_deg| GeoOrigin { lat_deg, lon_deg: args.origin_lon_deg, alt_m: 0.0 }));
     let recorder = match &args.log {
@@ -285,6 +291,33 @@ pub fn run_cmd(args: Args) -> anyhow::Result<()> {
         summary.peers.len()
     );
     println!("node {} stats {:?}", e.platform, st);
+    let tx = &summary.coop_tx;
+    let epochs = (st.epochs_applied + st.epochs_partial + st.epochs_skipped) as f64;
+    let shape = cooploc::protocol::budget::TeamShape {
+        team: budget_team,
+        state_dim: budget_dim,
+        ranges_per_node: (budget_team.saturating_sub(1)).min(6),
+        epoch_hz: epochs / summary.wall_s.max(1e-9),
+        encoding,
+        signed: args.team_key.is_some(),
+        echo_ranges: !args.no_range_echo,
+    };
+    let budget = cooploc::protocol::budget::epoch_frames(&shape)
+        .map(|f| cooploc::protocol::budget::rates(&shape, &f, cooploc::protocol::budget::Medium::Radio).node_bytes_per_s)
+        .unwrap_or(f64::NAN);
+    println!(
+        "node {} coop_tx frames {} frame_bytes {} datagrams {} bytes {} wall_s {:.1}: {:.0} B/s a copy, {:.0} B/s sent; budget {:.0} B/s a copy at {:.2} epochs/s",
+        e.platform,
+        tx.frames,
+        tx.frame_bytes,
+        tx.datagrams,
+        tx.bytes,
+        summary.wall_s,
+        tx.frame_bytes as f64 / summary.wall_s.max(1e-9),
+        tx.bytes as f64 / summary.wall_s.max(1e-9),
+        budget,
+        shape.epoch_hz
+    );
     let pc = &summary.peer_counters;
     println!(
         "node {} peers {} learned {} moved {} expired {} observers_refused {} resends {} resends_limited {}",

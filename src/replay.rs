@@ -134,10 +134,12 @@ fn replay_node(log: &Log, world: &World, id: PlatformId) -> Result<NodeReplay, R
         field: "method".into(),
         problem: method_name.clone(),
     })?;
-    let encoding = match field::<String>(&record, m, "encoding")?.as_str() {
-        "f32" => Encoding::F32,
-        _ => Encoding::F64,
-    };
+    let encoding_name: String = field(&record, m, "encoding")?;
+    let encoding = Encoding::from_name(&encoding_name).ok_or_else(|| ReplayError::Metadata {
+        record: record.clone(),
+        field: "encoding".into(),
+        problem: encoding_name.clone(),
+    })?;
     let team: Vec<PlatformId> = field::<String>(&record, m, "team")?.split(',').filter_map(|s| s.parse().ok()).collect();
     let profile = profile_of(log, world, id)?;
     // No latitude in the profile: the node took the vehicle's origin (its Init event says which).
@@ -153,6 +155,9 @@ fn replay_node(log: &Log, world: &World, id: PlatformId) -> Result<NodeReplay, R
         cfg.max_lead_us = field(&record, m, "max_lead_us")?;
         cfg.gate_probability = field(&record, m, "gate_probability")?;
         cfg.independent_start = field(&record, m, "independent_start")?;
+    }
+    if m.contains_key("echo_ranges") {
+        cfg.echo_ranges = field(&record, m, "echo_ranges")?;
     }
     let node_err = |e: String| ReplayError::Node(id, e);
     // The origin: in the metadata, or (`origin` = `vehicle`) from the Init event.

@@ -7,6 +7,7 @@
 
 use cooploc::estimation::Method;
 use cooploc::experiment::faults::{CaseSummary, run_case, standard_cases, summarize};
+use cooploc::protocol::record::Encoding;
 use cooploc::sitl::{PAPER_TOML, Scenario, World};
 use rayon::prelude::*;
 
@@ -18,7 +19,7 @@ fn summaries() -> Vec<CaseSummary> {
     let jobs: Vec<(usize, u32)> = (0..cases.len()).flat_map(|c| (0..RUNS).map(move |r| (c, r))).collect();
     let outcomes: Vec<_> = jobs
         .par_iter()
-        .map(|&(c, r)| (c, run_case(&world, &cases[c].faults, Method::Decentralized, "1hz", 1, r).unwrap()))
+        .map(|&(c, r)| (c, run_case(&world, &cases[c].faults, Method::Decentralized, "1hz", 1, r, Encoding::F64).unwrap()))
         .collect();
     cases
         .iter()

@@ -69,13 +69,14 @@ fn run_network_with(
     speed: u64,
     dead: Option<(usize, TimeUs)>,
     net: &mut Network<'_>,
+    encoding: Encoding,
 ) -> (Vec<NodeCore>, Vec<(TimeUs, Vec<RangeSample>)>) {
     let mut nodes: Vec<NodeCore> = world
         .platform_ids()
         .into_iter()
         .map(|id| {
             let (t0, state) = initial_nav_state(world, seed, run, id).unwrap();
-            let cfg = NodeConfig::for_model(id, method, nav_model(world, id), Encoding::F64, world.platform_ids());
+            let cfg = NodeConfig::for_model(id, method, nav_model(world, id), encoding, world.platform_ids());
             NodeCore::new(cfg, t0, state).unwrap()
         })
         .collect();
@@ -138,7 +139,7 @@ fn run_network(
     seed: u64,
     run: u32,
 ) -> (Vec<NodeCore>, Vec<(TimeUs, Vec<RangeSample>)>) {
-    run_network_with(world, method, schedule, seed, run, 20, None, &mut |_, _, _, _| true)
+    run_network_with(world, method, schedule, seed, run, 20, None, &mut |_, _, _, _| true, Encoding::F64)
 }
 
 #[test]
@@ -222,7 +223,7 @@ fn lost_fragments_are_resent_and_the_result_is_unchanged() {
         MavMessage::COOPLOC_STATE_FRAGMENT(f) if from == 1 && to == 0 && f.frag_index == 3 => !dropped.insert(f.epoch),
         _ => true,
     };
-    let (nodes, sent_ranges) = run_network_with(&world, Method::Decentralized, "1hz", 1, 0, 20, None, &mut net);
+    let (nodes, sent_ranges) = run_network_with(&world, Method::Decentralized, "1hz", 1, 0, 20, None, &mut net, Encoding::F64);
     let inputs = world.run_inputs(1, 0);
     let reference = run_filter(&world, &inputs, &sent_ranges, Method::Decentralized).unwrap();
     assert!(nodes[1].stats.records_resent >= 380, "{:?}", nodes[1].stats);
@@ -239,8 +240,17 @@ fn lost_fragments_are_resent_and_the_result_is_unchanged() {
 #[test]
 fn a_dead_node_costs_one_timeout_and_the_others_stay_in_agreement() {
     let world = World::new(&Scenario::from_toml_str(PAPER_TOML).unwrap()).unwrap();
-    let (nodes, _) =
-        run_network_with(&world, Method::Decentralized, "1hz", 1, 0, 20, Some((2, TimeUs(100_500_000))), &mut |_, _, _, _| true);
+    let (nodes, _) = run_network_with(
+        &world,
+        Method::Decentralized,
+        "1hz",
+        1,
+        0,
+        20,
+        Some((2, TimeUs(100_500_000))),
+        &mut |_, _, _, _| true,
+        Encoding::F64,
+    );
     let inputs = world.run_inputs(1, 0);
     let dr = run_filter(&world, &inputs, &[], Method::DeadReckoning).unwrap();
     for (k, node) in nodes.iter().enumerate().take(2) {
@@ -466,4 +476,36 @@ fn a_flood_of_resend_requests_gets_a_bounded_number_of_resends() {
     // The sent bytes: at most the limit's records' fragments.
     let per_record = frames_out / resent as usize;
     assert!(per_record > 0 && frames_out == per_record * resent as usize, "{frames_out} fragments for {resent} records");
+}
+
+/// The compact encoding (16-bit correlation form, a fifth of the f64 record's matrix bytes)
+/// changes the team's result by a small fraction of its uncertainty and never makes it more
+/// confident: over three runs of the paper scenario every node ends within a tenth of a sigma of
+/// the f64 team, with a covariance at least as large, every epoch applied with the exact method.
+#[test]
+fn the_compact_encoding_keeps_the_team_where_f64_puts_it() {
+    let world = World::new(&Scenario::from_toml_str(PAPER_TOML).unwrap()).unwrap();
+    for run in 0..3 {
+        let go = |encoding| {
+            run_network_with(&world, Method::Decentralized, "1hz", 1, run, 20, None, &mut |_, _, _, _| true, encoding).0
+        };
+        let (exact, compact) = (go(Encoding::F64), go(Encoding::Compact));
+        for (a, b) in exact.iter().zip(&compact) {
+            let st = &b.stats;
+            assert_eq!(st.epochs_applied, a.stats.epochs_applied, "run {run} node {}: {st:?}", b.id());
+            assert_eq!(st.heals + st.epochs_failed + st.epoch_disagreements + st.records_implausible, 0, "{st:?}");
+            let (pa, pb) = (a.filter().position_ned_m(), b.filter().position_ned_m());
+            let (ca, cb) = (a.estimate().position_covariance_m2, b.estimate().position_covariance_m2);
+            let sigma = (ca[(0, 0)] + ca[(1, 1)]).sqrt();
+            let apart = (pa - pb).xy().norm();
+            eprintln!(
+                "run {run} node {}: compact - f64 {apart:.4} m, sigma {sigma:.3} m, trace ratio {:.5}",
+                b.id(),
+                (cb[(0, 0)] + cb[(1, 1)]) / (ca[(0, 0)] + ca[(1, 1)])
+            );
+            assert!(apart < 0.1 * sigma, "run {run} node {}: {apart} m apart, sigma {sigma}", b.id());
+            let ratio = (cb[(0, 0)] + cb[(1, 1)]) / (ca[(0, 0)] + ca[(1, 1)]);
+            assert!((0.999..1.05).contains(&ratio), "run {run} node {}: variance ratio {ratio}", b.id());
+        }
+    }
 }

@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
 # Runs every test of cooploc, after installing what the tests need beyond cargo:
-# a Python virtualenv (.venv) with the pinned reference tools of tests/requirements.txt, and
-# Debian's headless Chromium.
+# a Python virtualenv (.venv) with the pinned reference tools of tests/requirements.txt,
+# Debian's headless Chromium, and iproute2 (network namespaces, tc) for tests/netns.rs.
 # Usage (from anywhere): bash tests/run-all.sh
 set -euo pipefail
 cd "$(dirname "$0")/.."
@@ -25,6 +25,15 @@ if ! command -v chromium > /dev/null 2>&1 && ! command -v chromium-browser > /de
     [ "$(id -u)" = 0 ] || sudo="sudo"
     { $sudo apt-get update -qq && $sudo env DEBIAN_FRONTEND=noninteractive apt-get install -y -qq chromium > /dev/null; } \
         || echo "could not install chromium: the browser test fails under CI=true and skips elsewhere"
+fi
+
+# iproute2 (ip, tc) for the network-namespace test (tests/netns.rs), from Debian's packages.
+if ! command -v ip > /dev/null 2>&1 || ! command -v tc > /dev/null 2>&1; then
+    echo "==> installing iproute2 (the network-namespace test)"
+    sudo=""
+    [ "$(id -u)" = 0 ] || sudo="sudo"
+    { $sudo apt-get update -qq && $sudo env DEBIAN_FRONTEND=noninteractive apt-get install -y -qq iproute2 > /dev/null; } \
+        || echo "could not install iproute2: the namespace test fails under CI=true and skips elsewhere"
 fi
 
 echo "==> validating dialects/cooploc.xml with pymavlink's mavgen (wire protocol 2.0)"

@@ -47,6 +47,14 @@ impl NavModel {
             NavModel::Planar { .. } => "planar",
         }
     }
+
+    /// Dimension of the error state (what a record carries).
+    pub fn error_dim(&self) -> usize {
+        match self {
+            NavModel::Ins { .. } => super::ins::ERROR_DIM,
+            NavModel::Planar { .. } => 3,
+        }
+    }
 }
 
 /// A platform's initial nominal state.

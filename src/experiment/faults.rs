@@ -327,7 +327,8 @@ fn team_nees(world: &World, ids: &[PlatformId], cores: &[&NodeCore]) -> f64 {
     crate::estimation::consistency::nees(&e, &p).unwrap_or(f64::INFINITY)
 }
 
-/// Runs one case once (`seed`, `run`) with method `method` on `schedule`.
+/// Runs one case once (`seed`, `run`) with method `method` on `schedule`, the nodes'
+/// records in `encoding`.
 pub fn run_case(
     world: &World,
     case: &Faults,
@@ -335,6 +336,7 @@ pub fn run_case(
     schedule: &str,
     seed: u64,
     run: u32,
+    encoding: Encoding,
 ) -> Result<RunOutcome, ExperimentError> {
     let ids = world.platform_ids();
     let make = |id: PlatformId, at: Option<TimeUs>| -> Result<NodeCore, ExperimentError> {
@@ -344,7 +346,7 @@ pub fn run_case(
         };
         let (t0, state) = state_from(init)?;
         let model = nav_model(world, id);
-        let cfg = NodeConfig::for_model(id, method, model, Encoding::F64, ids.clone());
+        let cfg = NodeConfig::for_model(id, method, model, encoding, ids.clone());
         NodeCore::new(cfg, t0, NavState::for_model(&model, state))
             .map_err(|e| ExperimentError::Settings(format!("node {id}: {e}")))
     };

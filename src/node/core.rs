@@ -116,6 +116,9 @@ pub struct NodeConfig {
     /// The initial state is independent of every teammate's error (initialised from the vehicle,
     /// a survey or a scenario, not from a teammate's estimate).
     pub independent_start: bool,
+    /// Send each own range as a COOPLOC_RANGE too (for ground stations and logs: the joint
+    /// update takes ranges from the records). Off on links that count every byte.
+    pub echo_ranges: bool,
 }
 
 impl NodeConfig {
@@ -149,6 +152,7 @@ impl NodeConfig {
             max_lead_us: 30_000_000,
             gate_probability: 1e-6,
             independent_start: true,
+            echo_ranges: true,
         }
     }
 }
@@ -644,7 +648,9 @@ impl NodeCore {
                     } else if e.own_ranges.len() < record::MAX_RANGES {
                         e.own_ranges.push(sent);
                         // For ground stations and logs: the joint problem takes it from our record.
-                        out.push(NodeOutput::ToPeers(wire::range_to_message(&sent, epoch)));
+                        if self.cfg.echo_ranges {
+                            out.push(NodeOutput::ToPeers(wire::range_to_message(&sent, epoch)));
+                        }
                     } else {
                         self.stats.ranges_rejected += 1;
                     }
@@ -1015,8 +1021,11 @@ impl NodeCore {
                     },
                     Pushed::Rejected(_) => self.stats.fragments_rejected += 1,
                     Pushed::Stored => {
+                        // A record's first fragment makes its epoch known (as a peer's range
+                        // does): a node that measured no range of the epoch broadcasts without
+                        // waiting for a whole record to cross a slow radio.
                         let wall = self.wall_us;
-                        if let Some(e) = self.epochs.get_mut(&f.epoch) {
+                        if let Some(e) = self.learn_epoch(f.epoch, TimeUs(f.time_usec)) {
                             e.progress_at = wall;
                         }
                     }

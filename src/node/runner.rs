@@ -111,7 +111,7 @@ pub fn node_metadata(cfg: &NodeConfig, init: Option<(TimeUs, &InsState)>) -> std
     m.insert("id".into(), cfg.id.to_string());
     m.insert("method".into(), cfg.method.short_name().into());
     m.insert("model".into(), cfg.model.name().into());
-    m.insert("encoding".into(), format!("{:?}", cfg.encoding).to_lowercase());
+    m.insert("encoding".into(), cfg.encoding.name().to_string());
     m.insert("team".into(), cfg.team.iter().map(|p| p.to_string()).collect::<Vec<_>>().join(","));
     m.insert("epoch_timeout_us".into(), cfg.epoch_timeout_us.to_string());
     m.insert("retry_us".into(), cfg.retry_us.to_string());
@@ -121,6 +121,7 @@ pub fn node_metadata(cfg: &NodeConfig, init: Option<(TimeUs, &InsState)>) -> std
     m.insert("max_lead_us".into(), cfg.max_lead_us.to_string());
     m.insert("gate_probability".into(), format!("{:e}", cfg.gate_probability));
     m.insert("independent_start".into(), cfg.independent_start.to_string());
+    m.insert("echo_ranges".into(), cfg.echo_ranges.to_string());
     match init {
         Some((t0, state)) => {
             m.insert("init".into(), "state".into());
@@ -206,6 +207,9 @@ pub struct NodeSummary {
     pub peers: Vec<SocketAddr>,
     /// Peers learned, moved, expired and ground stations refused (table full).
     pub peer_counters: PeerCounters,
+    /// What went out on the cooperative network, and over how long (wall time).
+    pub coop_tx: CoopTx,
+    pub wall_s: f64,
     /// What the vehicle's messages gave (see [`InputCounters`]).
     pub inputs: InputCounters,
     /// The IMU rate that arrived, Hz.
@@ -221,7 +225,19 @@ pub struct NodeSummary {
     pub origin_from_vehicle: Option<wire::GeoOrigin>,
 }
 
+/// What the node put on the cooperative network.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
+pub struct CoopTx {
+    /// Frames, and their bytes once each (what a broadcast medium carries).
+    pub frames: u64,
+    pub frame_bytes: u64,
+    /// Datagrams sent (a frame goes to each peer) and their payload bytes.
+    pub datagrams: u64,
+    pub bytes: u64,
+}
+
 struct Sequences {
+    tx: CoopTx,
     sysid: u32,
     coop: u8,
     vehicle: u8,
@@ -238,10 +254,13 @@ impl Sequences {
     /// The next cooperative frame of `msg`, signed when the team has a key.
     fn coop_frame(&mut self, msg: &MavMessage) -> Vec<u8> {
         let header = self.coop();
-        match &mut self.signer {
+        let frame = match &mut self.signer {
             Some(s) => s.frame(header, msg, wall_now_ns() / 1000),
             None => wire::to_frame(header, msg),
-        }
+        };
+        self.tx.frames += 1;
+        self.tx.frame_bytes += frame.len() as u64;
+        frame
     }
 
     fn vehicle(&mut self) -> MavHeader {
@@ -301,7 +320,10 @@ async fn send_all(
                     let _ = r.estimate(e.platform, wall_now_ns(), &est);
                 }
                 for p in peers.addresses() {
-                    let _ = coop.send_to(&frame, p).await;
+                    if coop.send_to(&frame, p).await.is_ok() {
+                        seqs.tx.datagrams += 1;
+                        seqs.tx.bytes += frame.len() as u64;
+                    }
                 }
             }
             NodeOutput::Update(u) => {
@@ -406,7 +428,7 @@ pub async fn run(
     // the link id is the node's system id: one signing stream per node
     let signer = links.team_key.clone().map(|k| Signer::new(k, sysid, 0));
     let mut verifier = links.team_key.clone().map(Verifier::new);
-    let mut seqs = Sequences { sysid: u32::from(id), coop: 0, vehicle: 0, signer };
+    let mut seqs = Sequences { tx: CoopTx::default(), sysid: u32::from(id), coop: 0, vehicle: 0, signer };
     let mut summary_counts = (0u64, 0u64, 0u64, 0u64);
     let mut tick = tokio::time::interval(Duration::from_millis(25));
     let mut beats = 0u32;
@@ -467,7 +489,10 @@ pub async fn run(
                 let frame = seqs.coop_frame(&hb);
                 peers.expire(wall_us());
                 for p in peers.addresses() {
-                    let _ = coop.send_to(&frame, p).await;
+                    if coop.send_to(&frame, p).await.is_ok() {
+                        seqs.tx.datagrams += 1;
+                        seqs.tx.bytes += frame.len() as u64;
+                    }
                 }
                 continue;
             }
@@ -660,6 +685,8 @@ pub async fn run(
         coop_signing: verifier.map(|v| v.counters).unwrap_or_default(),
         peers: peers.addresses(),
         peer_counters: peers.counters,
+        coop_tx: seqs.tx,
+        wall_s: clock.elapsed().as_secs_f64(),
         inputs: decoder.counters.clone(),
         imu_rate_hz: decoder.imu_rate_hz(),
         rate_requests: rates.requests.clone(),

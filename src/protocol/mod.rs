@@ -2,10 +2,14 @@
 //!
 //! - [`dialect`]: Rust generated at build time by mavlink-bindgen from `dialects/cooploc.xml`
 //!   (which includes the vendored common.xml): every common message plus the cooploc ones.
-//! - [`record`]: the state broadcast as bytes (layout, quantisation rule).
+//! - [`record`]: the state broadcast as bytes (layout, quantisation rule); [`compact`]: its
+//!   16-bit correlation-form matrices.
 //! - [`fragment`]: cutting records into COOPLOC_STATE_FRAGMENT payloads and reassembling them.
+//! - [`budget`]: the bytes a team sends, per node and in all, and what links carry them.
 //! - [`wire`]: conversions between generated messages and the core's types (units, packing).
 
+pub mod budget;
+pub mod compact;
 pub mod fragment;
 pub mod record;
 pub mod signing;

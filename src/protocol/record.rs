@@ -7,14 +7,14 @@
 //! | offset | type | field |
 //! |---|---|---|
 //! | 0 | u8 | record version (3) |
-//! | 1 | u8 | encoding of the matrices: 0 = f64, 1 = f32 (`COOPLOC_STATE_ENCODING`) |
+//! | 1 | u8 | encoding of the matrices: 0 = f64, 1 = f32, 2 = compact (`COOPLOC_STATE_ENCODING`) |
 //! | 2 | u16 | error-state dimension `n` (1..=64) |
 //! | 4 | i8 x 3 | error-state index of the N, E, D position (-1: not a state) |
 //! | 7 | i8 | error-state index of the heading (-1: none) |
 //! | 8 | f64 x 3 | nominal position, NED, m |
 //! | 32 | f64 | nominal yaw, rad (0 when there is no heading) |
-//! | 40 | n(n+1)/2 values | covariance, upper triangle, row major |
-//! | .. | n*n values | recursive coefficient matrix Psi, row major |
+//! | 40 | n(n+1)/2 values | covariance, upper triangle, row major (compact: see [`super::compact`]) |
+//! | .. | n*n values | recursive coefficient matrix Psi, row major (compact: see [`super::compact`]) |
 //! | .. | u64 | digest of the sender's cross-covariance store before this epoch (0: none kept) |
 //! | .. | u32, u64 | the sender's own reference: the epoch and token of the joint update that last reset its Psi (token 0: it started independently of the team, first heard of at that epoch) |
 //! | .. | u8 | flags: bit 0 `FRESH` (initialised independently of every teammate, no epoch applied yet) |
@@ -34,7 +34,9 @@
 //! that [`decode`] returns for the bytes that went on the wire, never on its own unrounded
 //! values, so that all nodes compute the same posterior bit for bit. With f64 the round trip is
 //! exact; with f32 the covariance and Psi are rounded (half the bytes), and the covariance is
-//! rebuilt symmetric from its upper triangle.
+//! rebuilt symmetric from its upper triangle; the compact encoding (a fifth of the f64 bytes)
+//! sends the covariance in correlation form as 16-bit fixed point with a rounding bound added
+//! back, so that what a receiver decodes is never smaller than what the sender holds.
 
 use nalgebra::{DMatrix, Vector3};
 
@@ -63,13 +65,32 @@ const HEADER_LEN: usize = 40;
 pub enum Encoding {
     F64 = 0,
     F32 = 1,
+    /// 16-bit fixed point in correlation form (see [`super::compact`]).
+    Compact = 2,
 }
 
 impl Encoding {
+    /// Every encoding, in wire order.
+    pub const ALL: [Encoding; 3] = [Encoding::F64, Encoding::F32, Encoding::Compact];
+
+    /// Its name on the command line and in tables.
+    pub fn name(self) -> &'static str {
+        match self {
+            Encoding::F64 => "f64",
+            Encoding::F32 => "f32",
+            Encoding::Compact => "compact",
+        }
+    }
+
+    /// Parses a command-line name.
+    pub fn from_name(s: &str) -> Option<Encoding> {
+        Encoding::ALL.into_iter().find(|e| e.name() == s)
+    }
+
     fn width(self) -> usize {
         match self {
             Encoding::F64 => 8,
-            Encoding::F32 => 4,
+            Encoding::F32 | Encoding::Compact => 4,
         }
     }
 }
@@ -128,7 +149,10 @@ pub fn record_len(n: usize, encoding: Encoding) -> usize {
 }
 
 fn matrices_end(n: usize, encoding: Encoding) -> usize {
-    HEADER_LEN + (n * (n + 1) / 2 + n * n) * encoding.width()
+    match encoding {
+        Encoding::Compact => HEADER_LEN + super::compact::len(n),
+        _ => HEADER_LEN + (n * (n + 1) / 2 + n * n) * encoding.width(),
+    }
 }
 
 fn index_byte(i: Option<usize>) -> i8 {
@@ -191,18 +215,22 @@ pub fn encode_record(rec: &StateRecord, encoding: Encoding) -> Result<Vec<u8>, R
     for v in g.position_ned_m.iter().chain(std::iter::once(&g.heading.map_or(0.0, |h| h.yaw_rad))) {
         out.extend_from_slice(&v.to_le_bytes());
     }
-    let mut put = |v: f64| match encoding {
-        Encoding::F64 => out.extend_from_slice(&v.to_le_bytes()),
-        Encoding::F32 => out.extend_from_slice(&(v as f32).to_le_bytes()),
-    };
-    for r in 0..n {
-        for c in r..n {
-            put(s.covariance[(r, c)]);
+    if encoding == Encoding::Compact {
+        super::compact::put(&mut out, &s.covariance, &s.psi);
+    } else {
+        let mut put = |v: f64| match encoding {
+            Encoding::F32 => out.extend_from_slice(&(v as f32).to_le_bytes()),
+            _ => out.extend_from_slice(&v.to_le_bytes()),
+        };
+        for r in 0..n {
+            for c in r..n {
+                put(s.covariance[(r, c)]);
+            }
         }
-    }
-    for r in 0..n {
-        for c in 0..n {
-            put(s.psi[(r, c)]);
+        for r in 0..n {
+            for c in 0..n {
+                put(s.psi[(r, c)]);
+            }
         }
     }
     out.extend_from_slice(&rec.digest.to_le_bytes());
@@ -250,6 +278,7 @@ pub fn decode_record(id: PlatformId, t: TimeUs, bytes: &[u8]) -> Result<StateRec
     let encoding = match bytes[1] {
         0 => Encoding::F64,
         1 => Encoding::F32,
+        2 => Encoding::Compact,
         e => return Err(RecordError::Encoding(e)),
     };
     let n = u16::from_le_bytes([bytes[2], bytes[3]]) as usize;
@@ -299,31 +328,40 @@ pub fn decode_record(id: PlatformId, t: TimeUs, bytes: &[u8]) -> Result<StateRec
     let f64_at = |o: usize| f64::from_le_bytes(bytes[o..o + 8].try_into().expect("8 bytes"));
     let position = Vector3::new(f64_at(8), f64_at(16), f64_at(24));
     let yaw = f64_at(32);
-    let w = encoding.width();
-    let value_at = |k: usize| {
-        let o = HEADER_LEN + k * w;
-        match encoding {
-            Encoding::F64 => f64_at(o),
-            Encoding::F32 => f32::from_le_bytes(bytes[o..o + 4].try_into().expect("4 bytes")) as f64,
+    let (covariance, psi) = if encoding == Encoding::Compact {
+        super::compact::get(&bytes[HEADER_LEN..end], n).map_err(|e| match e {
+            super::compact::CompactError::Scale => RecordError::NonFinite("compact sigma or Psi scale"),
+            super::compact::CompactError::OutOfRange => RecordError::NonFinite("compact value -32768"),
+            super::compact::CompactError::Inflation => RecordError::NonFinite("compact inflation above its bound"),
+        })?
+    } else {
+        let w = encoding.width();
+        let value_at = |k: usize| {
+            let o = HEADER_LEN + k * w;
+            match encoding {
+                Encoding::F32 => f32::from_le_bytes(bytes[o..o + 4].try_into().expect("4 bytes")) as f64,
+                _ => f64_at(o),
+            }
+        };
+        let mut covariance = DMatrix::zeros(n, n);
+        let mut k = 0;
+        for r in 0..n {
+            for c in r..n {
+                let v = value_at(k);
+                covariance[(r, c)] = v;
+                covariance[(c, r)] = v;
+                k += 1;
+            }
         }
+        let mut psi = DMatrix::zeros(n, n);
+        for r in 0..n {
+            for c in 0..n {
+                psi[(r, c)] = value_at(k);
+                k += 1;
+            }
+        }
+        (covariance, psi)
     };
-    let mut covariance = DMatrix::zeros(n, n);
-    let mut k = 0;
-    for r in 0..n {
-        for c in r..n {
-            let v = value_at(k);
-            covariance[(r, c)] = v;
-            covariance[(c, r)] = v;
-            k += 1;
-        }
-    }
-    let mut psi = DMatrix::zeros(n, n);
-    for r in 0..n {
-        for c in 0..n {
-            psi[(r, c)] = value_at(k);
-            k += 1;
-        }
-    }
     if !position.iter().all(|v| v.is_finite()) || !yaw.is_finite() {
         return Err(RecordError::NonFinite("position or heading"));
     }

@@ -9,10 +9,16 @@
 //! every byte of the frame, header (system id, sequence, message id) and payload (a record's
 //! platform, epoch and time) alike: a frame changed in transit fails.
 //!
-//! A [`Verifier`] accepts a frame only if it is signed with the team key and its timestamp is
-//! newer than the last one accepted on its stream (link id, system id, component id); a stream
-//! seen for the first time must not be more than a minute older than the newest timestamp known
-//! (the local clock, or the newest accepted). Unsigned frames, frames signed with another key,
+//! A [`Verifier`] accepts a frame only if it is signed with the team key and its timestamp has
+//! not been accepted before on its stream (link id, system id, component id). The MAVLink guide
+//! asks for a timestamp newer than the last one; over UDP with jitter that refuses every frame
+//! overtaken by a later one (measured in `tests/netns.rs`: with 5 +- 3 ms of jitter the nodes
+//! refused half of each other's frames as replays and ran 3 epochs of 380). So a verifier keeps,
+//! per stream, the timestamps it accepted in the last [`REORDER_WINDOW`] (2 s, at most
+//! [`REORDER_KEEP`] of them): a frame up to 2 s older than the stream's newest is accepted once,
+//! a repeat of one it holds or anything older is refused as a replay. A stream seen for the first
+//! time must not be more than a minute older than the newest timestamp known (the local clock,
+//! or the newest accepted). Unsigned frames, frames signed with another key,
 //! replayed or stale frames and malformed bytes are refused and counted ([`SigningCounters`]).
 //! The stream table is bounded ([`MAX_STREAMS`]); only authenticated frames enter it.
 
@@ -29,6 +35,42 @@ const SIGNING_EPOCH_UNIX_S: u64 = 1_420_070_400;
 pub const MAX_STREAMS: usize = 1024;
 /// A new stream may be this much older than the newest timestamp known (one minute), 10 us.
 const NEW_STREAM_WINDOW: u64 = 60 * 100_000;
+/// A frame may be this much older than its stream's newest and still be taken (once), 10 us:
+/// two seconds of reordering.
+pub const REORDER_WINDOW: u64 = 2 * 100_000;
+/// Most timestamps kept per stream inside the window (a faster stream's window shrinks).
+pub const REORDER_KEEP: usize = 1024;
+
+/// What a verifier remembers of one stream: every timestamp above `floor` it accepted.
+#[derive(Debug, Clone)]
+struct Stream {
+    newest: u64,
+    /// Timestamps at or below this are refused (out of the window, or forgotten for room).
+    floor: u64,
+    seen: std::collections::BTreeSet<u64>,
+}
+
+impl Stream {
+    fn new(ts: u64) -> Self {
+        Stream { newest: ts, floor: ts.saturating_sub(REORDER_WINDOW), seen: std::collections::BTreeSet::new() }
+    }
+
+    fn fresh(&self, ts: u64) -> bool {
+        ts > self.floor && !self.seen.contains(&ts)
+    }
+
+    fn accept(&mut self, ts: u64) {
+        self.seen.insert(ts);
+        self.newest = self.newest.max(ts);
+        self.floor = self.floor.max(self.newest.saturating_sub(REORDER_WINDOW));
+        while self.seen.len() > REORDER_KEEP {
+            let oldest = self.seen.pop_first().expect("non-empty");
+            self.floor = self.floor.max(oldest);
+        }
+        let floor = self.floor;
+        self.seen.retain(|&t| t > floor);
+    }
+}
 /// Incompatibility flag of a signed frame.
 const IFLAG_SIGNED: u8 = 0x01;
 const HEADER_LEN: usize = 10;
@@ -186,8 +228,8 @@ pub struct Verified {
 #[derive(Debug, Clone)]
 pub struct Verifier {
     key: TeamKey,
-    /// Last timestamp accepted per (link id, system id, component id).
-    streams: HashMap<(u8, u8, u8), u64>,
+    /// What was accepted per (link id, system id, component id).
+    streams: HashMap<(u8, u8, u8), Stream>,
     /// The newest timestamp known: the local clock or the newest accepted.
     newest: u64,
     pub counters: SigningCounters,
@@ -287,19 +329,19 @@ impl Verifier {
         self.newest = self.newest.max(timestamp_of(unix_us));
         let stream = (link, bytes[5], bytes[6]);
         match self.streams.get(&stream) {
-            Some(&last) if ts <= last => return Err((Refusal::Replayed, len)),
+            Some(s) if !s.fresh(ts) => return Err((Refusal::Replayed, len)),
             None if ts + NEW_STREAM_WINDOW < self.newest => return Err((Refusal::Stale, len)),
             _ => {}
         }
         let decoded =
             MavMessage::parse(MavlinkVersion::V2, raw.message_id(), raw.payload()).map_err(|_| (Refusal::Malformed, 1))?;
         if !self.streams.contains_key(&stream) && self.streams.len() >= MAX_STREAMS {
-            let oldest = self.streams.iter().min_by_key(|(_, t)| **t).map(|(k, _)| *k);
+            let oldest = self.streams.iter().min_by_key(|(_, s)| s.newest).map(|(k, _)| *k);
             if let Some(k) = oldest {
                 self.streams.remove(&k);
             }
         }
-        self.streams.insert(stream, ts);
+        self.streams.entry(stream).or_insert_with(|| Stream::new(ts)).accept(ts);
         self.newest = self.newest.max(ts);
         self.counters.accepted += 1;
         let header = MavHeader { system_id: u32::from(bytes[5]), component_id: bytes[6], sequence: bytes[4] };

@@ -137,3 +137,28 @@ fn crc_x25(bytes: &[u8], extra: u8) -> u16 {
     }
     crc
 }
+
+/// Frames overtaken on the way (UDP jitter) are taken once each; a repeat of any of them, and a
+/// frame older than the reordering window, are refused as replays.
+#[test]
+fn reordered_frames_are_accepted_once_and_replays_still_refused() {
+    let key = TeamKey::from_passphrase("team");
+    let mut signer = Signer::new(key.clone(), 1, 0);
+    let mut v = Verifier::new(key);
+    // 20 frames 10 ms apart, delivered in a scrambled order (up to 100 ms late).
+    let frames: Vec<Vec<u8>> = (0..20).map(|k| signer.frame(header(1), &heartbeat(), T0_US + k * 10_000)).collect();
+    let order = [3, 0, 1, 2, 7, 4, 5, 6, 12, 8, 9, 10, 11, 19, 13, 14, 15, 16, 17, 18];
+    for &k in &order {
+        assert!(v.datagram(&frames[k], T0_US + 300_000).refused.is_empty(), "frame {k}");
+    }
+    assert_eq!(v.counters.accepted, 20);
+    for f in &frames {
+        assert_eq!(v.datagram(f, T0_US + 300_000).refused, vec![Refusal::Replayed]);
+    }
+    // A frame held back longer than the window: refused, though never seen.
+    let late = signer.frame(header(1), &heartbeat(), T0_US + 400_000);
+    let newer = signer.frame(header(1), &heartbeat(), T0_US + 400_000 + 2_500_000);
+    assert!(v.datagram(&newer, T0_US + 3_000_000).refused.is_empty());
+    assert_eq!(v.datagram(&late, T0_US + 3_000_000).refused, vec![Refusal::Replayed]);
+    assert_eq!(v.counters.replayed, 21);
+}
