@@ -40,22 +40,22 @@ const COOP_PORT: u16 = 15000;
 /// Ethernet header per frame on a veth (tx_bytes counts it; the budget counts from IP up).
 const ETHERNET: f64 = 14.0;
 
-fn ip(args: &[&str]) -> Result<(), String> {
-    let out = Command::new("ip").args(args).output().map_err(|e| format!("ip {}: {e}", args.join(" ")))?;
+/// Runs `program args`, or says what failed.
+fn run(program: &str, args: &[&str]) -> Result<(), String> {
+    let out = Command::new(program).args(args).output().map_err(|e| format!("{program} {}: {e}", args.join(" ")))?;
     if out.status.success() {
         Ok(())
     } else {
-        Err(format!("ip {}: {}", args.join(" "), String::from_utf8_lossy(&out.stderr).trim()))
+        Err(format!("{program} {}: {}", args.join(" "), String::from_utf8_lossy(&out.stderr).trim()))
     }
 }
 
+fn ip(args: &[&str]) -> Result<(), String> {
+    run("ip", args)
+}
+
 fn tc(args: &[&str]) -> Result<(), String> {
-    let out = Command::new("tc").args(args).output().map_err(|e| format!("tc {}: {e}", args.join(" ")))?;
-    if out.status.success() {
-        Ok(())
-    } else {
-        Err(format!("tc {}: {}", args.join(" "), String::from_utf8_lossy(&out.stderr).trim()))
-    }
+    run("tc", args)
 }
 
 /// The namespaces of one test; deleted (with their interfaces) when dropped.

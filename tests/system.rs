@@ -94,6 +94,43 @@ fn forged_range(epoch: u32, signer: Option<&mut cooploc::protocol::signing::Sign
     }
 }
 
+/// A state record claiming to come from platform 2 for `epoch`, its position 100 m off, as
+/// COOPLOC_STATE_FRAGMENT frames (valid fragments and CRC-32).
+fn forged_record(epoch: u32, mut signer: Option<&mut cooploc::protocol::signing::Signer>) -> Vec<Vec<u8>> {
+    use cooploc::estimation::{Geometry, Heading, Snapshot, StoreRef};
+    use cooploc::protocol::record::{Encoding, StateRecord, encode_record};
+    let n = 16;
+    let snapshot = Snapshot {
+        id: 2,
+        geometry: Geometry {
+            position_ned_m: nalgebra::Vector3::new(100.0, 0.0, 0.0),
+            position_index: [Some(0), Some(1), Some(2)],
+            heading: Some(Heading { yaw_rad: 0.0, index: 8 }),
+        },
+        covariance: nalgebra::DMatrix::identity(n, n) * 0.01,
+        psi: nalgebra::DMatrix::identity(n, n),
+    };
+    let rec =
+        StateRecord { snapshot, digest: 0, own_ref: StoreRef::fresh(epoch), refs: Vec::new(), flags: 0, ranges: Vec::new() };
+    let bytes = encode_record(&rec, Encoding::F64).unwrap();
+    let t = u64::from(epoch) * 1_000_000;
+    cooploc::protocol::fragment::fragment(2, epoch, t, &bytes)
+        .unwrap()
+        .iter()
+        .map(|f| {
+            let msg = wire::fragment_to_message(f).unwrap();
+            let header = mavlink_core::MavHeader { system_id: 2, component_id: 191, sequence: f.index };
+            match signer.as_deref_mut() {
+                Some(s) => {
+                    let now = std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).unwrap().as_micros() as u64;
+                    s.frame(header, &msg, now)
+                }
+                None => wire::to_frame(header, &msg),
+            }
+        })
+        .collect()
+}
+
 fn three_nodes_against_the_experiment(signed: bool) {
     let world = World::new(&Scenario::from_toml_str(PAPER_TOML).unwrap()).unwrap();
     let (seed, run, schedule) = (1u64, 0u32, "1hz");
@@ -128,7 +165,8 @@ fn three_nodes_against_the_experiment(signed: bool) {
         node_outputs.push((id, out));
     }
     // The forger: unsigned frames and frames signed with another key, at every node, while the
-    // team runs (380 s at 20x: one forged epoch every 50 ms of wall time).
+    // team runs (380 s at 20x: one forged epoch every 50 ms of wall time): a range and a whole
+    // state record (fragments and CRC valid, position 100 m off) claiming to be platform 2's.
     let stop = std::sync::Arc::new(std::sync::atomic::AtomicBool::new(false));
     let forger = signed.then(|| {
         let (targets, stop) = (coop_addrs.clone(), stop.clone());
@@ -144,6 +182,10 @@ fn three_nodes_against_the_experiment(signed: bool) {
                     let _ = socket.send_to(&forged_range(epoch, None), t);
                     let _ = socket.send_to(&forged_range(epoch, Some(&mut wrong)), t);
                     sent += 2;
+                    for frame in forged_record(epoch, None).into_iter().chain(forged_record(epoch, Some(&mut wrong))) {
+                        let _ = socket.send_to(&frame, t);
+                        sent += 1;
+                    }
                 }
                 std::thread::sleep(Duration::from_millis(50));
             }
@@ -184,6 +226,8 @@ fn three_nodes_against_the_experiment(signed: bool) {
         assert_eq!(count("vehicle_lost"), 0, "node {id} lost vehicle frames");
         assert_eq!(count("epochs_partial"), 0, "node {id} ran epochs without every team member");
         assert!(stats.contains("epoch_disagreements: 0,"), "node {id}: {stats}");
+        let peers = wait_line(out, &format!("node {id} peers"), Duration::from_secs(5));
+        eprintln!("{peers}");
         if signed {
             let signing = wait_line(out, &format!("node {id} signing"), Duration::from_secs(5));
             eprintln!("{signing}");
@@ -194,8 +238,7 @@ fn three_nodes_against_the_experiment(signed: bool) {
             assert!(n("accepted") > 1000, "the team's own frames were taken: {signing}");
             assert_eq!(n("replayed") + n("stale") + n("malformed"), 0, "{signing}");
         }
-        let peers = wait_line(out, &format!("node {id} peers"), Duration::from_secs(5));
-        eprintln!("{peers}");
+
         let n = |name: &str| -> u64 {
             peers.split(&format!(" {name} ")).nth(1).unwrap().split_whitespace().next().unwrap().parse().unwrap()
         };

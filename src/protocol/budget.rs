@@ -353,7 +353,9 @@ mod tests {
         assert!(packed.node_datagrams_per_s < bcast.node_datagrams_per_s);
         assert_eq!(uni.node_bytes_per_s, 7.0 * packed.node_bytes_per_s);
         assert_eq!(uni.team_bytes_per_s, 8.0 * uni.node_bytes_per_s);
-        assert_eq!(datagrams(&[1000, 400, 100, 1472, 1], true), 3);
+        // 1000 + 400 + 72 fill one datagram exactly; 1472 a second; 1 a third.
+        assert_eq!(datagrams(&[1000, 400, 72, 1472, 1], true), 3);
+        assert_eq!(datagrams(&[1000, 400, 73], true), 2);
     }
 
     #[test]
