@@ -51,8 +51,8 @@ pub struct Args {
     /// --init-from-run.
     #[arg(long, default_value = "sitl/scenarios/paper.toml")]
     scenario: PathBuf,
-    /// Number format of the broadcast matrices: f64, f32 or compact (16-bit correlation form, a
-    /// fifth of f64's bytes: for radios; see `cooploc budget`).
+    /// Number format of the broadcast matrices: f64, f32 or compact (16-bit correlation form,
+    /// under a third of f64's bytes: for radios; see `cooploc budget`).
     #[arg(long, default_value = "f64")]
     encoding: String,
     /// Platform ids of the team (every epoch waits for their records); default: the scenario's.

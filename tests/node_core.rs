@@ -478,7 +478,7 @@ fn a_flood_of_resend_requests_gets_a_bounded_number_of_resends() {
     assert!(per_record > 0 && frames_out == per_record * resent as usize, "{frames_out} fragments for {resent} records");
 }
 
-/// The compact encoding (16-bit correlation form, a fifth of the f64 record's matrix bytes)
+/// The compact encoding (16-bit correlation form, 29% of the f64 record's matrix bytes)
 /// changes the team's result by a small fraction of its uncertainty and never makes it more
 /// confident: over three runs of the paper scenario every node ends within a tenth of a sigma of
 /// the f64 team, with a covariance at least as large, every epoch applied with the exact method.

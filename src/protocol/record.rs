@@ -34,7 +34,7 @@
 //! that [`decode`] returns for the bytes that went on the wire, never on its own unrounded
 //! values, so that all nodes compute the same posterior bit for bit. With f64 the round trip is
 //! exact; with f32 the covariance and Psi are rounded (half the bytes), and the covariance is
-//! rebuilt symmetric from its upper triangle; the compact encoding (a fifth of the f64 bytes)
+//! rebuilt symmetric from its upper triangle; the compact encoding (under a third of the f64 matrix bytes)
 //! sends the covariance in correlation form as 16-bit fixed point with a rounding bound added
 //! back, so that what a receiver decodes is never smaller than what the sender holds.
 
