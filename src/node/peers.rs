@@ -154,16 +154,6 @@ impl PeerTable {
         }
         out
     }
-
-    /// Number of addresses sent to.
-    pub fn len(&self) -> usize {
-        self.addresses().len()
-    }
-
-    /// No address at all.
-    pub fn is_empty(&self) -> bool {
-        self.given.is_empty() && self.members.is_empty() && self.observers.is_empty()
-    }
 }
 
 #[cfg(test)]

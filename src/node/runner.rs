@@ -294,6 +294,7 @@ async fn send_all(
     sysid: u8,
     vout: &VehicleOutputs<'_>,
 ) {
+    let addresses = peers.addresses();
     for output in outputs {
         match output {
             NodeOutput::ToPeers(msg) => {
@@ -319,12 +320,7 @@ async fn send_all(
                     };
                     let _ = r.estimate(e.platform, wall_now_ns(), &est);
                 }
-                for p in peers.addresses() {
-                    if coop.send_to(&frame, p).await.is_ok() {
-                        seqs.tx.datagrams += 1;
-                        seqs.tx.bytes += frame.len() as u64;
-                    }
-                }
+                send_to_peers(coop, &addresses, &frame, &mut seqs.tx).await;
             }
             NodeOutput::Update(u) => {
                 if let Some(r) = rec
@@ -333,6 +329,16 @@ async fn send_all(
                     let _ = r.coop_update(wall_now_ns(), &u);
                 }
             }
+        }
+    }
+}
+
+/// Sends one cooperative frame to every peer, counting what went out.
+async fn send_to_peers(coop: &UdpSocket, addresses: &[SocketAddr], frame: &[u8], tx: &mut CoopTx) {
+    for p in addresses {
+        if coop.send_to(frame, p).await.is_ok() {
+            tx.datagrams += 1;
+            tx.bytes += frame.len() as u64;
         }
     }
 }
@@ -488,12 +494,7 @@ pub async fn run(
                 vehicle.send(&seqs.vehicle(), &hb).await;
                 let frame = seqs.coop_frame(&hb);
                 peers.expire(wall_us());
-                for p in peers.addresses() {
-                    if coop.send_to(&frame, p).await.is_ok() {
-                        seqs.tx.datagrams += 1;
-                        seqs.tx.bytes += frame.len() as u64;
-                    }
-                }
+                send_to_peers(&coop, &peers.addresses(), &frame, &mut seqs.tx).await;
                 continue;
             }
             frame = vrx.recv() => {

@@ -78,6 +78,18 @@ pub enum Medium {
     IpUnicast { packed: bool },
 }
 
+impl Medium {
+    /// Copies of each frame a node sends in a team of `team`, and for IP whether frames are
+    /// packed (None: no IP headers).
+    fn copies_and_packing(self, team: usize) -> (f64, Option<bool>) {
+        match self {
+            Medium::Radio => (1.0, None),
+            Medium::IpBroadcast { packed } => (1.0, Some(packed)),
+            Medium::IpUnicast { packed } => (team.saturating_sub(1).max(1) as f64, Some(packed)),
+        }
+    }
+}
+
 /// Bytes per second on the network.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct Rates {
@@ -218,11 +230,7 @@ pub fn rates(shape: &TeamShape, frames: &EpochFrames, medium: Medium) -> Rates {
     let per_epoch = frames.bytes() as f64;
     let hb = frames.heartbeat_bytes as f64;
     let mavlink = per_epoch * shape.epoch_hz + hb;
-    let (copies, ip) = match medium {
-        Medium::Radio => (1.0, None),
-        Medium::IpBroadcast { packed } => (1.0, Some(packed)),
-        Medium::IpUnicast { packed } => (shape.team.saturating_sub(1).max(1) as f64, Some(packed)),
-    };
+    let (copies, ip) = medium.copies_and_packing(shape.team);
     let (dgrams, overhead) = match ip {
         None => (0.0, 0.0),
         Some(packed) => {
@@ -251,11 +259,7 @@ pub fn rates_with_loss(shape: &TeamShape, frames: &EpochFrames, medium: Medium, 
     let base = rates(shape, frames, medium);
     let (record_frames, record_bytes) = (frames.kinds[0].1, frames.kinds[0].2);
     let request_bytes = frames.kinds.iter().find(|k| k.0 == "COOPLOC_EPOCH").map_or(0, |k| k.2);
-    let (copies, ip) = match medium {
-        Medium::Radio => (1.0, None),
-        Medium::IpBroadcast { packed } => (1.0, Some(packed)),
-        Medium::IpUnicast { packed } => (shape.team.saturating_sub(1).max(1) as f64, Some(packed)),
-    };
+    let (copies, ip) = medium.copies_and_packing(shape.team);
     let record_datagrams = match ip {
         Some(true) => datagrams(&frames.sizes[..record_frames], true),
         _ => record_frames,
