@@ -151,7 +151,7 @@ pub async fn run_demo(cfg: DemoConfig, ready: impl FnOnce(&DemoAddresses)) -> an
         let core = NodeCore::new(node_cfg, t0, state).context("node configuration")?;
         let links = Links {
             vehicle: format!("udpout:{addr}"),
-            coop_bind: "127.0.0.1:0".parse().expect("an address"),
+            coop: crate::node::coop_link::CoopSpec::udp("127.0.0.1:0".parse().expect("an address")),
             peers: node_addrs.iter().map(|(_, a)| *a).collect(),
             idle_exit: Some(Duration::from_millis(1500)),
             grace: Duration::from_millis(500),
@@ -170,7 +170,7 @@ pub async fn run_demo(cfg: DemoConfig, ready: impl FnOnce(&DemoAddresses)) -> an
             bound_tx,
             shutdown,
         )));
-        node_addrs.push((id, bound_rx.await.context("a node did not start")?));
+        node_addrs.push((id, bound_rx.await.context("a node did not start")?.context("a demo node has a UDP address")?));
     }
 
     // The ground station, after the nodes (its vehicle links would start the clock).

@@ -43,7 +43,7 @@ enum Command {
     Gcs(gcs_cmd::Args),
     /// The per-vehicle companion: local filter on the vehicle's IMU and odometry, cooperative
     /// protocol with the other nodes, estimate back to the vehicle.
-    Node(node_cmd::Args),
+    Node(Box<node_cmd::Args>),
     /// Feeds a recorded log back through the filters: the recorded nodes bit for bit, or another
     /// method on the same inputs.
     Replay(replay_cmd::Args),
@@ -64,7 +64,7 @@ fn main() -> ExitCode {
         Command::Faults(args) => faults_cmd::run(args),
         Command::Replay(args) => replay_cmd::run(args),
         Command::Gcs(args) => gcs_cmd::run_cmd(args),
-        Command::Node(args) => node_cmd::run_cmd(args),
+        Command::Node(args) => node_cmd::run_cmd(*args),
         Command::Sitl(args) => sitl_cmd::run(args),
     };
     match result {

@@ -8,6 +8,7 @@ use anyhow::{Context, bail};
 use cooploc::estimation::Method;
 use cooploc::estimation::ins::InsState;
 use cooploc::estimation::nav::NavState;
+use cooploc::node::coop_link::{CoopSpec, Multicast};
 use cooploc::node::core::{NodeConfig, NodeCore};
 use cooploc::node::profile::VehicleProfile;
 use cooploc::node::runner::{Links, NodeInit, metadata_name, node_metadata, run, vehicle_attachment_name};
@@ -27,9 +28,32 @@ pub struct Args {
     /// MAVLink URL of the vehicle (udpout:HOST:PORT, udpin:HOST:PORT, tcpout:, tcpin:, serial:/dev/ttyX:BAUD).
     #[arg(long)]
     vehicle: String,
-    /// Local address of the cooperative-network socket.
+    /// Local address of the cooperative-network socket (UDP).
     #[arg(long, default_value = "127.0.0.1:0")]
     coop_bind: SocketAddr,
+    /// Multicast on the cooperative network: on, off, or auto (on when --coop-bind is not a
+    /// loopback address: the plug-and-play LAN set-up, no --peer needed; a failed join is then
+    /// said and the node goes on with its unicast peers).
+    #[arg(long, default_value = "auto", value_parser = ["auto", "on", "off"])]
+    multicast: String,
+    /// The multicast group (GROUP:PORT).
+    #[arg(long, default_value_t = cooploc::node::coop_link::DEFAULT_GROUP)]
+    multicast_group: std::net::SocketAddrV4,
+    /// Hops a multicast datagram may cross (1: this subnet).
+    #[arg(long, default_value_t = 1)]
+    multicast_ttl: u32,
+    /// Address of the interface to send and join the group on (default: --coop-bind's, or the
+    /// kernel's choice when that is 0.0.0.0).
+    #[arg(long, default_value_t = std::net::Ipv4Addr::UNSPECIFIED)]
+    multicast_interface: std::net::Ipv4Addr,
+    /// Most bytes in one UDP datagram: each batch of frames is packed into few datagrams (IP
+    /// headers are 28 B a datagram); 0: one frame per datagram.
+    #[arg(long, default_value_t = cooploc::protocol::budget::MAX_DATAGRAM)]
+    datagram_bytes: usize,
+    /// A serial telemetry radio as the cooperative link instead of UDP: PATH:BAUD (e.g.
+    /// /dev/ttyUSB0:57600). Its firmware must share one channel among the team (multipoint).
+    #[arg(long, value_name = "PATH:BAUD", conflicts_with_all = ["coop_bind", "peers", "multicast_group"])]
+    coop_serial: Option<String>,
     /// Peer nodes' cooperative addresses (more are learned from their traffic).
     #[arg(long = "peer")]
     peers: Vec<SocketAddr>,
@@ -222,9 +246,35 @@ pub fn run_cmd(args: Args) -> anyhow::Result<()> {
             NodeInit::Pending { config: Box::new(cfg), origin, state }
         }
     };
+    let coop = match &args.coop_serial {
+        Some(text) => CoopSpec::serial(text).map_err(|e| anyhow::anyhow!("--coop-serial {e}"))?,
+        None => {
+            let on = match args.multicast.as_str() {
+                "on" => Some(true),
+                "auto" if !args.coop_bind.ip().is_loopback() => Some(false),
+                _ => None,
+            };
+            if on.is_some() && !args.coop_bind.is_ipv4() {
+                bail!("--multicast: the cooperative socket must be IPv4 for multicast, not --coop-bind {}", args.coop_bind);
+            }
+            let multicast = on.map(|required| Multicast {
+                group: args.multicast_group,
+                ttl: args.multicast_ttl,
+                interface: args.multicast_interface,
+                required,
+            });
+            CoopSpec::Udp { bind: args.coop_bind, multicast, max_datagram: args.datagram_bytes }
+        }
+    };
+    if !args.multicast_group.ip().is_multicast() {
+        bail!("--multicast-group {}: not a multicast address (224.0.0.0/4)", args.multicast_group);
+    }
+    if args.multicast_ttl == 0 || args.multicast_ttl > 255 {
+        bail!("--multicast-ttl {}: 1..=255", args.multicast_ttl);
+    }
     let links = Links {
         vehicle: args.vehicle.clone(),
-        coop_bind: args.coop_bind,
+        coop,
         peers: args.peers.clone(),
         idle_exit: (args.idle_exit_s > 0.0).then(|| Duration::from_secs_f64(args.idle_exit_s)),
         grace: Duration::from_millis(500),
@@ -237,8 +287,10 @@ pub fn run_cmd(args: Args) -> anyhow::Result<()> {
         let (tx, rx) = tokio::sync::oneshot::channel();
         let id = args.id;
         let announce = tokio::spawn(async move {
-            if let Ok(addr) = rx.await {
-                println!("node {id} coop udp {addr}");
+            match rx.await {
+                Ok(Some(addr)) => println!("node {id} coop udp {addr}"),
+                Ok(None) => println!("node {id} coop serial"),
+                Err(_) => {}
             }
         });
         let shutdown = crate::signal::shutdown_signal();

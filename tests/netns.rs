@@ -19,6 +19,10 @@
 //!   interface equal `cooploc::protocol::budget`'s figure (the `cooploc budget` command's) within
 //!   10%.
 //! - `a_wifi_like_link_runs_the_team_at_20x`: 6 Mbit/s, 1% loss, 5 +- 3 ms, f64 records, 20x.
+//! - `nodes_given_no_peers_find_each_other_on_the_multicast_group_and_send_each_frame_once`: no
+//!   `--peer`, no relay: the nodes bound to their LAN addresses join the default multicast group
+//!   by themselves, run the scenario at 10x, and each puts one copy of its traffic on the wire
+//!   (the budget's multicast figure within 10%, half the unicast one).
 
 use std::process::Command;
 use std::time::{Duration, Instant};
@@ -154,6 +158,9 @@ struct LinkSpec {
     retry_ms: u64,
     timeout_ms: u64,
     echo_ranges: bool,
+    /// No relay and no --peer: the nodes find each other on the default multicast group (the
+    /// LAN set-up), with the link's rate limit only.
+    multicast: bool,
 }
 
 struct Outcome {
@@ -164,7 +171,8 @@ struct Outcome {
 }
 
 fn run_team(tag: &str, spec: &LinkSpec) -> Option<Outcome> {
-    let python = common::python("the network-namespace test's impairment relay")?;
+    let python =
+        if spec.multicast { Default::default() } else { common::python("the network-namespace test's impairment relay")? };
     let world = World::new(&Scenario::from_toml_str(PAPER_TOML).unwrap()).unwrap();
     let ids = world.platform_ids();
     let topo = Topology::build(&format!("{tag}{}", std::process::id() % 10_000), ids.len(), spec.rate).unwrap();
@@ -175,16 +183,18 @@ fn run_team(tag: &str, spec: &LinkSpec) -> Option<Outcome> {
     let stats = dir.join("relay.json");
     let mut children = Kill(Vec::new());
 
-    let mut relay = topo.exec("hub", &python);
-    relay.arg("tests/python/impair_relay.py").args([RELAY_IP, &RELAY_BASE.to_string()]);
-    relay.args([spec.loss.to_string(), spec.delay_ms.to_string(), spec.jitter_ms.to_string(), "7".into()]);
-    relay.arg(&stats);
-    for &k in &ids {
-        relay.arg(format!("{k}=10.77.0.{k}:{COOP_PORT}"));
+    if !spec.multicast {
+        let mut relay = topo.exec("hub", &python);
+        relay.arg("tests/python/impair_relay.py").args([RELAY_IP, &RELAY_BASE.to_string()]);
+        relay.args([spec.loss.to_string(), spec.delay_ms.to_string(), spec.jitter_ms.to_string(), "7".into()]);
+        relay.arg(&stats);
+        for &k in &ids {
+            relay.arg(format!("{k}=10.77.0.{k}:{COOP_PORT}"));
+        }
+        let (child, relay_out) = spawn_lines(relay);
+        children.0.push(child);
+        wait_line(&relay_out, "relay ready", Duration::from_secs(30));
     }
-    let (child, relay_out) = spawn_lines(relay);
-    children.0.push(child);
-    wait_line(&relay_out, "relay ready", Duration::from_secs(30));
 
     let bin = env!("CARGO_BIN_EXE_cooploc");
     let mut sitl = topo.exec("sim", bin);
@@ -213,7 +223,7 @@ fn run_team(tag: &str, spec: &LinkSpec) -> Option<Outcome> {
         node.arg(format!("--init-ned={}", v3(state.pos_ned_m)));
         node.arg(format!("--init-vel-ned={}", v3(state.vel_ned_m_s)));
         node.arg(format!("--init-rpy-deg={:.17e},{:.17e},{:.17e}", r.to_degrees(), p.to_degrees(), y.to_degrees()));
-        for &other in ids.iter().filter(|&&o| o != id) {
+        for &other in ids.iter().filter(|&&o| o != id && !spec.multicast) {
             node.args(["--peer", &format!("{RELAY_IP}:{}", RELAY_BASE + other)]);
         }
         let (child, out) = spawn_lines(node);
@@ -289,13 +299,14 @@ fn a_radio_like_link_carries_the_paper_scenario_within_its_byte_budget() {
         retry_ms: 1000,
         timeout_ms: 3000,
         echo_ranges: false,
+        multicast: false,
     };
     let Some(outcome) = run_team("r", &spec) else { return };
     eprintln!("relay: {}", outcome.relay);
     check_against_dead_reckoning(&outcome);
     // The budget: three 16-state nodes, two ranges each per epoch, 1 Hz, compact, signed, each
-    // frame in its own datagram to each of two peers (through the relay), with the resends that
-    // 2% loss costs; plus the Ethernet header the interface counts.
+    // batch packed into datagrams sent to each of two peers (through the relay), with the
+    // resends that 2% loss costs; plus the Ethernet header the interface counts.
     let shape = TeamShape {
         team: 3,
         state_dim: 16,
@@ -306,7 +317,7 @@ fn a_radio_like_link_carries_the_paper_scenario_within_its_byte_budget() {
         echo_ranges: spec.echo_ranges,
     };
     let frames = budget::epoch_frames(&shape).unwrap();
-    let medium = Medium::IpUnicast { packed: false };
+    let medium = Medium::IpUnicast { packed: true };
     let r = budget::rates_with_loss(&shape, &frames, medium, spec.loss);
     let expected = r.node_bytes_per_s + ETHERNET * r.node_datagrams_per_s;
     for (k, m) in outcome.measured_bytes_per_s.iter().enumerate() {
@@ -330,8 +341,59 @@ fn a_wifi_like_link_runs_the_team_at_20x() {
         retry_ms: 100,
         timeout_ms: 2000,
         echo_ranges: true,
+        multicast: false,
     };
     let Some(outcome) = run_team("w", &spec) else { return };
     eprintln!("relay: {}", outcome.relay);
     check_against_dead_reckoning(&outcome);
+}
+
+#[test]
+fn nodes_given_no_peers_find_each_other_on_the_multicast_group_and_send_each_frame_once() {
+    if !namespaces_available("the multicast namespace test", "m") {
+        return;
+    }
+    let spec = LinkSpec {
+        rate: "2mbit",
+        loss: 0.0,
+        delay_ms: 0.0,
+        jitter_ms: 0.0,
+        speed: 10,
+        encoding: Encoding::F32,
+        retry_ms: 100,
+        timeout_ms: 2000,
+        echo_ranges: true,
+        multicast: true,
+    };
+    let Some(outcome) = run_team("m", &spec) else { return };
+    check_against_dead_reckoning(&outcome);
+    // One copy of each batch on the wire, whatever the team size: the budget's multicast figure
+    // (packed, 10 epochs a second at 10x, the heartbeat at 1 Hz of wall time), not the unicast
+    // one (two copies). Each node's figure with the ranges its own radio measures (the
+    // simulator gives each pair's range to one of the two).
+    let world = World::new(&Scenario::from_toml_str(PAPER_TOML).unwrap()).unwrap();
+    let (_, first) = world.ranges("1hz", 1, 0).unwrap().into_iter().next().unwrap();
+    for (k, m) in outcome.measured_bytes_per_s.iter().enumerate() {
+        let id = outcome.finals[k].0;
+        let shape = TeamShape {
+            team: 3,
+            state_dim: 16,
+            ranges_per_node: first.iter().filter(|r| r.from == id).count(),
+            epoch_hz: f64::from(spec.speed),
+            encoding: spec.encoding,
+            signed: true,
+            echo_ranges: spec.echo_ranges,
+        };
+        let frames = budget::epoch_frames(&shape).unwrap();
+        let r = budget::rates(&shape, &frames, Medium::IpBroadcast { packed: true });
+        let expected = r.node_bytes_per_s + ETHERNET * r.node_datagrams_per_s;
+        let unicast = budget::rates(&shape, &frames, Medium::IpUnicast { packed: true });
+        let unicast = unicast.node_bytes_per_s + ETHERNET * unicast.node_datagrams_per_s;
+        eprintln!(
+            "node {id} ({} ranges): measured {m:.0} B/s, multicast budget {expected:.0} B/s ({:+.1}%), unicast would be {unicast:.0}",
+            shape.ranges_per_node,
+            100.0 * (m / expected - 1.0)
+        );
+        assert!((m / expected - 1.0).abs() <= 0.05, "node {id}: measured {m:.0} B/s against the budget's {expected:.0}");
+    }
 }

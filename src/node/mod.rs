@@ -6,10 +6,12 @@
 //! | [`profile`] | the vehicle profile (`--vehicle-config`): sensor figures, which messages to read, what to send back |
 //! | [`inputs`] | what an autopilot sends (ArduPilot, PX4, the simulator), as the core's samples in the team's clock |
 //! | [`autopilot`] | rate requests (SET_MESSAGE_INTERVAL) and the estimate fed back as ODOMETRY |
+//! | [`coop_link`] | the cooperative link: UDP (packed datagrams, unicast peers, a multicast group) or a serial radio |
 //! | [`peers`] | where the cooperative traffic goes: given peers, team members, a few ground stations, bounded and expiring |
 //! | [`runner`] | the tokio runner that owns the sockets and the clock |
 //! | [`vehicle_link`] | the MAVLink connection to the vehicle (UDP, TCP, serial) |
 pub mod autopilot;
+pub mod coop_link;
 pub mod core;
 pub mod inputs;
 pub mod peers;

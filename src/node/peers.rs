@@ -10,6 +10,10 @@
 //!   for an old one, so a flood of heartbeats from many ports cannot take the slots of the
 //!   ground station already listening.
 //! - Learned addresses silent for [`PeerTable::expiry_us`] are forgotten.
+//! - **On a multicast group** a learned member or observer whose frames came through the group
+//!   ([`PeerTable::heard_on_group`]) hears the group too: it is not also sent to by unicast (one
+//!   copy per frame on the LAN), until it has been silent on the group for the expiry. Given
+//!   peers are always sent to.
 //!
 //! So a frame sent to a node makes it send to at most `team - 1 + MAX_OBSERVERS + given`
 //! addresses, and a stranger can make it send nothing it would not send anyway.
@@ -67,6 +71,8 @@ pub struct PeerTable {
     own: PlatformId,
     members: BTreeMap<PlatformId, (SocketAddr, u64)>,
     observers: BTreeMap<SocketAddr, u64>,
+    /// Learned addresses heard on the multicast group, and when last.
+    on_group: BTreeMap<SocketAddr, u64>,
     pub expiry_us: u64,
     pub counters: PeerCounters,
 }
@@ -83,6 +89,7 @@ impl PeerTable {
             own,
             members: BTreeMap::new(),
             observers: BTreeMap::new(),
+            on_group: BTreeMap::new(),
             expiry_us: PEER_EXPIRY_US,
             counters: PeerCounters::default(),
         }
@@ -134,6 +141,15 @@ impl PeerTable {
         }
     }
 
+    /// The frame just [`heard`](Self::heard) from `addr` came through the multicast group:
+    /// a learned address that hears the group is not sent to by unicast.
+    pub fn heard_on_group(&mut self, addr: SocketAddr, now_us: u64) {
+        let learned = self.members.values().any(|(a, _)| *a == addr) || self.observers.contains_key(&addr);
+        if learned {
+            self.on_group.insert(addr, now_us);
+        }
+    }
+
     /// Forgets learned addresses silent for longer than the expiry.
     pub fn expire(&mut self, now_us: u64) {
         let expiry = self.expiry_us;
@@ -142,13 +158,16 @@ impl PeerTable {
         self.members.retain(|_, (_, at)| fresh(*at));
         self.observers.retain(|_, at| fresh(*at));
         self.counters.expired += (before - self.members.len() - self.observers.len()) as u64;
+        let (members, observers) = (&self.members, &self.observers);
+        self.on_group.retain(|a, at| fresh(*at) && (members.values().any(|(m, _)| m == a) || observers.contains_key(a)));
     }
 
-    /// Every address to send to, each once: given, members, observers.
+    /// Every address to send to by unicast, each once: given, members, observers (less the
+    /// learned ones that hear the multicast group).
     pub fn addresses(&self) -> Vec<SocketAddr> {
         let mut out = self.given.clone();
         for a in self.members.values().map(|(a, _)| *a).chain(self.observers.keys().copied()) {
-            if !out.contains(&a) {
+            if !out.contains(&a) && !self.on_group.contains_key(&a) {
                 out.push(a);
             }
         }
@@ -216,5 +235,29 @@ mod tests {
         assert_eq!(t.counters.expired, 2);
         // After expiry a flood's slots free up for a real ground station again.
         assert_eq!(t.heard(t.sender(255, true), addr(14550), PEER_EXPIRY_US + 2), Heard::New);
+    }
+
+    #[test]
+    fn peers_that_hear_the_group_get_no_unicast_copy_until_they_fall_silent_on_it() {
+        let mut t = table();
+        t.heard(t.sender(2, false), addr(5002), 0);
+        t.heard_on_group(addr(5002), 0);
+        t.heard(t.sender(3, false), addr(5003), 0); // only by unicast (another subnet)
+        t.heard(t.sender(255, true), addr(14550), 0);
+        t.heard_on_group(addr(14550), 0);
+        assert_eq!(t.addresses(), vec![addr(9000), addr(5003)], "the group carries 2 and the ground station");
+        // A stranger's address on the group is not remembered.
+        t.heard_on_group(addr(6666), 0);
+        assert!(!t.on_group.contains_key(&addr(6666)));
+        // Given peers are sent to even when they hear the group.
+        t.heard(t.sender(2, false), addr(9000), 1);
+        t.heard_on_group(addr(9000), 1);
+        assert!(t.addresses().contains(&addr(9000)));
+        // 2 keeps talking by unicast only (its group membership broke): after the expiry it is
+        // sent to by unicast again.
+        t.heard(t.sender(2, false), addr(5002), 2);
+        t.heard(t.sender(2, false), addr(5002), PEER_EXPIRY_US + 10);
+        t.expire(PEER_EXPIRY_US + 10);
+        assert!(t.addresses().contains(&addr(5002)));
     }
 }

@@ -9,11 +9,14 @@
 //!   node sends HEARTBEAT (compid 191, ONBOARD_CONTROLLER) at 1 Hz, its rate requests
 //!   ([`super::autopilot`]), ODOMETRY at the profile's rate and, after every cooperative
 //!   update, LOCAL_POSITION_NED.
-//! - **Cooperative network**: one UDP socket. The node sends to every peer of its
+//! - **Cooperative network**: a [`super::coop_link::CoopLink`]: a UDP socket (with a multicast
+//!   group, optionally) or a serial radio. Each batch of outputs goes out as one call, packed
+//!   into few datagrams. Over UDP the node sends to the group and to every unicast peer of its
 //!   [`super::peers::PeerTable`]: those given on the command line, the last address of each team
 //!   member a valid frame came from (so a node can be started knowing only one peer, and tests
 //!   can use ephemeral ports) and a few ground stations that sent their HEARTBEAT; learned
-//!   addresses expire, strangers are never sent to.
+//!   addresses expire, strangers are never sent to, and those that hear the group get no
+//!   unicast copy.
 //! - Bad input (malformed frames, NaN or absurd values, time going backwards, unknown platforms)
 //!   is counted, logged and dropped; nothing from the network can panic the process.
 
@@ -21,10 +24,8 @@ use std::net::SocketAddr;
 use std::sync::Arc;
 use std::time::Duration;
 
-use mavlink_core::MavHeader;
-use tokio::net::UdpSocket;
-
 use super::autopilot::{GpsInputOutput, OdometryOutput, RateOutcome, RateRequest, RateRequests};
+use super::coop_link::{CoopLink, CoopSpec, Source};
 use super::core::{NodeConfig, NodeCore, NodeInput, NodeOutput, NodeStats};
 use super::inputs::{InputCounters, VehicleEvent, VehicleInputs};
 use super::peers::{Heard, PeerCounters, PeerTable};
@@ -39,6 +40,7 @@ use crate::protocol::signing::{Signer, SigningCounters, TeamKey, Verifier};
 use crate::protocol::wire;
 use crate::recording::{Direction, Link, Recorder, wall_now_ns};
 use crate::time::TimeUs;
+use mavlink_core::MavHeader;
 
 /// MAVLink component id of a companion computer.
 pub const COMPANION_COMPID: u8 = 191;
@@ -170,8 +172,9 @@ pub fn state_from_sim_state(m: &SIM_STATE_DATA, origin: &wire::GeoOrigin) -> any
 pub struct Links {
     /// MAVLink URL of the vehicle.
     pub vehicle: String,
-    /// Local address of the cooperative-network socket (port 0: ephemeral).
-    pub coop_bind: SocketAddr,
+    /// The cooperative link: a UDP socket's local address (port 0: ephemeral), its multicast
+    /// group and datagram size, or a serial radio.
+    pub coop: CoopSpec,
     /// Peers known from the start.
     pub peers: Vec<SocketAddr>,
     /// Stop when the vehicle has been silent this long (after its first frame): the stream
@@ -234,6 +237,8 @@ pub struct CoopTx {
     /// Datagrams sent (a frame goes to each peer) and their payload bytes.
     pub datagrams: u64,
     pub bytes: u64,
+    /// Batches a serial radio could not take (its write queue was full).
+    pub dropped: u64,
 }
 
 struct Sequences {
@@ -285,7 +290,7 @@ struct VehicleOutputs<'a> {
 
 #[allow(clippy::too_many_arguments)]
 async fn send_all(
-    coop: &UdpSocket,
+    coop: &CoopLink,
     peers: &PeerTable,
     vehicle: &VehicleLink,
     seqs: &mut Sequences,
@@ -294,12 +299,13 @@ async fn send_all(
     sysid: u8,
     vout: &VehicleOutputs<'_>,
 ) {
-    let addresses = peers.addresses();
+    let mut frames = Vec::new();
     for output in outputs {
         match output {
             NodeOutput::ToPeers(msg) => {
                 let frame = seqs.coop_frame(&msg);
                 record_frame(rec, Link::Coop(sysid), Direction::Tx, &frame);
+                frames.push(frame);
                 if let MavMessage::COOPLOC_ESTIMATE(m) = &msg
                     && vout.local_position_ned
                     && let Ok(e) = wire::estimate_from_message(m)
@@ -320,7 +326,6 @@ async fn send_all(
                     };
                     let _ = r.estimate(e.platform, wall_now_ns(), &est);
                 }
-                send_to_peers(coop, &addresses, &frame, &mut seqs.tx).await;
             }
             NodeOutput::Update(u) => {
                 if let Some(r) = rec
@@ -331,16 +336,19 @@ async fn send_all(
             }
         }
     }
+    send_to_peers(coop, peers, &frames, &mut seqs.tx).await;
 }
 
-/// Sends one cooperative frame to every peer, counting what went out.
-async fn send_to_peers(coop: &UdpSocket, addresses: &[SocketAddr], frame: &[u8], tx: &mut CoopTx) {
-    for p in addresses {
-        if coop.send_to(frame, p).await.is_ok() {
-            tx.datagrams += 1;
-            tx.bytes += frame.len() as u64;
-        }
-    }
+/// Sends cooperative frames (in order) to the group and every unicast peer, or onto the radio,
+/// counting what went out.
+async fn send_to_peers(coop: &CoopLink, peers: &PeerTable, frames: &[Vec<u8>], tx: &mut CoopTx) {
+    let unicast = match coop {
+        CoopLink::Udp { .. } => peers.addresses(),
+        CoopLink::Serial { .. } => Vec::new(),
+    };
+    let sent = coop.send(frames, &unicast).await;
+    tx.datagrams += sent.datagrams;
+    tx.bytes += sent.bytes;
 }
 
 fn heartbeat() -> MavMessage {
@@ -355,18 +363,13 @@ const COOP_RECV_BUFFER: usize = 4 << 20;
 /// Ticks come every 25 ms; a gap this long between two means the process itself was frozen.
 const FROZEN_TICK_GAP: Duration = Duration::from_millis(500);
 
-/// Binds the cooperative-network socket with a large receive buffer.
-pub fn bind_coop(addr: SocketAddr) -> std::io::Result<UdpSocket> {
-    super::vehicle_link::bind_udp(addr, COOP_RECV_BUFFER)
-}
-
 /// Runs a node until `shutdown` resolves or the vehicle link fails. `bound` receives the
-/// cooperative socket's local address once it is bound.
+/// cooperative socket's local address once it is bound (None: a serial radio).
 pub async fn run(
     init: NodeInit,
     links: Links,
     recorder: Option<SharedRecorder>,
-    bound: tokio::sync::oneshot::Sender<SocketAddr>,
+    bound: tokio::sync::oneshot::Sender<Option<SocketAddr>>,
     shutdown: impl std::future::Future<Output = ()>,
 ) -> anyhow::Result<NodeSummary> {
     use anyhow::Context as _;
@@ -393,10 +396,9 @@ pub async fn run(
     if let Some(granted) = vehicle.recv_buffer() {
         tracing::info!(platform = id, bytes = granted, "vehicle socket receive buffer");
     }
-    let coop = bind_coop(links.coop_bind).with_context(|| format!("binding the cooperative socket {}", links.coop_bind))?;
-    let local = coop.local_addr()?;
-    let _ = bound.send(local);
-    tracing::info!(platform = id, vehicle = %links.vehicle, coop = %local, "node started");
+    let coop = CoopLink::open(&links.coop, COOP_RECV_BUFFER).await?;
+    let _ = bound.send(coop.local_addr());
+    tracing::info!(platform = id, vehicle = %links.vehicle, coop = %coop.describe(), "node started");
     let mut peers = PeerTable::new(id, &team, &links.peers);
     let mut decoder = links.profile.decoder();
     let mut rates = RateRequests::new(&links.profile, sysid);
@@ -442,7 +444,7 @@ pub async fn run(
     let mut last_tick = tokio::time::Instant::now();
     let mut heard_vehicle = false;
     let mut ending: Option<tokio::time::Instant> = None;
-    let mut buf = vec![0u8; 2048];
+    let mut buf = vec![0u8; 65_536];
     tokio::pin!(shutdown);
     // Announce ourselves to the vehicle at once (a udpin peer learns our address from it).
     vehicle.send(&seqs.vehicle(), &heartbeat()).await;
@@ -494,7 +496,7 @@ pub async fn run(
                 vehicle.send(&seqs.vehicle(), &hb).await;
                 let frame = seqs.coop_frame(&hb);
                 peers.expire(wall_us());
-                send_to_peers(&coop, &peers.addresses(), &frame, &mut seqs.tx).await;
+                send_to_peers(&coop, &peers, &[frame], &mut seqs.tx).await;
                 continue;
             }
             frame = vrx.recv() => {
@@ -589,8 +591,15 @@ pub async fn run(
                 }
                 inputs
             }
-            r = coop.recv_from(&mut buf) => {
-                let Ok((n, from)) = r else { continue };
+            r = coop.recv(&mut buf) => {
+                let (n, from) = match r {
+                    Ok(got) => got,
+                    Err(e) if e.kind() == std::io::ErrorKind::BrokenPipe => anyhow::bail!("{e}"),
+                    Err(_) => continue,
+                };
+                if n == 0 && from == Source::Radio {
+                    continue; // no whole frame in these bytes yet
+                }
                 summary_counts.2 += 1;
                 let frames = match &mut verifier {
                     // only what the team key signed is logged and taken (a replay sees the same)
@@ -626,11 +635,16 @@ pub async fn run(
                         continue; // our own traffic, looped back
                     }
                     let gcs = matches!(&msg, MavMessage::HEARTBEAT(hb) if hb.mavtype == MavType::MAV_TYPE_GCS);
-                    match peers.heard(peers.sender(header.system_id, gcs), from, wall_us()) {
-                        Heard::New => tracing::info!(platform = id, peer = %from, sysid = header.system_id, "new peer"),
-                        Heard::Moved => tracing::info!(platform = id, peer = %from, sysid = header.system_id, "peer moved"),
-                        Heard::Refused => tracing::debug!(platform = id, peer = %from, "ground station refused: observer table full"),
-                        Heard::Known | Heard::Ignored => {}
+                    if let Some(addr) = from.addr() {
+                        match peers.heard(peers.sender(header.system_id, gcs), addr, wall_us()) {
+                            Heard::New => tracing::info!(platform = id, peer = %from, sysid = header.system_id, "new peer"),
+                            Heard::Moved => tracing::info!(platform = id, peer = %from, sysid = header.system_id, "peer moved"),
+                            Heard::Refused => tracing::debug!(platform = id, peer = %from, "ground station refused: observer table full"),
+                            Heard::Known | Heard::Ignored => {}
+                        }
+                        if matches!(from, Source::Group(_)) {
+                            peers.heard_on_group(addr, wall_us());
+                        }
                     }
                     let Ok(from) = PlatformId::try_from(header.system_id) else { continue };
                     inputs.push(NodeInput::Peer { from, msg: Box::new(msg) });
@@ -686,7 +700,7 @@ pub async fn run(
         coop_signing: verifier.map(|v| v.counters).unwrap_or_default(),
         peers: peers.addresses(),
         peer_counters: peers.counters,
-        coop_tx: seqs.tx,
+        coop_tx: CoopTx { dropped: coop.dropped(), ..seqs.tx },
         wall_s: clock.elapsed().as_secs_f64(),
         inputs: decoder.counters.clone(),
         imu_rate_hz: decoder.imu_rate_hz(),

@@ -15,8 +15,9 @@
 //! whole team, so the channel carries the sum of what the nodes send. With **unicast** IP each
 //! frame goes to every peer: a node sends `team - 1` copies (and the air of a shared Wi-Fi cell
 //! carries them all). IP adds 28 bytes (IPv4 and UDP headers) per datagram: one frame per
-//! datagram, or a whole epoch's frames packed into datagrams of at most 1,472 bytes (Ethernet's
-//! MTU less the headers).
+//! datagram, or (what `cooploc node` does) each batch of frames the node sends at once packed
+//! into datagrams of at most 1,472 bytes (Ethernet's MTU less the headers) by [`pack`]: the
+//! record's fragments, each range echo, the epoch report with the estimate.
 
 use nalgebra::{DMatrix, Vector3};
 
@@ -54,8 +55,10 @@ pub struct EpochFrames {
     pub record_bytes: usize,
     pub kinds: Vec<(&'static str, usize, usize)>,
     pub heartbeat_bytes: usize,
-    /// Frame sizes of one epoch, in sending order (for packing into datagrams).
-    pub sizes: Vec<usize>,
+    /// Frame sizes of one epoch in the batches the node sends them in (each batch packed into
+    /// datagrams of its own): the record's fragments, each echoed range as it is measured, the
+    /// epoch's report with the estimate after the update.
+    pub batches: Vec<Vec<usize>>,
 }
 
 impl EpochFrames {
@@ -64,6 +67,10 @@ impl EpochFrames {
     }
     pub fn bytes(&self) -> usize {
         self.kinds.iter().map(|k| k.2).sum()
+    }
+    /// Datagrams of one epoch, packed (each batch on its own) or one frame each.
+    pub fn datagrams(&self, packed: bool) -> usize {
+        self.batches.iter().map(|b| datagrams(b, packed)).sum()
     }
 }
 
@@ -157,11 +164,11 @@ pub fn epoch_frames(shape: &TeamShape) -> Result<EpochFrames, String> {
     let rec = sample_record(shape);
     let bytes = encode_record(&rec, shape.encoding).map_err(|e| e.to_string())?;
     let frags = fragment(1, 1000, 1_000_000_000, &bytes).map_err(|e| e.to_string())?;
-    let mut sizes = Vec::new();
+    let mut record_sizes = Vec::new();
     for f in &frags {
-        sizes.push(frame(&wire::fragment_to_message(f).map_err(|e| e.to_string())?));
+        record_sizes.push(frame(&wire::fragment_to_message(f).map_err(|e| e.to_string())?));
     }
-    let record_frames = (frags.len(), sizes.iter().sum());
+    let record_frames = (frags.len(), record_sizes.iter().sum());
     let participants: Vec<PlatformId> = (1..=shape.team.min(wire::MAX_PARTICIPANTS) as PlatformId).collect();
     let report = EpochAnnouncement {
         epoch: 1000,
@@ -192,9 +199,9 @@ pub fn epoch_frames(shape: &TeamShape) -> Result<EpochFrames, String> {
         super::dialect::cooploc::MavType::MAV_TYPE_ONBOARD_CONTROLLER,
         super::dialect::cooploc::MavAutopilot::MAV_AUTOPILOT_INVALID,
     ));
-    sizes.extend(range_sizes.iter().copied());
-    sizes.push(epoch);
-    sizes.push(estimate);
+    let mut batches = vec![record_sizes];
+    batches.extend(range_sizes.iter().map(|&r| vec![r]));
+    batches.push(vec![epoch, estimate]);
     Ok(EpochFrames {
         record_bytes: bytes.len(),
         kinds: vec![
@@ -204,25 +211,38 @@ pub fn epoch_frames(shape: &TeamShape) -> Result<EpochFrames, String> {
             ("COOPLOC_ESTIMATE", 1, estimate),
         ],
         heartbeat_bytes: heartbeat,
-        sizes,
+        batches,
     })
 }
 
 /// Datagrams that carry `sizes` (frames in order), packed up to [`MAX_DATAGRAM`] bytes or one
-/// frame each.
+/// frame each: as many as [`pack`] makes.
 pub fn datagrams(sizes: &[usize], packed: bool) -> usize {
-    if !packed {
-        return sizes.len();
-    }
-    let (mut count, mut fill) = (0, usize::MAX);
-    for &s in sizes {
-        if fill.saturating_add(s) > MAX_DATAGRAM {
-            count += 1;
+    packing(sizes, if packed { MAX_DATAGRAM } else { 0 }).len()
+}
+
+/// Where each datagram of `sizes` packed up to `max` bytes starts (frames in order, each whole;
+/// a new datagram when the next frame would not fit; `max` 0: one frame each).
+fn packing(sizes: &[usize], max: usize) -> Vec<usize> {
+    let (mut starts, mut fill) = (Vec::new(), usize::MAX);
+    for (i, &s) in sizes.iter().enumerate() {
+        if fill.saturating_add(s) > max {
+            starts.push(i);
             fill = 0;
         }
         fill += s;
     }
-    count
+    starts
+}
+
+/// `frames` (in order) packed into datagrams of at most `max` bytes: the node's sending rule,
+/// the one [`datagrams`] counts. A frame is never split (a frame larger than `max` travels
+/// alone); `max` 0 sends one frame per datagram.
+pub fn pack(frames: &[Vec<u8>], max: usize) -> Vec<Vec<u8>> {
+    let sizes: Vec<usize> = frames.iter().map(Vec::len).collect();
+    let starts = packing(&sizes, max);
+    let ends = starts.iter().skip(1).copied().chain([frames.len()]);
+    starts.iter().zip(ends).map(|(&a, b)| frames[a..b].concat()).collect()
 }
 
 /// Bytes per second for `shape` on `medium`.
@@ -234,7 +254,7 @@ pub fn rates(shape: &TeamShape, frames: &EpochFrames, medium: Medium) -> Rates {
     let (dgrams, overhead) = match ip {
         None => (0.0, 0.0),
         Some(packed) => {
-            let d = datagrams(&frames.sizes, packed) as f64 * shape.epoch_hz + 1.0;
+            let d = frames.datagrams(packed) as f64 * shape.epoch_hz + 1.0;
             (d, d * IP_UDP_OVERHEAD as f64)
         }
     };
@@ -261,7 +281,7 @@ pub fn rates_with_loss(shape: &TeamShape, frames: &EpochFrames, medium: Medium, 
     let request_bytes = frames.kinds.iter().find(|k| k.0 == "COOPLOC_EPOCH").map_or(0, |k| k.2);
     let (copies, ip) = medium.copies_and_packing(shape.team);
     let record_datagrams = match ip {
-        Some(true) => datagrams(&frames.sizes[..record_frames], true),
+        Some(true) => datagrams(&frames.batches[0], true),
         _ => record_frames,
     };
     let resends = expected_resends(loss, record_datagrams, shape.team.saturating_sub(1)) * shape.epoch_hz;
