@@ -358,12 +358,14 @@ pub fn run_cmd(args: Args) -> anyhow::Result<()> {
         .map(|f| cooploc::protocol::budget::rates(&shape, &f, cooploc::protocol::budget::Medium::Radio).node_bytes_per_s)
         .unwrap_or(f64::NAN);
     println!(
-        "node {} coop_tx frames {} frame_bytes {} datagrams {} bytes {} wall_s {:.1}: {:.0} B/s a copy, {:.0} B/s sent; budget {:.0} B/s a copy at {:.2} epochs/s",
+        "node {} coop_tx frames {} frame_bytes {} datagrams {} bytes {} dropped {} rx_noise_bytes {} wall_s {:.1}: {:.0} B/s a copy, {:.0} B/s sent; budget {:.0} B/s a copy at {:.2} epochs/s",
         e.platform,
         tx.frames,
         tx.frame_bytes,
         tx.datagrams,
         tx.bytes,
+        tx.dropped,
+        summary.coop_noise_bytes,
         summary.wall_s,
         tx.frame_bytes as f64 / summary.wall_s.max(1e-9),
         tx.bytes as f64 / summary.wall_s.max(1e-9),

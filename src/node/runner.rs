@@ -205,6 +205,8 @@ pub struct NodeSummary {
     pub vehicle_lost: u64,
     pub coop_frames: u64,
     pub coop_rejected: u64,
+    /// Bytes of a serial radio's stream that were no valid frame (noise, damaged frames).
+    pub coop_noise_bytes: u64,
     /// What signing accepted and refused (unsigned, another key, replayed, stale; all zero without a team key).
     pub coop_signing: SigningCounters,
     pub peers: Vec<SocketAddr>,
@@ -697,6 +699,7 @@ pub async fn run(
         vehicle_lost,
         coop_frames: summary_counts.2,
         coop_rejected: summary_counts.3,
+        coop_noise_bytes: coop.noise_bytes(),
         coop_signing: verifier.map(|v| v.counters).unwrap_or_default(),
         peers: peers.addresses(),
         peer_counters: peers.counters,
