@@ -71,6 +71,12 @@ pub struct Args {
     /// are refused and counted. Without it the cooperative network is unauthenticated.
     #[arg(long, value_name = "FILE")]
     team_key: Option<PathBuf>,
+    /// Keep the signing timestamp in this file across restarts (read at start, written every
+    /// 5 s and at the end, 15 s of headroom): a companion without a real-time clock, or whose
+    /// clock stepped back, still signs above every timestamp it used and is not refused as a
+    /// replay. Only with --team-key.
+    #[arg(long, value_name = "FILE", requires = "team_key")]
+    signing_state: Option<PathBuf>,
     /// Scenario of a simulated run: the vehicle part without --vehicle-config, the team and
     /// --init-from-run.
     #[arg(long, default_value = "sitl/scenarios/paper.toml")]
@@ -280,6 +286,7 @@ pub fn run_cmd(args: Args) -> anyhow::Result<()> {
         grace: Duration::from_millis(500),
         profile: profile.clone(),
         team_key,
+        signing_state: args.signing_state.clone(),
     };
     let rt = tokio::runtime::Builder::new_multi_thread().worker_threads(2).enable_all().build()?;
     let runner_recorder = recorder.clone();

@@ -629,3 +629,59 @@ fn a_frozen_node_wakes_up_and_catches_up() {
     }
     drop(children);
 }
+
+/// `--signing-state`: a node keeps its signing timestamp in a file (above every timestamp it
+/// used, ahead of the clock by the headroom), written while it runs and when it stops; a file
+/// that is not a timestamp is refused at start, naming the file.
+#[test]
+fn a_node_keeps_its_signing_timestamp_across_restarts() {
+    let dir = std::env::temp_dir().join(format!("cooploc-signing-state-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    let key = dir.join("team.key");
+    std::fs::write(&key, "a passphrase the team shares\n").unwrap();
+    let state = dir.join("signing.state");
+    let node = |state: &std::path::Path| {
+        let mut node = bin();
+        node.args(["node", "--id", "2", "--vehicle", "udpout:127.0.0.1:9", "--init-from-run", "1:0", "--team-key"]);
+        node.arg(&key).arg("--signing-state").arg(state);
+        node
+    };
+    let now_ts = || {
+        let us = std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).unwrap().as_micros() as u64;
+        cooploc::protocol::signing::timestamp_of(us)
+    };
+    let read = || cooploc::protocol::signing::parse_state(&std::fs::read_to_string(&state).unwrap()).unwrap();
+    let started = now_ts();
+    let (child, out) = spawn_lines(node(&state));
+    let mut children = Kill(vec![child]);
+    wait_line(&out, "node 2 coop udp ", Duration::from_secs(30));
+    // Written at the first heartbeat, while it runs.
+    let deadline = std::time::Instant::now() + Duration::from_secs(10);
+    while !state.exists() && std::time::Instant::now() < deadline {
+        std::thread::sleep(Duration::from_millis(50));
+    }
+    let first = read();
+    assert!(first > started + cooploc::protocol::signing::STATE_HEADROOM, "{first} against the clock's {started}");
+    assert!(first < now_ts() + cooploc::protocol::signing::STATE_HEADROOM + 100_000, "{first}: more headroom than asked");
+    let pid = children.0[0].id().to_string();
+    assert!(Command::new("kill").args(["-INT", &pid]).status().unwrap().success());
+    let _ = children.0[0].wait();
+    let last = read();
+    assert!(last >= first, "the state never goes back: {last} after {first}");
+    // A second run starts above it: its state is higher again.
+    let (child, out) = spawn_lines(node(&state));
+    children.0.push(child);
+    wait_line(&out, "node 2 coop udp ", Duration::from_secs(30));
+    std::thread::sleep(Duration::from_millis(300));
+    let pid = children.0[1].id().to_string();
+    assert!(Command::new("kill").args(["-INT", &pid]).status().unwrap().success());
+    let _ = children.0[1].wait();
+    assert!(read() > last, "the restarted node signs above its saved timestamp");
+    // Garbage is refused, naming the file.
+    let bad = dir.join("bad.state");
+    std::fs::write(&bad, "yesterday\n").unwrap();
+    let out = node(&bad).output().unwrap();
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(!out.status.success() && err.contains("bad.state") && err.contains("yesterday"), "{err}");
+    let _ = std::fs::remove_dir_all(&dir);
+}

@@ -187,6 +187,31 @@ pub struct Links {
     /// The team's signing key: every cooperative frame sent is signed with it, and only frames
     /// signed with it are taken (see [`crate::protocol::signing`]). None: unsigned, as before.
     pub team_key: Option<TeamKey>,
+    /// Where the signing timestamp is kept across restarts (read at start, written every
+    /// [`SIGNING_STATE_EVERY`] and at the end): a node whose clock is behind after a reboot
+    /// still signs above every timestamp it used, so its peers do not take it for a replay.
+    pub signing_state: Option<std::path::PathBuf>,
+}
+
+/// How often the signing state file is written (heartbeats).
+pub const SIGNING_STATE_EVERY: u32 = 5;
+
+/// Reads a signing state file: 0 when it does not exist yet.
+pub fn load_signing_state(path: &std::path::Path) -> anyhow::Result<u64> {
+    match std::fs::read_to_string(path) {
+        Ok(text) => {
+            crate::protocol::signing::parse_state(&text).map_err(|e| anyhow::anyhow!("signing state {}: {e}", path.display()))
+        }
+        Err(e) if e.kind() == std::io::ErrorKind::NotFound => Ok(0),
+        Err(e) => Err(anyhow::anyhow!("signing state {}: {e}", path.display())),
+    }
+}
+
+/// Writes a signing state file whole or not at all (a temporary file renamed over it).
+pub fn save_signing_state(path: &std::path::Path, signer: &Signer) -> std::io::Result<()> {
+    let tmp = path.with_extension("tmp");
+    std::fs::write(&tmp, crate::protocol::signing::state_text(signer))?;
+    std::fs::rename(&tmp, path)
 }
 
 /// What a node did, when it stops.
@@ -436,7 +461,18 @@ pub async fn run(
 
     // MAVLink numbers each link on its own: one sequence counter per link.
     // the link id is the node's system id: one signing stream per node
-    let signer = links.team_key.clone().map(|k| Signer::new(k, sysid, 0));
+    let resume_after = match (&links.team_key, &links.signing_state) {
+        (Some(_), Some(path)) => load_signing_state(path)?,
+        _ => 0,
+    };
+    let signer = links.team_key.clone().map(|k| Signer::new(k, sysid, resume_after));
+    let save_state = |seqs: &Sequences| {
+        if let (Some(path), Some(signer)) = (&links.signing_state, &seqs.signer)
+            && let Err(e) = save_signing_state(path, signer)
+        {
+            tracing::warn!(path = %path.display(), error = %e, "could not save the signing state");
+        }
+    };
     let mut verifier = links.team_key.clone().map(Verifier::new);
     let mut seqs = Sequences { tx: CoopTx::default(), sysid: u32::from(id), coop: 0, vehicle: 0, signer };
     let mut summary_counts = (0u64, 0u64, 0u64, 0u64);
@@ -499,6 +535,9 @@ pub async fn run(
                 let frame = seqs.coop_frame(&hb);
                 peers.expire(wall_us());
                 send_to_peers(&coop, &peers, &[frame], &mut seqs.tx).await;
+                if (beats / 40).is_multiple_of(SIGNING_STATE_EVERY) {
+                    save_state(&seqs);
+                }
                 continue;
             }
             frame = vrx.recv() => {
@@ -689,6 +728,7 @@ pub async fn run(
         .await;
     }
     reader.abort();
+    save_state(&seqs);
     Ok(NodeSummary {
         stats: core.as_ref().map(|c| c.stats.clone()).unwrap_or_default(),
         estimate: core.as_ref().map(NodeCore::estimate),

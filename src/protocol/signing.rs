@@ -154,6 +154,25 @@ pub struct Signer {
     last: u64,
 }
 
+/// Headroom written into a signing state file above the last timestamp used (15 s, 10 us units):
+/// the state is saved every few seconds, and a node that dies between two saves must still
+/// resume above every timestamp it sent.
+pub const STATE_HEADROOM: u64 = 1_500_000;
+
+/// The text of a signing state file: the timestamp a restarted signer must stay above.
+pub fn state_text(signer: &Signer) -> String {
+    format!("{}\n", signer.last_timestamp() + STATE_HEADROOM)
+}
+
+/// Reads a signing state file's text (as [`state_text`] wrote it).
+pub fn parse_state(text: &str) -> Result<u64, String> {
+    let t = text.trim();
+    t.parse::<u64>()
+        .ok()
+        .filter(|&v| v < 1 << 48)
+        .ok_or_else(|| format!("{t:?} is not a signing timestamp (a whole number below 2^48)"))
+}
+
 impl Signer {
     /// A signer on link `link_id` whose timestamps will be after `after` (the last one a previous
     /// run of this node used, so that a restart with a clock behind is not taken for a replay).

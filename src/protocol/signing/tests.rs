@@ -162,3 +162,34 @@ fn reordered_frames_are_accepted_once_and_replays_still_refused() {
     assert_eq!(v.datagram(&late, T0_US + 3_000_000).refused, vec![Refusal::Replayed]);
     assert_eq!(v.counters.replayed, 21);
 }
+
+/// A node whose clock stepped back across a restart (no RTC, a bad NTP step) resumes above its
+/// saved timestamp and is accepted; without the state its frames are refused as replays.
+#[test]
+fn a_restart_with_the_clock_behind_is_accepted_with_the_saved_state_only() {
+    let key = TeamKey::from_passphrase("team");
+    let mut verifier = Verifier::new(key.clone());
+    let (before, after) = (1_800_000_000_000_000u64, 1_800_000_000_000_000u64 - 30_000_000); // 30 s back
+    let mut first = Signer::new(key.clone(), 3, 0);
+    for k in 0..10 {
+        let f = first.frame(header(3), &heartbeat(), before + k * 100_000);
+        assert_eq!(verifier.datagram(&f, before + k * 100_000).frames.len(), 1);
+    }
+    let saved = parse_state(&state_text(&first)).unwrap();
+    assert!(saved > first.last_timestamp());
+    // Restarted without the state: the clock is 30 s behind the stream's last timestamp.
+    let mut forgetful = Signer::new(key.clone(), 3, 0);
+    let f = forgetful.frame(header(3), &heartbeat(), after);
+    assert_eq!(verifier.datagram(&f, before + 1_000_000).refused, vec![Refusal::Replayed]);
+    // Restarted from the state: every frame accepted, each once.
+    let mut resumed = Signer::new(key, 3, saved);
+    for k in 0..10 {
+        let f = resumed.frame(header(3), &heartbeat(), after + k * 100_000);
+        let got = verifier.datagram(&f, before + 1_000_000 + k * 100_000);
+        assert_eq!((got.frames.len(), got.refused.len()), (1, 0), "frame {k}");
+        assert_eq!(verifier.datagram(&f, before + 1_000_000 + k * 100_000).refused, vec![Refusal::Replayed]);
+    }
+    for bad in ["", "abc", "-5", "281474976710656"] {
+        assert!(parse_state(bad).unwrap_err().contains(bad), "{bad:?}");
+    }
+}
