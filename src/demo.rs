@@ -158,6 +158,7 @@ pub async fn run_demo(cfg: DemoConfig, ready: impl FnOnce(&DemoAddresses)) -> an
             profile: crate::node::profile::VehicleProfile::from_scenario_platform(&scenario, id),
             team_key: None,
             signing_state: None,
+            vehicle_key: None,
         };
         let (bound_tx, bound_rx) = tokio::sync::oneshot::channel();
         let mut stop = stop_rx.clone();

@@ -32,8 +32,9 @@ pub struct Args {
     #[arg(long, default_value = "127.0.0.1:0")]
     coop_bind: SocketAddr,
     /// Multicast on the cooperative network: on, off, or auto (on when --coop-bind is not a
-    /// loopback address: the plug-and-play LAN set-up, no --peer needed; a failed join is then
-    /// said and the node goes on with its unicast peers).
+    /// loopback address and no --peer is given: the plug-and-play LAN set-up; a failed join is
+    /// then said and the node goes on with the peers it learns). With `on`, given peers heard on
+    /// the group get no unicast copy; the others (another subnet) do.
     #[arg(long, default_value = "auto", value_parser = ["auto", "on", "off"])]
     multicast: String,
     /// The multicast group (GROUP:PORT).
@@ -77,6 +78,11 @@ pub struct Args {
     /// replay. Only with --team-key.
     #[arg(long, value_name = "FILE", requires = "team_key")]
     signing_state: Option<PathBuf>,
+    /// Sign the vehicle link with this key (the same file format as --team-key; MAVProxy's
+    /// `signing setup PASSPHRASE` on the autopilot's port): for an autopilot that refuses
+    /// unsigned frames. Every frame to the vehicle is signed, only signed frames are taken.
+    #[arg(long, value_name = "FILE")]
+    vehicle_key: Option<PathBuf>,
     /// Scenario of a simulated run: the vehicle part without --vehicle-config, the team and
     /// --init-from-run.
     #[arg(long, default_value = "sitl/scenarios/paper.toml")]
@@ -171,6 +177,10 @@ pub fn run_cmd(args: Args) -> anyhow::Result<()> {
         Some(path) => Some(cooploc::protocol::signing::TeamKey::from_file(path).context("--team-key")?),
         None => None,
     };
+    let vehicle_key = match &args.vehicle_key {
+        Some(path) => Some(cooploc::protocol::signing::TeamKey::from_file(path).context("--vehicle-key")?),
+        None => None,
+    };
     // The profile first: a bad one is refused before any socket opens.
     let profile = match &args.vehicle_config {
         Some(path) => VehicleProfile::from_path(path)?,
@@ -257,7 +267,7 @@ pub fn run_cmd(args: Args) -> anyhow::Result<()> {
         None => {
             let on = match args.multicast.as_str() {
                 "on" => Some(true),
-                "auto" if !args.coop_bind.ip().is_loopback() => Some(false),
+                "auto" if !args.coop_bind.ip().is_loopback() && args.peers.is_empty() => Some(false),
                 _ => None,
             };
             if on.is_some() && !args.coop_bind.is_ipv4() {
@@ -287,6 +297,7 @@ pub fn run_cmd(args: Args) -> anyhow::Result<()> {
         profile: profile.clone(),
         team_key,
         signing_state: args.signing_state.clone(),
+        vehicle_key,
     };
     let rt = tokio::runtime::Builder::new_multi_thread().worker_threads(2).enable_all().build()?;
     let runner_recorder = recorder.clone();
@@ -395,6 +406,12 @@ pub fn run_cmd(args: Args) -> anyhow::Result<()> {
         let c = &summary.coop_signing;
         println!(
             "node {} signing accepted {} unsigned {} bad_signature {} replayed {} stale {} malformed {}",
+            e.platform, c.accepted, c.unsigned, c.bad_signature, c.replayed, c.stale, c.malformed
+        );
+    }
+    if let Some(c) = &summary.vehicle_signing {
+        println!(
+            "node {} vehicle_signing accepted {} unsigned {} bad_signature {} replayed {} stale {} malformed {}",
             e.platform, c.accepted, c.unsigned, c.bad_signature, c.replayed, c.stale, c.malformed
         );
     }

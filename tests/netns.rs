@@ -161,6 +161,8 @@ struct LinkSpec {
     /// No relay and no --peer: the nodes find each other on the default multicast group (the
     /// LAN set-up), with the link's rate limit only.
     multicast: bool,
+    /// Pack each batch of frames into few datagrams (the default), or one frame per datagram.
+    packed: bool,
 }
 
 struct Outcome {
@@ -218,6 +220,9 @@ fn run_team(tag: &str, spec: &LinkSpec) -> Option<Outcome> {
         node.args(["--idle-exit-s", "3", "--init-time-us", &t0.0.to_string()]).arg("--team-key").arg(&key);
         if !spec.echo_ranges {
             node.arg("--no-range-echo");
+        }
+        if !spec.packed {
+            node.args(["--datagram-bytes", "0"]);
         }
         let v3 = |v: nalgebra::Vector3<f64>| format!("{:.17e},{:.17e},{:.17e}", v[0], v[1], v[2]);
         node.arg(format!("--init-ned={}", v3(state.pos_ned_m)));
@@ -300,13 +305,15 @@ fn a_radio_like_link_carries_the_paper_scenario_within_its_byte_budget() {
         timeout_ms: 3000,
         echo_ranges: false,
         multicast: false,
+        packed: false,
     };
     let Some(outcome) = run_team("r", &spec) else { return };
     eprintln!("relay: {}", outcome.relay);
     check_against_dead_reckoning(&outcome);
     // The budget: three 16-state nodes, two ranges each per epoch, 1 Hz, compact, signed, each
-    // batch packed into datagrams sent to each of two peers (through the relay), with the
-    // resends that 2% loss costs; plus the Ethernet header the interface counts.
+    // frame in its own datagram (as on a radio, which has no IP packing) to each of two peers
+    // (through the relay), with the resends that 2% loss costs; plus the Ethernet header the
+    // interface counts.
     let shape = TeamShape {
         team: 3,
         state_dim: 16,
@@ -317,7 +324,7 @@ fn a_radio_like_link_carries_the_paper_scenario_within_its_byte_budget() {
         echo_ranges: spec.echo_ranges,
     };
     let frames = budget::epoch_frames(&shape).unwrap();
-    let medium = Medium::IpUnicast { packed: true };
+    let medium = Medium::IpUnicast { packed: spec.packed };
     let r = budget::rates_with_loss(&shape, &frames, medium, spec.loss);
     let expected = r.node_bytes_per_s + ETHERNET * r.node_datagrams_per_s;
     for (k, m) in outcome.measured_bytes_per_s.iter().enumerate() {
@@ -342,6 +349,7 @@ fn a_wifi_like_link_runs_the_team_at_20x() {
         timeout_ms: 2000,
         echo_ranges: true,
         multicast: false,
+        packed: true,
     };
     let Some(outcome) = run_team("w", &spec) else { return };
     eprintln!("relay: {}", outcome.relay);
@@ -364,6 +372,7 @@ fn nodes_given_no_peers_find_each_other_on_the_multicast_group_and_send_each_fra
         timeout_ms: 2000,
         echo_ranges: true,
         multicast: true,
+        packed: true,
     };
     let Some(outcome) = run_team("m", &spec) else { return };
     check_against_dead_reckoning(&outcome);

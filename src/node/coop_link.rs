@@ -10,7 +10,8 @@
 //!   every frame goes once to the group (a radio-like medium: one copy per frame, whatever the
 //!   team size), with a TTL (1: this subnet) and an interface. Loopback is on so several nodes of
 //!   one machine hear each other. A peer heard on the group is not also sent to by unicast (see
-//!   [`super::peers::PeerTable`]); given peers always are (another subnet, a routed link).
+//!   [`super::peers::PeerTable`]); a given peer never heard there (another subnet, a routed link)
+//!   always is.
 //! - **Serial** ([`CoopLink::Serial`]): a telemetry radio's serial port (`PATH:BAUD`), a byte
 //!   stream shared by the team (a multipoint SiK or mesh firmware). Frames are written as they
 //!   are (no packing, no addresses); what comes in is cut back into frames by a

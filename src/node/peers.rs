@@ -10,10 +10,10 @@
 //!   for an old one, so a flood of heartbeats from many ports cannot take the slots of the
 //!   ground station already listening.
 //! - Learned addresses silent for [`PeerTable::expiry_us`] are forgotten.
-//! - **On a multicast group** a learned member or observer whose frames came through the group
+//! - **On a multicast group** an address whose frames came through the group
 //!   ([`PeerTable::heard_on_group`]) hears the group too: it is not also sent to by unicast (one
-//!   copy per frame on the LAN), until it has been silent on the group for the expiry. Given
-//!   peers are always sent to.
+//!   copy per frame on the LAN), until it has been silent on the group for the expiry. A given
+//!   peer that is never heard on the group (another subnet) is always sent to.
 //!
 //! So a frame sent to a node makes it send to at most `team - 1 + MAX_OBSERVERS + given`
 //! addresses, and a stranger can make it send nothing it would not send anyway.
@@ -142,10 +142,9 @@ impl PeerTable {
     }
 
     /// The frame just [`heard`](Self::heard) from `addr` came through the multicast group:
-    /// a learned address that hears the group is not sent to by unicast.
+    /// a peer that hears the group is not sent to by unicast.
     pub fn heard_on_group(&mut self, addr: SocketAddr, now_us: u64) {
-        let learned = self.members.values().any(|(a, _)| *a == addr) || self.observers.contains_key(&addr);
-        if learned {
+        if self.known(&addr) {
             self.on_group.insert(addr, now_us);
         }
     }
@@ -158,15 +157,20 @@ impl PeerTable {
         self.members.retain(|_, (_, at)| fresh(*at));
         self.observers.retain(|_, at| fresh(*at));
         self.counters.expired += (before - self.members.len() - self.observers.len()) as u64;
-        let (members, observers) = (&self.members, &self.observers);
-        self.on_group.retain(|a, at| fresh(*at) && (members.values().any(|(m, _)| m == a) || observers.contains_key(a)));
+        let on_group = std::mem::take(&mut self.on_group);
+        self.on_group = on_group.into_iter().filter(|(a, at)| fresh(*at) && self.known(a)).collect();
     }
 
-    /// Every address to send to by unicast, each once: given, members, observers (less the
-    /// learned ones that hear the multicast group).
+    /// A given, member or observer address.
+    fn known(&self, addr: &SocketAddr) -> bool {
+        self.given.contains(addr) || self.members.values().any(|(a, _)| a == addr) || self.observers.contains_key(addr)
+    }
+
+    /// Every address to send to by unicast, each once: given, members, observers, less those
+    /// that hear the multicast group.
     pub fn addresses(&self) -> Vec<SocketAddr> {
-        let mut out = self.given.clone();
-        for a in self.members.values().map(|(a, _)| *a).chain(self.observers.keys().copied()) {
+        let mut out = Vec::new();
+        for a in self.given.iter().copied().chain(self.members.values().map(|(a, _)| *a)).chain(self.observers.keys().copied()) {
             if !out.contains(&a) && !self.on_group.contains_key(&a) {
                 out.push(a);
             }
@@ -249,15 +253,16 @@ mod tests {
         // A stranger's address on the group is not remembered.
         t.heard_on_group(addr(6666), 0);
         assert!(!t.on_group.contains_key(&addr(6666)));
-        // Given peers are sent to even when they hear the group.
+        // A given peer heard on the group gets no unicast copy either.
         t.heard(t.sender(2, false), addr(9000), 1);
         t.heard_on_group(addr(9000), 1);
-        assert!(t.addresses().contains(&addr(9000)));
+        assert!(!t.addresses().contains(&addr(9000)));
         // 2 keeps talking by unicast only (its group membership broke): after the expiry it is
         // sent to by unicast again.
         t.heard(t.sender(2, false), addr(5002), 2);
         t.heard(t.sender(2, false), addr(5002), PEER_EXPIRY_US + 10);
         t.expire(PEER_EXPIRY_US + 10);
         assert!(t.addresses().contains(&addr(5002)));
+        assert!(t.addresses().contains(&addr(9000)), "silent on the group: the given peer is sent to again");
     }
 }

@@ -191,6 +191,8 @@ pub struct Links {
     /// [`SIGNING_STATE_EVERY`] and at the end): a node whose clock is behind after a reboot
     /// still signs above every timestamp it used, so its peers do not take it for a replay.
     pub signing_state: Option<std::path::PathBuf>,
+    /// The vehicle link's signing key (the autopilot's), when its port is signed.
+    pub vehicle_key: Option<TeamKey>,
 }
 
 /// How often the signing state file is written (heartbeats).
@@ -234,6 +236,8 @@ pub struct NodeSummary {
     pub coop_noise_bytes: u64,
     /// What signing accepted and refused (unsigned, another key, replayed, stale; all zero without a team key).
     pub coop_signing: SigningCounters,
+    /// What signing accepted and refused on a signed UDP vehicle link.
+    pub vehicle_signing: Option<SigningCounters>,
     pub peers: Vec<SocketAddr>,
     /// Peers learned, moved, expired and ground stations refused (table full).
     pub peer_counters: PeerCounters,
@@ -332,6 +336,17 @@ async fn send_all(
             NodeOutput::ToPeers(msg) => {
                 let frame = seqs.coop_frame(&msg);
                 record_frame(rec, Link::Coop(sysid), Direction::Tx, &frame);
+                // A record's first fragment goes alone, ahead of the rest: it makes the epoch
+                // known to a node that measured no range, before the whole record has crossed
+                // a slow link (budget::epoch_frames counts it so).
+                if let MavMessage::COOPLOC_STATE_FRAGMENT(f) = &msg
+                    && f.frag_index == 0
+                    && f.frag_count > 1
+                {
+                    send_to_peers(coop, peers, &std::mem::take(&mut frames), &mut seqs.tx).await;
+                    send_to_peers(coop, peers, &[frame], &mut seqs.tx).await;
+                    continue;
+                }
                 frames.push(frame);
                 if let MavMessage::COOPLOC_ESTIMATE(m) = &msg
                     && vout.local_position_ned
@@ -417,9 +432,12 @@ pub async fn run(
     let (mut last_vehicle_seq, mut vehicle_lost): (Option<u8>, u64) = (None, 0);
     let clock = std::time::Instant::now();
     let wall_us = move || clock.elapsed().as_micros() as u64;
-    let vehicle = Arc::new(
-        VehicleLink::open(&links.vehicle).await.with_context(|| format!("connecting to the vehicle at {}", links.vehicle))?,
-    );
+    let mut vehicle =
+        VehicleLink::open(&links.vehicle).await.with_context(|| format!("connecting to the vehicle at {}", links.vehicle))?;
+    if let Some(key) = &links.vehicle_key {
+        vehicle.sign(key, sysid);
+    }
+    let vehicle = Arc::new(vehicle);
     if let Some(granted) = vehicle.recv_buffer() {
         tracing::info!(platform = id, bytes = granted, "vehicle socket receive buffer");
     }
@@ -741,6 +759,7 @@ pub async fn run(
         coop_rejected: summary_counts.3,
         coop_noise_bytes: coop.noise_bytes(),
         coop_signing: verifier.map(|v| v.counters).unwrap_or_default(),
+        vehicle_signing: vehicle.signing_counters(),
         peers: peers.addresses(),
         peer_counters: peers.counters,
         coop_tx: CoopTx { dropped: coop.dropped(), ..seqs.tx },

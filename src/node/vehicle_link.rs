@@ -7,6 +7,12 @@
 //!
 //! Frames lost all the same are seen as gaps in the vehicle's MAVLink sequence numbers (the
 //! runner counts them) and bridged by the core.
+//!
+//! **Signing** ([`VehicleLink::sign`], `cooploc node --vehicle-key`): for an autopilot with
+//! MAVLink 2 signing on the node's port (ArduPilot refuses unsigned frames there once a key is
+//! set). Every frame the node sends is signed; only frames signed with the key are taken, the
+//! others are refused and counted. UDP links use [`crate::protocol::signing`] (with its
+//! reordering window); stream links the mavlink crate's own signing (a stream does not reorder).
 
 use std::net::SocketAddr;
 use std::sync::Mutex;
@@ -15,6 +21,7 @@ use mavlink_core::{AsyncMavConnection, MavHeader};
 use tokio::net::UdpSocket;
 
 use crate::protocol::MavMessage;
+use crate::protocol::signing::{Signer, SigningCounters, TeamKey, Verifier};
 use crate::protocol::wire;
 
 /// Receive buffer asked for a UDP vehicle link (the kernel caps it at net.core.rmem_max; the
@@ -28,7 +35,7 @@ pub type Received = (MavHeader, MavMessage, Vec<u8>);
 pub enum VehicleLink {
     /// Our own UDP socket. `udpin`: bound to the address, replies go to whoever sent last.
     /// `udpout`: bound to an ephemeral port, sends to the address.
-    Udp { socket: UdpSocket, peer: Mutex<Option<SocketAddr>>, learn_peer: bool },
+    Udp { socket: UdpSocket, peer: Mutex<Option<SocketAddr>>, learn_peer: bool, signing: Option<Box<Mutex<(Signer, Verifier)>>> },
     /// Anything else, through the mavlink crate.
     Crate(Box<mavlink_core::AsyncConnection<MavMessage>>),
 }
@@ -68,7 +75,7 @@ impl VehicleLink {
         if let Some(rest) = url.strip_prefix("udpin:") {
             let addr = resolve(url, rest).await?;
             let socket = bind_udp(addr, VEHICLE_RECV_BUFFER).with_context(|| format!("binding the vehicle socket {addr}"))?;
-            return Ok(Self::Udp { socket, peer: Mutex::new(None), learn_peer: true });
+            return Ok(Self::Udp { socket, peer: Mutex::new(None), learn_peer: true, signing: None });
         }
         if let Some(rest) = url.strip_prefix("udpout:") {
             let addr = resolve(url, rest).await?;
@@ -83,10 +90,33 @@ impl VehicleLink {
             .parse()
             .expect("literal");
             let socket = bind_udp(local, VEHICLE_RECV_BUFFER).context("binding the vehicle socket")?;
-            return Ok(Self::Udp { socket, peer: Mutex::new(Some(addr)), learn_peer: false });
+            return Ok(Self::Udp { socket, peer: Mutex::new(Some(addr)), learn_peer: false, signing: None });
         }
         let conn = mavlink_core::connect_async::<MavMessage>(url).await?;
         Ok(Self::Crate(Box::new(conn)))
+    }
+
+    /// Signs the link with `key` on link id `link_id`: every frame sent is signed, only signed
+    /// frames are taken.
+    pub fn sign(&mut self, key: &TeamKey, link_id: u8) {
+        match self {
+            Self::Udp { signing, .. } => {
+                *signing = Some(Box::new(Mutex::new((Signer::new(key.clone(), link_id, 0), Verifier::new(key.clone())))));
+            }
+            Self::Crate(conn) => {
+                use mavlink_core::AsyncMavConnection as _;
+                conn.setup_signing(Some(mavlink_core::SigningConfig::new(key.bytes(), link_id, true, false)));
+            }
+        }
+    }
+
+    /// What signing accepted and refused on a UDP link (None: unsigned, or a stream link, whose
+    /// refusals the mavlink crate does not count).
+    pub fn signing_counters(&self) -> Option<SigningCounters> {
+        match self {
+            Self::Udp { signing: Some(s), .. } => Some(s.lock().unwrap_or_else(|e| e.into_inner()).1.counters.clone()),
+            _ => None,
+        }
     }
 
     /// The receive buffer granted to a UDP link (None for the others).
@@ -100,10 +130,14 @@ impl VehicleLink {
     /// Sends one message (a link with no peer yet, an `udpin` that has heard nobody, drops it).
     pub async fn send(&self, header: &MavHeader, msg: &MavMessage) {
         match self {
-            Self::Udp { socket, peer, .. } => {
+            Self::Udp { socket, peer, signing, .. } => {
                 let to = *peer.lock().unwrap_or_else(|e| e.into_inner());
                 if let Some(to) = to {
-                    let _ = socket.send_to(&wire::to_frame(*header, msg), to).await;
+                    let frame = match signing {
+                        Some(s) => s.lock().unwrap_or_else(|e| e.into_inner()).0.frame(*header, msg, unix_now_us()),
+                        None => wire::to_frame(*header, msg),
+                    };
+                    let _ = socket.send_to(&frame, to).await;
                 }
             }
             Self::Crate(conn) => {
@@ -116,12 +150,20 @@ impl VehicleLink {
     /// the dialect are skipped: `Ok` with what could be read, possibly nothing.
     pub async fn recv(&self, buf: &mut [u8]) -> std::io::Result<Vec<Received>> {
         match self {
-            Self::Udp { socket, peer, learn_peer } => {
+            Self::Udp { socket, peer, learn_peer, signing } => {
                 let (n, from) = socket.recv_from(buf).await?;
-                if *learn_peer {
+                let frames = match signing {
+                    Some(s) => {
+                        let got = s.lock().unwrap_or_else(|e| e.into_inner()).1.datagram(&buf[..n], unix_now_us());
+                        got.frames.into_iter().zip(got.spans).map(|((h, m), span)| (h, m, buf[span].to_vec())).collect()
+                    }
+                    None => split_frames(&buf[..n]),
+                };
+                // An unsigned link answers whoever sent last; a signed one only a signed sender.
+                if *learn_peer && (signing.is_none() || !frames.is_empty()) {
                     *peer.lock().unwrap_or_else(|e| e.into_inner()) = Some(from);
                 }
-                Ok(split_frames(&buf[..n]))
+                Ok(frames)
             }
             Self::Crate(conn) => match conn.recv_raw().await {
                 Ok(raw) => {
@@ -136,6 +178,11 @@ impl VehicleLink {
             },
         }
     }
+}
+
+/// Unix time, us (signing timestamps).
+fn unix_now_us() -> u64 {
+    std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).map_or(0, |d| d.as_micros() as u64)
 }
 
 /// The MAVLink v1 and v2 frames of one datagram, in order; reading stops at the first bytes that
@@ -231,5 +278,34 @@ mod tests {
         link.send(&MavHeader { system_id: 3, component_id: 191, sequence: 1 }, &msg).await;
         let (n, _) = probe.recv_from(&mut buf).await.unwrap();
         assert_eq!(wire::from_frame(&buf[..n]).unwrap().0.system_id, 3);
+    }
+
+    #[tokio::test]
+    async fn a_signed_vehicle_link_sends_signed_and_takes_only_signed_frames() {
+        let key = TeamKey::from_passphrase("the vehicle's key");
+        let vehicle = UdpSocket::bind("127.0.0.1:0").await.unwrap();
+        let mut link = VehicleLink::open(&format!("udpout:{}", vehicle.local_addr().unwrap())).await.unwrap();
+        link.sign(&key, 7);
+        let msg = wire::heartbeat(MavType::MAV_TYPE_ONBOARD_CONTROLLER, MavAutopilot::MAV_AUTOPILOT_INVALID);
+        link.send(&MavHeader { system_id: 7, component_id: 191, sequence: 1 }, &msg).await;
+        let mut buf = [0u8; 600];
+        let (n, node) = vehicle.recv_from(&mut buf).await.unwrap();
+        // What the autopilot checks: signed with the key.
+        let mut autopilot = Verifier::new(key.clone());
+        assert_eq!(autopilot.datagram(&buf[..n], unix_now_us()).frames.len(), 1);
+        assert_eq!(Verifier::new(TeamKey::from_passphrase("other")).datagram(&buf[..n], unix_now_us()).frames.len(), 0);
+        // The autopilot's signed frames are taken; unsigned and wrongly signed ones refused.
+        let mut signer = Signer::new(key, 1, 0);
+        let hdr = MavHeader { system_id: 1, component_id: 1, sequence: 5 };
+        let signed = signer.frame(hdr, &msg, unix_now_us());
+        let wrong = Signer::new(TeamKey::from_passphrase("other"), 1, 0).frame(hdr, &msg, unix_now_us());
+        vehicle.send_to(&[hb(1), wrong, signed.clone()].concat(), node).await.unwrap();
+        let got = link.recv(&mut [0u8; 2048]).await.unwrap();
+        assert_eq!(got.len(), 1);
+        assert_eq!(got[0].2, signed, "the frame as received, signature included");
+        vehicle.send_to(&signed, node).await.unwrap(); // replayed
+        assert!(link.recv(&mut [0u8; 2048]).await.unwrap().is_empty());
+        let c = link.signing_counters().unwrap();
+        assert_eq!((c.accepted, c.unsigned, c.bad_signature, c.replayed), (1, 1, 1, 1), "{c:?}");
     }
 }

@@ -17,7 +17,9 @@
 //! carries them all). IP adds 28 bytes (IPv4 and UDP headers) per datagram: one frame per
 //! datagram, or (what `cooploc node` does) each batch of frames the node sends at once packed
 //! into datagrams of at most 1,472 bytes (Ethernet's MTU less the headers) by [`pack`]: the
-//! record's fragments, each range echo, the epoch report with the estimate.
+//! record's first fragment alone (it makes the epoch known to a node that measured no range:
+//! on a slow link a whole packed record takes a third of a second to leave), its other
+//! fragments, each range echo, the epoch report with the estimate.
 
 use nalgebra::{DMatrix, Vector3};
 
@@ -56,8 +58,8 @@ pub struct EpochFrames {
     pub kinds: Vec<(&'static str, usize, usize)>,
     pub heartbeat_bytes: usize,
     /// Frame sizes of one epoch in the batches the node sends them in (each batch packed into
-    /// datagrams of its own): the record's fragments, each echoed range as it is measured, the
-    /// epoch's report with the estimate after the update.
+    /// datagrams of its own): the record's first fragment alone, its other fragments, each
+    /// echoed range as it is measured, the epoch's report with the estimate after the update.
     pub batches: Vec<Vec<usize>>,
 }
 
@@ -71,6 +73,11 @@ impl EpochFrames {
     /// Datagrams of one epoch, packed (each batch on its own) or one frame each.
     pub fn datagrams(&self, packed: bool) -> usize {
         self.batches.iter().map(|b| datagrams(b, packed)).sum()
+    }
+    /// Datagrams of one record (its first fragment alone, the rest packed).
+    pub fn record_datagrams(&self, packed: bool) -> usize {
+        let batches = if self.kinds[0].1 > 1 { 2 } else { 1 };
+        self.batches[..batches].iter().map(|b| datagrams(b, packed)).sum()
     }
 }
 
@@ -199,7 +206,13 @@ pub fn epoch_frames(shape: &TeamShape) -> Result<EpochFrames, String> {
         super::dialect::cooploc::MavType::MAV_TYPE_ONBOARD_CONTROLLER,
         super::dialect::cooploc::MavAutopilot::MAV_AUTOPILOT_INVALID,
     ));
+    // The record's first fragment goes alone, ahead of the rest (see `node::runner`): a node
+    // that measured no range learns the epoch from it.
+    let rest = record_sizes.split_off(1);
     let mut batches = vec![record_sizes];
+    if !rest.is_empty() {
+        batches.push(rest);
+    }
     batches.extend(range_sizes.iter().map(|&r| vec![r]));
     batches.push(vec![epoch, estimate]);
     Ok(EpochFrames {
@@ -281,7 +294,7 @@ pub fn rates_with_loss(shape: &TeamShape, frames: &EpochFrames, medium: Medium, 
     let request_bytes = frames.kinds.iter().find(|k| k.0 == "COOPLOC_EPOCH").map_or(0, |k| k.2);
     let (copies, ip) = medium.copies_and_packing(shape.team);
     let record_datagrams = match ip {
-        Some(true) => datagrams(&frames.batches[0], true),
+        Some(true) => frames.record_datagrams(true),
         _ => record_frames,
     };
     let resends = expected_resends(loss, record_datagrams, shape.team.saturating_sub(1)) * shape.epoch_hz;

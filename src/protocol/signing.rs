@@ -96,6 +96,11 @@ pub enum KeyError {
 }
 
 impl TeamKey {
+    /// The 32 key bytes (for the mavlink crate's own signing on stream links).
+    pub fn bytes(&self) -> [u8; 32] {
+        self.0
+    }
+
     /// SHA-256 of the passphrase (MAVProxy's `signing setup PASSPHRASE`, pymavlink's convention).
     pub fn from_passphrase(passphrase: &str) -> Self {
         TeamKey(Sha256::digest(passphrase.as_bytes()).into())

@@ -19,11 +19,15 @@ KIND: ardupilot  RAW_IMU (int16 mG / mrad/s, the latest sample, time_usec since 
                  yaw-rate gyro (SCALED_IMU2 z, mrad/s, 40 Hz) gives the turn.
       origin     as ardupilot, with GPS_GLOBAL_ORIGIN at 1 Hz (the EKF origin, for a node whose
                  profile gives none).
+      signed     as ardupilot with MAVLink 2 signing on the port (key: SHA-256 of "the vehicle's
+                 key"): every frame signed, the node's frames checked; and a forger's unsigned
+                 RAW_IMU (5 g north) after every tenth sample, which the node must refuse.
 The vehicle drives straight north at 2 m/s on level ground for 10 s (at 10x real time), the node
 starting at rest: only a working odometer gets it to 20 m. Binds 127.0.0.1:0, prints
 "port N", waits for the node's HEARTBEAT, answers its SET_MESSAGE_INTERVAL requests with
 COMMAND_ACK, and checks the ODOMETRY the node sends back. Prints one JSON line at the end.
 """
+import hashlib
 import json
 import math
 import socket
@@ -43,6 +47,9 @@ SYSID = 1
 
 def main():
     kind = sys.argv[1]
+    signed = kind == "signed"
+    if signed:
+        kind = "ardupilot"
     lat = {"ardupilot": -35.363262, "origin": -35.363262, "scaled2": -35.363262, "px4": 47.397742, "robot": -35.363262,
            "robot-gyro": -35.363262}[kind]
     sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
@@ -60,6 +67,15 @@ def main():
     m_odo = mav.MAVLink(Out(), srcSystem=SYSID, srcComponent=197)  # a wheel-odometry component
     rx = mav.MAVLink(None)
     rx.robust_parsing = True
+    forger = mav.MAVLink(Out(), srcSystem=SYSID, srcComponent=1)
+    if signed:
+        key = hashlib.sha256(b"the vehicle's key").digest()
+        now = int((time.time() - 1420070400) * 100000)
+        for link_id, obj in enumerate([m, m_odo, rx]):
+            obj.signing.secret_key = key
+            obj.signing.link_id = link_id
+            obj.signing.timestamp = now
+            obj.signing.sign_outgoing = obj is not rx
     report = {"kind": kind, "requests": [], "odometry": 0, "bad_frames": [], "odometry_times": [], "odometry_n": []}
 
     def receive():
@@ -105,6 +121,8 @@ def main():
             next_time += 1_000_000
         if kind in ("ardupilot", "origin"):
             m.raw_imu_send(boot_us, 0, 0, -1000, round(w_earth[0] * 1e3), 0, round(w_earth[2] * 1e3), 0, 0, 0, 0)
+            if signed and (t_us // imu_period) % 10 == 0:
+                forger.raw_imu_send(boot_us + imu_period // 2, 5000, 0, -1000, 0, 0, 0, 0, 0, 0, 0)
             m.scaled_imu2_send(boot_ms, 300, 0, -1000, 0, 0, 200, 0, 0, 0)
             m.highres_imu_send(boot_us, 3.0, 0, -G, 0, 0, 0.2, 0, 0, 0, 0, 0, 0, 0, 0x3F, 0)
         elif kind == "robot":
@@ -159,6 +177,10 @@ def main():
     report["odometry_distinct"] = len(set(times))
     report["odometry_last_n"] = ns[times.index(max(times))] if times else None
     report["boot0_us"] = boot0_us
+    if signed:
+        report["kind"] = "signed"
+        report["node_frames_goodsig"] = rx.signing.goodsig_count
+        report["node_frames_refused"] = rx.signing.badsig_count + rx.signing.unsigned_count + rx.signing.reject_count
     print(json.dumps(report), flush=True)
 
 
