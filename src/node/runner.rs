@@ -672,16 +672,15 @@ pub async fn run(
                         }
                         got.frames
                     }
-                    None => {
-                        if recorder.is_some() {
-                            let mut rest = &buf[..n];
-                            while let Ok(len) = crate::recording::mavlink_frame_len(rest) {
-                                record_frame(&recorder, Link::Coop(sysid), Direction::Rx, &rest[..len]);
-                                rest = &rest[len..];
-                            }
-                        }
-                        wire::frames(&buf[..n])
-                    }
+                    // Every frame of the datagram (a packed batch holds several), logged as
+                    // taken: the log and the core see the same frames.
+                    None => super::vehicle_link::split_frames(&buf[..n])
+                        .into_iter()
+                        .map(|(header, msg, bytes)| {
+                            record_frame(&recorder, Link::Coop(sysid), Direction::Rx, &bytes);
+                            (header, msg)
+                        })
+                        .collect(),
                 };
                 if frames.is_empty() {
                     summary_counts.3 += 1;
