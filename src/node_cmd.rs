@@ -20,6 +20,9 @@ use cooploc::sitl::world::World;
 use cooploc::time::TimeUs;
 use nalgebra::{UnitQuaternion, Vector3};
 
+/// Largest UDP payload over IPv4.
+const MAX_UDP_PAYLOAD: usize = 65_507;
+
 #[derive(clap::Args)]
 pub struct Args {
     /// Platform id: the vehicle's MAVLink system id.
@@ -267,7 +270,8 @@ pub fn run_cmd(args: Args) -> anyhow::Result<()> {
         None => {
             let on = match args.multicast.as_str() {
                 "on" => Some(true),
-                "auto" if !args.coop_bind.ip().is_loopback() && args.peers.is_empty() => Some(false),
+                // auto: a LAN (IPv4, not loopback) set-up without peers; IPv6 stays unicast
+                "auto" if args.coop_bind.is_ipv4() && !args.coop_bind.ip().is_loopback() && args.peers.is_empty() => Some(false),
                 _ => None,
             };
             if on.is_some() && !args.coop_bind.is_ipv4() {
@@ -282,6 +286,9 @@ pub fn run_cmd(args: Args) -> anyhow::Result<()> {
             CoopSpec::Udp { bind: args.coop_bind, multicast, max_datagram: args.datagram_bytes }
         }
     };
+    if args.datagram_bytes > MAX_UDP_PAYLOAD {
+        bail!("--datagram-bytes {}: a UDP datagram carries at most {MAX_UDP_PAYLOAD} bytes", args.datagram_bytes);
+    }
     if !args.multicast_group.ip().is_multicast() {
         bail!("--multicast-group {}: not a multicast address (224.0.0.0/4)", args.multicast_group);
     }

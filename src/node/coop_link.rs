@@ -106,7 +106,7 @@ impl StreamFramer {
             };
             self.skipped += start as u64;
             at += start;
-            let Some(len) = frame_len(&self.buf[at..]) else {
+            let Some(len) = super::vehicle_link::frame_len(&self.buf[at..]) else {
                 break; // not all there yet
             };
             let frame = &self.buf[at..at + len];
@@ -126,17 +126,6 @@ impl StreamFramer {
         }
         out
     }
-}
-
-/// Length of the frame starting at `bytes[0]` (a start marker), once its header is there and
-/// the whole frame is.
-fn frame_len(bytes: &[u8]) -> Option<usize> {
-    let payload = usize::from(*bytes.get(1)?);
-    let len = match bytes[0] {
-        0xFE => 8 + payload,
-        _ => 12 + payload + if bytes.get(2)? & 0x01 != 0 { 13 } else { 0 },
-    };
-    (bytes.len() >= len).then_some(len)
 }
 
 /// Batches queued for a serial radio before new ones are dropped.
@@ -197,6 +186,16 @@ impl std::fmt::Display for Source {
 pub struct Sent {
     pub datagrams: u64,
     pub bytes: u64,
+}
+
+/// The datagram waiting on a readable `socket`, marked by `source`; None when it was taken
+/// meanwhile (a spurious wake-up).
+fn take(socket: &UdpSocket, buf: &mut [u8], source: fn(SocketAddr) -> Source) -> Option<std::io::Result<(usize, Source)>> {
+    match socket.try_recv_from(buf) {
+        Ok((n, a)) => Some(Ok((n, source(a)))),
+        Err(e) if e.kind() == std::io::ErrorKind::WouldBlock => None,
+        Err(e) => Some(Err(e)),
+    }
 }
 
 /// Joins `m.group` on a socket bound to the group's port (shared with the other nodes of this
@@ -378,24 +377,13 @@ impl CoopLink {
                 Ok((n, Source::Unicast(a)))
             }
             CoopLink::Udp { socket, group: Some((g, _)), .. } => loop {
-                // Whichever socket has a datagram (both reads are cancel-safe).
-                tokio::select! {
-                    r = socket.readable() => {
-                        r?;
-                        match socket.try_recv_from(buf) {
-                            Ok((n, a)) => return Ok((n, Source::Unicast(a))),
-                            Err(e) if e.kind() == std::io::ErrorKind::WouldBlock => {}
-                            Err(e) => return Err(e),
-                        }
-                    }
-                    r = g.readable() => {
-                        r?;
-                        match g.try_recv_from(buf) {
-                            Ok((n, a)) => return Ok((n, Source::Group(a))),
-                            Err(e) if e.kind() == std::io::ErrorKind::WouldBlock => {}
-                            Err(e) => return Err(e),
-                        }
-                    }
+                // Whichever socket has a datagram (both readiness waits are cancel-safe).
+                let got = tokio::select! {
+                    r = socket.readable() => { r?; take(socket, buf, Source::Unicast) }
+                    r = g.readable() => { r?; take(g, buf, Source::Group) }
+                };
+                if let Some(got) = got {
+                    return got;
                 }
             },
             CoopLink::Serial { rx, framer, .. } => {

@@ -202,7 +202,7 @@ pub fn split_frames(mut bytes: &[u8]) -> Vec<Received> {
 }
 
 /// Length of the frame at the start of `bytes` from its header, if it is all there.
-fn frame_len(bytes: &[u8]) -> Option<usize> {
+pub(crate) fn frame_len(bytes: &[u8]) -> Option<usize> {
     let payload = usize::from(*bytes.get(1)?);
     let len = match bytes[0] {
         0xFE => 8 + payload,
