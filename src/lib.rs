@@ -18,7 +18,10 @@
 //!   internals): the recorder and a reader tolerant of truncated files.
 //! - [`gcs`]: `cooploc gcs`, the ground station (a sans-io core, its web page and JSON API, the
 //!   Foxglove live server, and a tokio runner).
+//! - [`dataset`]: real data sets (UTIAS MRCLAM): the reader, the model every method runs on
+//!   them, their MCAP logs.
 //! - [`time`]: the typed timestamp shared by all of the above.
+pub mod dataset;
 pub mod demo;
 pub mod estimation;
 pub mod experiment;

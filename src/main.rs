@@ -2,6 +2,7 @@
 //! types, calls the library, prints, and maps errors to an exit code.
 
 mod budget_cmd;
+mod dataset_cmd;
 mod demo_cmd;
 mod experiment_cmd;
 mod faults_cmd;
@@ -29,6 +30,9 @@ enum Command {
     /// size, state size, epoch rate, encoding and signing, and the highest epoch rate a SiK
     /// radio, Wi-Fi or an IP mesh carries.
     Budget(budget_cmd::Args),
+    /// Real data sets: imports a UTIAS MRCLAM folder into a cooploc log, estimates its noise
+    /// against the ground truth, and runs every method on it in three regimes.
+    Dataset(dataset_cmd::Args),
     /// The paper scenario end to end on loopback: simulator, one node per vehicle, ground station
     /// (web page and Foxglove), one MCAP log under logs/, and the final error table per method.
     Demo(demo_cmd::Args),
@@ -66,6 +70,7 @@ fn main() -> ExitCode {
         .init();
     let result = match cli.command {
         Command::Budget(args) => budget_cmd::run(args),
+        Command::Dataset(args) => dataset_cmd::run_cmd(args),
         Command::Demo(args) => demo_cmd::run(args),
         Command::Experiment(args) => experiment_cmd::run(args),
         Command::Faults(args) => faults_cmd::run(args),

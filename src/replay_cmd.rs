@@ -12,7 +12,8 @@ pub struct Args {
     /// The MCAP log (from `cooploc demo` or `cooploc node --log`).
     log: PathBuf,
     /// Run this method offline on the logged inputs (dr, naive, dcl, centralized, ci) besides
-    /// replaying the recorded nodes; `all` runs every method.
+    /// replaying the recorded nodes; `all` runs every method. A data set's log (from `cooploc
+    /// dataset`) has no nodes: every method (or the ones named) runs on it in every regime.
     #[arg(long)]
     method: Option<String>,
 }
@@ -23,6 +24,9 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     match &log.end {
         LogEnd::Complete => {}
         other => println!("log {}: read up to the damage ({other:?}): {} messages", args.log.display(), log.messages.len()),
+    }
+    if cooploc::dataset::log::is_dataset_log(&log) {
+        return replay_dataset(&log, args.method.as_deref(), start);
     }
     let replays = replay_nodes(&log)?;
     let mut exact = true;
@@ -63,5 +67,24 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     if !exact {
         bail!("a replayed node differs from its recording");
     }
+    Ok(())
+}
+
+/// A data set's log: the methods over its inputs in every regime, scored against its truth.
+fn replay_dataset(log: &cooploc::recording::Log, method: Option<&str>, start: std::time::Instant) -> anyhow::Result<()> {
+    use cooploc::dataset::run::{Regime, Settings};
+    let logged = cooploc::dataset::log::read(log)?;
+    let ds = &logged.dataset;
+    println!(
+        "data set log {}: {} robots, {} landmarks, {:.1} s ({} frames rejected)",
+        ds.name,
+        ds.robots.len(),
+        ds.landmarks.len(),
+        ds.t_end.secs_since(ds.t0),
+        logged.rejected_frames
+    );
+    let methods = crate::dataset_cmd::parse_methods(method.unwrap_or("all"))?;
+    crate::dataset_cmd::evaluate(ds, &Settings::new(logged.noise), &Regime::ALL, &methods)?;
+    println!("replayed {} messages in {:.2} s", log.messages.len(), start.elapsed().as_secs_f64());
     Ok(())
 }

@@ -11,8 +11,8 @@ use std::process::Command;
 
 use cooploc::protocol::MavMessage;
 use cooploc::protocol::dialect::cooploc::{
-    COOPLOC_EPOCH_DATA, COOPLOC_ESTIMATE_DATA, COOPLOC_RANGE_DATA, COOPLOC_STATE_FRAGMENT_DATA, COOPLOC_STORE_FRAGMENT_DATA,
-    CooplocEpochState, CooplocMethod,
+    COOPLOC_EPOCH_DATA, COOPLOC_ESTIMATE_DATA, COOPLOC_RANGE_BEARING_DATA, COOPLOC_RANGE_DATA, COOPLOC_STATE_FRAGMENT_DATA,
+    COOPLOC_STORE_FRAGMENT_DATA, CooplocEpochState, CooplocMethod,
 };
 use cooploc::protocol::wire::{from_frame, to_frame};
 use mavlink_core::MavHeader;
@@ -54,6 +54,18 @@ fn cases() -> Vec<(&'static str, MavMessage, Value)> {
                 to_platform: 3,
             }),
             json!({"time_usec": 1_000_000, "epoch": 1, "distance": 212.375, "sigma": 0.125, "from_platform": 1, "to_platform": 3}),
+        ),
+        (
+            "COOPLOC_RANGE_BEARING",
+            MavMessage::COOPLOC_RANGE_BEARING(COOPLOC_RANGE_BEARING_DATA {
+                time_usec: 1_248_444_189_599_000,
+                range: 3.75,
+                bearing: -0.25,
+                observer: 1,
+                target: 14,
+                target_kind: 1,
+            }),
+            json!({"time_usec": 1_248_444_189_599_000u64, "range": 3.75, "bearing": -0.25, "observer": 1, "target": 14, "target_kind": 1}),
         ),
         (
             "COOPLOC_ESTIMATE",

@@ -12,8 +12,11 @@ use serde::{Deserialize, Serialize};
 
 use super::EstimationError;
 use super::ci::ci_update;
-use super::coop::{CoopMeasurement, Correction, CrossCovariances, CrossMode, cooperative_update};
-use super::kalman::{LinearizedMeasurement, UpdateDiagnostics};
+use super::coop::{
+    CoopMeasurement, Correction, CrossCovariances, CrossMode, JointPrior, UpdateOptions, cooperative_update,
+    cooperative_update_with,
+};
+use super::kalman::{self, LinearizedMeasurement, UpdateDiagnostics};
 use super::platform::{PlatformFilter, PlatformId, Snapshot};
 
 /// The cooperative-localization methods cooploc compares.
@@ -177,6 +180,78 @@ impl<F: PlatformFilter> Team<F> {
         Ok(vec![outcome.diagnostics])
     }
 
+    /// [`Team::local_update`] behind a chi-square gate: a measurement whose normalised
+    /// innovation squared against the platform's own covariance exceeds `gate[m]` (`m` its
+    /// size, 1 or 2; see [`UpdateOptions::gate_for_probability`]) is not applied (`Ok(None)`).
+    /// The own covariance is the prior every method uses for a local measurement (the
+    /// centralized EKF's marginal included), so every method gates the same innovation alike.
+    pub fn gated_local_update(
+        &mut self,
+        id: PlatformId,
+        meas: &LinearizedMeasurement,
+        gate: [f64; 3],
+    ) -> Result<Option<UpdateDiagnostics>, EstimationError> {
+        let i = self.index(id)?;
+        let p = self.filters[i].covariance();
+        meas.validate(p.nrows())?;
+        if nis(&meas.h, &p, meas) > gate_for(gate, meas.len()) {
+            return Ok(None);
+        }
+        self.local_update(id, meas).map(Some)
+    }
+
+    /// [`Team::cooperative_event`] behind a chi-square gate (see [`Team::gated_local_update`]):
+    /// each measurement's own innovation is tested against the prior the method uses (the
+    /// rebuilt cross-covariances for dcl and the centralized EKF, zero cross-covariances for the
+    /// naive filter and for covariance intersection) and left out above the gate. Returns the
+    /// diagnostics and how many measurements were left out. With every measurement left out,
+    /// dcl and the centralized EKF still close the epoch (posterior = prior, Psi reset), as
+    /// every node does.
+    pub fn gated_cooperative_event(
+        &mut self,
+        measurements: &[CoopMeasurement],
+        gate: [f64; 3],
+    ) -> Result<(Option<UpdateDiagnostics>, usize), EstimationError> {
+        if measurements.is_empty() || self.method == Method::DeadReckoning {
+            return Ok((None, 0));
+        }
+        let opts = |mode| UpdateOptions { mode, prior: JointPrior::Exact, gate_chi2: Some(gate) };
+        let snapshots = self.snapshots();
+        let (corrections, diagnostics, gated) = match self.method {
+            Method::DeadReckoning => unreachable!("returned above"),
+            Method::CovarianceIntersection => {
+                let mut kept = Vec::with_capacity(measurements.len());
+                for m in measurements {
+                    let parts = m.linearize(|id| snapshots.iter().find(|s| s.id == id))?;
+                    let mut s = parts[0].1.r.clone();
+                    for (id, lin) in &parts {
+                        let p = &snapshots[self.index(*id)?].covariance;
+                        s += &lin.h * p * lin.h.transpose();
+                    }
+                    if innovation_nis(&s, &parts[0].1.residual)? <= gate_for(gate, m.len()) {
+                        kept.push(m.clone());
+                    }
+                }
+                let gated = measurements.len() - kept.len();
+                if kept.is_empty() {
+                    return Ok((None, gated));
+                }
+                (ci_update(&snapshots, &kept)?, None, gated)
+            }
+            Method::NoPropagation => {
+                let out =
+                    cooperative_update_with(&mut CrossCovariances::new(), &snapshots, measurements, &opts(CrossMode::Ignore))?;
+                (out.corrections, Some(out.diagnostics), out.gated.len())
+            }
+            Method::Decentralized | Method::Centralized => {
+                let out = cooperative_update_with(&mut self.cross, &snapshots, measurements, &opts(CrossMode::Propagate))?;
+                (out.corrections, Some(out.diagnostics), out.gated.len())
+            }
+        };
+        self.write_back(&corrections)?;
+        Ok((diagnostics, gated))
+    }
+
     /// A ranging epoch: every platform broadcasts and all take the joint update of `measurements`.
     /// Returns the innovation statistics, or `None` for dead reckoning (ranges ignored) and for
     /// covariance intersection (pairwise, no single innovation).
@@ -200,6 +275,29 @@ impl<F: PlatformFilter> Team<F> {
         self.write_back(&corrections)?;
         Ok(diagnostics)
     }
+}
+
+/// The gate for a measurement of `m` scalars (larger sizes take the two-scalar quantile's
+/// scaling: `gate[2] * m / 2`, close to the chi-square quantile for the probabilities used).
+fn gate_for(gate: [f64; 3], m: usize) -> f64 {
+    match m {
+        0 | 1 => gate[1],
+        2 => gate[2],
+        _ => gate[2] * m as f64 / 2.0,
+    }
+}
+
+/// `r^T S^-1 r` for the innovation covariance `H P H^T + R`.
+fn nis(h: &nalgebra::DMatrix<f64>, p: &nalgebra::DMatrix<f64>, meas: &LinearizedMeasurement) -> f64 {
+    let s = h * p * h.transpose() + &meas.r;
+    innovation_nis(&s, &meas.residual).unwrap_or(f64::INFINITY)
+}
+
+fn innovation_nis(s: &nalgebra::DMatrix<f64>, r: &DVector<f64>) -> Result<f64, EstimationError> {
+    let mut s = s.clone();
+    kalman::symmetrize(&mut s);
+    let chol = s.cholesky().ok_or(EstimationError::NotPositiveDefinite { what: "innovation covariance H P H^T + R" })?;
+    Ok(r.dot(&chol.solve(r)))
 }
 
 /// Stacks corrections into one vector (for tests and diagnostics).

@@ -11,10 +11,10 @@ use mavlink_core::{MavHeader, MavlinkVersion, Message};
 use nalgebra::{Matrix3, Vector3};
 
 use super::dialect::cooploc::{
-    COOPLOC_EPOCH_DATA, COOPLOC_ESTIMATE_DATA, COOPLOC_RANGE_DATA, COOPLOC_STATE_FRAGMENT_DATA, COOPLOC_STORE_FRAGMENT_DATA,
-    CooplocEpochState, CooplocMethod, HEARTBEAT_DATA, HIGHRES_IMU_DATA, LOCAL_POSITION_NED_DATA, MavAutopilot, MavEstimatorType,
-    MavFrame, MavMessage, MavModeFlag, MavState, MavType, ODOMETRY_DATA, RAW_IMU_DATA, SCALED_IMU2_DATA, SIM_STATE_DATA,
-    WHEEL_DISTANCE_DATA,
+    COOPLOC_EPOCH_DATA, COOPLOC_ESTIMATE_DATA, COOPLOC_RANGE_BEARING_DATA, COOPLOC_RANGE_DATA, COOPLOC_STATE_FRAGMENT_DATA,
+    COOPLOC_STORE_FRAGMENT_DATA, CooplocEpochState, CooplocMethod, HEARTBEAT_DATA, HIGHRES_IMU_DATA, LOCAL_POSITION_NED_DATA,
+    MavAutopilot, MavEstimatorType, MavFrame, MavMessage, MavModeFlag, MavState, MavType, ODOMETRY_DATA, RAW_IMU_DATA,
+    SCALED_IMU2_DATA, SIM_STATE_DATA, WHEEL_DISTANCE_DATA,
 };
 use super::fragment::{FRAGMENT_DATA, Fragment, Payload};
 use crate::estimation::{ImuSample, Method, OdometerSample, PlatformId, RangeSample};
@@ -187,6 +187,101 @@ pub fn range_from_message(m: &COOPLOC_RANGE_DATA) -> Result<(u32, RangeSample), 
         return Err(bad(MSG, "to_platform", format!("equals from_platform ({})", m.from_platform)));
     }
     Ok((m.epoch, RangeSample { t: TimeUs(m.time_usec), from: m.from_platform, to: m.to_platform, range_m, sigma_m }))
+}
+
+/// A range and bearing a platform measured (COOPLOC_RANGE_BEARING).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct RangeBearingReport {
+    pub t: TimeUs,
+    pub observer: PlatformId,
+    pub target: crate::dataset::Target,
+    pub range_m: f64,
+    /// From the observer's heading, clockwise seen from above, rad.
+    pub bearing_rad: f64,
+}
+
+/// Farthest a range-and-bearing sensor is believed, m.
+pub const MAX_RANGE_BEARING_M: f64 = 10_000.0;
+
+pub fn range_bearing_to_message(r: &RangeBearingReport) -> MavMessage {
+    use crate::dataset::Target;
+    let (target, target_kind) = match r.target {
+        Target::Robot(id) => (id, 0),
+        Target::Landmark(id) => (id, 1),
+    };
+    MavMessage::COOPLOC_RANGE_BEARING(COOPLOC_RANGE_BEARING_DATA {
+        time_usec: r.t.0,
+        range: r.range_m as f32,
+        bearing: r.bearing_rad as f32,
+        observer: r.observer,
+        target,
+        target_kind,
+    })
+}
+
+/// A COOPLOC_RANGE_BEARING, checked: finite, a positive range under [`MAX_RANGE_BEARING_M`], a
+/// bearing within one turn, a known target kind, no platform observing itself.
+pub fn range_bearing_from_message(m: &COOPLOC_RANGE_BEARING_DATA) -> Result<RangeBearingReport, WireError> {
+    use crate::dataset::Target;
+    const MSG: &str = "COOPLOC_RANGE_BEARING";
+    let range_m = finite(MSG, "range", m.range)?;
+    if !(range_m > 0.0 && range_m <= MAX_RANGE_BEARING_M) {
+        return Err(bad(MSG, "range", format!("{range_m} m is not in (0, {MAX_RANGE_BEARING_M}] m")));
+    }
+    let bearing_rad = finite(MSG, "bearing", m.bearing)?;
+    if bearing_rad.abs() > std::f64::consts::TAU {
+        return Err(bad(MSG, "bearing", format!("{bearing_rad} rad is more than one turn")));
+    }
+    let target = match m.target_kind {
+        0 if m.target == m.observer => return Err(bad(MSG, "target", format!("equals observer ({})", m.observer))),
+        0 => Target::Robot(m.target),
+        1 => Target::Landmark(m.target),
+        k => return Err(bad(MSG, "target_kind", format!("{k}: expected 0 (teammate) or 1 (landmark)"))),
+    };
+    Ok(RangeBearingReport { t: TimeUs(m.time_usec), observer: m.observer, target, range_m, bearing_rad })
+}
+
+/// A motion command (forward speed and yaw rate, what a robot was told to do) as ODOMETRY:
+/// body-frame (BODY_FRD) velocity `vx` and `yawspeed` (z down: positive turning right),
+/// estimator type NAIVE (open loop), pose unknown (NaN).
+pub fn command_to_odometry(c: &crate::dataset::Command) -> MavMessage {
+    MavMessage::ODOMETRY(ODOMETRY_DATA {
+        time_usec: c.t.0,
+        frame_id: MavFrame::MAV_FRAME_LOCAL_NED,
+        child_frame_id: MavFrame::MAV_FRAME_BODY_FRD,
+        x: f32::NAN,
+        y: f32::NAN,
+        z: f32::NAN,
+        q: [f32::NAN, 0.0, 0.0, 0.0],
+        vx: c.speed_m_s as f32,
+        vy: 0.0,
+        vz: 0.0,
+        rollspeed: f32::NAN,
+        pitchspeed: f32::NAN,
+        yawspeed: c.yaw_rate_rad_s as f32,
+        pose_covariance: [f32::NAN; 21],
+        velocity_covariance: [f32::NAN; 21],
+        estimator_type: MavEstimatorType::MAV_ESTIMATOR_TYPE_NAIVE,
+        ..Default::default()
+    })
+}
+
+/// ODOMETRY as a motion command (see [`command_to_odometry`]), checked against the planar
+/// robot's limits.
+pub fn command_from_odometry(m: &ODOMETRY_DATA) -> Result<crate::dataset::Command, WireError> {
+    const MSG: &str = "ODOMETRY";
+    if !matches!(m.child_frame_id, MavFrame::MAV_FRAME_BODY_FRD) {
+        return Err(bad(MSG, "child_frame_id", format!("{:?}: a command is a body-frame (BODY_FRD) velocity", m.child_frame_id)));
+    }
+    let speed_m_s = finite(MSG, "vx", m.vx)?;
+    if speed_m_s.abs() > crate::estimation::planar::MAX_SPEED_M_S {
+        return Err(bad(MSG, "vx", format!("{speed_m_s} m/s is not a wheeled robot's speed")));
+    }
+    let yaw_rate_rad_s = finite(MSG, "yawspeed", m.yawspeed)?;
+    if yaw_rate_rad_s.abs() > crate::estimation::planar::MAX_YAW_RATE_RAD_S {
+        return Err(bad(MSG, "yawspeed", format!("{yaw_rate_rad_s} rad/s is not a wheeled robot's yaw rate")));
+    }
+    Ok(crate::dataset::Command { t: TimeUs(m.time_usec), speed_m_s, yaw_rate_rad_s })
 }
 
 /// The range as every receiver will see it (f32 on the wire): what the measuring node uses too.

@@ -1,0 +1,539 @@
+//! Every method over a real data set, scored against its ground truth. Pure computation.
+//!
+//! # The model
+//!
+//! - **Motion**: each robot is the planar filter of [`crate::estimation::planar`] driven by its
+//!   commands: a command holds until the next one, and one older than
+//!   [`NoiseModel::stale_command_s`] means the robot stopped (MRCLAM's robots log commands at
+//!   about 67 Hz; the longest silence is about 1 s). [`drive_samples`] turns the commands into
+//!   wheel samples (none longer than 0.5 s), zero speed before the first command.
+//! - **Landmarks**: a range and bearing to a landmark of known position is a local update of the
+//!   observer ([`landmark_measurement`]); the surveyed position's uncertainty adds to the noise.
+//! - **Teammates**: a range and bearing to a teammate is a cooperative measurement
+//!   ([`CoopMeasurement::RangeBearing`]). Each camera image that holds a teammate (one observer,
+//!   one time stamp) is one **ranging epoch**: the paper's rule, every platform broadcasts its
+//!   state, covariance and recursive coefficient matrix at each epoch, maps onto asynchronous
+//!   observations as "every robot broadcasts whenever any robot sees a teammate". The whole team
+//!   takes the joint update (dcl, centralized; the naive filter and covariance intersection
+//!   update the two robots involved). [`broadcast_bytes`] is what that costs.
+//! - **Gating**: every measurement passes a chi-square gate at [`NoiseModel::gate_probability`]
+//!   against the prior the method itself holds ([`Team::gated_local_update`],
+//!   [`Team::gated_cooperative_event`]): the same rule for every method, none tuned.
+//! - **Start**: every robot starts at its first ground-truth pose at the data set's first
+//!   ground-truth time, with the initial sigmas of the noise model.
+//!
+//! # Regimes
+//!
+//! [`Regime::NoLandmarks`]: relative measurements only. [`Regime::MapBlind`]: landmarks for the
+//! robots of [`Settings::map_robots`] only, the others rely on their teammates.
+//! [`Regime::FullMap`]: every robot sees landmarks. Dead reckoning uses no observation at all in
+//! any regime (odometry only), so it is the same run in all three.
+//!
+//! # Scoring
+//!
+//! At every [`Settings::score_period_us`] from the start, each robot's filter is brought to that
+//! instant and compared with its ground truth, interpolated between samples at most
+//! [`super::MAX_TRUTH_GAP_US`] apart; an instant in a longer gap, or outside the robot's ground
+//! truth (Robot1 of data set 6 loses it 128 s before the end), is masked and counted. Team
+//! position RMSE and heading RMSE are over every scored robot-instant; NEES is that of the
+//! 3-state error `[dN, dE, dyaw]` against the filter's covariance.
+
+use nalgebra::{DMatrix, DVector, Vector3};
+
+use super::noise::NoiseModel;
+use super::{Dataset, Landmark, MAX_TRUTH_GAP_US, Observation, Target, truth_at};
+use crate::estimation::consistency::nees;
+use crate::estimation::planar::{PlanarConfig, PlanarFilter, PlanarSigma, PlanarState};
+use crate::estimation::unicycle::wrap_angle;
+use crate::estimation::{
+    CoopMeasurement, EstimationError, LinearizedMeasurement, Method, PlatformFilter, PlatformId, Team, UpdateOptions, WheelSample,
+};
+use crate::time::TimeUs;
+
+/// Which observations the robots use.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, PartialOrd, Ord)]
+pub enum Regime {
+    NoLandmarks,
+    MapBlind,
+    FullMap,
+}
+
+impl Regime {
+    pub const ALL: [Regime; 3] = [Regime::NoLandmarks, Regime::MapBlind, Regime::FullMap];
+
+    pub fn name(self) -> &'static str {
+        match self {
+            Regime::NoLandmarks => "no-landmarks",
+            Regime::MapBlind => "map-blind",
+            Regime::FullMap => "full-map",
+        }
+    }
+
+    pub fn from_name(s: &str) -> Option<Regime> {
+        Regime::ALL.into_iter().find(|r| r.name() == s)
+    }
+}
+
+/// How a data set is run.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Settings {
+    pub noise: NoiseModel,
+    /// The robots that see landmarks in [`Regime::MapBlind`].
+    pub map_robots: Vec<PlatformId>,
+    /// Scoring period, µs.
+    pub score_period_us: u64,
+}
+
+impl Settings {
+    /// The noise model given, landmarks for robots 1 and 2 in the map-blind regime, scored at
+    /// 10 Hz.
+    pub fn new(noise: NoiseModel) -> Self {
+        Settings { noise, map_robots: vec![1, 2], score_period_us: 100_000 }
+    }
+}
+
+/// One robot's score.
+#[derive(Debug, Clone, PartialEq)]
+pub struct RobotScore {
+    pub id: PlatformId,
+    pub pos_rmse_m: f64,
+    pub heading_rmse_deg: f64,
+    /// Scored instants.
+    pub samples: usize,
+    /// Instants without ground truth.
+    pub masked: usize,
+    pub final_pos_err_m: f64,
+}
+
+/// One method in one regime.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Outcome {
+    pub regime: Regime,
+    pub method: Method,
+    pub robots: Vec<RobotScore>,
+    /// Over every scored robot-instant.
+    pub pos_rmse_m: f64,
+    pub heading_rmse_deg: f64,
+    pub avg_nees: f64,
+    /// Average NEES of the position alone (2 states) and of the heading alone (1 state).
+    pub avg_nees_position: f64,
+    pub avg_nees_heading: f64,
+    /// Share of robot-instants whose NEES is inside the 95% chi-square bound (3 states).
+    pub in_bound_share: f64,
+    pub samples: usize,
+    pub masked: usize,
+    /// Landmark observations applied and left out by the gate.
+    pub landmark_updates: usize,
+    pub landmark_gated: usize,
+    /// Teammate observations applied and left out by the gate.
+    pub robot_updates: usize,
+    pub robot_gated: usize,
+    /// Ranging epochs (camera images holding a teammate) the method ran.
+    pub epochs: usize,
+    /// Updates refused as numerically unusable (left out, counted).
+    pub refused: usize,
+}
+
+/// Why a run stopped.
+#[derive(Debug, thiserror::Error)]
+pub enum RunError {
+    #[error("{regime} {method}, robot {robot}, t = {t}: {source}")]
+    Filter { regime: &'static str, method: Method, robot: PlatformId, t: TimeUs, source: EstimationError },
+    #[error("{0}")]
+    Settings(String),
+}
+
+/// A robot's wheel samples from `t0` to `t_end` (see the module documentation): each the
+/// command in force over its interval, zero speed before the first command and once the last
+/// one is older than `stale_us`, no interval longer than 0.5 s.
+pub fn drive_samples(commands: &[super::Command], t0: TimeUs, t_end: TimeUs, stale_us: u64) -> Vec<WheelSample> {
+    const PIECE_US: u64 = 500_000;
+    let mut out = Vec::with_capacity(commands.len() + 16);
+    // Constant pieces: (from, to, speed, yaw rate).
+    let mut push = |from: u64, to: u64, v: f64, w: f64| {
+        let mut a = from;
+        while a < to {
+            let b = (a + PIECE_US).min(to);
+            out.push(WheelSample { t: TimeUs(b), speed_m_s: v, yaw_rate_rad_s: w });
+            a = b;
+        }
+    };
+    let start = t0.0;
+    let end = t_end.0;
+    let first = commands.first().map_or(end, |c| c.t.0.clamp(start, end));
+    push(start, first, 0.0, 0.0);
+    for (k, c) in commands.iter().enumerate() {
+        let from = c.t.0.max(start);
+        let next = commands.get(k + 1).map_or(end, |n| n.t.0).min(end);
+        if next <= from {
+            continue;
+        }
+        let valid_to = (c.t.0 + stale_us).clamp(from, next);
+        push(from, valid_to, c.speed_m_s, c.yaw_rate_rad_s);
+        push(valid_to, next, 0.0, 0.0);
+    }
+    out
+}
+
+/// The range and bearing of landmark `lm` as a local measurement of the observer at `f`
+/// (residual `[range - bias - predicted, wrapped bearing residual]`, Jacobian in
+/// `[dN, dE, dyaw]`); `None` when the estimate sits on the landmark.
+pub fn landmark_measurement(
+    f: &PlanarFilter,
+    lm: &Landmark,
+    obs: &Observation,
+    noise: &NoiseModel,
+) -> Option<LinearizedMeasurement> {
+    let p = f.position_ned_m();
+    let (dn, de) = (lm.n_m - p[0], lm.e_m - p[1]);
+    let rho2 = dn * dn + de * de;
+    let rho = rho2.sqrt();
+    if rho < 1e-6 {
+        return None;
+    }
+    let predicted_bearing = de.atan2(dn) - f.yaw_rad();
+    let h = DMatrix::from_row_slice(2, 3, &[-dn / rho, -de / rho, 0.0, de / rho2, -dn / rho2, -1.0]);
+    let residual =
+        DVector::from_vec(vec![obs.range_m - noise.landmark_range_bias_m - rho, wrap_angle(obs.bearing_rad - predicted_bearing)]);
+    let lm_var = 0.5 * (lm.sigma_n_m.powi(2) + lm.sigma_e_m.powi(2));
+    let r = DMatrix::from_diagonal(&DVector::from_vec(vec![
+        noise.landmark_range_sigma_m.powi(2) + lm_var,
+        noise.landmark_bearing_sigma_rad.powi(2) + lm_var / rho2,
+    ]));
+    Some(LinearizedMeasurement { h, residual, r })
+}
+
+/// A teammate observation as a cooperative measurement (the range's bias removed).
+pub fn robot_measurement(observer: PlatformId, to: PlatformId, obs: &Observation, noise: &NoiseModel) -> CoopMeasurement {
+    CoopMeasurement::RangeBearing {
+        from: observer,
+        to,
+        range_m: obs.range_m - noise.robot_range_bias_m,
+        bearing_rad: obs.bearing_rad,
+        sigma_range_m: noise.robot_range_sigma_m,
+        sigma_bearing_rad: noise.robot_bearing_sigma_rad,
+    }
+}
+
+/// One camera image: an observer's observations at one time stamp.
+struct Image<'a> {
+    t: TimeUs,
+    observer: usize,
+    observations: &'a [Observation],
+}
+
+/// The images of every robot in time order (ties: by robot).
+fn images(ds: &Dataset) -> Vec<Image<'_>> {
+    let mut out = Vec::new();
+    for (i, r) in ds.robots.iter().enumerate() {
+        let obs = &r.observations;
+        let mut a = 0;
+        while a < obs.len() {
+            let mut b = a + 1;
+            while b < obs.len() && obs[b].t == obs[a].t {
+                b += 1;
+            }
+            out.push(Image { t: obs[a].t, observer: i, observations: &obs[a..b] });
+            a = b;
+        }
+    }
+    out.sort_by_key(|im| (im.t, im.observer));
+    out
+}
+
+/// Runs `method` over the data set in `regime` (see the module documentation).
+pub fn run(ds: &Dataset, settings: &Settings, regime: Regime, method: Method) -> Result<Outcome, RunError> {
+    let noise = &settings.noise;
+    noise.validate().map_err(RunError::Settings)?;
+    if settings.score_period_us == 0 {
+        return Err(RunError::Settings("the scoring period must be positive".into()));
+    }
+    let fail = |robot, t, source| RunError::Filter { regime: regime.name(), method, robot, t, source };
+    let config = PlanarConfig {
+        speed_noise_m_s_per_sqrt_hz: noise.speed_noise_m_s_per_sqrt_hz,
+        yaw_rate_noise_rad_s_per_sqrt_hz: noise.yaw_rate_noise_rad_s_per_sqrt_hz,
+        max_gap_s: 1.0,
+    };
+    let sigma = PlanarSigma { pos_m: noise.initial_position_sigma_m, yaw_rad: noise.initial_yaw_sigma_rad };
+    let stale_us = (noise.stale_command_s * 1e6) as u64;
+    let mut members = Vec::new();
+    let mut drives = Vec::new();
+    for r in &ds.robots {
+        let first = r.truth.first().ok_or_else(|| RunError::Settings(format!("robot {} has no ground truth", r.id)))?;
+        // Every robot starts at t0: one still before its own first truth sample.
+        let init = PlanarState { pos_ned_m: Vector3::new(first.n_m, first.e_m, 0.0), yaw_rad: first.yaw_rad };
+        members.push((r.id, PlanarFilter::new(config, ds.t0, init, sigma).map_err(|e| fail(r.id, ds.t0, e))?));
+        drives.push(drive_samples(&r.commands, ds.t0, ds.t_end, stale_us));
+    }
+    let ids: Vec<PlatformId> = ds.robots.iter().map(|r| r.id).collect();
+    let mut team = Team::new(method, members).map_err(|e| fail(0, ds.t0, e))?;
+    let gate = UpdateOptions::gate_for_probability(noise.gate_probability)
+        .ok_or_else(|| RunError::Settings(format!("gate probability {} is not in (0, 1)", noise.gate_probability)))?;
+    let mut next = vec![0usize; ids.len()];
+    // Brings robot `i`'s filter to `t`: its samples up to `t`, then the next one cut at `t`.
+    let mut advance = |team: &mut Team<PlanarFilter>, i: usize, t: TimeUs| -> Result<(), RunError> {
+        let f = team.filter_mut(ids[i]).expect("member");
+        while let Some(s) = drives[i].get(next[i]).filter(|s| s.t <= t) {
+            f.propagate(s).map_err(|e| fail(ids[i], s.t, e))?;
+            next[i] += 1;
+        }
+        if f.time() < t
+            && let Some(s) = drives[i].get(next[i])
+        {
+            f.propagate(&WheelSample { t, ..*s }).map_err(|e| fail(ids[i], t, e))?;
+        }
+        Ok(())
+    };
+    let mut out = Outcome {
+        regime,
+        method,
+        robots: Vec::new(),
+        pos_rmse_m: f64::NAN,
+        heading_rmse_deg: f64::NAN,
+        avg_nees: f64::NAN,
+        avg_nees_position: f64::NAN,
+        avg_nees_heading: f64::NAN,
+        in_bound_share: f64::NAN,
+        samples: 0,
+        masked: 0,
+        landmark_updates: 0,
+        landmark_gated: 0,
+        robot_updates: 0,
+        robot_gated: 0,
+        epochs: 0,
+        refused: 0,
+    };
+    // Per robot: sum of squared position errors, of squared heading errors (deg), samples,
+    // masked, last error.
+    let mut acc = vec![(0.0f64, 0.0f64, 0usize, 0usize, f64::NAN); ids.len()];
+    let (mut nees_sum, mut in_bound) = (0.0f64, 0usize);
+    let (mut nees_pos_sum, mut nees_yaw_sum) = (0.0f64, 0.0f64);
+    let bound = statrs_chi2_95(3);
+    let images = if method == Method::DeadReckoning { Vec::new() } else { images(ds) };
+    let mut k_image = 0;
+    let mut t_score = ds.t0;
+    while t_score <= ds.t_end || k_image < images.len() {
+        let t_image = images.get(k_image).map(|im| im.t);
+        if let Some(t) = t_image.filter(|&t| t <= t_score || t_score > ds.t_end) {
+            let im = &images[k_image];
+            k_image += 1;
+            let observer = ids[im.observer];
+            let sees_landmarks = match regime {
+                Regime::NoLandmarks => false,
+                Regime::MapBlind => settings.map_robots.contains(&observer),
+                Regime::FullMap => true,
+            };
+            if sees_landmarks && im.observations.iter().any(|o| matches!(o.target, Target::Landmark(_))) {
+                advance(&mut team, im.observer, t)?;
+                for o in im.observations {
+                    let Target::Landmark(l) = o.target else { continue };
+                    let Some(lm) = ds.landmark(l) else { continue };
+                    let Some(meas) = landmark_measurement(team.filter(observer).expect("member"), lm, o, noise) else {
+                        out.refused += 1;
+                        continue;
+                    };
+                    match team.gated_local_update(observer, &meas, gate) {
+                        Ok(Some(_)) => out.landmark_updates += 1,
+                        Ok(None) => out.landmark_gated += 1,
+                        Err(_) => out.refused += 1,
+                    }
+                }
+            }
+            let meas: Vec<CoopMeasurement> = im
+                .observations
+                .iter()
+                .filter_map(|o| match o.target {
+                    Target::Robot(to) if ids.contains(&to) => Some(robot_measurement(observer, to, o, noise)),
+                    _ => None,
+                })
+                .collect();
+            if !meas.is_empty() {
+                for i in 0..ids.len() {
+                    advance(&mut team, i, t)?;
+                }
+                out.epochs += 1;
+                match team.gated_cooperative_event(&meas, gate) {
+                    Ok((_, gated)) => {
+                        out.robot_updates += meas.len() - gated;
+                        out.robot_gated += gated;
+                    }
+                    Err(_) => out.refused += meas.len(),
+                }
+            }
+            continue;
+        }
+        if t_score > ds.t_end {
+            break;
+        }
+        for (i, r) in ds.robots.iter().enumerate() {
+            advance(&mut team, i, t_score)?;
+            let Some(truth) = truth_at(&r.truth, t_score, MAX_TRUTH_GAP_US) else {
+                acc[i].3 += 1;
+                continue;
+            };
+            let f = team.filter(r.id).expect("member");
+            let p = f.position_ned_m();
+            let e = DVector::from_vec(vec![truth.n_m - p[0], truth.e_m - p[1], wrap_angle(truth.yaw_rad - f.yaw_rad())]);
+            let cov = f.covariance();
+            let v = nees(&e, &cov).map_err(|err| fail(r.id, t_score, err))?;
+            nees_pos_sum += nees(&e.rows(0, 2).into_owned(), &cov.view((0, 0), (2, 2)).into_owned())
+                .map_err(|err| fail(r.id, t_score, err))?;
+            nees_yaw_sum += e[2] * e[2] / cov[(2, 2)];
+            nees_sum += v;
+            in_bound += usize::from(v <= bound);
+            let pos2 = e[0] * e[0] + e[1] * e[1];
+            acc[i].0 += pos2;
+            acc[i].1 += e[2].to_degrees().powi(2);
+            acc[i].2 += 1;
+            acc[i].4 = pos2.sqrt();
+        }
+        t_score = TimeUs(t_score.0 + settings.score_period_us);
+    }
+    let (mut pos2, mut head2) = (0.0, 0.0);
+    for (i, &(p2, h2, n, masked, last)) in acc.iter().enumerate() {
+        let n_f = n.max(1) as f64;
+        out.robots.push(RobotScore {
+            id: ids[i],
+            pos_rmse_m: (p2 / n_f).sqrt(),
+            heading_rmse_deg: (h2 / n_f).sqrt(),
+            samples: n,
+            masked,
+            final_pos_err_m: last,
+        });
+        pos2 += p2;
+        head2 += h2;
+        out.samples += n;
+        out.masked += masked;
+    }
+    let n = out.samples.max(1) as f64;
+    out.pos_rmse_m = (pos2 / n).sqrt();
+    out.heading_rmse_deg = (head2 / n).sqrt();
+    out.avg_nees = nees_sum / n;
+    out.avg_nees_position = nees_pos_sum / n;
+    out.avg_nees_heading = nees_yaw_sum / n;
+    out.in_bound_share = in_bound as f64 / n;
+    Ok(out)
+}
+
+/// The 95% quantile of chi-square with `dof` degrees of freedom.
+fn statrs_chi2_95(dof: usize) -> f64 {
+    use statrs::distribution::{ChiSquared, ContinuousCDF};
+    ChiSquared::new(dof as f64).map(|d| d.inverse_cdf(0.95)).unwrap_or(f64::INFINITY)
+}
+
+/// The 95% band of a time-averaged NEES of the 3-state error, taken as the band of the mean of
+/// `robots` independent chi-square(3) values (the robots at one instant).
+pub fn nees_band(robots: usize) -> (f64, f64) {
+    crate::estimation::consistency::average_nees_band(3, robots.max(1), 0.95)
+}
+
+/// Bytes the decentralized method would have sent over the data set: at each of `epochs` every
+/// one of `team` robots broadcasts its record (3 error states, compact encoding, unsigned) with
+/// its epoch report and estimate (as `cooploc budget` measures them), and the observer sends
+/// each of its `observations` of teammates once as a COOPLOC_RANGE_BEARING.
+pub fn broadcast_bytes(team: usize, epochs: usize, observations: usize) -> Result<u64, String> {
+    use crate::protocol::budget::{TeamShape, epoch_frames};
+    let shape = TeamShape {
+        team,
+        state_dim: 3,
+        ranges_per_node: 0,
+        epoch_hz: 1.0,
+        encoding: crate::protocol::record::Encoding::Compact,
+        signed: false,
+        echo_ranges: false,
+    };
+    let per_node = epoch_frames(&shape)?.bytes() as u64;
+    let obs = crate::protocol::wire::to_frame(
+        mavlink_core::MavHeader { system_id: 1, component_id: 191, sequence: 0 },
+        &crate::protocol::wire::range_bearing_to_message(&crate::protocol::wire::RangeBearingReport {
+            t: TimeUs(0),
+            observer: 1,
+            target: Target::Robot(2),
+            range_m: 1.0,
+            bearing_rad: 0.0,
+        }),
+    )
+    .len() as u64;
+    Ok(epochs as u64 * team as u64 * per_node + observations as u64 * obs)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::dataset::Command;
+
+    fn secs(s: f64) -> TimeUs {
+        TimeUs((s * 1e6).round() as u64)
+    }
+
+    #[test]
+    fn commands_hold_until_the_next_or_until_stale() {
+        let c = |t: f64, v: f64| Command { t: secs(t), speed_m_s: v, yaw_rate_rad_s: 0.1 * v };
+        let commands = [c(1.0, 1.0), c(1.2, 2.0), c(4.2, 0.5)];
+        let s = drive_samples(&commands, secs(0.0), secs(5.0), 1_000_000);
+        let ends: Vec<u64> = s.iter().map(|s| s.t.0 / 100_000).collect();
+        assert_eq!(ends, vec![5, 10, 12, 17, 22, 27, 32, 37, 42, 47, 50], "tenths of a second");
+        let mut prev = 0.0;
+        let mut dist = 0.0;
+        for x in &s {
+            dist += x.speed_m_s * (x.t.as_secs_f64() - prev);
+            prev = x.t.as_secs_f64();
+        }
+        // 0.2 s at 1 m/s, 1 s at 2 m/s (then stale: stopped for 2 s), 0.8 s at 0.5 m/s.
+        assert!((dist - 2.6).abs() < 1e-9, "{dist}");
+        assert_eq!(s[0].speed_m_s, 0.0, "still before the first command");
+        assert_eq!(s[5].speed_m_s, 0.0, "stopped once the command is stale");
+    }
+
+    fn filter(n: f64, e: f64, yaw: f64) -> PlanarFilter {
+        let config = PlanarConfig { speed_noise_m_s_per_sqrt_hz: 0.01, yaw_rate_noise_rad_s_per_sqrt_hz: 0.01, max_gap_s: 1.0 };
+        let state = PlanarState { pos_ned_m: Vector3::new(n, e, 0.0), yaw_rad: yaw };
+        PlanarFilter::new(config, TimeUs(0), state, PlanarSigma { pos_m: 0.5, yaw_rad: 0.1 }).unwrap()
+    }
+
+    #[test]
+    fn the_landmark_jacobian_is_the_derivative_of_range_and_bearing() {
+        let noise = NoiseModel::mrclam();
+        let lm = Landmark { id: 6, n_m: 3.0, e_m: -1.0, sigma_n_m: 0.0, sigma_e_m: 0.0 };
+        let obs = Observation { t: TimeUs(0), target: Target::Landmark(6), range_m: 2.0, bearing_rad: 0.3 };
+        let x0 = [0.5, 0.7, 0.4];
+        let m = landmark_measurement(&filter(x0[0], x0[1], x0[2]), &lm, &obs, &noise).unwrap();
+        for k in 0..3 {
+            let mut x = x0;
+            x[k] += 1e-6;
+            let moved = landmark_measurement(&filter(x[0], x[1], x[2]), &lm, &obs, &noise).unwrap();
+            // residual = z - h(x): d(residual)/dx = -dh/dx, and H is dh/d(truth - estimate) = dh/dx.
+            for row in 0..2 {
+                let numeric = -(moved.residual[row] - m.residual[row]) / 1e-6;
+                assert!((numeric - m.h[(row, k)]).abs() < 1e-5, "row {row} col {k}: {numeric} vs {}", m.h[(row, k)]);
+            }
+        }
+        // A landmark dead ahead at 2 m, seen at 2 m and bearing 0: zero residual.
+        let ahead = Landmark { n_m: 2.0, e_m: 0.0, ..lm };
+        let obs = Observation { range_m: 2.0 + noise.landmark_range_bias_m, bearing_rad: 0.0, ..obs };
+        let m = landmark_measurement(&filter(0.0, 0.0, 0.0), &ahead, &obs, &noise).unwrap();
+        assert!(m.residual.norm() < 1e-12, "{}", m.residual);
+    }
+
+    #[test]
+    fn the_gate_leaves_out_a_gross_outlier_and_keeps_the_state() {
+        let noise = NoiseModel::mrclam();
+        let gate = UpdateOptions::gate_for_probability(noise.gate_probability).unwrap();
+        let lm = Landmark { id: 6, n_m: 2.0, e_m: 0.0, sigma_n_m: 0.0, sigma_e_m: 0.0 };
+        for method in Method::ALL {
+            let mut team = Team::new(method, vec![(1, filter(0.0, 0.0, 0.0)), (2, filter(5.0, 5.0, 0.0))]).unwrap();
+            let good = Observation { t: TimeUs(0), target: Target::Landmark(6), range_m: 2.1, bearing_rad: 0.02 };
+            let bad = Observation { range_m: 9.0, ..good };
+            let before = team.filter(1).unwrap().state();
+            let m = landmark_measurement(team.filter(1).unwrap(), &lm, &bad, &noise).unwrap();
+            assert!(team.gated_local_update(1, &m, gate).unwrap().is_none(), "{method}");
+            assert_eq!(team.filter(1).unwrap().state(), before, "{method}");
+            let m = landmark_measurement(team.filter(1).unwrap(), &lm, &good, &noise).unwrap();
+            assert!(team.gated_local_update(1, &m, gate).unwrap().is_some(), "{method}");
+            // A teammate 7.07 m away reported at 1 m: gated for every cooperative method.
+            let far = Observation { t: TimeUs(0), target: Target::Robot(2), range_m: 1.0, bearing_rad: 0.785 };
+            let (_, gated) = team.gated_cooperative_event(&[robot_measurement(1, 2, &far, &noise)], gate).unwrap();
+            assert_eq!(gated, usize::from(method != Method::DeadReckoning), "{method}");
+        }
+    }
+}

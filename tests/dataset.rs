@@ -1,0 +1,263 @@
+//! Real data: the committed excerpt of MRCLAM data set 6 (`tests/data/mrclam_ds6_120s`, the first
+//! 120 s of all five robots, source in its README) imported, written as a cooploc log, read back
+//! and run through every method in every regime; the summary against a golden file. Bad data
+//! (a missing file, a truncated line, time going backwards, an unknown barcode, bytes that are
+//! not text) through the binary: an error naming file and line, or counted, never a panic.
+//!
+//! Regenerate the golden summary after a deliberate change of the model or the noise figures:
+//! `COOPLOC_BLESS=1 cargo test --release --test dataset golden`.
+
+use std::path::{Path, PathBuf};
+use std::process::Command;
+
+use cooploc::dataset::run::{Regime, Settings, run};
+use cooploc::dataset::{log, mrclam};
+use cooploc::estimation::Method;
+
+fn data_dir() -> PathBuf {
+    Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/data/mrclam_ds6_120s")
+}
+
+/// The excerpt decompressed into a fresh folder named after `tag`.
+fn excerpt(tag: &str) -> PathBuf {
+    let dir = std::env::temp_dir().join(format!("cooploc-mrclam-{tag}-{}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&dir);
+    std::fs::create_dir_all(&dir).unwrap();
+    let mut files = 0;
+    for entry in std::fs::read_dir(data_dir()).unwrap() {
+        let path = entry.unwrap().path();
+        let Some(name) = path.file_name().and_then(|n| n.to_str()).and_then(|n| n.strip_suffix(".zst")) else { continue };
+        let bytes = zstd::decode_all(std::fs::File::open(&path).unwrap()).unwrap();
+        std::fs::write(dir.join(name), bytes).unwrap();
+        files += 1;
+    }
+    assert_eq!(files, 17, "the excerpt has the 17 files of a data set");
+    dir
+}
+
+fn summary_line(o: &cooploc::dataset::run::Outcome) -> String {
+    format!(
+        "{} {}: pos {:.4} m, hdg {:.3} deg, nees {:.3}, in95 {:.4}, landmarks {}/{}, teammates {}/{}, epochs {}, scored {}, masked {}",
+        o.regime.name(),
+        o.method.short_name(),
+        o.pos_rmse_m,
+        o.heading_rmse_deg,
+        o.avg_nees,
+        o.in_bound_share,
+        o.landmark_updates,
+        o.landmark_gated,
+        o.robot_updates,
+        o.robot_gated,
+        o.epochs,
+        o.samples,
+        o.masked
+    )
+}
+
+#[test]
+fn golden_summary_of_every_method_on_the_excerpt_after_a_log_round_trip() {
+    let dir = excerpt("golden");
+    let ds = mrclam::read_folder(&dir).unwrap();
+    assert_eq!(ds.robots.len(), 5);
+    assert_eq!(ds.landmarks.len(), 15);
+    let mut lines = vec![format!("excerpt: {:.3} s", ds.t_end.secs_since(ds.t0))];
+    for r in &ds.robots {
+        lines.push(format!(
+            "robot {}: {} commands, {} observations, {} truth poses",
+            r.id,
+            r.commands.len(),
+            r.observations.len(),
+            r.truth.len()
+        ));
+    }
+    lines.push(format!("counts: {:?}", ds.counts));
+
+    // Through a log and back: what replay runs on.
+    let path = dir.join("excerpt.mcap");
+    let noise = cooploc::dataset::noise::NoiseModel::mrclam();
+    log::write(&ds, &noise, &path).unwrap();
+    let read = cooploc::recording::read_log(&path).unwrap();
+    let logged = log::read(&read).unwrap();
+    assert_eq!(logged.rejected_frames, 0);
+    assert_eq!(logged.noise, noise);
+    let back = &logged.dataset;
+    assert_eq!((back.t0, back.t_end, &back.counts, &back.landmarks), (ds.t0, ds.t_end, &ds.counts, &ds.landmarks));
+    for (a, b) in ds.robots.iter().zip(&back.robots) {
+        assert_eq!(a.commands.len(), b.commands.len());
+        assert_eq!(a.observations.len(), b.observations.len());
+        assert_eq!(a.truth.len(), b.truth.len());
+        for (x, y) in a.commands.iter().zip(&b.commands) {
+            assert_eq!(x.t, y.t);
+            assert!(
+                (x.speed_m_s - y.speed_m_s).abs() < 1e-7 && (x.yaw_rate_rad_s - y.yaw_rate_rad_s).abs() < 1e-7,
+                "f32 on the wire"
+            );
+        }
+        for (x, y) in a.observations.iter().zip(&b.observations) {
+            assert_eq!((x.t, x.target), (y.t, y.target));
+        }
+        for (x, y) in a.truth.iter().zip(&b.truth) {
+            assert_eq!(x.t, y.t);
+            assert!((x.n_m - y.n_m).abs() < 1e-12 && (x.e_m - y.e_m).abs() < 1e-12 && (x.yaw_rad - y.yaw_rad).abs() < 1e-9);
+        }
+    }
+
+    let settings = Settings::new(logged.noise);
+    let mut outcomes = Vec::new();
+    for regime in Regime::ALL {
+        for method in Method::ALL {
+            let o = run(back, &settings, regime, method).unwrap();
+            lines.push(summary_line(&o));
+            outcomes.push(o);
+        }
+    }
+    let get = |r: Regime, m: Method| outcomes.iter().find(|o| o.regime == r && o.method == m).unwrap();
+    // The paper's exactness on real data: with every robot in every epoch and no local
+    // measurement, the decentralized filter is the centralized one.
+    let (d, c) = (get(Regime::NoLandmarks, Method::Decentralized), get(Regime::NoLandmarks, Method::Centralized));
+    assert!((d.pos_rmse_m - c.pos_rmse_m).abs() < 1e-9 && (d.avg_nees - c.avg_nees).abs() < 1e-6, "{d:?} vs {c:?}");
+    assert!(d.epochs > 0 && d.robot_updates > 0, "the excerpt has teammate observations");
+    // Dead reckoning uses no observation: the same run in every regime.
+    let dr: Vec<f64> = Regime::ALL.iter().map(|&r| get(r, Method::DeadReckoning).pos_rmse_m).collect();
+    assert!(dr.iter().all(|&v| v == dr[0]), "{dr:?}");
+    // Landmarks help: with the full map every cooperative method beats dead reckoning.
+    for m in [Method::NoPropagation, Method::Decentralized, Method::Centralized, Method::CovarianceIntersection] {
+        assert!(get(Regime::FullMap, m).pos_rmse_m < dr[0], "{m}");
+    }
+
+    let text = lines.join("\n") + "\n";
+    let golden = Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/golden/mrclam_excerpt.txt");
+    if std::env::var_os("COOPLOC_BLESS").is_some() {
+        std::fs::write(&golden, &text).unwrap();
+    }
+    let expected = std::fs::read_to_string(&golden).expect("tests/golden/mrclam_excerpt.txt (COOPLOC_BLESS=1 to write it)");
+    assert_eq!(text, expected, "the summary differs from tests/golden/mrclam_excerpt.txt");
+    std::fs::remove_dir_all(&dir).unwrap();
+}
+
+fn cooploc(args: &[&str]) -> std::process::Output {
+    Command::new(env!("CARGO_BIN_EXE_cooploc")).args(args).output().unwrap()
+}
+
+/// The table line of `regime method` in a command's output.
+fn table_line(out: &str, regime: &str, method: &str) -> String {
+    out.lines()
+        .find(|l| {
+            let mut w = l.split_whitespace();
+            w.next() == Some(regime) && w.next() == Some(method)
+        })
+        .unwrap_or_else(|| panic!("no {regime} {method} line in:\n{out}"))
+        .to_string()
+}
+
+#[test]
+fn the_import_and_the_replay_of_its_log_print_the_same_table() {
+    let dir = excerpt("replay");
+    let log_path = dir.join("ds.mcap");
+    let import = cooploc(&["dataset", "mrclam", dir.to_str().unwrap(), "--out", log_path.to_str().unwrap(), "--method", "all"]);
+    let import_out = String::from_utf8_lossy(&import.stdout).into_owned();
+    assert!(import.status.success(), "{import_out}\n{}", String::from_utf8_lossy(&import.stderr));
+    assert!(import_out.contains("dropped: 0 observations of unknown barcodes"), "{import_out}");
+    let replay = cooploc(&["replay", log_path.to_str().unwrap(), "--method", "all"]);
+    let replay_out = String::from_utf8_lossy(&replay.stdout).into_owned();
+    assert!(replay.status.success(), "{replay_out}\n{}", String::from_utf8_lossy(&replay.stderr));
+    for regime in ["no-landmarks", "map-blind", "full-map"] {
+        for method in ["dr", "naive", "dcl", "centralized", "ci"] {
+            // Everything but the runtime column (the third field from the end).
+            let strip = |l: String| {
+                let mut w: Vec<String> = l.split_whitespace().map(str::to_string).collect();
+                w.remove(w.len() - 3);
+                w
+            };
+            assert_eq!(strip(table_line(&import_out, regime, method)), strip(table_line(&replay_out, regime, method)));
+        }
+    }
+    std::fs::remove_dir_all(&dir).unwrap();
+}
+
+/// Runs the import on `dir` and returns (exit code, stdout, stderr).
+fn import(dir: &Path) -> (Option<i32>, String, String) {
+    let out = cooploc(&["dataset", "mrclam", dir.to_str().unwrap()]);
+    (out.status.code(), String::from_utf8_lossy(&out.stdout).into_owned(), String::from_utf8_lossy(&out.stderr).into_owned())
+}
+
+fn lines_in(path: &Path) -> usize {
+    std::fs::read_to_string(path).unwrap().lines().count()
+}
+
+fn append(path: &Path, line: &str) {
+    use std::io::Write;
+    std::fs::OpenOptions::new().append(true).open(path).unwrap().write_all(line.as_bytes()).unwrap();
+}
+
+#[test]
+fn bad_data_gets_an_error_naming_file_and_line_or_is_counted() {
+    let dir = excerpt("bad");
+    let (code, out, _) = import(&dir);
+    assert_eq!(code, Some(0), "{out}");
+
+    // A missing file.
+    let measurement = dir.join("Robot3_Measurement.dat");
+    let saved = std::fs::read(&measurement).unwrap();
+    std::fs::remove_file(&measurement).unwrap();
+    let (code, _, err) = import(&dir);
+    assert_eq!(code, Some(1), "an error, not a panic: {err}");
+    assert!(err.contains("Robot3_Measurement.dat") && err.contains("No such file"), "{err}");
+    std::fs::write(&measurement, &saved).unwrap();
+
+    // A truncated line.
+    let odometry = dir.join("Robot2_Odometry.dat");
+    let saved = std::fs::read(&odometry).unwrap();
+    let n = lines_in(&odometry);
+    append(&odometry, "1248444296.000 \t  0.08\r\n");
+    let (code, _, err) = import(&dir);
+    assert_eq!(code, Some(1), "{err}");
+    assert!(err.contains(&format!("Robot2_Odometry.dat:{}: 2 fields, expected 3", n + 1)), "{err}");
+    std::fs::write(&odometry, &saved).unwrap();
+
+    // Time going backwards.
+    let truth = dir.join("Robot4_Groundtruth.dat");
+    let saved = std::fs::read(&truth).unwrap();
+    let n = lines_in(&truth);
+    append(&truth, "1248444200.000 \t 1.0 \t 1.0 \t 0.0 \r\n");
+    let (code, _, err) = import(&dir);
+    assert_eq!(code, Some(1), "{err}");
+    assert!(err.contains(&format!("Robot4_Groundtruth.dat:{}: time 1248444200 s is before", n + 1)), "{err}");
+    std::fs::write(&truth, &saved).unwrap();
+
+    // Bytes that are not text.
+    std::fs::write(dir.join("Barcodes.dat"), b"# header\n1 5\n\xff\xfe\n").unwrap();
+    let (code, _, err) = import(&dir);
+    assert_eq!(code, Some(1), "{err}");
+    assert!(err.contains("Barcodes.dat: not text"), "{err}");
+    std::fs::write(
+        dir.join("Barcodes.dat"),
+        zstd::decode_all(std::fs::File::open(data_dir().join("Barcodes.dat.zst")).unwrap()).unwrap(),
+    )
+    .unwrap();
+
+    // An unknown barcode and a self-observation: counted and dropped, the import goes on.
+    let meas5 = dir.join("Robot5_Measurement.dat");
+    append(&meas5, "1248444296.000 \t  99 \t  1.5 \t 0.1 \r\n1248444296.100 \t  23 \t  1.5 \t 0.1 \r\n");
+    let (code, out, err) = import(&dir);
+    assert_eq!(code, Some(0), "{err}");
+    assert!(out.contains("dropped: 1 observations of unknown barcodes (robot 5 barcode 99 x1), 1 self-observations"), "{out}");
+    std::fs::remove_dir_all(&dir).unwrap();
+}
+
+#[test]
+fn a_log_that_is_not_a_data_set_or_is_damaged_is_refused_by_name() {
+    let dir = excerpt("badlog");
+    let ds = mrclam::read_folder(&dir).unwrap();
+    let path = dir.join("ds.mcap");
+    log::write(&ds.excerpt(20.0), &cooploc::dataset::noise::NoiseModel::mrclam(), &path).unwrap();
+    // Cut the file in half: the reader keeps what is before the damage; the replay says so
+    // and runs on what it has, or refuses by name, and never panics.
+    let bytes = std::fs::read(&path).unwrap();
+    std::fs::write(&path, &bytes[..bytes.len() / 2]).unwrap();
+    let out = cooploc(&["replay", path.to_str().unwrap(), "--method", "dr"]);
+    assert!(matches!(out.status.code(), Some(0) | Some(1)), "{out:?}");
+    let text = format!("{}{}", String::from_utf8_lossy(&out.stdout), String::from_utf8_lossy(&out.stderr));
+    assert!(!text.contains("panicked"), "{text}");
+    std::fs::remove_dir_all(&dir).unwrap();
+}
