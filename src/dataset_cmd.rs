@@ -47,6 +47,10 @@ struct MrclamArgs {
     /// Print the noise figures estimated from this folder against its ground truth.
     #[arg(long)]
     estimate_noise: bool,
+    /// With --out: the method whose estimates the log shows beside the truth (map-blind regime);
+    /// `none` for inputs and truth only.
+    #[arg(long, default_value = "dcl")]
+    view: String,
     /// Only the first SECONDS of the data set (from its first ground-truth time).
     #[arg(long)]
     excerpt: Option<f64>,
@@ -84,7 +88,18 @@ fn mrclam_cmd(a: MrclamArgs) -> anyhow::Result<()> {
     let mut noise_for_runs = noise;
     if let Some(out) = &a.out {
         let t = Instant::now();
-        let n = log::write(&ds_for_runs, &noise, out).with_context(|| format!("writing {}", out.display()))?;
+        let view = match a.view.as_str() {
+            "none" => None,
+            name => {
+                let method = Method::from_short_name(name)
+                    .with_context(|| format!("--view {name:?}: expected dr, naive, dcl, centralized, ci or none"))?;
+                let mut settings = Settings::new(noise);
+                settings.map_robots = a.map_robots.clone();
+                settings.keep_track = true;
+                Some(run(&ds_for_runs, &settings, Regime::MapBlind, method)?)
+            }
+        };
+        let n = log::write(&ds_for_runs, &noise, out, view.as_ref()).with_context(|| format!("writing {}", out.display()))?;
         let size = std::fs::metadata(out).map(|m| m.len()).unwrap_or(0);
         println!("wrote {} ({n} messages, {:.1} MB) in {:.2} s", out.display(), size as f64 / 1e6, t.elapsed().as_secs_f64());
         if a.method.is_some() {
@@ -218,7 +233,7 @@ pub fn evaluate(
         settings.map_robots
     );
     println!(
-        "{:<13}{:<12}{:>9}{:>9}{:>9}{:>11}{:>8}{:>15}{:>15}{:>8}{:>8}{:>10}{:>9}",
+        "{:<13}{:<12}{:>7}{:>9}{:>9}{:>15}{:>8}{:>17}{:>16}{:>8}{:>7}{:>8}{:>7}",
         "regime",
         "method",
         "pos m",
@@ -241,7 +256,7 @@ pub fn evaluate(
             ("-".into(), "-".into())
         };
         println!(
-            "{:<13}{:<12}{:>9.3}{:>9.2}{:>9.2}{:>11}{:>7.1}%{:>15}{:>15}{:>8}{:>8.2}{:>10}{:>9}",
+            "{:<13}{:<12}{:>7.3}{:>9.2}{:>9.2}{:>15}{:>7.1}%{:>17}{:>16}{:>8}{:>7.2}{:>8}{:>7}",
             o.regime.name(),
             o.method.short_name(),
             o.pos_rmse_m,

@@ -7,6 +7,8 @@
 //! Regenerate the golden summary after a deliberate change of the model or the noise figures:
 //! `COOPLOC_BLESS=1 cargo test --release --test dataset golden`.
 
+mod common;
+
 use std::path::{Path, PathBuf};
 use std::process::Command;
 
@@ -75,7 +77,7 @@ fn golden_summary_of_every_method_on_the_excerpt_after_a_log_round_trip() {
     // Through a log and back: what replay runs on.
     let path = dir.join("excerpt.mcap");
     let noise = cooploc::dataset::noise::NoiseModel::mrclam();
-    log::write(&ds, &noise, &path).unwrap();
+    log::write(&ds, &noise, &path, None).unwrap();
     let read = cooploc::recording::read_log(&path).unwrap();
     let logged = log::read(&read).unwrap();
     assert_eq!(logged.rejected_frames, 0);
@@ -250,7 +252,7 @@ fn a_log_that_is_not_a_data_set_or_is_damaged_is_refused_by_name() {
     let dir = excerpt("badlog");
     let ds = mrclam::read_folder(&dir).unwrap();
     let path = dir.join("ds.mcap");
-    log::write(&ds.excerpt(20.0), &cooploc::dataset::noise::NoiseModel::mrclam(), &path).unwrap();
+    log::write(&ds.excerpt(20.0), &cooploc::dataset::noise::NoiseModel::mrclam(), &path, None).unwrap();
     // Cut the file in half: the reader keeps what is before the damage; the replay says so
     // and runs on what it has, or refuses by name, and never panics.
     let bytes = std::fs::read(&path).unwrap();
@@ -259,5 +261,50 @@ fn a_log_that_is_not_a_data_set_or_is_damaged_is_refused_by_name() {
     assert!(matches!(out.status.code(), Some(0) | Some(1)), "{out:?}");
     let text = format!("{}{}", String::from_utf8_lossy(&out.stdout), String::from_utf8_lossy(&out.stderr));
     assert!(!text.contains("panicked"), "{text}");
+    std::fs::remove_dir_all(&dir).unwrap();
+}
+
+/// The data set log opens in the Python `mcap` reader and every raw frame decodes in pymavlink:
+/// the commands and observations the Rust reader reads, with the same first observation.
+#[test]
+fn independent_readers_open_the_data_set_log() {
+    let Some(python) = common::python("the data set log check") else { return };
+    let dir = excerpt("python");
+    let ds = mrclam::read_folder(&dir).unwrap();
+    let path = dir.join("ds.mcap");
+    let view = {
+        let mut s = Settings::new(cooploc::dataset::noise::NoiseModel::mrclam());
+        s.keep_track = true;
+        run(&ds, &s, Regime::MapBlind, Method::Decentralized).unwrap()
+    };
+    log::write(&ds, &cooploc::dataset::noise::NoiseModel::mrclam(), &path, Some(&view)).unwrap();
+    let out = Command::new(&python)
+        .arg(Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/python/dataset_log_check.py"))
+        .arg(Path::new(env!("CARGO_MANIFEST_DIR")).join("dialects/cooploc.xml"))
+        .arg(&path)
+        .output()
+        .unwrap();
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    let report: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
+    for r in &ds.robots {
+        let got = &report["robots"][r.id.to_string()];
+        assert_eq!(got["bad"], 0, "robot {}: {got}", r.id);
+        assert_eq!(got["ODOMETRY"], r.commands.len(), "robot {}", r.id);
+        assert_eq!(got["COOPLOC_RANGE_BEARING"], r.observations.len(), "robot {}", r.id);
+        assert_eq!(got["truth"], r.truth.len(), "robot {}", r.id);
+        let track = &view.track.iter().find(|t| t.0 == r.id).unwrap().1;
+        assert_eq!(got["pose"], track.len(), "robot {}: the estimates shown", r.id);
+        let o = &r.observations[0];
+        let first = &got["first_observation"];
+        assert_eq!(first["time_usec"], o.t.0);
+        assert_eq!(first["observer"], r.id);
+        assert!((first["range"].as_f64().unwrap() - o.range_m).abs() < 1e-6);
+        assert!((first["bearing"].as_f64().unwrap() - o.bearing_rad).abs() < 1e-6);
+        let (target, kind) = match o.target {
+            cooploc::dataset::Target::Robot(id) => (id, 0),
+            cooploc::dataset::Target::Landmark(id) => (id, 1),
+        };
+        assert_eq!((first["target"].as_u64().unwrap(), first["target_kind"].as_u64().unwrap()), (u64::from(target), kind));
+    }
     std::fs::remove_dir_all(&dir).unwrap();
 }

@@ -9,7 +9,9 @@
 //! UTIAS so that Foxglove's map shows it). Log times are the data's own times.
 //!
 //! Metadata `cooploc.dataset` says what the log is (name, kind, start, end, robots, what the
-//! reader dropped), `cooploc.dataset.landmarks` holds the landmark map, and the attachment
+//! reader dropped), `cooploc.dataset.landmarks` holds the landmark map, `cooploc.dataset.view`
+//! names the method and regime whose estimates the estimate channels show (when the import ran
+//! one, for viewing: a replay recomputes everything from the inputs), and the attachment
 //! `noise.toml` the noise model the import used ([`super::noise`]), so that a replay runs with
 //! the figures the import was made with.
 
@@ -17,17 +19,20 @@ use std::collections::BTreeMap;
 use std::path::Path;
 
 use super::noise::NoiseModel;
+use super::run::{Outcome, TrackPoint};
 use super::{Command, Dataset, ImportCounts, Landmark, Observation, Robot, TruthPose};
 use crate::estimation::PlatformId;
 use crate::protocol::MavMessage;
 use crate::protocol::wire::{self, GeoOrigin, RangeBearingReport};
-use crate::recording::{Direction, Link, Log, Recorder, RecorderOptions, TruthSample, topics};
+use crate::recording::{Direction, Link, Log, PositionEstimate, Recorder, RecorderOptions, TruthSample, topics};
 use crate::time::TimeUs;
 
 /// Name of the metadata record that marks a data set log.
 pub const DATASET_METADATA: &str = "cooploc.dataset";
 /// Name of the metadata record with the landmark map.
 pub const LANDMARKS_METADATA: &str = "cooploc.dataset.landmarks";
+/// Name of the metadata record that says whose estimates the log shows.
+pub const VIEW_METADATA: &str = "cooploc.dataset.view";
 /// Name of the attachment with the noise model.
 pub const NOISE_ATTACHMENT: &str = "noise.toml";
 /// MAVLink component id of the frames (a camera-and-odometry source on the robot).
@@ -61,8 +66,10 @@ fn counts_to_string(c: &ImportCounts) -> BTreeMap<String, String> {
     ])
 }
 
-/// Writes `ds` (and the noise model) as a log at `path`.
-pub fn write(ds: &Dataset, noise: &NoiseModel, path: &Path) -> Result<u64, DatasetLogError> {
+/// Writes `ds` (and the noise model) as a log at `path`; with `view`, also that run's
+/// estimates on the estimate channels (`/vehicle_<id>/pose`, `ellipse`, `location`), so that
+/// Foxglove shows them beside the truth. A replay reads only the inputs.
+pub fn write(ds: &Dataset, noise: &NoiseModel, path: &Path, view: Option<&Outcome>) -> Result<u64, DatasetLogError> {
     let w = |e: crate::recording::RecordError| DatasetLogError::Write(e.to_string());
     let options = RecorderOptions { geo_origin: Some(UTIAS_ORIGIN), ..RecorderOptions::default() };
     let mut rec = Recorder::create(path, options).map_err(w)?;
@@ -84,11 +91,19 @@ pub fn write(ds: &Dataset, noise: &NoiseModel, path: &Path) -> Result<u64, Datas
     rec.metadata(LANDMARKS_METADATA, landmarks).map_err(w)?;
     let toml = toml::to_string(noise).map_err(|e| DatasetLogError::Write(e.to_string()))?;
     rec.attachment(NOISE_ATTACHMENT, "application/toml", toml.as_bytes()).map_err(w)?;
+    if let Some(o) = view {
+        let entries = BTreeMap::from([
+            ("method".to_string(), o.method.short_name().to_string()),
+            ("regime".to_string(), o.regime.name().to_string()),
+        ]);
+        rec.metadata(VIEW_METADATA, entries).map_err(w)?;
+    }
     // Everything in time order, robot by robot at one instant.
     enum Item<'a> {
         Command(&'a Command),
         Observation(&'a Observation),
         Truth(&'a TruthPose),
+        Estimate(&'a TrackPoint),
     }
     let mut items: Vec<(TimeUs, PlatformId, u8, Item)> = Vec::new();
     for r in &ds.robots {
@@ -96,6 +111,9 @@ pub fn write(ds: &Dataset, noise: &NoiseModel, path: &Path) -> Result<u64, Datas
         items.extend(r.commands.iter().map(|c| (c.t, r.id, 0, Item::Command(c))));
         items.extend(r.observations.iter().map(|o| (o.t, r.id, 1, Item::Observation(o))));
         items.extend(r.truth.iter().map(|p| (p.t, r.id, 2, Item::Truth(p))));
+    }
+    for (id, track) in view.map(|o| &o.track[..]).unwrap_or_default() {
+        items.extend(track.iter().map(|p| (p.t, *id, 3, Item::Estimate(p))));
     }
     items.sort_by_key(|(t, id, kind, _)| (*t, *id, *kind));
     let mut seq = vec![0u8; 256];
@@ -105,6 +123,19 @@ pub fn write(ds: &Dataset, noise: &NoiseModel, path: &Path) -> Result<u64, Datas
             Item::Truth(p) => {
                 let truth = TruthSample { t: *t, pos_ned_m: nalgebra::Vector3::new(p.n_m, p.e_m, 0.0), yaw_rad: Some(p.yaw_rad) };
                 rec.truth(*id, wall_ns, &truth).map_err(w)?;
+                continue;
+            }
+            Item::Estimate(p) => {
+                let mut cov = nalgebra::Matrix3::zeros();
+                cov.fixed_view_mut::<2, 2>(0, 0).copy_from(&p.cov.fixed_view::<2, 2>(0, 0));
+                let est = PositionEstimate {
+                    t: p.t,
+                    pos_ned_m: nalgebra::Vector3::new(p.n_m, p.e_m, 0.0),
+                    cov_ned_m2: cov,
+                    yaw_rad: Some(p.yaw_rad),
+                    vel_ned_m_s: None,
+                };
+                rec.estimate(*id, wall_ns, &est).map_err(w)?;
                 continue;
             }
             Item::Command(c) => wire::command_to_odometry(c),

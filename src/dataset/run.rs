@@ -82,13 +82,15 @@ pub struct Settings {
     pub map_robots: Vec<PlatformId>,
     /// Scoring period, µs.
     pub score_period_us: u64,
+    /// Keep every robot's estimate at every scoring instant ([`Outcome::track`]).
+    pub keep_track: bool,
 }
 
 impl Settings {
     /// The noise model given, landmarks for robots 1 and 2 in the map-blind regime, scored at
     /// 10 Hz.
     pub fn new(noise: NoiseModel) -> Self {
-        Settings { noise, map_robots: vec![1, 2], score_period_us: 100_000 }
+        Settings { noise, map_robots: vec![1, 2], score_period_us: 100_000, keep_track: false }
     }
 }
 
@@ -103,6 +105,17 @@ pub struct RobotScore {
     /// Instants without ground truth.
     pub masked: usize,
     pub final_pos_err_m: f64,
+}
+
+/// A robot's estimate at one scoring instant.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct TrackPoint {
+    pub t: TimeUs,
+    pub n_m: f64,
+    pub e_m: f64,
+    pub yaw_rad: f64,
+    /// Covariance of `[N, E, yaw]`.
+    pub cov: nalgebra::Matrix3<f64>,
 }
 
 /// One method in one regime.
@@ -132,6 +145,8 @@ pub struct Outcome {
     pub epochs: usize,
     /// Updates refused as numerically unusable (left out, counted).
     pub refused: usize,
+    /// Per robot, its estimate at every scoring instant (with [`Settings::keep_track`]).
+    pub track: Vec<(PlatformId, Vec<TrackPoint>)>,
 }
 
 /// Why a run stopped.
@@ -302,6 +317,7 @@ pub fn run(ds: &Dataset, settings: &Settings, regime: Regime, method: Method) ->
         robot_gated: 0,
         epochs: 0,
         refused: 0,
+        track: ids.iter().map(|&id| (id, Vec::new())).collect(),
     };
     // Per robot: sum of squared position errors, of squared heading errors (deg), samples,
     // masked, last error.
@@ -367,6 +383,12 @@ pub fn run(ds: &Dataset, settings: &Settings, regime: Regime, method: Method) ->
         }
         for (i, r) in ds.robots.iter().enumerate() {
             advance(&mut team, i, t_score)?;
+            if settings.keep_track {
+                let f = team.filter(r.id).expect("member");
+                let p = f.position_ned_m();
+                let cov = nalgebra::Matrix3::from_fn(|a, b| f.covariance()[(a, b)]);
+                out.track[i].1.push(TrackPoint { t: t_score, n_m: p[0], e_m: p[1], yaw_rad: f.yaw_rad(), cov });
+            }
             let Some(truth) = truth_at(&r.truth, t_score, MAX_TRUTH_GAP_US) else {
                 acc[i].3 += 1;
                 continue;
