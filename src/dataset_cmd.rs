@@ -192,7 +192,12 @@ fn print_noise_estimate(ds: &Dataset, stale: f64) {
     line("teammate bearing", &e.robot_bearing_rad, "rad");
     line("1-s distance", &e.window_distance_m, "m");
     line("1-s heading", &e.window_heading_rad, "rad");
-    println!("  densities: speed {:.5} m/s/sqrt(Hz), yaw rate {:.5} rad/s/sqrt(Hz)", e.speed_density(), e.yaw_rate_density());
+    println!(
+        "  densities: speed {:.5} m/s/sqrt(Hz), yaw rate {:.5} rad/s/sqrt(Hz); travelled {:+.1}% of the commanded distance",
+        e.speed_density(),
+        e.yaw_rate_density(),
+        100.0 * e.window_distance_m.mean / e.window_commanded_m
+    );
     for w in [2.0, 5.0, 10.0, 20.0] {
         let e = noise::estimate(ds, stale, w);
         println!(

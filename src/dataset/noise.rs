@@ -142,6 +142,9 @@ pub struct NoiseEstimate {
     /// Heading change minus the commanded one over 1-s windows, rad.
     pub window_heading_rad: Stat,
     pub window_s: f64,
+    /// Mean commanded distance of those windows, m (the distance residual's mean over it is the
+    /// speed's scale error).
+    pub window_commanded_m: f64,
 }
 
 impl NoiseEstimate {
@@ -187,6 +190,7 @@ pub fn estimate(ds: &Dataset, stale_command_s: f64, window_s: f64) -> NoiseEstim
     }
     let window_us = (window_s * 1e6) as u64;
     let (mut dd, mut dh) = (Vec::new(), Vec::new());
+    let mut commanded = Vec::new();
     for r in &ds.robots {
         let drive = drive_samples(&r.commands, ds.t0, ds.t_end, (stale_command_s * 1e6) as u64);
         let mut k = 0;
@@ -218,6 +222,7 @@ pub fn estimate(ds: &Dataset, stale_command_s: f64, window_s: f64) -> NoiseEstim
                 let mid = pa.yaw_rad + 0.5 * dyaw;
                 let along = (pb.n_m - pa.n_m) * mid.cos() + (pb.e_m - pa.e_m) * mid.sin();
                 dd.push(along - dist);
+                commanded.push(dist);
                 dh.push(wrap_angle(dyaw - turn));
             }
             a = b;
@@ -231,6 +236,7 @@ pub fn estimate(ds: &Dataset, stale_command_s: f64, window_s: f64) -> NoiseEstim
         window_distance_m: robust_stat(&dd),
         window_heading_rad: robust_stat(&dh),
         window_s,
+        window_commanded_m: commanded.iter().sum::<f64>() / commanded.len().max(1) as f64,
     }
 }
 
