@@ -118,14 +118,14 @@ pub struct Args {
     gate_probability: f64,
     /// Initial position N,E,D (m), with the other --init-* flags. Without it or --init-from-run,
     /// the node initialises from the vehicle's first SIM_STATE (simulated vehicles).
-    #[arg(long, value_delimiter = ',', conflicts_with = "init_from_run")]
+    #[arg(long, value_delimiter = ',', allow_hyphen_values = true, conflicts_with = "init_from_run")]
     init_ned: Vec<f64>,
     /// Start as `cooploc experiment` does for SEED:RUN of the scenario (truth plus the initial
     /// errors it draws), at time zero.
     #[arg(long, value_name = "SEED:RUN")]
     init_from_run: Option<String>,
     /// Initial velocity N,E,D (m/s).
-    #[arg(long, value_delimiter = ',', default_values_t = [0.0, 0.0, 0.0])]
+    #[arg(long, value_delimiter = ',', allow_hyphen_values = true, default_values_t = [0.0, 0.0, 0.0])]
     init_vel_ned: Vec<f64>,
     /// Initial roll, pitch, yaw (deg).
     #[arg(long, value_delimiter = ',', allow_hyphen_values = true, default_values_t = [0.0, 0.0, 0.0])]
