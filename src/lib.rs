@@ -10,6 +10,17 @@
 //!   coefficient matrix Psi, the cooperative joint update, and the baselines (dead reckoning,
 //!   no-propagation, centralized EKF, covariance intersection). No sockets, files, clocks or
 //!   async: state in, state out.
+//! - [`protocol`]: the cooploc MAVLink dialect (generated), state records and their compact
+//!   encoding, fragmentation and reassembly, signing, the byte budget, and every conversion
+//!   between the wire and the core's types ([`protocol::wire`]).
+//! - [`node`]: `cooploc node`, the per-vehicle companion: the protocol as a pure state machine
+//!   (`core`), the vehicle profile and what autopilots send, decoded (`profile`, `inputs`), the
+//!   peers and the cooperative link, and a tokio runner.
+//! - [`experiment`]: the paper's Monte Carlo experiment (pure), its report and plots, and the
+//!   fault-injection harness on the node cores.
+//! - [`replay`]: `cooploc replay`, a log fed back through the node cores (bit for bit) and
+//!   through every method offline.
+//! - [`demo`]: `cooploc demo`, simulator, nodes and ground station in one process.
 //! - [`sitl`]: the simulated world (truth trajectories, sensor error models, scenario files).
 //!   Its source lives in the top-level `sitl/` folder.
 //! - [`simulator`]: `cooploc sitl`, the world's vehicles as MAVLink systems (a sans-io vehicle
@@ -21,6 +32,9 @@
 //! - [`dataset`]: real data sets (UTIAS MRCLAM): the reader, the model every method runs on
 //!   them, their MCAP logs.
 //! - [`time`]: the typed timestamp shared by all of the above.
+//!
+//! The `cooploc` binary (`src/bin/cooploc/`, one file per command) only parses arguments,
+//! calls the library and prints.
 pub mod dataset;
 pub mod demo;
 pub mod estimation;

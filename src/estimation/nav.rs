@@ -1,6 +1,6 @@
-//! The navigation filter a node runs, whatever its vehicle: the strapdown INS of [`ins`] (a
-//! vehicle whose autopilot streams its IMU) or the planar robot of [`planar`] (a wheeled robot
-//! whose only motion sensor is its wheel odometry). One type, so that the node, the offline
+//! The navigation filter a node runs, whatever its vehicle: the strapdown INS of
+//! [`ins`](super::ins) (a vehicle whose autopilot streams its IMU) or the planar robot of
+//! [`planar`](super::planar) (a wheeled robot whose only motion sensor is its wheel odometry). One type, so that the node, the offline
 //! experiment and replay handle mixed teams with one code path.
 //!
 //! A filter is driven by [`Drive`] samples, each the mean of its interval `(t_prev, t]` (IMU

@@ -83,8 +83,8 @@ fn replay_dataset(log: &cooploc::recording::Log, method: Option<&str>, start: st
         ds.t_end.secs_since(ds.t0),
         logged.rejected_frames
     );
-    let methods = crate::dataset_cmd::parse_methods(method.unwrap_or("all"))?;
-    crate::dataset_cmd::evaluate(ds, &Settings::new(logged.noise), &Regime::ALL, &methods)?;
+    let methods = crate::dataset::parse_methods(method.unwrap_or("all"))?;
+    crate::dataset::evaluate(ds, &Settings::new(logged.noise), &Regime::ALL, &methods)?;
     println!("replayed {} messages in {:.2} s", log.messages.len(), start.elapsed().as_secs_f64());
     Ok(())
 }

@@ -1,16 +1,16 @@
 //! The `cooploc` command line. Thin: parses and validates arguments into the library's config
 //! types, calls the library, prints, and maps errors to an exit code.
 
-mod budget_cmd;
-mod dataset_cmd;
-mod demo_cmd;
-mod experiment_cmd;
-mod faults_cmd;
-mod gcs_cmd;
-mod node_cmd;
-mod replay_cmd;
+mod budget;
+mod dataset;
+mod demo;
+mod experiment;
+mod faults;
+mod gcs;
+mod node;
+mod replay;
 mod signal;
-mod sitl_cmd;
+mod sitl;
 mod table;
 
 use std::process::ExitCode;
@@ -29,30 +29,30 @@ enum Command {
     /// The cooperative network's byte budget: bytes per second per node and per team for a team
     /// size, state size, epoch rate, encoding and signing, and the highest epoch rate a SiK
     /// radio, Wi-Fi or an IP mesh carries.
-    Budget(budget_cmd::Args),
+    Budget(budget::Args),
     /// Real data sets: imports a UTIAS MRCLAM folder into a cooploc log, estimates its noise
     /// against the ground truth, and runs every method on it in three regimes.
-    Dataset(dataset_cmd::Args),
+    Dataset(dataset::Args),
     /// The paper scenario end to end on loopback: simulator, one node per vehicle, ground station
     /// (web page and Foxglove), one MCAP log under logs/, and the final error table per method.
-    Demo(demo_cmd::Args),
+    Demo(demo::Args),
     /// Monte Carlo reproduction of the paper's experiment: every method on the same simulated inputs.
-    Experiment(experiment_cmd::Args),
+    Experiment(experiment::Args),
     /// Fault injection on the node cores (deterministic, seeded): lost, delayed and reordered
     /// datagrams, lost vehicle frames, stalls, restarts, late joins and leaves; one table row per
     /// case (final error, NEES, disagreements detected and healed).
-    Faults(faults_cmd::Args),
+    Faults(faults::Args),
     /// The ground station: the team's estimates, 95% ellipses, truth and link health on a web
     /// page and on Foxglove's live WebSocket protocol.
-    Gcs(gcs_cmd::Args),
+    Gcs(gcs::Args),
     /// The per-vehicle companion: local filter on the vehicle's IMU and odometry, cooperative
     /// protocol with the other nodes, estimate back to the vehicle.
-    Node(Box<node_cmd::Args>),
+    Node(Box<node::Args>),
     /// Feeds a recorded log back through the filters: the recorded nodes bit for bit, or another
     /// method on the same inputs.
-    Replay(replay_cmd::Args),
+    Replay(replay::Args),
     /// Runs a scenario's vehicles as MAVLink systems (one UDP or serial link each), in simulated time.
-    Sitl(sitl_cmd::Args),
+    Sitl(sitl::Args),
 }
 
 fn main() -> ExitCode {
@@ -75,15 +75,15 @@ fn main() -> ExitCode {
         .with_env_filter(tracing_subscriber::EnvFilter::try_from_default_env().unwrap_or_else(|_| "warn".into()))
         .init();
     let result = match cli.command {
-        Command::Budget(args) => budget_cmd::run(args),
-        Command::Dataset(args) => dataset_cmd::run_cmd(args),
-        Command::Demo(args) => demo_cmd::run(args),
-        Command::Experiment(args) => experiment_cmd::run(args),
-        Command::Faults(args) => faults_cmd::run(args),
-        Command::Replay(args) => replay_cmd::run(args),
-        Command::Gcs(args) => gcs_cmd::run_cmd(args),
-        Command::Node(args) => node_cmd::run_cmd(*args),
-        Command::Sitl(args) => sitl_cmd::run(args),
+        Command::Budget(args) => budget::run(args),
+        Command::Dataset(args) => dataset::run_cmd(args),
+        Command::Demo(args) => demo::run(args),
+        Command::Experiment(args) => experiment::run(args),
+        Command::Faults(args) => faults::run(args),
+        Command::Replay(args) => replay::run(args),
+        Command::Gcs(args) => gcs::run_cmd(args),
+        Command::Node(args) => node::run_cmd(*args),
+        Command::Sitl(args) => sitl::run(args),
     };
     match result {
         Ok(()) => ExitCode::SUCCESS,

@@ -47,7 +47,7 @@ pub struct Args {
     autopilot: Option<cooploc::simulator::Autopilot>,
     /// The autopilot's stream rates, repeatable `MESSAGE=HZ` (default: the rates the profile
     /// asks for, as if the request had landed at boot).
-    #[arg(long = "stream-rate", value_name = "MESSAGE=HZ", value_parser = crate::sitl_cmd::parse_stream_rate)]
+    #[arg(long = "stream-rate", value_name = "MESSAGE=HZ", value_parser = crate::sitl::parse_stream_rate)]
     stream_rates: Vec<(u32, f64)>,
 }
 
