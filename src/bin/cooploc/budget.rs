@@ -22,9 +22,9 @@ pub struct Args {
     /// Epochs per second.
     #[arg(long, default_value_t = 1.0)]
     epoch_hz: f64,
-    /// Record encoding: f64, f32, compact or all.
-    #[arg(long, default_value = "all")]
-    encoding: String,
+    /// Record encoding, or all of them.
+    #[arg(long, value_enum, default_value = "all")]
+    encoding: crate::args::EncodingsArg,
     /// The nodes run with --no-range-echo (ranges only inside the records).
     #[arg(long)]
     no_range_echo: bool,
@@ -72,13 +72,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     if !(args.epoch_hz.is_finite() && args.epoch_hz > 0.0 && args.epoch_hz <= 100.0) {
         bail!("--epoch-hz {}: more than 0, at most 100", args.epoch_hz);
     }
-    let encodings: Vec<Encoding> = match args.encoding.as_str() {
-        "all" => Encoding::ALL.to_vec(),
-        e => match Encoding::from_name(e) {
-            Some(e) => vec![e],
-            None => bail!("--encoding {e:?}: expected f64, f32, compact or all"),
-        },
-    };
+    let encodings: Vec<Encoding> = args.encoding.encodings();
     let links = budget::standard_links();
     let team = args.team;
     let s0 = shape(&args, team, Encoding::F64, false);

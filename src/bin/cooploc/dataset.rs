@@ -31,13 +31,13 @@ struct MrclamArgs {
     /// Write the data set as a cooploc MCAP log here (then `cooploc replay LOG --method all`).
     #[arg(long)]
     out: Option<PathBuf>,
-    /// Run these methods (dr, naive, dcl, centralized, ci, or all) and print the table; with
-    /// --out the runs read the log back, so the table is the replay's.
-    #[arg(long)]
-    method: Option<String>,
-    /// Regimes to run: no-landmarks, map-blind, full-map or all.
-    #[arg(long, default_value = "all")]
-    regime: String,
+    /// Run these methods (comma separated, or all) and print the table; with --out the runs
+    /// read the log back, so the table is the replay's.
+    #[arg(long, value_enum, value_delimiter = ',')]
+    method: Vec<crate::args::MethodsArg>,
+    /// Regimes to run (comma separated, or all).
+    #[arg(long, value_enum, value_delimiter = ',', default_value = "all")]
+    regime: Vec<crate::args::RegimesArg>,
     /// The robots that see landmarks in the map-blind regime.
     #[arg(long, value_delimiter = ',', default_value = "1,2")]
     map_robots: Vec<PlatformId>,
@@ -47,10 +47,12 @@ struct MrclamArgs {
     /// Print the noise figures estimated from this folder against its ground truth.
     #[arg(long)]
     estimate_noise: bool,
-    /// With --out: the method whose estimates the log shows beside the truth (map-blind regime);
-    /// `none` for inputs and truth only.
-    #[arg(long, default_value = "dcl")]
-    view: String,
+    /// With --out: the method whose estimates the log shows beside the truth (map-blind regime).
+    #[arg(long, value_enum, default_value = "dcl")]
+    view: crate::args::MethodArg,
+    /// With --out: inputs and truth only, no estimates.
+    #[arg(long)]
+    no_view: bool,
     /// Only the first SECONDS of the data set (from its first ground-truth time).
     #[arg(long)]
     excerpt: Option<f64>,
@@ -88,21 +90,18 @@ fn mrclam_cmd(a: MrclamArgs) -> anyhow::Result<()> {
     let mut noise_for_runs = noise;
     if let Some(out) = &a.out {
         let t = Instant::now();
-        let view = match a.view.as_str() {
-            "none" => None,
-            name => {
-                let method = Method::from_short_name(name)
-                    .with_context(|| format!("--view {name:?}: expected dr, naive, dcl, centralized, ci or none"))?;
-                let mut settings = Settings::new(noise);
-                settings.map_robots = a.map_robots.clone();
-                settings.keep_track = true;
-                Some(run(&ds_for_runs, &settings, Regime::MapBlind, method)?)
-            }
+        let view = if a.no_view {
+            None
+        } else {
+            let mut settings = Settings::new(noise);
+            settings.map_robots = a.map_robots.clone();
+            settings.keep_track = true;
+            Some(run(&ds_for_runs, &settings, Regime::MapBlind, a.view.0)?)
         };
         let n = log::write(&ds_for_runs, &noise, out, view.as_ref()).with_context(|| format!("writing {}", out.display()))?;
         let size = std::fs::metadata(out).map(|m| m.len()).unwrap_or(0);
         println!("wrote {} ({n} messages, {:.1} MB) in {:.2} s", out.display(), size as f64 / 1e6, t.elapsed().as_secs_f64());
-        if a.method.is_some() {
+        if !a.method.is_empty() {
             let t = Instant::now();
             let read = cooploc::recording::read_log(out).with_context(|| format!("reading back {}", out.display()))?;
             let logged = log::read(&read)?;
@@ -111,36 +110,15 @@ fn mrclam_cmd(a: MrclamArgs) -> anyhow::Result<()> {
             noise_for_runs = logged.noise;
         }
     }
-    if let Some(m) = &a.method {
-        let methods = parse_methods(m)?;
-        let regimes = parse_regimes(&a.regime)?;
+    if !a.method.is_empty() {
+        let methods = crate::args::methods_of(&a.method);
+        let regimes = crate::args::regimes_of(&a.regime);
         let mut settings = Settings::new(noise_for_runs);
         settings.map_robots = a.map_robots.clone();
         evaluate(&ds_for_runs, &settings, &regimes, &methods)?;
     }
     println!("total {:.2} s", start.elapsed().as_secs_f64());
     Ok(())
-}
-
-/// `dr`, ..., or `all`.
-pub fn parse_methods(s: &str) -> anyhow::Result<Vec<Method>> {
-    if s == "all" {
-        return Ok(Method::ALL.to_vec());
-    }
-    s.split(',')
-        .map(|n| {
-            Method::from_short_name(n).with_context(|| format!("method {n:?}: expected dr, naive, dcl, centralized, ci or all"))
-        })
-        .collect()
-}
-
-fn parse_regimes(s: &str) -> anyhow::Result<Vec<Regime>> {
-    if s == "all" {
-        return Ok(Regime::ALL.to_vec());
-    }
-    s.split(',')
-        .map(|n| Regime::from_name(n).with_context(|| format!("regime {n:?}: expected no-landmarks, map-blind, full-map or all")))
-        .collect()
 }
 
 fn print_summary(ds: &Dataset) {

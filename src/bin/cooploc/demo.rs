@@ -5,7 +5,6 @@ use std::path::PathBuf;
 
 use anyhow::{Context, bail};
 use cooploc::demo::{DemoConfig, run_demo};
-use cooploc::estimation::Method;
 
 #[derive(clap::Args)]
 pub struct Args {
@@ -21,9 +20,9 @@ pub struct Args {
     /// Times real time.
     #[arg(long, default_value_t = 20.0)]
     speed: f64,
-    /// The nodes' method: dr, naive, dcl or ci.
-    #[arg(long, default_value = "dcl")]
-    method: String,
+    /// The nodes' method.
+    #[arg(long, value_enum, default_value = "dcl")]
+    method: crate::args::NodeMethodArg,
     /// The log (default: logs/demo-<seed>-<run>.mcap).
     #[arg(long)]
     log: Option<PathBuf>,
@@ -39,10 +38,7 @@ pub struct Args {
 }
 
 pub fn run(args: Args) -> anyhow::Result<()> {
-    let method = match Method::from_short_name(&args.method) {
-        Some(m @ (Method::DeadReckoning | Method::NoPropagation | Method::Decentralized | Method::CovarianceIntersection)) => m,
-        _ => bail!("--method {:?}: the nodes run dr, naive, dcl or ci", args.method),
-    };
+    let method = args.method.0;
     if !(args.speed.is_finite() && args.speed > 0.0) {
         bail!("--speed must be a positive number, got {}", args.speed);
     }
@@ -103,7 +99,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
             if r.matches() { "identical bit for bit" } else { "DIFFERENT" }
         );
     }
-    println!("final errors per method (offline on the inputs the vehicles sent; the nodes ran {}):", args.method);
+    println!("final errors per method (offline on the inputs the vehicles sent; the nodes ran {}):", method);
     crate::table::print_methods(&report.methods);
     Ok(())
 }

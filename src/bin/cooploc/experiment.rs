@@ -26,9 +26,9 @@ pub struct Args {
     /// Directory for summary.json, the CSV files and the plots.
     #[arg(long, default_value = "experiment-out")]
     out: PathBuf,
-    /// Methods, comma separated: dr, naive, dcl, centralized, ci.
-    #[arg(long, value_delimiter = ',', default_value = "dr,naive,dcl,centralized,ci")]
-    methods: Vec<String>,
+    /// Methods, comma separated.
+    #[arg(long, value_enum, value_delimiter = ',', default_value = "dr,naive,dcl,centralized,ci")]
+    methods: Vec<crate::args::MethodArg>,
     /// Ranging schedules of the scenario, comma separated (default: all of them).
     #[arg(long, value_delimiter = ',')]
     schedules: Vec<String>,
@@ -53,12 +53,11 @@ pub struct Args {
 
 pub fn run(args: Args) -> anyhow::Result<()> {
     let mut methods = Vec::new();
-    for m in &args.methods {
-        match Method::from_short_name(m) {
-            Some(method) if !methods.contains(&method) => methods.push(method),
-            Some(_) => bail!("method {m} given twice"),
-            None => bail!("unknown method {m:?}: expected one of dr, naive, dcl, centralized, ci"),
+    for &crate::args::MethodArg(method) in &args.methods {
+        if methods.contains(&method) {
+            bail!("method {method} given twice");
         }
+        methods.push(method);
     }
     let mut scenario = Scenario::from_path(&args.scenario)?;
     // A vehicle profile replaces the scenario's vehicle; an autopilot sends its samples.

@@ -4,7 +4,6 @@ use std::path::PathBuf;
 use std::time::Instant;
 
 use anyhow::{Context, bail};
-use cooploc::estimation::Method;
 use cooploc::experiment::faults::{CaseSummary, run_case, standard_cases, summarize};
 use cooploc::sitl::scenario::Scenario;
 use cooploc::sitl::world::World;
@@ -21,15 +20,15 @@ pub struct Args {
     /// Seed (run k uses seed and k).
     #[arg(long, default_value_t = 1)]
     seed: u64,
-    /// The nodes' method: dcl, naive, ci or dr.
-    #[arg(long, default_value = "dcl")]
-    method: String,
+    /// The nodes' method.
+    #[arg(long, value_enum, default_value = "dcl")]
+    method: crate::args::NodeMethodArg,
     /// Ranging schedule of the scenario.
     #[arg(long, default_value = "1hz")]
     schedule: String,
-    /// Number format of the nodes' records: f64, f32 or compact.
-    #[arg(long, default_value = "f64")]
-    encoding: String,
+    /// Number format of the nodes' records.
+    #[arg(long, value_enum, default_value = "f64")]
+    encoding: crate::args::EncodingArg,
     /// Only the cases whose name contains this text.
     #[arg(long)]
     only: Option<String>,
@@ -39,11 +38,7 @@ pub struct Args {
 }
 
 pub fn run(args: Args) -> anyhow::Result<()> {
-    let method = Method::from_short_name(&args.method)
-        .filter(|m| *m != Method::Centralized)
-        .with_context(|| format!("unknown node method {:?}: expected dcl, naive, ci or dr", args.method))?;
-    let encoding = cooploc::protocol::record::Encoding::from_name(&args.encoding)
-        .with_context(|| format!("--encoding {:?}: expected f64, f32 or compact", args.encoding))?;
+    let (method, encoding) = (args.method.0, args.encoding.0);
     if args.runs == 0 {
         bail!("--runs must be at least 1");
     }

@@ -1,6 +1,7 @@
 //! The `cooploc` command line. Thin: parses and validates arguments into the library's config
 //! types, calls the library, prints, and maps errors to an exit code.
 
+mod args;
 mod budget;
 mod dataset;
 mod demo;

@@ -5,14 +5,12 @@ use std::path::PathBuf;
 use std::time::Duration;
 
 use anyhow::{Context, bail};
-use cooploc::estimation::Method;
 use cooploc::estimation::ins::InsState;
 use cooploc::estimation::nav::NavState;
 use cooploc::node::coop_link::{CoopSpec, Multicast};
 use cooploc::node::core::{NodeConfig, NodeCore};
 use cooploc::node::profile::VehicleProfile;
 use cooploc::node::runner::{Links, NodeInit, metadata_name, node_metadata, run, vehicle_attachment_name};
-use cooploc::protocol::record::Encoding;
 use cooploc::protocol::wire::GeoOrigin;
 use cooploc::recording::{Link, Recorder, RecorderOptions};
 use cooploc::sitl::scenario::Scenario;
@@ -61,9 +59,9 @@ pub struct Args {
     /// Peer nodes' cooperative addresses (more are learned from their traffic).
     #[arg(long = "peer")]
     peers: Vec<SocketAddr>,
-    /// Method: dr, naive, dcl or ci.
-    #[arg(long, default_value = "dcl")]
-    method: String,
+    /// Method.
+    #[arg(long, value_enum, default_value = "dcl")]
+    method: crate::args::NodeMethodArg,
     /// The vehicle profile (sitl/vehicles/*.toml): sensor figures, the messages to read, the
     /// rates to ask for, what to send back. Without it: the vehicle part of --scenario, as the
     /// simulator's vehicles are.
@@ -90,10 +88,10 @@ pub struct Args {
     /// --init-from-run.
     #[arg(long, default_value = "sitl/scenarios/paper.toml")]
     scenario: PathBuf,
-    /// Number format of the broadcast matrices: f64, f32 or compact (16-bit correlation form,
-    /// under a third of f64's bytes: for radios; see `cooploc budget`).
-    #[arg(long, default_value = "f64")]
-    encoding: String,
+    /// Number format of the broadcast matrices (compact: 16-bit correlation form, under a third
+    /// of f64's bytes, for radios; see `cooploc budget`).
+    #[arg(long, value_enum, default_value = "f64")]
+    encoding: crate::args::EncodingArg,
     /// Platform ids of the team (every epoch waits for their records); default: the scenario's.
     #[arg(long, value_delimiter = ',')]
     team: Vec<u16>,
@@ -146,13 +144,7 @@ pub struct Args {
 }
 
 pub fn run_cmd(args: Args) -> anyhow::Result<()> {
-    let method = match Method::from_short_name(&args.method) {
-        Some(m @ (Method::DeadReckoning | Method::NoPropagation | Method::Decentralized | Method::CovarianceIntersection)) => m,
-        _ => bail!("--method {:?}: a node runs dr, naive, dcl or ci", args.method),
-    };
-    let Some(encoding) = Encoding::from_name(&args.encoding) else {
-        bail!("--encoding {:?}: expected f64, f32 or compact", args.encoding)
-    };
+    let (method, encoding) = (args.method.0, args.encoding.0);
     if args.id == 0 || args.id > 255 {
         bail!("--id {}: a MAVLink system id is 1..=255", args.id);
     }

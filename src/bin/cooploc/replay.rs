@@ -11,11 +11,11 @@ use cooploc::replay::{compare_methods, replay_nodes};
 pub struct Args {
     /// The MCAP log (from `cooploc demo` or `cooploc node --log`).
     log: PathBuf,
-    /// Run this method offline on the logged inputs (dr, naive, dcl, centralized, ci) besides
-    /// replaying the recorded nodes; `all` runs every method. A data set's log (from `cooploc
-    /// dataset`) has no nodes: every method (or the ones named) runs on it in every regime.
-    #[arg(long)]
-    method: Option<String>,
+    /// Run this method offline on the logged inputs besides replaying the recorded nodes; `all`
+    /// runs every method. A data set's log (from `cooploc dataset`) has no nodes: every method
+    /// (or the one named) runs on it in every regime.
+    #[arg(long, value_enum)]
+    method: Option<crate::args::MethodsArg>,
 }
 
 pub fn run(args: Args) -> anyhow::Result<()> {
@@ -26,7 +26,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         other => println!("log {}: read up to the damage ({other:?}): {} messages", args.log.display(), log.messages.len()),
     }
     if cooploc::dataset::log::is_dataset_log(&log) {
-        return replay_dataset(&log, args.method.as_deref(), start);
+        return replay_dataset(&log, args.method, start);
     }
     let replays = replay_nodes(&log)?;
     let mut exact = true;
@@ -44,20 +44,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
             if ok { "identical bit for bit" } else { "DIFFERENT" }
         );
     }
-    let methods: Vec<Method> = match args.method.as_deref() {
-        None => Vec::new(),
-        Some("all") => vec![
-            Method::DeadReckoning,
-            Method::NoPropagation,
-            Method::Decentralized,
-            Method::Centralized,
-            Method::CovarianceIntersection,
-        ],
-        Some(name) => vec![
-            Method::from_short_name(name)
-                .with_context(|| format!("--method {name:?}: expected dr, naive, dcl, centralized, ci or all"))?,
-        ],
-    };
+    let methods: Vec<Method> = args.method.map(crate::args::MethodsArg::methods).unwrap_or_default();
     if !methods.is_empty() {
         let runs = compare_methods(&log, &methods)?;
         println!("final errors, offline on the logged inputs:");
@@ -71,7 +58,11 @@ pub fn run(args: Args) -> anyhow::Result<()> {
 }
 
 /// A data set's log: the methods over its inputs in every regime, scored against its truth.
-fn replay_dataset(log: &cooploc::recording::Log, method: Option<&str>, start: std::time::Instant) -> anyhow::Result<()> {
+fn replay_dataset(
+    log: &cooploc::recording::Log,
+    method: Option<crate::args::MethodsArg>,
+    start: std::time::Instant,
+) -> anyhow::Result<()> {
     use cooploc::dataset::run::{Regime, Settings};
     let logged = cooploc::dataset::log::read(log)?;
     let ds = &logged.dataset;
@@ -83,7 +74,7 @@ fn replay_dataset(log: &cooploc::recording::Log, method: Option<&str>, start: st
         ds.t_end.secs_since(ds.t0),
         logged.rejected_frames
     );
-    let methods = crate::dataset::parse_methods(method.unwrap_or("all"))?;
+    let methods = method.unwrap_or(crate::args::MethodsArg::All).methods();
     crate::dataset::evaluate(ds, &Settings::new(logged.noise), &Regime::ALL, &methods)?;
     println!("replayed {} messages in {:.2} s", log.messages.len(), start.elapsed().as_secs_f64());
     Ok(())
