@@ -22,3 +22,22 @@ fn negative_numbers_are_values_everywhere() {
     assert_eq!(code, Some(2), "{out}");
     assert!(out.contains("'--no-such-flag'") && !out.contains("'-79.5'"), "{out}");
 }
+
+/// The one binary (a node on a vehicle computer too) links no system font library: the plots
+/// draw with an embedded font (plotters' pure-Rust ab_glyph), not fontconfig and freetype.
+#[test]
+fn the_binary_needs_no_font_libraries() {
+    let out = match Command::new("ldd").arg(env!("CARGO_BIN_EXE_cooploc")).output() {
+        Ok(out) => out,
+        Err(e) if std::env::var_os("CI").is_none() => {
+            eprintln!("skipped: ldd not found ({e})");
+            return;
+        }
+        Err(e) => panic!("ldd is needed under CI: {e}"),
+    };
+    let libs = String::from_utf8_lossy(&out.stdout);
+    assert!(out.status.success(), "{libs}");
+    for lib in ["fontconfig", "freetype", "libpng", "libexpat"] {
+        assert!(!libs.contains(lib), "the binary links {lib}:\n{libs}");
+    }
+}

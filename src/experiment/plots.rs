@@ -1,4 +1,9 @@
 //! The experiment's figures, after the paper's Figs. 1-4, as PNG and SVG (plotters).
+//!
+//! Text is drawn with DejaVu Sans embedded in the binary (`fonts/`, Bitstream Vera licence in
+//! `fonts/DejaVuSans-LICENSE.txt`) through plotters' pure-Rust `ab_glyph` renderer: no system
+//! font library (fontconfig, freetype) is needed, so the same binary starts as a node on a
+//! minimal vehicle computer.
 
 use std::path::{Path, PathBuf};
 
@@ -8,6 +13,15 @@ use plotters::prelude::*;
 
 use super::report::{ScheduleSummary, Tracks};
 use crate::estimation::Method;
+
+/// The embedded font, registered once as plotters' "sans-serif".
+fn register_font() -> anyhow::Result<()> {
+    static REGISTERED: std::sync::OnceLock<bool> = std::sync::OnceLock::new();
+    let ok = *REGISTERED.get_or_init(|| {
+        plotters::style::register_font("sans-serif", FontStyle::Normal, include_bytes!("fonts/DejaVuSans.ttf")).is_ok()
+    });
+    if ok { Ok(()) } else { Err(anyhow!("the embedded font fonts/DejaVuSans.ttf could not be read")) }
+}
 
 fn color(m: Method) -> RGBColor {
     match m {
@@ -151,6 +165,7 @@ where
 
 /// Writes the figures; returns the paths written.
 pub fn write_plots(dir: &Path, summaries: &[ScheduleSummary], tracks: &Tracks) -> anyhow::Result<Vec<PathBuf>> {
+    register_font()?;
     let mut written = Vec::new();
     let mut emit = |stem: &str,
                     size: (u32, u32),
