@@ -245,25 +245,7 @@ pub fn range_bearing_from_message(m: &COOPLOC_RANGE_BEARING_DATA) -> Result<Rang
 /// body-frame (BODY_FRD) velocity `vx` and `yawspeed` (z down: positive turning right),
 /// estimator type NAIVE (open loop), pose unknown (NaN).
 pub fn command_to_odometry(c: &crate::dataset::Command) -> MavMessage {
-    MavMessage::ODOMETRY(ODOMETRY_DATA {
-        time_usec: c.t.0,
-        frame_id: MavFrame::MAV_FRAME_LOCAL_NED,
-        child_frame_id: MavFrame::MAV_FRAME_BODY_FRD,
-        x: f32::NAN,
-        y: f32::NAN,
-        z: f32::NAN,
-        q: [f32::NAN, 0.0, 0.0, 0.0],
-        vx: c.speed_m_s as f32,
-        vy: 0.0,
-        vz: 0.0,
-        rollspeed: f32::NAN,
-        pitchspeed: f32::NAN,
-        yawspeed: c.yaw_rate_rad_s as f32,
-        pose_covariance: [f32::NAN; 21],
-        velocity_covariance: [f32::NAN; 21],
-        estimator_type: MavEstimatorType::MAV_ESTIMATOR_TYPE_NAIVE,
-        ..Default::default()
-    })
+    body_velocity_odometry(c.t, c.speed_m_s, c.yaw_rate_rad_s, [f32::NAN; 21], MavEstimatorType::MAV_ESTIMATOR_TYPE_NAIVE)
 }
 
 /// ODOMETRY as a motion command (see [`command_to_odometry`]), checked against the planar
@@ -731,22 +713,35 @@ pub fn odometer_to_odometry(s: &OdometerSample, sigma_m_s: f64) -> MavMessage {
     // uncertainty is the filter's tuning, not the odometer's), angular rates are not reported.
     let mut velocity_covariance = [0.0f32; 21];
     velocity_covariance[0] = (sigma_m_s * sigma_m_s) as f32;
+    body_velocity_odometry(s.t, s.speed_m_s, f64::NAN, velocity_covariance, MavEstimatorType::default())
+}
+
+/// ODOMETRY with only a body-frame (BODY_FRD) forward speed and yaw rate (NaN: not reported):
+/// pose unknown (NaN), vy and vz zero.
+fn body_velocity_odometry(
+    t: TimeUs,
+    vx_m_s: f64,
+    yaw_rate_rad_s: f64,
+    velocity_covariance: [f32; 21],
+    estimator_type: MavEstimatorType,
+) -> MavMessage {
     MavMessage::ODOMETRY(ODOMETRY_DATA {
-        time_usec: s.t.0,
+        time_usec: t.0,
         frame_id: MavFrame::MAV_FRAME_LOCAL_NED,
         child_frame_id: MavFrame::MAV_FRAME_BODY_FRD,
         x: f32::NAN,
         y: f32::NAN,
         z: f32::NAN,
         q: [f32::NAN, 0.0, 0.0, 0.0],
-        vx: s.speed_m_s as f32,
+        vx: vx_m_s as f32,
         vy: 0.0,
         vz: 0.0,
         rollspeed: f32::NAN,
         pitchspeed: f32::NAN,
-        yawspeed: f32::NAN,
+        yawspeed: yaw_rate_rad_s as f32,
         pose_covariance: [f32::NAN; 21],
         velocity_covariance,
+        estimator_type,
         ..Default::default()
     })
 }

@@ -7,6 +7,24 @@ use cooploc::dataset::run::Regime;
 use cooploc::estimation::Method;
 use cooploc::protocol::record::Encoding;
 
+/// Which simulated run: the scenario, and the seed, run and ranging schedule that pick its
+/// sensor errors and ranges (as in `cooploc experiment`).
+#[derive(clap::Args, Debug, Clone)]
+pub struct SimRun {
+    /// Scenario file.
+    #[arg(default_value = "sitl/scenarios/paper.toml")]
+    pub scenario: std::path::PathBuf,
+    /// Seed of the sensor errors (as in `cooploc experiment`).
+    #[arg(long, default_value_t = 1)]
+    pub seed: u64,
+    /// Monte Carlo run index (with the seed, picks the sensor errors).
+    #[arg(long, default_value_t = 0)]
+    pub run: u32,
+    /// Ranging schedule of the scenario (default: its first).
+    #[arg(long)]
+    pub schedule: Option<String>,
+}
+
 /// Any method, by its short name (`dr`, `naive`, `dcl`, `centralized`, `ci`).
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub struct MethodArg(pub Method);

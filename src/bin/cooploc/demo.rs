@@ -8,15 +8,8 @@ use cooploc::demo::{DemoConfig, run_demo};
 
 #[derive(clap::Args)]
 pub struct Args {
-    #[arg(default_value = "sitl/scenarios/paper.toml")]
-    scenario: PathBuf,
-    #[arg(long, default_value_t = 1)]
-    seed: u64,
-    #[arg(long, default_value_t = 0)]
-    run: u32,
-    /// Ranging schedule (default: the scenario's first).
-    #[arg(long)]
-    schedule: Option<String>,
+    #[command(flatten)]
+    sim: crate::args::SimRun,
     /// Times real time.
     #[arg(long, default_value_t = 20.0)]
     speed: f64,
@@ -42,12 +35,12 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     if !(args.speed.is_finite() && args.speed > 0.0) {
         bail!("--speed must be a positive number, got {}", args.speed);
     }
-    let log = args.log.clone().unwrap_or_else(|| PathBuf::from(format!("logs/demo-{}-{}.mcap", args.seed, args.run)));
+    let log = args.log.clone().unwrap_or_else(|| PathBuf::from(format!("logs/demo-{}-{}.mcap", args.sim.seed, args.sim.run)));
     let cfg = DemoConfig {
-        scenario: args.scenario.clone(),
-        seed: args.seed,
-        run: args.run,
-        schedule: args.schedule.clone(),
+        scenario: args.sim.scenario.clone(),
+        seed: args.sim.seed,
+        run: args.sim.run,
+        schedule: args.sim.schedule.clone(),
         speed: args.speed,
         method,
         log,
@@ -60,9 +53,9 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     let report = rt.block_on(run_demo(cfg, |a| {
         println!(
             "cooploc demo: scenario {}, seed {}, run {}, {}x real time",
-            args.scenario.display(),
-            args.seed,
-            args.run,
+            args.sim.scenario.display(),
+            args.sim.seed,
+            args.sim.run,
             args.speed
         );
         println!("dashboard: http://{}/", a.http);

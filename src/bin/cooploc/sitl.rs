@@ -19,18 +19,8 @@ A client that listens instead: --vehicle 1=udpout:127.0.0.1:14550 here, udpin:12
 Timestamps, HEARTBEAT (1 Hz) and every rate are in simulated time: at --speed 10 the heartbeat comes 10 times a second.
 The endpoints are printed one per line at start: `vehicle ID udp HOST:PORT [out HOST:PORT,..]` or `vehicle ID serial PATH BAUD`.")]
 pub struct Args {
-    /// Scenario file.
-    #[arg(default_value = "sitl/scenarios/paper.toml")]
-    scenario: PathBuf,
-    /// Seed of the sensor errors (as in `cooploc experiment`).
-    #[arg(long, default_value_t = 1)]
-    seed: u64,
-    /// Monte Carlo run index (with the seed, picks the sensor errors).
-    #[arg(long, default_value_t = 0)]
-    run: u32,
-    /// Ranging schedule of the scenario (default: its first).
-    #[arg(long)]
-    schedule: Option<String>,
+    #[command(flatten)]
+    sim: crate::args::SimRun,
     /// Times real time: 1 = real time, 10 = ten times faster; `max` (or 0) = as fast as possible.
     #[arg(long, default_value = "1", value_parser = parse_speed)]
     speed: Speed,
@@ -161,7 +151,7 @@ struct Validated {
 }
 
 fn validate(args: Args) -> anyhow::Result<Validated> {
-    let mut scenario = Scenario::from_path(&args.scenario)?;
+    let mut scenario = Scenario::from_path(&args.sim.scenario)?;
     let profile = match &args.vehicle_config {
         Some(path) => Some(VehicleProfile::from_path(path)?),
         None => None,
@@ -171,7 +161,7 @@ fn validate(args: Args) -> anyhow::Result<Validated> {
     }
     let world = World::new(&scenario)?;
     let ids = world.platform_ids();
-    let schedule = match args.schedule {
+    let schedule = match args.sim.schedule {
         Some(s) => {
             scenario.range_epochs(&s).context("--schedule")?;
             s
@@ -213,8 +203,8 @@ fn validate(args: Args) -> anyhow::Result<Validated> {
     }
     let config = SitlConfig {
         schedule,
-        seed: args.seed,
-        run: args.run,
+        seed: args.sim.seed,
+        run: args.sim.run,
         speed: args.speed,
         endpoints,
         wait_for_peers: args.wait_for_peers,
@@ -229,7 +219,7 @@ fn validate(args: Args) -> anyhow::Result<Validated> {
 }
 
 pub fn run(args: Args) -> anyhow::Result<()> {
-    let scenario_path = args.scenario.clone();
+    let scenario_path = args.sim.scenario.clone();
     let Validated { world, config } = validate(args)?;
     let runtime = tokio::runtime::Builder::new_multi_thread().enable_all().build().context("starting the tokio runtime")?;
     runtime.block_on(async move {
