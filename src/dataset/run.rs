@@ -324,7 +324,7 @@ pub fn run(ds: &Dataset, settings: &Settings, regime: Regime, method: Method) ->
     let mut acc = vec![(0.0f64, 0.0f64, 0usize, 0usize, f64::NAN); ids.len()];
     let (mut nees_sum, mut in_bound) = (0.0f64, 0usize);
     let (mut nees_pos_sum, mut nees_yaw_sum) = (0.0f64, 0.0f64);
-    let bound = statrs_chi2_95(3);
+    let bound = crate::estimation::consistency::chi2_95(3);
     let images = if method == Method::DeadReckoning { Vec::new() } else { images(ds) };
     let mut k_image = 0;
     let mut t_score = ds.t0;
@@ -435,12 +435,6 @@ pub fn run(ds: &Dataset, settings: &Settings, regime: Regime, method: Method) ->
     out.avg_nees_heading = nees_yaw_sum / n;
     out.in_bound_share = in_bound as f64 / n;
     Ok(out)
-}
-
-/// The 95% quantile of chi-square with `dof` degrees of freedom.
-fn statrs_chi2_95(dof: usize) -> f64 {
-    use statrs::distribution::{ChiSquared, ContinuousCDF};
-    ChiSquared::new(dof as f64).map(|d| d.inverse_cdf(0.95)).unwrap_or(f64::INFINITY)
 }
 
 /// The 95% band of a time-averaged NEES of the 3-state error, taken as the band of the mean of

@@ -35,45 +35,7 @@ use crate::protocol::signing::{SigningCounters, TeamKey, Verifier};
 use crate::protocol::wire::{self, EstimateReport, GeoOrigin};
 use crate::time::TimeUs;
 
-/// 95% quantile of the chi-square distribution with 2 degrees of freedom: `-2 ln(0.05)`.
-pub const CHI2_2DOF_95: f64 = 5.991_464_547_107_979;
-
-/// The 95% confidence ellipse of a horizontal (N, E) position.
-#[derive(Debug, Clone, Copy, PartialEq, Serialize)]
-pub struct Ellipse95 {
-    pub semi_major_m: f64,
-    pub semi_minor_m: f64,
-    /// Direction of the major axis: from north towards east (clockwise seen from above), in
-    /// (-90, 90] degrees.
-    pub major_bearing_deg: f64,
-}
-
-/// The 95% ellipse of a 2x2 N/E covariance (m^2): semi-axes `sqrt(5.991 lambda)` of its
-/// eigenvalues, major axis along the eigenvector of the larger one. `None` for a covariance
-/// with non-finite entries or a negative largest eigenvalue; a slightly negative smaller one
-/// (rounding) gives a zero minor axis.
-pub fn ellipse95(cov_ne_m2: &Matrix2<f64>) -> Option<Ellipse95> {
-    let (a, c) = (cov_ne_m2[(0, 0)], cov_ne_m2[(1, 1)]);
-    let b = 0.5 * (cov_ne_m2[(0, 1)] + cov_ne_m2[(1, 0)]);
-    if !(a.is_finite() && b.is_finite() && c.is_finite()) {
-        return None;
-    }
-    let mean = 0.5 * (a + c);
-    let radius = (0.25 * (a - c) * (a - c) + b * b).sqrt();
-    let (major, minor) = (mean + radius, (mean - radius).max(0.0));
-    if major < 0.0 {
-        return None;
-    }
-    let mut bearing = 0.5 * (2.0 * b).atan2(a - c);
-    if bearing <= -std::f64::consts::FRAC_PI_2 {
-        bearing += std::f64::consts::PI;
-    }
-    Some(Ellipse95 {
-        semi_major_m: (CHI2_2DOF_95 * major).sqrt(),
-        semi_minor_m: (CHI2_2DOF_95 * minor).sqrt(),
-        major_bearing_deg: bearing.to_degrees(),
-    })
-}
+pub use crate::estimation::consistency::{CHI2_2DOF_95, Ellipse95, ellipse95, position_nees};
 
 /// An estimate's error against the truth at its time.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -84,13 +46,6 @@ pub struct TruthError {
     pub horizontal_m: f64,
     /// Position NEES over N, E, D (`None`: covariance not positive definite).
     pub nees: Option<f64>,
-}
-
-/// 3-D position NEES `e^T P^-1 e` by Cholesky; `None` unless `P` is positive definite.
-pub fn position_nees(error_ned_m: &Vector3<f64>, cov_m2: &nalgebra::Matrix3<f64>) -> Option<f64> {
-    let chol = cov_m2.cholesky()?;
-    let v = error_ned_m.dot(&chol.solve(error_ned_m));
-    v.is_finite().then_some(v)
 }
 
 /// Tuning of the ground station's memory and checks.

@@ -26,8 +26,7 @@ use crate::time::TimeUs;
 pub const NED_FRAME: &str = "ned";
 /// Name of Foxglove's display frame (ENU, z up), parent of [`NED_FRAME`].
 pub const WORLD_FRAME: &str = "world";
-/// chi-square quantile with 2 degrees of freedom at 95 %: `-2 ln(0.05)`.
-pub const CHI2_2DOF_95: f64 = 5.991_464_547_107_979;
+pub use crate::estimation::consistency::CHI2_2DOF_95;
 /// Vertical size of the drawn ellipse, m.
 pub const ELLIPSE_THICKNESS_M: f64 = 0.05;
 
@@ -182,15 +181,11 @@ pub fn world_to_ned(wall_ns: u64) -> FrameTransform {
 }
 
 /// Semi-axes (major, minor, m) of the 95 % ellipse of a horizontal 2x2 covariance
-/// `[[nn, ne], [ne, ee]]`, and the angle of the major axis from north towards east, rad.
-/// Negative eigenvalues (a covariance that lost its definiteness) count as zero.
+/// `[[nn, ne], [ne, ee]]`, and the angle of the major axis from north towards east, rad
+/// ([`crate::estimation::consistency::ellipse95_axes`]); a covariance that lost its
+/// definiteness draws as a point.
 pub fn ellipse_axes(nn: f64, ne: f64, ee: f64) -> (f64, f64, f64) {
-    let mean = 0.5 * (nn + ee);
-    let half_diff = 0.5 * (nn - ee);
-    let r = half_diff.hypot(ne);
-    let (l1, l2) = ((mean + r).max(0.0), (mean - r).max(0.0));
-    let angle = 0.5 * (2.0 * ne).atan2(nn - ee);
-    ((CHI2_2DOF_95 * l1).sqrt(), (CHI2_2DOF_95 * l2).sqrt(), angle)
+    crate::estimation::consistency::ellipse95_axes(nn, ne, ee).unwrap_or((0.0, 0.0, 0.0))
 }
 
 /// The 95 % horizontal ellipse of the estimate as a `foxglove.SceneUpdate` with one entity
