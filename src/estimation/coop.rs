@@ -76,6 +76,7 @@ use std::collections::BTreeMap;
 use nalgebra::{DMatrix, DVector};
 
 use super::EstimationError;
+use super::inputs::RangeSample;
 use super::kalman::{self, LinearizedMeasurement, UpdateDiagnostics};
 use super::platform::{PlatformId, Snapshot};
 use super::unicycle::wrap_angle;
@@ -92,6 +93,13 @@ pub enum CoopMeasurement {
     RangeBearing { from: PlatformId, to: PlatformId, range_m: f64, bearing_rad: f64, sigma_range_m: f64, sigma_bearing_rad: f64 },
     /// A generic linearised measurement: `residual ~= sum_i H_i dx_i + v`, `v ~ N(0, r)`.
     Linear { blocks: Vec<(PlatformId, DMatrix<f64>)>, residual: DVector<f64>, r: DMatrix<f64> },
+}
+
+impl From<&RangeSample> for CoopMeasurement {
+    /// A measured range as the paper's 3-D range measurement (Eq. 11).
+    fn from(r: &RangeSample) -> Self {
+        CoopMeasurement::Range { from: r.from, to: r.to, range_m: r.range_m, sigma_m: r.sigma_m }
+    }
 }
 
 impl CoopMeasurement {

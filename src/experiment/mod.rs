@@ -251,10 +251,7 @@ pub fn run_filter(
             team.local_updates(&batch).map_err(|e| fail(batch[0].0, t, e))?;
         }
         if let Some((te, samples)) = ranges.get(epoch).filter(|(te, _)| *te == t) {
-            let meas: Vec<CoopMeasurement> = samples
-                .iter()
-                .map(|r| CoopMeasurement::Range { from: r.from, to: r.to, range_m: r.range_m, sigma_m: r.sigma_m })
-                .collect();
+            let meas: Vec<CoopMeasurement> = samples.iter().map(CoopMeasurement::from).collect();
             team.cooperative_event(&meas).map_err(|e| fail(samples.first().map_or(0, |r| r.from), *te, e))?;
             epoch += 1;
         }

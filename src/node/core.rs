@@ -1367,10 +1367,7 @@ impl NodeCore {
         let participants: Vec<PlatformId> = records.iter().map(|r| r.snapshot.id).collect();
         let ranges: Vec<RangeSample> =
             records.iter().flat_map(|r| r.ranges.iter().filter(|x| participants.contains(&x.to)).copied()).collect();
-        let measurements: Vec<CoopMeasurement> = ranges
-            .iter()
-            .map(|r| CoopMeasurement::Range { from: r.from, to: r.to, range_m: r.range_m, sigma_m: r.sigma_m })
-            .collect();
+        let measurements: Vec<CoopMeasurement> = ranges.iter().map(CoopMeasurement::from).collect();
         let own_index = participants.iter().position(|&p| p == self.cfg.id);
         let nothing_to_do =
             own_index.is_none() || self.cfg.method == Method::DeadReckoning || (measurements.is_empty() && (exact || !dcl));
@@ -1443,7 +1440,7 @@ impl NodeCore {
             let measurements: Vec<CoopMeasurement> = records
                 .iter()
                 .flat_map(|r| r.ranges.iter().filter(|x| participants.contains(&x.to)))
-                .map(|r| CoopMeasurement::Range { from: r.from, to: r.to, range_m: r.range_m, sigma_m: r.sigma_m })
+                .map(CoopMeasurement::from)
                 .collect();
             if !measurements.is_empty() {
                 let snapshots: Vec<_> = records.iter().map(|r| r.snapshot.clone()).collect();
