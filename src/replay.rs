@@ -18,7 +18,7 @@ use crate::experiment::{FilterRun, run_filter};
 use crate::node::core::{NodeConfig, NodeCore, NodeInput, NodeOutput};
 use crate::node::inputs::VehicleEvent;
 use crate::node::profile::VehicleProfile;
-use crate::node::runner::{NodeEvent, events_topic, state_from_sim_state, vehicle_attachment_name};
+use crate::node::runner::{NodeEvent, events_topic, vehicle_attachment_name};
 use crate::protocol::MavMessage;
 use crate::protocol::record::Encoding;
 use crate::protocol::wire::{self, EstimateReport, GeoOrigin};
@@ -247,7 +247,7 @@ fn replay_node(log: &Log, world: &World, id: PlatformId) -> Result<NodeReplay, R
                         Some((_, state)) => *state,
                         None => {
                             let s = last_sim_state.as_ref().ok_or_else(|| node_err("Init event before any SIM_STATE".into()))?;
-                            state_from_sim_state(s, &origin).map_err(|e| node_err(e.to_string()))?
+                            wire::ins_state_from_sim_state(s, &origin).map_err(|e| node_err(e.to_string()))?
                         }
                     };
                     let state = NavState::for_model(&cfg.model, state);

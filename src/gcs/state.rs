@@ -528,15 +528,20 @@ impl GcsState {
             }
             MavMessage::ODOMETRY(m) => Some(TimeUs(m.time_usec)),
             MavMessage::SIM_STATE(m) => {
-                let pos = match wire::sim_state_position_ned(m, &origin) {
-                    Ok(p) => p,
+                let truth = match wire::sim_state_from_message(m, &origin) {
+                    Ok(t) => t,
                     Err(e) => {
                         self.reject(rx, Link::Vehicle(id), e.to_string(), events);
                         return;
                     }
                 };
-                let vel = Vector3::new(m.vn as f64, m.ve as f64, m.vd as f64);
-                let point = TruthPoint { t: None, rx, pos_ned_m: pos, vel_ned_m_s: vel, yaw_rad: m.yaw as f64 };
+                let point = TruthPoint {
+                    t: None,
+                    rx,
+                    pos_ned_m: truth.pos_ned_m,
+                    vel_ned_m_s: truth.vel_ned_m_s,
+                    yaw_rad: truth.yaw_rad,
+                };
                 // A sample still waiting for its time is placed at the last known time.
                 if let Some(mut pending) = v.pending_truth.take() {
                     pending.t = v.last_link_time;

@@ -35,7 +35,7 @@ use crate::estimation::PlatformId;
 use crate::estimation::ins::InsState;
 use crate::estimation::nav::NavState;
 use crate::protocol::MavMessage;
-use crate::protocol::dialect::cooploc::{MavAutopilot, MavType, SIM_STATE_DATA};
+use crate::protocol::dialect::cooploc::{MavAutopilot, MavType};
 use crate::protocol::signing::{Signer, SigningCounters, TeamKey, Verifier};
 use crate::protocol::wire;
 use crate::recording::{Direction, Link, Recorder, wall_now_ns};
@@ -148,23 +148,6 @@ pub enum NodeInit {
     /// position about the origin, NED velocity and attitude, at the time of the last IMU sample
     /// before it.
     Pending { config: Box<NodeConfig>, origin: Option<wire::GeoOrigin>, state: Option<(TimeUs, InsState)> },
-}
-
-pub fn state_from_sim_state(m: &SIM_STATE_DATA, origin: &wire::GeoOrigin) -> anyhow::Result<InsState> {
-    let pos_ned_m = wire::sim_state_position_ned(m, origin)?;
-    let v = [m.vn, m.ve, m.vd].map(f64::from);
-    let q = [m.q1, m.q2, m.q3, m.q4].map(f64::from);
-    anyhow::ensure!(v.iter().chain(&q).all(|x| x.is_finite()), "SIM_STATE: velocity or attitude not finite");
-    let quat = nalgebra::Quaternion::new(q[0], q[1], q[2], q[3]);
-    anyhow::ensure!((quat.norm() - 1.0).abs() < 1e-3, "SIM_STATE: attitude quaternion norm {} is not 1", quat.norm());
-    Ok(InsState {
-        pos_ned_m,
-        vel_ned_m_s: nalgebra::Vector3::from(v),
-        att_frd_to_ned: nalgebra::UnitQuaternion::from_quaternion(quat),
-        accel_bias_frd_m_s2: nalgebra::Vector3::zeros(),
-        gyro_bias_frd_rad_s: nalgebra::Vector3::zeros(),
-        odometer_scale_error: 0.0,
-    })
 }
 
 /// Where the node connects.
@@ -584,7 +567,7 @@ pub async fn run(
                 if let MavMessage::SIM_STATE(m) = &msg
                     && let Some((_, Some(origin), state @ None)) = &mut pending_init
                 {
-                    match state_from_sim_state(m, origin) {
+                    match wire::ins_state_from_sim_state(m, origin) {
                         Ok(s) => {
                             let t0 = last_imu_t.unwrap_or(TimeUs(0));
                             *state = Some((t0, s));

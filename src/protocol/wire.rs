@@ -846,6 +846,50 @@ pub fn truth_to_sim_state(truth: &TruthState, origin: &GeoOrigin, gravity_m_s2: 
     })
 }
 
+/// A simulator's truth (SIM_STATE) in the local NED frame: every field the node and the ground
+/// station use, checked.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct SimStateTruth {
+    pub pos_ned_m: Vector3<f64>,
+    pub vel_ned_m_s: Vector3<f64>,
+    pub att_frd_to_ned: nalgebra::UnitQuaternion<f64>,
+    /// The message's own yaw field, rad.
+    pub yaw_rad: f64,
+}
+
+/// A SIM_STATE about `origin`, checked: position as [`sim_state_position_ned`], finite velocity,
+/// yaw and attitude, a unit attitude quaternion (within 1e-3).
+pub fn sim_state_from_message(m: &SIM_STATE_DATA, origin: &GeoOrigin) -> Result<SimStateTruth, WireError> {
+    const MSG: &str = "SIM_STATE";
+    let pos_ned_m = sim_state_position_ned(m, origin)?;
+    let vel_ned_m_s = Vector3::new(finite(MSG, "vn", m.vn)?, finite(MSG, "ve", m.ve)?, finite(MSG, "vd", m.vd)?);
+    let yaw_rad = finite(MSG, "yaw", m.yaw)?;
+    let q = nalgebra::Quaternion::new(
+        finite(MSG, "q1", m.q1)?,
+        finite(MSG, "q2", m.q2)?,
+        finite(MSG, "q3", m.q3)?,
+        finite(MSG, "q4", m.q4)?,
+    );
+    if (q.norm() - 1.0).abs() >= 1e-3 {
+        return Err(bad(MSG, "q1", format!("attitude quaternion norm {} is not 1", q.norm())));
+    }
+    Ok(SimStateTruth { pos_ned_m, vel_ned_m_s, att_frd_to_ned: nalgebra::UnitQuaternion::from_quaternion(q), yaw_rad })
+}
+
+/// A node's initial state from a SIM_STATE (simulated vehicles): its position, velocity and
+/// attitude, zero biases and scale error.
+pub fn ins_state_from_sim_state(m: &SIM_STATE_DATA, origin: &GeoOrigin) -> Result<crate::estimation::ins::InsState, WireError> {
+    let s = sim_state_from_message(m, origin)?;
+    Ok(crate::estimation::ins::InsState {
+        pos_ned_m: s.pos_ned_m,
+        vel_ned_m_s: s.vel_ned_m_s,
+        att_frd_to_ned: s.att_frd_to_ned,
+        accel_bias_frd_m_s2: Vector3::zeros(),
+        gyro_bias_frd_rad_s: Vector3::zeros(),
+        odometer_scale_error: 0.0,
+    })
+}
+
 /// The position of a SIM_STATE (the integer fields when set, as MAVLink prescribes) in the local
 /// NED frame of `origin`.
 pub fn sim_state_position_ned(m: &SIM_STATE_DATA, origin: &GeoOrigin) -> Result<Vector3<f64>, WireError> {
@@ -857,4 +901,42 @@ pub fn sim_state_position_ned(m: &SIM_STATE_DATA, origin: &GeoOrigin) -> Result<
     }
     let alt_m = finite(MSG, "alt", m.alt)?;
     Ok(geodetic_to_ned(origin, &Geodetic { lat_deg, lon_deg, alt_m }))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn sim_state() -> SIM_STATE_DATA {
+        let origin = GeoOrigin { lat_deg: 43.0, lon_deg: -79.0, alt_m: 0.0 };
+        let g = ned_to_geodetic(&origin, &Vector3::new(10.0, -5.0, 0.0));
+        SIM_STATE_DATA {
+            q1: 1.0,
+            lat_int: deg_to_e7(g.lat_deg),
+            lon_int: deg_to_e7(g.lon_deg),
+            vn: 2.0,
+            yaw: 0.5,
+            ..Default::default()
+        }
+    }
+
+    #[test]
+    fn a_sim_state_is_checked_field_by_field() {
+        let origin = GeoOrigin { lat_deg: 43.0, lon_deg: -79.0, alt_m: 0.0 };
+        let ok = sim_state_from_message(&sim_state(), &origin).unwrap();
+        assert!((ok.pos_ned_m - Vector3::new(10.0, -5.0, 0.0)).norm() < 0.02, "{}", ok.pos_ned_m);
+        assert_eq!((ok.vel_ned_m_s[0], ok.yaw_rad), (2.0, 0.5));
+        for (field, m) in [
+            ("vn", SIM_STATE_DATA { vn: f32::NAN, ..sim_state() }),
+            ("yaw", SIM_STATE_DATA { yaw: f32::INFINITY, ..sim_state() }),
+            ("q1", SIM_STATE_DATA { q1: 0.5, ..sim_state() }),
+            ("q3", SIM_STATE_DATA { q3: f32::NAN, ..sim_state() }),
+        ] {
+            let e = sim_state_from_message(&m, &origin).unwrap_err().to_string();
+            assert!(e.starts_with(&format!("SIM_STATE.{field}:")), "{e}");
+        }
+        let s = ins_state_from_sim_state(&sim_state(), &origin).unwrap();
+        assert_eq!(s.vel_ned_m_s, ok.vel_ned_m_s);
+        assert_eq!(s.odometer_scale_error, 0.0);
+    }
 }
