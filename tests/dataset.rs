@@ -227,6 +227,15 @@ fn bad_data_gets_an_error_naming_file_and_line_or_is_counted() {
     assert!(err.contains(&format!("Robot4_Groundtruth.dat:{}: time 1248444200 s is before", n + 1)), "{err}");
     std::fs::write(&truth, &saved).unwrap();
 
+    // A time far in the future (a damaged digit): refused, not scored for years at 10 Hz.
+    let meas1 = dir.join("Robot1_Measurement.dat");
+    let saved = std::fs::read(&meas1).unwrap();
+    append(&meas1, "2248444296.000 \t  14 \t  1.5 \t 0.1 \r\n");
+    let (code, _, err) = import(&dir);
+    assert_eq!(code, Some(1), "{err}");
+    assert!(err.contains("Robot1_Measurement.dat: its last time 2248444296 s"), "{err}");
+    std::fs::write(&meas1, &saved).unwrap();
+
     // Bytes that are not text.
     std::fs::write(dir.join("Barcodes.dat"), b"# header\n1 5\n\xff\xfe\n").unwrap();
     let (code, _, err) = import(&dir);

@@ -31,6 +31,8 @@ use crate::time::TimeUs;
 pub const DATASET_METADATA: &str = "cooploc.dataset";
 /// Name of the metadata record with the landmark map.
 pub const LANDMARKS_METADATA: &str = "cooploc.dataset.landmarks";
+/// Longest span a data set log may claim, s (one week).
+pub const MAX_SPAN_S: f64 = 7.0 * 86_400.0;
 /// Name of the metadata record that says whose estimates the log shows.
 pub const VIEW_METADATA: &str = "cooploc.dataset.view";
 /// Name of the attachment with the noise model.
@@ -214,6 +216,10 @@ pub fn read(log: &Log) -> Result<LoggedDataset, DatasetLogError> {
     let t_end = TimeUs(meta_field(m, META, "t_end_us")?.parse().map_err(|e| bad(format!("t_end_us: {e}")))?);
     if t_end < t0 {
         return Err(bad(format!("t_end_us {} is before t0_us {}", t_end.0, t0.0)));
+    }
+    // A data set's span is hours at most; a longer one is damage (and would be scored at 10 Hz).
+    if t_end.secs_since(t0) > MAX_SPAN_S {
+        return Err(bad(format!("the span {} s is longer than {MAX_SPAN_S} s", t_end.secs_since(t0))));
     }
     let mut ids: Vec<PlatformId> = Vec::new();
     for s in meta_field(m, META, "robots")?.split(',') {

@@ -131,7 +131,7 @@ impl Dataset {
     /// The part of the data set in `[t0, t0 + seconds]` (a test excerpt): every record in it,
     /// the landmarks, the counts of the whole.
     pub fn excerpt(&self, seconds: f64) -> Dataset {
-        let end = TimeUs(self.t0.0 + (seconds * 1e6) as u64);
+        let end = TimeUs(self.t0.0.saturating_add((seconds * 1e6) as u64));
         let robots = self
             .robots
             .iter()

@@ -294,6 +294,26 @@ pub fn read_folder(dir: &Path) -> Result<Dataset, DatasetError> {
         robots.push(Robot { id, commands, observations, truth });
     }
     let t0 = robots.iter().map(|r| r.truth[0].t).min().expect("five robots");
+    // A file that runs on for more than a week after the first ground truth holds a damaged time.
+    for r in &robots {
+        let lasts = [
+            ("Odometry", r.commands.last().map(|c| c.t)),
+            ("Measurement", r.observations.last().map(|o| o.t)),
+            ("Groundtruth", r.truth.last().map(|p| p.t)),
+        ];
+        for (kind, last) in lasts {
+            if let Some(last) = last.filter(|&t| t > t0 && t.secs_since(t0) > super::log::MAX_SPAN_S) {
+                return Err(DatasetError::File {
+                    file: dir.join(format!("Robot{}_{kind}.dat", r.id)).display().to_string(),
+                    problem: format!(
+                        "its last time {} s is {:.0} s after the first ground truth (more than a week: a damaged time?)",
+                        last.as_secs_f64(),
+                        last.secs_since(t0)
+                    ),
+                });
+            }
+        }
+    }
     let t_end = robots
         .iter()
         .flat_map(|r| {
