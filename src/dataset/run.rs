@@ -104,7 +104,6 @@ pub struct RobotScore {
     pub samples: usize,
     /// Instants without ground truth.
     pub masked: usize,
-    pub final_pos_err_m: f64,
 }
 
 /// A robot's estimate at one scoring instant.
@@ -320,8 +319,8 @@ pub fn run(ds: &Dataset, settings: &Settings, regime: Regime, method: Method) ->
         track: ids.iter().map(|&id| (id, Vec::new())).collect(),
     };
     // Per robot: sum of squared position errors, of squared heading errors (deg), samples,
-    // masked, last error.
-    let mut acc = vec![(0.0f64, 0.0f64, 0usize, 0usize, f64::NAN); ids.len()];
+    // masked.
+    let mut acc = vec![(0.0f64, 0.0f64, 0usize, 0usize); ids.len()];
     let (mut nees_sum, mut in_bound) = (0.0f64, 0usize);
     let (mut nees_pos_sum, mut nees_yaw_sum) = (0.0f64, 0.0f64);
     let bound = crate::estimation::consistency::chi2_95(3);
@@ -407,12 +406,11 @@ pub fn run(ds: &Dataset, settings: &Settings, regime: Regime, method: Method) ->
             acc[i].0 += pos2;
             acc[i].1 += e[2].to_degrees().powi(2);
             acc[i].2 += 1;
-            acc[i].4 = pos2.sqrt();
         }
         t_score = TimeUs(t_score.0 + settings.score_period_us);
     }
     let (mut pos2, mut head2) = (0.0, 0.0);
-    for (i, &(p2, h2, n, masked, last)) in acc.iter().enumerate() {
+    for (i, &(p2, h2, n, masked)) in acc.iter().enumerate() {
         let n_f = n.max(1) as f64;
         out.robots.push(RobotScore {
             id: ids[i],
@@ -420,7 +418,6 @@ pub fn run(ds: &Dataset, settings: &Settings, regime: Regime, method: Method) ->
             heading_rmse_deg: (h2 / n_f).sqrt(),
             samples: n,
             masked,
-            final_pos_err_m: last,
         });
         pos2 += p2;
         head2 += h2;
