@@ -509,3 +509,65 @@ fn the_compact_encoding_keeps_the_team_where_f64_puts_it() {
         }
     }
 }
+
+/// A ground station's MAV_CMD_REQUEST_MESSAGE for COOPLOC_ESTIMATE gets the node's estimate now
+/// and an ACCEPTED acknowledgement; a flood of them is answered at most once per
+/// ESTIMATE_REQUEST_INTERVAL_US (the rest TEMPORARILY_REJECTED, no estimate), a request for
+/// another message is UNSUPPORTED, one for another node is not ours, and none changes the filter.
+#[test]
+fn estimate_requests_are_answered_at_a_bounded_rate_and_change_nothing() {
+    use cooploc::node::core::ESTIMATE_REQUEST_INTERVAL_US;
+    use cooploc::protocol::dialect::cooploc::{COMMAND_LONG_DATA, MavCmd, MavResult};
+    let world = World::new(&Scenario::from_toml_str(PAPER_TOML).unwrap()).unwrap();
+    let (mut nodes, _) = run_network(&world, Method::Decentralized, "1hz", 1, 0);
+    let node = &mut nodes[0];
+    let before = (node.estimate(), node.store_digest());
+    let MavMessage::COOPLOC_ESTIMATE(sent) = wire::estimate_to_message(&before.0) else { unreachable!() };
+    let as_sent = wire::estimate_from_message(&sent).unwrap();
+    let request = |target_system: u8, message_id: f32| {
+        Box::new(MavMessage::COMMAND_LONG(COMMAND_LONG_DATA {
+            command: MavCmd::MAV_CMD_REQUEST_MESSAGE,
+            param1: message_id,
+            target_system,
+            target_component: wire::COMPANION_COMPID,
+            ..Default::default()
+        }))
+    };
+    let answer = |out: &[NodeOutput]| {
+        let ack = out.iter().find_map(|o| match o {
+            NodeOutput::ToPeers(MavMessage::COMMAND_ACK(a)) => Some((a.result, a.target_system)),
+            _ => None,
+        });
+        let estimate = out.iter().find_map(|o| match o {
+            NodeOutput::ToPeers(MavMessage::COOPLOC_ESTIMATE(m)) => Some(wire::estimate_from_message(m).unwrap()),
+            _ => None,
+        });
+        (ack, estimate)
+    };
+    let start = 20_000_000_000u64;
+    let (mut accepted, mut refused) = (0, 0);
+    for k in 0..100u64 {
+        node.poll(start + k * 10_000); // one request every 10 ms for 1 s
+        let (ack, estimate) = answer(&node.handle(NodeInput::Peer { from: 255, msg: request(0, 61002.0) }));
+        match ack {
+            Some((MavResult::MAV_RESULT_ACCEPTED, 255)) => {
+                accepted += 1;
+                assert_eq!(estimate.as_ref(), Some(&as_sent), "the estimate as it is (f32 on the wire)");
+            }
+            Some((MavResult::MAV_RESULT_TEMPORARILY_REJECTED, 255)) => {
+                refused += 1;
+                assert!(estimate.is_none());
+            }
+            other => panic!("unexpected answer {other:?}"),
+        }
+    }
+    let most = 1_000_000u64.div_ceil(ESTIMATE_REQUEST_INTERVAL_US);
+    assert!(accepted >= 1 && accepted <= most, "{accepted} answers in 1 s (at most {most})");
+    assert_eq!((node.stats.estimate_requests, node.stats.estimate_requests_refused), (accepted, refused));
+    node.poll(start + 5_000_000);
+    let (ack, estimate) = answer(&node.handle(NodeInput::Peer { from: 255, msg: request(1, 33.0) }));
+    assert_eq!((ack.map(|a| a.0), estimate), (Some(MavResult::MAV_RESULT_UNSUPPORTED), None));
+    let out = node.handle(NodeInput::Peer { from: 255, msg: request(2, 61002.0) });
+    assert!(out.is_empty(), "a request for node 2 is not node 1's: {out:?}");
+    assert_eq!((node.estimate(), node.store_digest()), before, "requests change nothing");
+}

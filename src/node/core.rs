@@ -65,6 +65,14 @@
 //! semi-definite are refused and counted. A wall-clock jump (the node was frozen) does not time
 //! out the epochs that were waiting.
 //!
+//! # Ground stations
+//!
+//! A ground station (any system outside the team) may ask a node for its estimate now:
+//! MAV_CMD_REQUEST_MESSAGE with param1 = 61002 (COOPLOC_ESTIMATE), to system 0 or the node's id,
+//! component 0 or 191. The node answers with a COMMAND_ACK to the requester and the estimate to
+//! every peer, at most once per [`ESTIMATE_REQUEST_INTERVAL_US`]; nothing else a ground station
+//! sends reaches the filter.
+//!
 //! Wall time enters only through [`NodeCore::poll`] (timeouts and retries); a run whose
 //! messages all arrive is therefore deterministic and independent of timing.
 
@@ -78,6 +86,7 @@ use crate::estimation::{
     OdometerSample, PlatformFilter, PlatformId, RangeSample, StoreRef, UpdateOptions, WheelSample, cooperative_update_with,
 };
 use crate::protocol::MavMessage;
+use crate::protocol::dialect::cooploc::{MavCmd, MavResult};
 use crate::protocol::fragment::{Payload, Pushed, Reassembler, fragment};
 use crate::protocol::record::{self, Encoding, FLAG_FRESH, StateRecord};
 use crate::protocol::wire::{self, EpochState};
@@ -281,6 +290,10 @@ pub struct NodeStats {
     pub stores_adopted: u64,
     /// Store snapshots refused: not asked for, stale, not valid for this node, undecodable.
     pub stores_refused: u64,
+    /// Ground-station requests for our estimate answered, and refused (too soon after the last
+    /// answer, or asking for another message).
+    pub estimate_requests: u64,
+    pub estimate_requests_refused: u64,
     /// Wall-clock jumps (the node was frozen) credited to the waiting epochs.
     pub freezes: u64,
     pub replayed_inputs: u64,
@@ -354,6 +367,9 @@ impl Epoch {
         }
     }
 }
+
+/// Shortest wall time between two answers to estimate requests, us.
+pub const ESTIMATE_REQUEST_INTERVAL_US: u64 = 200_000;
 
 /// Longest IMU gap the node bridges (a longer one is refused: the navigation is lost).
 const MAX_BRIDGED_GAP_US: u64 = 60_000_000;
@@ -502,6 +518,8 @@ pub struct NodeCore {
     wall_us: u64,
     /// Wall time we woke from the last freeze of our own.
     woke_at: Option<u64>,
+    /// Wall time of the last answer to a ground station's estimate request.
+    last_estimate_answer: Option<u64>,
     reassembler: Reassembler,
     cross: CrossCovariances,
     /// Independent of every teammate and no epoch applied yet.
@@ -571,6 +589,7 @@ impl NodeCore {
             gap_since: None,
             wall_us: 0,
             woke_at: None,
+            last_estimate_answer: None,
             reassembler: Reassembler::new(256),
             cross: CrossCovariances::new(),
             own_ref: None,
@@ -982,6 +1001,10 @@ impl NodeCore {
     }
 
     fn peer_message(&mut self, from: PlatformId, msg: MavMessage, out: &mut Vec<NodeOutput>) {
+        if let Some((command, asks)) = wire::estimate_request(&msg, self.cfg.id) {
+            self.estimate_request(from, command, asks, out);
+            return;
+        }
         let cooploc = matches!(
             msg,
             MavMessage::COOPLOC_STATE_FRAGMENT(_)
@@ -1102,6 +1125,32 @@ impl NodeCore {
                 }
             }
             _ => {}
+        }
+    }
+
+    /// A ground station asked for our estimate (MAV_CMD_REQUEST_MESSAGE for COOPLOC_ESTIMATE):
+    /// the estimate now, to every peer, and an ACCEPTED acknowledgement; at most one answer per
+    /// [`ESTIMATE_REQUEST_INTERVAL_US`] of wall time (the next ones are TEMPORARILY_REJECTED), so
+    /// that a flood of requests cannot turn the node into an amplifier. A request for another
+    /// message is UNSUPPORTED. The filter is not touched.
+    fn estimate_request(&mut self, from: PlatformId, command: MavCmd, asks: Result<(), ()>, out: &mut Vec<NodeOutput>) {
+        let to = (u8::try_from(from).unwrap_or(0), 0);
+        let result = match asks {
+            Err(()) => MavResult::MAV_RESULT_UNSUPPORTED,
+            Ok(()) if self.last_estimate_answer.is_some_and(|at| self.wall_us < at + ESTIMATE_REQUEST_INTERVAL_US) => {
+                MavResult::MAV_RESULT_TEMPORARILY_REJECTED
+            }
+            Ok(()) => MavResult::MAV_RESULT_ACCEPTED,
+        };
+        if result == MavResult::MAV_RESULT_ACCEPTED {
+            self.stats.estimate_requests += 1;
+            self.last_estimate_answer = Some(self.wall_us);
+        } else {
+            self.stats.estimate_requests_refused += 1;
+        }
+        out.push(NodeOutput::ToPeers(wire::command_ack(command, result, to)));
+        if result == MavResult::MAV_RESULT_ACCEPTED {
+            out.push(NodeOutput::ToPeers(wire::estimate_to_message(&self.estimate())));
         }
     }
 

@@ -42,8 +42,7 @@ use crate::recording::{Direction, Link, Recorder, wall_now_ns};
 use crate::time::TimeUs;
 use mavlink_core::MavHeader;
 
-/// MAVLink component id of a companion computer.
-pub const COMPANION_COMPID: u8 = 191;
+pub use crate::protocol::wire::COMPANION_COMPID;
 
 /// A recorder shared by the processes of one log (the demo puts every node and the ground station
 /// in one file).

@@ -11,10 +11,10 @@ use mavlink_core::{MavHeader, MavlinkVersion, Message};
 use nalgebra::{Matrix3, Vector3};
 
 use super::dialect::cooploc::{
-    COOPLOC_EPOCH_DATA, COOPLOC_ESTIMATE_DATA, COOPLOC_RANGE_BEARING_DATA, COOPLOC_RANGE_DATA, COOPLOC_STATE_FRAGMENT_DATA,
-    COOPLOC_STORE_FRAGMENT_DATA, CooplocEpochState, CooplocMethod, HEARTBEAT_DATA, HIGHRES_IMU_DATA, LOCAL_POSITION_NED_DATA,
-    MavAutopilot, MavEstimatorType, MavFrame, MavMessage, MavModeFlag, MavState, MavType, ODOMETRY_DATA, RAW_IMU_DATA,
-    SCALED_IMU2_DATA, SIM_STATE_DATA, WHEEL_DISTANCE_DATA,
+    COMMAND_ACK_DATA, COOPLOC_EPOCH_DATA, COOPLOC_ESTIMATE_DATA, COOPLOC_RANGE_BEARING_DATA, COOPLOC_RANGE_DATA,
+    COOPLOC_STATE_FRAGMENT_DATA, COOPLOC_STORE_FRAGMENT_DATA, CooplocEpochState, CooplocMethod, HEARTBEAT_DATA, HIGHRES_IMU_DATA,
+    LOCAL_POSITION_NED_DATA, MavAutopilot, MavCmd, MavEstimatorType, MavFrame, MavMessage, MavModeFlag, MavResult, MavState,
+    MavType, ODOMETRY_DATA, RAW_IMU_DATA, SCALED_IMU2_DATA, SIM_STATE_DATA, WHEEL_DISTANCE_DATA,
 };
 use super::fragment::{FRAGMENT_DATA, Fragment, Payload};
 use crate::estimation::{ImuSample, Method, OdometerSample, PlatformId, RangeSample};
@@ -68,6 +68,42 @@ pub fn heartbeat(mavtype: MavType, autopilot: MavAutopilot) -> MavMessage {
         base_mode: MavModeFlag::empty(),
         system_status: MavState::MAV_STATE_ACTIVE,
         mavlink_version: 3,
+    })
+}
+
+/// MAVLink component id of a cooploc node (MAV_COMP_ID_ONBOARD_COMPUTER).
+pub const COMPANION_COMPID: u8 = 191;
+
+/// Message id of COOPLOC_ESTIMATE, the message a ground station may ask a node for.
+pub const ESTIMATE_MESSAGE_ID: u32 = 61002;
+
+/// A ground station's request to a node on the cooperative network: MAV_CMD_REQUEST_MESSAGE
+/// (COMMAND_LONG or COMMAND_INT) for COOPLOC_ESTIMATE, addressed to `node` (system 0 or `node`,
+/// component 0 or [`COMPANION_COMPID`]). `Some(command)` when the message is such a command,
+/// with `Ok(())` when it asks for COOPLOC_ESTIMATE and `Err(())` when it asks for another
+/// message (the node answers UNSUPPORTED); `None` when it is not a request to this node.
+pub fn estimate_request(msg: &MavMessage, node: PlatformId) -> Option<(MavCmd, Result<(), ()>)> {
+    let (command, param1, target) = match msg {
+        MavMessage::COMMAND_LONG(c) => (c.command, c.param1, (c.target_system, c.target_component)),
+        MavMessage::COMMAND_INT(c) => (c.command, c.param1, (c.target_system, c.target_component)),
+        _ => return None,
+    };
+    let ours = (target.0 == 0 || u16::from(target.0) == node) && (target.1 == 0 || target.1 == COMPANION_COMPID);
+    if command != MavCmd::MAV_CMD_REQUEST_MESSAGE || !ours {
+        return None;
+    }
+    let asks_estimate = param1.is_finite() && param1 == ESTIMATE_MESSAGE_ID as f32;
+    Some((command, if asks_estimate { Ok(()) } else { Err(()) }))
+}
+
+/// The COMMAND_ACK a node sends `to` (system, component) for `command`.
+pub fn command_ack(command: MavCmd, result: MavResult, to: (u8, u8)) -> MavMessage {
+    MavMessage::COMMAND_ACK(COMMAND_ACK_DATA {
+        command,
+        result,
+        target_system: to.0,
+        target_component: to.1,
+        ..Default::default()
     })
 }
 

@@ -16,7 +16,10 @@
 //! | COOPLOC_RANGE | at every ranging epoch, one per range this vehicle's radio measured; epochs numbered from 1 |
 //!
 //! Each vehicle answers MAV_CMD_SET_MESSAGE_INTERVAL, MAV_CMD_GET_MESSAGE_INTERVAL and
-//! MAV_CMD_REQUEST_MESSAGE (COMMAND_LONG or COMMAND_INT) with COMMAND_ACK; see [`vehicle`].
+//! MAV_CMD_REQUEST_MESSAGE (COMMAND_LONG or COMMAND_INT) with COMMAND_ACK; see [`vehicle`]. It
+//! serves a small read-only parameter table (PARAM_REQUEST_LIST, PARAM_REQUEST_READ, PARAM_SET
+//! answered with the unchanged value) so that a ground station's parameter fetch completes; see
+//! [`params`].
 //! Rates are per vehicle: every peer of a vehicle sees the same streams.
 //!
 //! ## Time
@@ -27,6 +30,7 @@
 //! without waiting. With `wait_for_peers` the clock holds at zero until every vehicle has a peer.
 //!
 //! - [`vehicle`]: the sans-io core of one vehicle (streams, intervals, commands, sequence numbers).
+//! - [`params`]: the parameter table.
 //! - [`personality`]: the autopilots' message sets, their acceptance checks, and
 //!   [`personality::decoded_run`], the offline experiment of what a node decodes from them.
 //! - [`Simulator`]: the tokio runner that owns the links and the clock.
@@ -43,6 +47,7 @@
 //! the vehicle's target (`--vehicle 1=udpout:127.0.0.1:14550` here, `udpin:127.0.0.1:14550` on
 //! the client side). A serial link (a device or a pseudo-terminal) carries one peer.
 
+pub mod params;
 pub mod personality;
 pub mod vehicle;
 

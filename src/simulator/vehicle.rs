@@ -8,6 +8,7 @@
 
 use mavlink_core::MavHeader;
 
+use super::params::{ParamQuery, ParamTable, param_name};
 use super::personality::{Autopilot, Checker, Personality, WHEEL_ODOMETRY_COMPID};
 use crate::estimation::{ImuSample, OdometerSample, PlatformId, RangeSample, WheelSample};
 use crate::protocol::MavMessage;
@@ -185,6 +186,8 @@ pub struct VehicleCounters {
     pub commands_rejected: u64,
     /// Commands answered UNSUPPORTED.
     pub commands_unsupported: u64,
+    /// PARAM_REQUEST_LIST, PARAM_REQUEST_READ and PARAM_SET addressed to this vehicle.
+    pub param_requests: u64,
 }
 
 #[derive(Debug, Clone, Copy)]
@@ -213,6 +216,7 @@ pub struct VehicleCore {
     checker: Checker,
     /// Sequence of the wheel-odometry peripheral (its own component).
     peripheral_sequence: u8,
+    params: ParamTable,
 }
 
 /// A platform that cannot be a MAVLink system.
@@ -245,6 +249,7 @@ impl VehicleCore {
         streams[Stream::AutopilotOdometry.index()] = state(autopilot_odometry);
         let personality = Personality::new(config.autopilot, config.platform, config.odometer_period_us);
         Ok(VehicleCore {
+            params: ParamTable::for_vehicle(&config, sysid),
             personality,
             checker: Checker::default(),
             peripheral_sequence: 0,
@@ -518,6 +523,32 @@ impl VehicleCore {
                 self.checker.check_gps_input(m);
                 return;
             }
+            MavMessage::PARAM_REQUEST_LIST(m) => {
+                self.on_param_request(ParamQuery::All, (m.target_system, m.target_component), out);
+                return;
+            }
+            MavMessage::PARAM_REQUEST_READ(m) => {
+                let query = match u16::try_from(m.param_index) {
+                    Ok(i) => ParamQuery::Index(i),
+                    Err(_) => match param_name(&m.param_id) {
+                        Some(name) => ParamQuery::Name(name),
+                        None => {
+                            self.counters.ignored += 1;
+                            return;
+                        }
+                    },
+                };
+                self.on_param_request(query, (m.target_system, m.target_component), out);
+                return;
+            }
+            // Read-only: the answer is the unchanged value.
+            MavMessage::PARAM_SET(m) => {
+                match param_name(&m.param_id) {
+                    Some(name) => self.on_param_request(ParamQuery::Name(name), (m.target_system, m.target_component), out),
+                    None => self.counters.ignored += 1,
+                }
+                return;
+            }
             MavMessage::COMMAND_LONG(c) => (
                 c.command,
                 [c.param1, c.param2, c.param3, c.param4, c.param5, c.param6, c.param7],
@@ -565,6 +596,23 @@ impl VehicleCore {
         for reply in replies {
             self.emit(Destination::Requester, reply, out);
         }
+    }
+
+    /// Answers a parameter request addressed to this vehicle (system 0 or ours, component 0 or 1).
+    fn on_param_request(&mut self, query: ParamQuery<'_>, target: (u8, u8), out: &mut Vec<Outgoing>) {
+        if !((target.0 == 0 || target.0 == self.sysid) && (target.1 == 0 || target.1 == COMPONENT_ID)) {
+            self.counters.ignored += 1;
+            return;
+        }
+        self.counters.param_requests += 1;
+        for reply in self.params.answer(query) {
+            self.emit(Destination::Requester, reply, out);
+        }
+    }
+
+    /// The vehicle's parameter table.
+    pub fn params(&self) -> &ParamTable {
+        &self.params
     }
 
     /// Executes a command: its result and the messages that follow the acknowledgement.
@@ -760,6 +808,46 @@ mod tests {
         let MavMessage::COMMAND_ACK(ack) = first.message else { panic!("ACK first, got {:?}", first.message) };
         assert_eq!((ack.target_system, ack.target_component), (255, 190));
         Some((ack.result, it.map(|o| o.message).collect()))
+    }
+
+    #[test]
+    fn parameters_are_served_to_the_requester_and_never_written() {
+        use crate::protocol::dialect::cooploc::{PARAM_REQUEST_LIST_DATA, PARAM_REQUEST_READ_DATA, PARAM_SET_DATA};
+        let w = world();
+        let mut c = core(2);
+        let ask = |c: &mut VehicleCore, msg: MavMessage| {
+            let mut out = Vec::new();
+            c.on_message(TimeUs(0), GCS, &msg, w.trajectory(c.platform()).unwrap(), &mut out);
+            assert!(out.iter().all(|o| o.destination == Destination::Requester));
+            out.into_iter()
+                .map(|o| match o.message {
+                    MavMessage::PARAM_VALUE(v) => (param_name(&v.param_id).unwrap().to_string(), v.param_value),
+                    other => panic!("not a PARAM_VALUE: {other:?}"),
+                })
+                .collect::<Vec<_>>()
+        };
+        let list = |target_system| MavMessage::PARAM_REQUEST_LIST(PARAM_REQUEST_LIST_DATA { target_system, target_component: 1 });
+        let all = ask(&mut c, list(2));
+        assert_eq!(all.len(), c.params().len());
+        assert!(all.contains(&("SYSID_THISMAV".to_string(), 2.0)));
+        assert!(ask(&mut c, list(3)).is_empty(), "another system's request");
+        let by_name = MavMessage::PARAM_REQUEST_READ(PARAM_REQUEST_READ_DATA {
+            param_index: -1,
+            target_system: 2,
+            target_component: 1,
+            param_id: "SYSID_THISMAV".into(),
+        });
+        assert_eq!(ask(&mut c, by_name), vec![("SYSID_THISMAV".to_string(), 2.0)]);
+        let set = MavMessage::PARAM_SET(PARAM_SET_DATA {
+            param_value: 9.0,
+            target_system: 2,
+            target_component: 1,
+            param_id: "SYSID_THISMAV".into(),
+            ..Default::default()
+        });
+        assert_eq!(ask(&mut c, set.clone()), vec![("SYSID_THISMAV".to_string(), 2.0)], "read-only: the unchanged value");
+        assert_eq!(ask(&mut c, set), vec![("SYSID_THISMAV".to_string(), 2.0)]);
+        assert_eq!(c.counters().param_requests, 4, "the request for system 3 is not ours");
     }
 
     fn personality_core(autopilot: Autopilot) -> VehicleCore {

@@ -1,0 +1,459 @@
+"""The MAVProxy module tools/mavproxy/mavproxy_cooploc.py against a live team.
+
+Usage: mavproxy_module_check.py COOPLOC_BINARY
+
+1. The module's pure functions, without MAVProxy: the 95 % ellipse of a known covariance and its
+   map polygon, the disagreement/heal counters on a synthetic sequence of epoch reports, the
+   flat-Earth origin conversion, the sequence-loss counter across the wrap at 255.
+2. A live run (about 30 s): `cooploc sitl` (paper scenario, speed 2), three `cooploc node`s that
+   log to MCAP, and MAVProxy with the cooploc dialect (MDEF, --dialect cooploc) and
+   `module load cooploc`, its masters the three vehicles and the three nodes' cooperative
+   sockets, target system 1. Commands reach MAVProxy on its stdin (it reads commands there when
+   neither --daemon nor --non-interactive is given): `cooploc refresh 0`, then `cooploc status`.
+   Then everything is stopped (the nodes with SIGTERM, which finishes their logs) and checked:
+   - the module loaded, no Python traceback in MAVProxy's output, no module error;
+   - `cooploc status` lists vehicles 1, 2, 3, each with an estimate that equals, field for field
+     (repr of the decoded floats), the COOPLOC_ESTIMATE of the same time_usec in the node's own log
+     (/coop/<id>/tx), and the ellipse computed from that message;
+   - MAVProxy's tlog has each vehicle's HEARTBEAT (type 10, ground rover, from (id, 1)) and each
+     node's (type 18 from (id, 191)); PARAM_VALUE SYSID_THISMAV = 1 from system 1, and MAVProxy
+     said it received all parameters;
+   - after `cooploc refresh 0`, at least one accepted COMMAND_ACK (REQUEST_MESSAGE) per vehicle;
+   - the status file (`cooploc set statusfile`) was written every second.
+Prints one `PASS name` / `FAIL name: why` line per check and exits 1 on any failure.
+"""
+import importlib.util
+import math
+import os
+import queue
+import re
+import shutil
+import signal
+import subprocess
+import sys
+import tempfile
+import threading
+import time
+
+ROOT = os.path.normpath(os.path.join(os.path.dirname(os.path.abspath(__file__)), "..", ".."))
+MODULE_PATH = os.path.join(ROOT, "tools", "mavproxy", "mavproxy_cooploc.py")
+FIELDS = ("x", "y", "z", "vx", "vy", "vz", "yaw", "nis")
+
+results = []
+
+
+def check(name, ok, why=""):
+    results.append((name, bool(ok)))
+    print(("PASS %s" % name) if ok else ("FAIL %s: %s" % (name, why)), flush=True)
+
+
+def load_module():
+    spec = importlib.util.spec_from_file_location("mavproxy_cooploc", MODULE_PATH)
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    return mod
+
+
+# ---- 1. pure functions ------------------------------------------------------------------------
+
+def pure_checks(cl):
+    close = lambda a, b, tol=1e-9: abs(a - b) <= tol  # noqa: E731
+
+    # A covariance whose 95 % semi-axes are 3 m and 1 m, the major one 30 deg east of north.
+    def cov(a, b, bearing_deg):
+        l1, l2 = a * a / cl.CHI2_2DOF_95, b * b / cl.CHI2_2DOF_95
+        c, s = math.cos(math.radians(bearing_deg)), math.sin(math.radians(bearing_deg))
+        return (l1 * c * c + l2 * s * s, (l1 - l2) * c * s, l1 * s * s + l2 * c * c)
+
+    e = cl.ellipse95(*cov(3.0, 1.0, 30.0))
+    check("ellipse 3 m x 1 m at 30 deg", e and close(e[0], 3.0) and close(e[1], 1.0) and close(e[2], 30.0), e)
+    e2 = cl.ellipse95(*cov(2.0, 0.5, -60.0))
+    check("ellipse bearing -60 deg", e2 and close(e2[2], -60.0) and close(e2[0], 2.0), e2)
+    e3 = cl.ellipse95(*cov(2.0, 0.5, 120.0))  # the same axis as -60
+    check("ellipse bearing in (-90, 90]", e3 and close(e3[2], -60.0), e3)
+    e4 = cl.ellipse95(1.0, 0.0, 4.0)
+    check("ellipse along east is +90", e4 and close(e4[2], 90.0) and close(e4[0], math.sqrt(4 * cl.CHI2_2DOF_95)), e4)
+    check("ellipse of NaN / negative is None",
+          cl.ellipse95(float("nan"), 0, 1) is None and cl.ellipse95(-1.0, 0.0, -1.0) is None)
+    pts = cl.ellipse_points_ne(10.0, -5.0, 3.0, 1.0, 30.0, segments=36)
+    b = math.radians(30.0)
+    on = all(close(((n - 10) * math.cos(b) + (ee + 5) * math.sin(b)) ** 2 / 9.0
+                   + (-(n - 10) * math.sin(b) + (ee + 5) * math.cos(b)) ** 2 / 1.0, 1.0, 1e-9) for n, ee in pts)
+    tip = pts[0]
+    check("ellipse polygon: closed, on the ellipse, major tip at the bearing",
+          len(pts) == 37 and pts[0] == pts[-1] and on
+          and close(tip[0], 10 + 3 * math.cos(b)) and close(tip[1], -5 + 3 * math.sin(b)), pts[:2])
+    poly = cl.ellipse_polygon_latlon(0.0, 0.0, (3.0, 1.0, 30.0), (34.7, 0.0, 0.0), segments=8)
+    check("ellipse polygon in lat/lon", len(poly) == 9 and all(len(p) == 2 for p in poly)
+          and close(poly[0][0], 34.7 + math.degrees(3 * math.cos(b) / 6378137.0), 1e-12), poly[0])
+
+    # Origin: lat = lat0 + deg(N / R), lon = lon0 + deg(E / (R cos lat0)), alt = alt0 - D.
+    lat, lon, alt = cl.ned_to_geo(1000.0, -2000.0, -5.0, (34.7, 1.5, 10.0))
+    R = 6378137.0
+    check("origin conversion", close(lat, 34.7 + math.degrees(1000.0 / R), 1e-12)
+          and close(lon, 1.5 + math.degrees(-2000.0 / (R * math.cos(math.radians(34.7)))), 1e-12)
+          and close(alt, 15.0), (lat, lon, alt))
+    check("default origin 34.7 0 0", tuple(cl.DEFAULT_ORIGIN) == (34.7, 0.0, 0.0), cl.DEFAULT_ORIGIN)
+
+    # Sequence loss across the wrap: 250..255, 0, (1 lost), 2, 3; then 3 -> 7 (4, 5, 6 lost).
+    s = cl.SeqLoss()
+    for q in (250, 251, 252, 253, 254, 255, 0, 2, 3, 7):
+        s.observe(q)
+    check("sequence loss with wrap at 255", s.received == 10 and s.lost == 4 and close(s.loss_pct(), 400 / 14),
+          (s.received, s.lost))
+    check("seq_gap", cl.seq_gap(255, 0) == 0 and cl.seq_gap(254, 1) == 2 and cl.seq_gap(10, 10) == 255)
+
+    # Epoch reports: agree, disagree (3's digest), disagree (2's participants), agree.
+    t = cl.EpochTracker()
+    A = cl.EPOCH_APPLIED
+    for a in (1, 2, 3):
+        t.add(1, a, A, 7, [1, 2, 3])
+    for a, d in ((1, 8), (2, 8), (3, 9)):
+        t.add(2, a, A, d, [1, 2, 3])
+    for a, p in ((1, [1, 2, 3]), (2, [1, 2]), (3, [1, 2, 3])):
+        t.add(3, a, cl.EPOCH_PARTIAL if a == 2 else A, 10, p)
+    for a in (1, 2, 3):
+        t.add(4, a, A, 11, [1, 2, 3])
+    check("agree, disagree, disagree, agree: disagreements 2, heals 1",
+          t.disagreements == 2 and t.heals == 1 and not t.unhealed, (t.disagreements, t.heals))
+    check("per vehicle: who differed from the majority",
+          (t.differs(1), t.differs(2), t.differs(3)) == (0, 1, 1), (t.differs(1), t.differs(2), t.differs(3)))
+    check("per vehicle: heals, partial", [t.counts(a).heals for a in (1, 2, 3)] == [1, 1, 1]
+          and t.counts(2).partial == 1 and t.counts(1).partial == 0)
+    check("repeat report ignored", t.add(4, 1, A, 99, [1]) == "duplicate" and t.disagreements == 2)
+    check("collecting is not a report", t.add(5, 1, cl.EPOCH_COLLECTING, 1, [1]) == "ignored")
+    t.add(5, 2, cl.EPOCH_STORE_WANTED, 1, [1, 3])
+    t.add(5, 2, cl.EPOCH_STORE_WANTED, 1, [1, 3])
+    check("store wanted counted once per epoch", t.counts(2).store_wanted == 1)
+    # Tie of two: the lowest announcer's pair is the majority.
+    t2 = cl.EpochTracker()
+    t2.add(1, 5, A, 1, [4, 5])
+    t2.add(1, 4, A, 2, [4, 5])
+    check("tie goes to the lowest announcer", (t2.differs(4), t2.differs(5)) == (0, 1) and t2.disagreements == 1)
+    t2.add(1, 6, A, 1, [4, 5])
+    check("majority re-evaluated", (t2.differs(4), t2.differs(5), t2.differs(6)) == (1, 0, 0))
+    # No heal by an epoch that is not after the disagreement.
+    t3 = cl.EpochTracker()
+    for a, d in ((1, 1), (2, 2)):
+        t3.add(10, a, A, d, [1, 2])
+    for a in (1, 2):
+        t3.add(9, a, A, 5, [1, 2])
+    check("an earlier agreeing epoch does not heal", t3.heals == 0 and t3.unhealed)
+    # Bounded tables.
+    t4 = cl.EpochTracker()
+    for ep in range(300):
+        t4.add(ep, 1, A, ep, [1, 2])
+        t4.add(ep, 2, A, ep + (ep % 2), [1, 2])
+    held = len(t4.epochs)
+    check("at most 256 epochs, evicted ones still counted", held == 256 and t4.differs(2) == 150
+          and t4.disagreements == 150, (held, t4.differs(2)))
+    for a in range(100, 200):
+        t4.add(1000, a, A, 0, [a])
+    check("at most 64 announcers", len(t4.per) == 64 and t4.refused == 100 - 62, (len(t4.per), t4.refused))
+
+    check("method names", cl.method_name(2) == "decentralized" and cl.method_name(4) == "covariance_intersection")
+    check("palette by platform", cl.colour_rgb(1) == (0x1f, 0x77, 0xb4) and cl.colour_rgb(11) == cl.colour_rgb(1)
+          and cl.colour_rgb(10) == (0x17, 0xbe, 0xcf))
+    check("frame header", cl.frame_header(bytes([0xFD, 9, 1, 0, 42, 3, 191, 0x4A, 0xEE, 0x00]))
+          == (61002, 3, 191, 42, 1))
+
+
+# ---- 2. the live run --------------------------------------------------------------------------
+
+class Proc:
+    """A child process whose output lines are collected by a thread."""
+
+    def __init__(self, name, cmd, env=None, cwd=ROOT, stdin=None):
+        self.name = name
+        self.lines = []
+        self.queue = queue.Queue()
+        self.p = subprocess.Popen(cmd, cwd=cwd, env=env, stdin=stdin, stdout=subprocess.PIPE,
+                                  stderr=subprocess.STDOUT, text=True, errors="replace", bufsize=1)
+        self.thread = threading.Thread(target=self._read, daemon=True)
+        self.thread.start()
+
+    def _read(self):
+        for line in self.p.stdout:
+            line = line.rstrip("\n")
+            self.lines.append(line)
+            self.queue.put(line)
+
+    def wait_line(self, pattern, timeout):
+        deadline = time.time() + timeout
+        while True:
+            left = deadline - time.time()
+            if left <= 0:
+                raise RuntimeError("%s: no line matching %r in %.0f s; output:\n%s"
+                                   % (self.name, pattern, timeout, "\n".join(self.lines[-20:])))
+            try:
+                line = self.queue.get(timeout=left)
+            except queue.Empty:
+                continue
+            m = re.search(pattern, line)
+            if m:
+                return m
+
+    def stop(self, sig=signal.SIGTERM, timeout=10):
+        if self.p.poll() is None:
+            self.p.send_signal(sig)
+            try:
+                self.p.wait(timeout=timeout)
+            except subprocess.TimeoutExpired:
+                self.p.kill()
+                self.p.wait()
+        self.thread.join(timeout=2)
+
+
+def prepare_dialect(tmp):
+    """MDEF folder with the cooploc dialect and fresh pymavlink bindings for it.
+
+    pymavlink's set_dialect('cooploc') imports pymavlink.dialects.v20.cooploc and only when that
+    fails runs mavgen on $MDEF/v1.0/cooploc.xml into its own package folder: a file left there by an
+    older XML would be used as it is. So the check regenerates it from this tree's XML first."""
+    mdef = os.path.join(tmp, "mdef")
+    os.makedirs(os.path.join(mdef, "v1.0"))
+    for x in ("cooploc.xml", "common.xml", "standard.xml", "minimal.xml"):
+        shutil.copy(os.path.join(ROOT, "dialects", x), os.path.join(mdef, "v1.0", x))
+    os.environ["MDEF"] = mdef
+    os.environ["MAVLINK20"] = "1"
+    from pymavlink.generator import mavgen, mavparse
+    cwd = os.getcwd()
+    try:
+        os.chdir(tmp)  # mavgen_python_dialect uses a path relative to the working directory
+        if not mavgen.mavgen_python_dialect("cooploc", mavparse.PROTOCOL_2_0):
+            raise RuntimeError("mavgen refused the cooploc dialect")
+    finally:
+        os.chdir(cwd)
+    import importlib
+    import pymavlink.dialects.v20
+    importlib.invalidate_caches()
+    from pymavlink.dialects.v20 import cooploc as dialect
+    importlib.reload(dialect)
+    return mdef, dialect
+
+
+def read_log_estimates(path, vid, dialect):
+    """{time_usec: [COOPLOC_ESTIMATE, ...]} of the frames node `vid` sent (its MCAP log)."""
+    from mcap.reader import make_reader
+    mav = dialect.MAVLink(None)
+    out = {}
+    with open(path, "rb") as f:
+        reader = make_reader(f)
+        for _, channel, message in reader.iter_messages(topics=["/coop/%d/tx" % vid]):
+            if channel.message_encoding != "mavlink.frame":
+                continue
+            try:
+                m = mav.decode(bytearray(message.data))
+            except Exception:
+                continue
+            if m.get_type() == "COOPLOC_ESTIMATE":
+                out.setdefault(m.time_usec, []).append(m)
+    return out
+
+
+def parse_status(lines):
+    """The last `cooploc vehicle` line of each vehicle and the last team line, as dicts."""
+    vehicles, team = {}, None
+    for line in lines:
+        i = line.find("cooploc vehicle ")
+        if i >= 0:
+            words = line[i:].split()
+            vehicles[int(words[2])] = dict(w.split("=", 1) for w in words[3:] if "=" in w)
+        i = line.find("cooploc team vehicles=")
+        if i >= 0:
+            team = line[i:]
+    return vehicles, team
+
+
+def live_run(binary, cl):
+    tmp = tempfile.mkdtemp(prefix="cooploc-mavproxy-module-")
+    procs = []
+    try:
+        mdef, dialect = prepare_dialect(tmp)
+        sitl = Proc("sitl", [binary, "sitl", "sitl/scenarios/paper.toml", "--seed", "1", "--run", "0", "--speed", "2",
+                             "--base-port", "0", "--wait-for-peers", "--sim-state-hz", "1"])
+        procs.append(sitl)
+        vehicles = {}
+        for _ in range(3):
+            m = sitl.wait_line(r"^vehicle (\d+) .* (\S+)$", 30)
+            vehicles[int(m.group(1))] = m.group(2)
+        nodes = {}
+        node_procs = []
+        for vid in sorted(vehicles):
+            cmd = [binary, "node", "--id", str(vid), "--vehicle", "udpout:" + vehicles[vid], "--init-from-run", "1:0",
+                   "--log", os.path.join(tmp, "node-%d.mcap" % vid)]
+            for other in nodes.values():
+                cmd += ["--peer", other]
+            p = Proc("node %d" % vid, cmd)
+            procs.append(p)
+            node_procs.append(p)
+            nodes[vid] = p.wait_line(r"^node %d coop udp (\S+)" % vid, 30).group(1)
+
+        # MAVProxy: `module load cooploc` finds cooploc.py on PYTHONPATH (MAVProxy's loader tries
+        # MAVProxy.modules.mavproxy_NAME, then NAME): a link to the module under that name.
+        modpath = os.path.join(tmp, "modules")
+        os.makedirs(modpath)
+        os.symlink(MODULE_PATH, os.path.join(modpath, "cooploc.py"))
+        home = os.path.join(tmp, "home")
+        os.makedirs(home)
+        statusfile = os.path.join(tmp, "status.txt")
+        tlog = os.path.join(tmp, "mav.tlog")
+        env = dict(os.environ, HOME=home, MDEF=mdef, MAVLINK20="1",
+                   PYTHONPATH=os.pathsep.join(filter(None, [modpath, os.environ.get("PYTHONPATH")])))
+        env.pop("DISPLAY", None)
+        cmd = [sys.executable, os.path.join(os.path.dirname(sys.executable), "mavproxy.py"), "--dialect", "cooploc"]
+        cmd += ["--master=udpout:" + vehicles[v] for v in sorted(vehicles)]
+        cmd += ["--master=udpout:" + nodes[v] for v in sorted(nodes)]
+        cmd += ["--state-basedir=" + home, "--target-system=1", "--source-system=255", "--logfile=" + tlog,
+                "--cmd=set heartbeat 1; set param_ftp 0; module load cooploc; cooploc set statusfile " + statusfile]
+        mavproxy = Proc("mavproxy", cmd, env=env, cwd=home, stdin=subprocess.PIPE)
+        procs.append(mavproxy)
+
+        def send(line):
+            mavproxy.p.stdin.write(line + "\n")
+            mavproxy.p.stdin.flush()
+
+        # Let the team run (wall time; 2x simulated), then ask for estimates and the status.
+        try:
+            mavproxy.wait_line(r"cooploc vehicle 3 ", 1)  # nothing yet; just drains early output
+        except RuntimeError:
+            pass
+        time.sleep(11)
+        send("cooploc refresh 0")
+        time.sleep(3)
+        mark = len(mavproxy.lines)
+        send("cooploc status")
+        send("cooploc team")
+        try:
+            mavproxy.wait_line(r"cooploc team vehicles=", 10)
+            mavproxy.wait_line(r"^\s*id\s+method", 5)
+        except RuntimeError as e:
+            print(e, file=sys.stderr)
+        time.sleep(0.5)
+        mavproxy.p.stdin.close()
+        mavproxy.stop(signal.SIGTERM, 10)
+        for p in node_procs:
+            p.stop(signal.SIGTERM, 15)
+        sitl.stop(signal.SIGTERM, 10)
+
+        out = mavproxy.lines
+        text = "\n".join(out)
+        print("---- MAVProxy output (cooploc and parameter lines) ----", file=sys.stderr)
+        for line in out:
+            if "cooploc" in line or "arameters" in line or "Traceback" in line or "rror" in line:
+                print("  " + line, file=sys.stderr)
+
+        # ---- checks ----
+        check("module loaded", re.search(r"Loaded module cooploc\b", text), "no 'Loaded module cooploc'")
+        check("no Python traceback in MAVProxy's output", "Traceback" not in text,
+              "\n".join(l for l in out if "Traceback" in l or "Error" in l)[:2000])
+        status, team = parse_status(out[mark:])
+        check("team line", team is not None, "no team line")
+        if team:
+            m = re.search(r"errors=(\d+)", team)
+            check("no module error", m and m.group(1) == "0", team)
+        check("status lists vehicles 1, 2, 3", sorted(status) == [1, 2, 3], sorted(status))
+
+        for vid in (1, 2, 3):
+            s = status.get(vid)
+            if s is None or s.get("t_us", "-") == "-":
+                check("vehicle %d has an estimate" % vid, False, s)
+                continue
+            try:
+                sent = read_log_estimates(os.path.join(tmp, "node-%d.mcap" % vid), vid, dialect)
+            except Exception as e:
+                check("vehicle %d: node log readable" % vid, False, e)
+                continue
+            t_us = int(s["t_us"])
+            same_t = sent.get(t_us, [])
+            check("vehicle %d: the node logged an estimate at t_us=%d" % (vid, t_us), same_t,
+                  "%d estimates in the log" % sum(len(v) for v in sent.values()))
+            if not same_t:
+                continue
+
+            def printed(m):
+                return {f: cl.fmt_float(getattr(m, f)) for f in FIELDS}
+
+            match = [m for m in same_t if all(printed(m)[f] == s.get(f) for f in FIELDS)
+                     and str(m.epoch) == s.get("epoch") and cl.method_name(m.method) == s.get("method")
+                     and str(m.participants) == s.get("participants") and str(m.ranges) == s.get("ranges")]
+            check("vehicle %d: printed estimate equals the node's COOPLOC_ESTIMATE field for field" % vid, match,
+                  "printed %s; logged %s" % ({f: s.get(f) for f in FIELDS}, [printed(m) for m in same_t]))
+            if match:
+                c = match[-1].pos_covariance
+                el = cl.ellipse95(c[0], c[1], c[3])
+                check("vehicle %d: ellipse from the logged covariance" % vid,
+                      el and s.get("semi_major_95") == "%.3f" % el[0] and s.get("semi_minor_95") == "%.3f" % el[1]
+                      and s.get("bearing_95_deg") == "%.1f" % el[2], (s.get("semi_major_95"), el))
+            check("vehicle %d: estimate rate and node bytes/s > 0" % vid,
+                  float(s.get("rate_hz", 0)) > 0 and float(s.get("bytes_per_s", 0)) > 0,
+                  (s.get("rate_hz"), s.get("bytes_per_s")))
+            check("vehicle %d: unsigned, no rejected message, heartbeat type 18" % vid,
+                  s.get("signed") == "no" and s.get("rejected") == "0" and s.get("hb_type") == "18", s)
+
+        # The tlog: heartbeats and parameters.
+        from pymavlink import mavutil
+        seen_hb, params, sysid_param = set(), 0, None
+        if os.path.exists(tlog):
+            log = mavutil.mavlink_connection(tlog, dialect="cooploc")
+            while True:
+                m = log.recv_match(type=["HEARTBEAT", "PARAM_VALUE"])
+                if m is None:
+                    break
+                if m.get_type() == "HEARTBEAT":
+                    seen_hb.add((m.get_srcSystem(), m.get_srcComponent(), m.type))
+                elif m.get_srcSystem() == 1:
+                    params += 1
+                    if m.param_id == "SYSID_THISMAV":
+                        sysid_param = m.param_value
+        for vid in (1, 2, 3):
+            check("tlog: vehicle %d heartbeat (type 10 from %d:1)" % vid, (vid, 1, 10) in seen_hb, sorted(seen_hb))
+            check("tlog: node %d heartbeat (type 18 from %d:191)" % (vid, vid), (vid, 191, 18) in seen_hb,
+                  sorted(seen_hb))
+        check("tlog: PARAM_VALUE SYSID_THISMAV = 1 from system 1 (needs parameters in `cooploc sitl`)",
+              sysid_param == 1, "%d PARAM_VALUE from system 1, SYSID_THISMAV %r" % (params, sysid_param))
+        check("MAVProxy received all parameters (needs parameters in `cooploc sitl`)",
+              re.search(r"Received \d+ parameters", text), "no 'Received N parameters'")
+
+        # Refresh: an accepted COMMAND_ACK per vehicle.
+        acks = {vid: int(status.get(vid, {}).get("acks", "0")) for vid in (1, 2, 3)}
+        check("cooploc refresh 0 sent", re.search(r"cooploc refresh: REQUEST_MESSAGE", text), "no refresh line")
+        check("acks >= 1 per vehicle after `cooploc refresh 0` (needs REQUEST_MESSAGE in `cooploc node`)",
+              all(a >= 1 for a in acks.values()), acks)
+
+        # The status file.
+        blocks = 0
+        if os.path.exists(statusfile):
+            with open(statusfile) as f:
+                blocks = sum(1 for line in f if line.startswith("cooploc time="))
+        check("status file written every second", blocks >= 8, "%d status blocks" % blocks)
+    finally:
+        for p in reversed(procs):
+            try:
+                p.stop(signal.SIGKILL, 5)
+            except Exception:
+                pass
+        shutil.rmtree(tmp, ignore_errors=True)
+
+
+def main():
+    if len(sys.argv) != 2:
+        sys.exit("usage: mavproxy_module_check.py COOPLOC_BINARY")
+    binary = os.path.abspath(sys.argv[1])
+    started = time.time()
+    cl = load_module()
+    pure_checks(cl)
+    try:
+        live_run(binary, cl)
+    except Exception as e:
+        import traceback
+        traceback.print_exc()
+        check("live run", False, e)
+    failed = [n for n, ok in results if not ok]
+    print("mavproxy_module_check: %d checks, %d failed, %.0f s%s" % (
+        len(results), len(failed), time.time() - started, "" if not failed else ": " + "; ".join(failed)))
+    sys.exit(1 if failed else 0)
+
+
+if __name__ == "__main__":
+    main()
