@@ -187,7 +187,7 @@ pub async fn run_demo(cfg: DemoConfig, ready: impl FnOnce(&DemoAddresses)) -> an
     };
     let (gcs_bound_tx, gcs_bound_rx) = tokio::sync::oneshot::channel();
     let (gcs_stop_tx, gcs_stop_rx) = tokio::sync::oneshot::channel::<()>();
-    let sink: Box<dyn GcsSink> = Box::new(crate::gcs::RecorderSink(recorder.clone()));
+    let sink: Box<dyn GcsSink> = Box::new(crate::gcs::RecorderSink::beside_nodes(recorder.clone()));
     let gcs_task = tokio::spawn(run_gcs(gcs_cfg, gcs_links, vec![sink], gcs_bound_tx, async move {
         let _ = gcs_stop_rx.await;
     }));

@@ -29,6 +29,8 @@
 //!   internals): the recorder and a reader tolerant of truncated files.
 //! - [`gcs`]: `cooploc gcs`, the ground station (a sans-io core, its web page and JSON API, the
 //!   Foxglove live server, and a tokio runner).
+//! - [`view`]: one view of the team for every display (names, colours, frames, ellipses, the
+//!   team's health; the Foxglove messages), so the page, live Foxglove and logs agree.
 //! - [`dataset`]: real data sets (UTIAS MRCLAM): the reader, the model every method runs on
 //!   them, their MCAP logs.
 //! - [`time`]: the typed timestamp shared by all of the above.
@@ -48,6 +50,7 @@ pub mod simulator;
 #[path = "../sitl/mod.rs"]
 pub mod sitl;
 pub mod time;
+pub mod view;
 
 // The generated dialect code refers to `crate::utils`.
 #[allow(unused_imports)]

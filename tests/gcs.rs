@@ -288,36 +288,51 @@ impl FakeVehicle {
 /// Feeds three vehicles for `seconds` of vehicle time: truth at 5 Hz on their links, estimates
 /// at 1 Hz (drifting from the truth, growing covariance) on the cooperative network.
 fn feed_team(gcs: &Gcs, vehicles: &mut [FakeVehicle], seconds: u32) {
-    let nodes: Vec<UdpSocket> = vehicles.iter().map(|_| udp()).collect();
-    let mut seq = 0u8;
-    for step in 0..=(seconds * 5) {
-        let t = f64::from(step) / 5.0;
-        for v in vehicles.iter_mut() {
-            v.truth_step(t);
-        }
-        if step % 5 == 0 {
-            for (v, node) in vehicles.iter().zip(&nodes) {
-                let k = f64::from(v.id);
-                let drift = Vector3::new(0.04 * t * (1.3 * k).cos(), 0.05 * t * (0.7 * k).sin(), 0.0);
-                let wiggle = Vector3::new((0.9 * t + k).sin(), (1.1 * t + 2.0 * k).cos(), 0.0) * 0.8;
-                let sigma = 1.0 + 0.03 * t;
-                let cov = Matrix3::new(
-                    sigma * sigma * (1.0 + 0.3 * k),
-                    0.4 * sigma * sigma,
-                    0.0,
-                    0.4 * sigma * sigma,
-                    sigma * sigma,
-                    0.0,
-                    0.0,
-                    0.0,
-                    0.5,
-                );
-                let r = report(v.id, t, truth_pos(v.id, t) + drift + wiggle, cov);
-                node.send_to(&frame(v.id as u8, NODE_COMPID, seq, &wire::estimate_to_message(&r)), gcs.coop).unwrap();
+    TeamFeed::new(vehicles).run(gcs, vehicles, 0, seconds, Duration::from_millis(3));
+}
+
+/// The nodes of [`feed_team`], kept between spans of vehicle time.
+struct TeamFeed {
+    nodes: Vec<UdpSocket>,
+    seq: u8,
+}
+
+impl TeamFeed {
+    fn new(vehicles: &[FakeVehicle]) -> Self {
+        TeamFeed { nodes: vehicles.iter().map(|_| udp()).collect(), seq: 0 }
+    }
+
+    /// Vehicle time `from_s` to `to_s` (both included), `pause` between 0.2-s steps.
+    fn run(&mut self, gcs: &Gcs, vehicles: &mut [FakeVehicle], from_s: u32, to_s: u32, pause: Duration) {
+        for step in (from_s * 5)..=(to_s * 5) {
+            let t = f64::from(step) / 5.0;
+            for v in vehicles.iter_mut() {
+                v.truth_step(t);
             }
-            seq = seq.wrapping_add(1);
+            if step % 5 == 0 {
+                for (v, node) in vehicles.iter().zip(&self.nodes) {
+                    let k = f64::from(v.id);
+                    let drift = Vector3::new(0.04 * t * (1.3 * k).cos(), 0.05 * t * (0.7 * k).sin(), 0.0);
+                    let wiggle = Vector3::new((0.9 * t + k).sin(), (1.1 * t + 2.0 * k).cos(), 0.0) * 0.8;
+                    let sigma = 1.0 + 0.03 * t;
+                    let cov = Matrix3::new(
+                        sigma * sigma * (1.0 + 0.3 * k),
+                        0.4 * sigma * sigma,
+                        0.0,
+                        0.4 * sigma * sigma,
+                        sigma * sigma,
+                        0.0,
+                        0.0,
+                        0.0,
+                        0.5,
+                    );
+                    let r = report(v.id, t, truth_pos(v.id, t) + drift + wiggle, cov);
+                    node.send_to(&frame(v.id as u8, NODE_COMPID, self.seq, &wire::estimate_to_message(&r)), gcs.coop).unwrap();
+                }
+                self.seq = self.seq.wrapping_add(1);
+            }
+            std::thread::sleep(pause);
         }
-        std::thread::sleep(Duration::from_millis(3));
     }
 }
 
@@ -387,6 +402,66 @@ fn page_in_headless_chromium_lists_every_vehicle() {
     let png = std::fs::read(&shot).expect("the screenshot");
     assert!(png.starts_with(b"\x89PNG") && png.len() > 20_000, "a real picture ({} bytes)", png.len());
     eprintln!("screenshot: {}", shot.display());
+}
+
+/// One view everywhere: for one run of three vehicles (truth links and estimates), the web
+/// page's JSON, the live Foxglove channels (read by an independent Python client) and the
+/// Foxglove channels of the ground station's MCAP log (`--log`) carry the same colour per
+/// vehicle, the same frames and transform, and the same 95 % ellipses; the page's ellipse of
+/// each newest estimate is the one Foxglove draws (tests/python/view_agreement_check.py).
+#[test]
+fn page_live_foxglove_and_log_show_the_same_colours_frames_and_ellipses() {
+    let Some(python) = common::python("the view agreement test") else { return };
+    let dir = tempdir("gcs-views");
+    let log = dir.join("gcs.mcap");
+    let (mut vehicles, mut args) = fake_vehicles(&[1, 2, 3]);
+    args.extend(["--log".to_string(), log.display().to_string(), "--link-capacity".to_string(), "5400".to_string()]);
+    let mut gcs = start_gcs(&args);
+    let mut feed = TeamFeed::new(&vehicles);
+    // The first seconds make the channels; the client subscribes to every one it is told of.
+    feed.run(&gcs, &mut vehicles, 0, 2, Duration::from_millis(3));
+    wait_state(&gcs, "three vehicles", |s| s["vehicles"].as_array().is_some_and(|v| v.len() == 3));
+    let script = concat!(env!("CARGO_MANIFEST_DIR"), "/tests/python/view_agreement_check.py");
+    let live = dir.join("live.json");
+    let mut listener = Command::new(&python)
+        .args([script, "listen", &gcs.foxglove])
+        .arg(&live)
+        .args(["--vehicles", "1,2,3", "--until-t", "30"])
+        .stdout(Stdio::piped())
+        .stderr(Stdio::inherit())
+        .spawn()
+        .expect("running the Foxglove listener");
+    let mut lines = BufReader::new(listener.stdout.take().unwrap()).lines();
+    let first = lines.next().and_then(Result::ok).unwrap_or_default();
+    assert_eq!(first, "subscribed", "the listener subscribed");
+    // About 3 s of wall time, so that the once-a-second health reaches both.
+    feed.run(&gcs, &mut vehicles, 3, 30, Duration::from_millis(20));
+    let status = listener.wait().expect("the listener");
+    for line in lines.map_while(Result::ok) {
+        eprintln!("{line}");
+    }
+    assert!(status.success(), "the live listener did not see every vehicle reach t = 30 s");
+    let (code, state) = http_get(gcs.http, "/api/state");
+    assert_eq!(code, 200);
+    let state_path = dir.join("state.json");
+    std::fs::write(&state_path, &state).unwrap();
+    // Ctrl-C: the ground station finishes its log.
+    let pid = gcs.child.id().to_string();
+    assert!(Command::new("kill").args(["-INT", &pid]).status().unwrap().success());
+    let deadline = Instant::now() + Duration::from_secs(20);
+    while gcs.child.try_wait().unwrap().is_none() {
+        assert!(Instant::now() < deadline, "cooploc gcs did not stop on SIGINT");
+        std::thread::sleep(Duration::from_millis(50));
+    }
+    let out = Command::new(&python).args([script, "compare"]).arg(&live).arg(&state_path).arg(&log).output().unwrap();
+    let text = String::from_utf8_lossy(&out.stdout);
+    eprintln!("{text}{}", String::from_utf8_lossy(&out.stderr));
+    assert!(out.status.success(), "the three views disagree");
+    for id in 1..=3 {
+        assert!(text.contains(&format!("PASS vehicle {id}: one colour on the page, live and in the log")));
+        assert!(text.contains(&format!("PASS vehicle {id}: the page's ellipse is the one Foxglove draws")));
+    }
+    let _ = std::fs::remove_dir_all(&dir);
 }
 
 fn tempdir(prefix: &str) -> std::path::PathBuf {

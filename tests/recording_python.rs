@@ -11,7 +11,7 @@ use cooploc::protocol::dialect::cooploc::{MavAutopilot, MavType};
 use cooploc::protocol::wire::{self, GeoOrigin};
 use cooploc::recording::{
     CoopUpdateRecord, Direction, LinkStatsRecord, PeerLinkStats, PositionEstimate, RangeRecord, Recorder, RecorderOptions,
-    TruthSample, read_log, visual,
+    TruthSample, read_log,
 };
 use cooploc::time::TimeUs;
 use mavlink_core::MavHeader;
@@ -105,7 +105,7 @@ fn python_mcap_reads_every_channel_kind() {
     assert_eq!(log.messages.len() as u64, written);
 
     let g = wire::ned_to_geodetic(&origin, &est.pos_ned_m);
-    let cov_enu = visual::cov_ned_to_enu(&cov);
+    let cov_enu = cooploc::view::foxglove::cov_ned_to_enu(&cov);
     let cov_enu: Vec<f64> = (0..3).flat_map(|r| (0..3).map(move |c| cov_enu[(r, c)])).collect();
     let expect = json!({
         "sysid": 2, "vehicle": 2,

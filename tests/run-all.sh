@@ -1,7 +1,8 @@
 #!/usr/bin/env bash
 # Runs every test of cooploc, after installing what the tests need beyond cargo:
 # a Python virtualenv (.venv) with the pinned reference tools of tests/requirements.txt,
-# Debian's headless Chromium, and iproute2 (network namespaces, tc) for tests/netns.rs.
+# the MAVProxy module of tools/mavproxy linked into it, Debian's headless Chromium, and iproute2
+# (network namespaces, tc) for tests/netns.rs.
 # Usage (from anywhere): bash tests/run-all.sh
 set -euo pipefail
 cd "$(dirname "$0")/.."
@@ -17,6 +18,11 @@ if [ ! -x "$venv/bin/python" ] || [ "$(cat "$stamp" 2>/dev/null)" != "$want" ]; 
     echo "$want" > "$stamp"
 fi
 export COOPLOC_PYTHON="$PWD/$venv/bin/python"
+
+# The MAVProxy module (tools/mavproxy/README.md), linked into the virtualenv's MAVProxy so that
+# `module load cooploc` finds this checkout's copy.
+mavproxy_modules=$("$COOPLOC_PYTHON" -c 'import MAVProxy.modules, os; print(os.path.dirname(MAVProxy.modules.__file__))')
+ln -sf "$PWD/tools/mavproxy/mavproxy_cooploc.py" "$mavproxy_modules/mavproxy_cooploc.py"
 
 # Headless Chromium for the ground station's browser test (tests/gcs.rs), from Debian's packages.
 if ! command -v chromium > /dev/null 2>&1 && ! command -v chromium-browser > /dev/null 2>&1; then

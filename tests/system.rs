@@ -685,3 +685,30 @@ fn a_node_keeps_its_signing_timestamp_across_restarts() {
     assert!(!out.status.success() && err.contains("bad.state") && err.contains("yesterday"), "{err}");
     let _ = std::fs::remove_dir_all(&dir);
 }
+
+/// The MAVProxy module (`tools/mavproxy/mavproxy_cooploc.py`, `module load cooploc`) in the pinned
+/// MAVProxy, headless, against `cooploc sitl` and three nodes on loopback: it loads, its `cooploc
+/// status` lists the three vehicles with estimates equal field for field to the COOPLOC_ESTIMATE
+/// each node logged itself, `cooploc refresh` gets every node's acknowledgement, and MAVProxy still
+/// sees the vehicles' heartbeats and fetches their parameters (it is not disturbed). The script
+/// also checks the module's pure functions (ellipse, agreement counters, loss, origin).
+#[test]
+fn mavproxy_module_shows_the_team_as_the_nodes_sent_it() {
+    let Some(python) = common::python("the MAVProxy module test") else { return };
+    let out = Command::new(python)
+        .arg(concat!(env!("CARGO_MANIFEST_DIR"), "/tests/python/mavproxy_module_check.py"))
+        .arg(env!("CARGO_BIN_EXE_cooploc"))
+        .current_dir(env!("CARGO_MANIFEST_DIR"))
+        .output()
+        .expect("running tests/python/mavproxy_module_check.py");
+    let text = String::from_utf8_lossy(&out.stdout);
+    eprintln!("{text}\n{}", String::from_utf8_lossy(&out.stderr));
+    assert!(out.status.success(), "the MAVProxy module check failed");
+    assert!(text.contains(" 0 failed"), "every check passed");
+    for id in 1..=3 {
+        assert!(
+            text.contains(&format!("PASS vehicle {id}: printed estimate equals the node's COOPLOC_ESTIMATE field for field")),
+            "vehicle {id} checked against its node's log"
+        );
+    }
+}

@@ -124,6 +124,9 @@ pub struct LinkStats {
     pub messages: BTreeMap<&'static str, u64>,
     /// MAV_TYPE of its last HEARTBEAT, if any.
     pub mav_type: Option<String>,
+    /// Frames that carried a MAVLink 2 signature, and frames that did not.
+    pub signed: u64,
+    pub unsigned: u64,
 }
 
 impl LinkStats {
@@ -138,12 +141,19 @@ impl LinkStats {
             last_addr: None,
             messages: BTreeMap::new(),
             mav_type: None,
+            signed: 0,
+            unsigned: 0,
         }
     }
 
-    /// One valid frame of `bytes` bytes with sequence number `seq`.
-    pub fn observe(&mut self, rx: WallNs, seq: u8, bytes: usize, name: &'static str, from: Option<SocketAddr>) {
+    /// One valid frame of `bytes` bytes with sequence number `seq`, signed or not.
+    pub fn observe(&mut self, rx: WallNs, seq: u8, bytes: usize, name: &'static str, from: Option<SocketAddr>, signed: bool) {
         self.last_heard = self.last_heard.max(rx);
+        if signed {
+            self.signed += 1;
+        } else {
+            self.unsigned += 1;
+        }
         self.packets += 1;
         self.bytes += bytes as u64;
         self.seq.observe(seq);

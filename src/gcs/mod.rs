@@ -79,6 +79,8 @@ pub enum GcsEvent {
     Range { rx: WallNs, epoch: u32, range: RangeSample },
     /// An epoch announcement (COOPLOC_EPOCH).
     Epoch { rx: WallNs, announcement: EpochAnnouncement },
+    /// The team's health, once a second (the runner's timer; see [`state::GcsState::health`]).
+    Health { rx: WallNs, health: Box<crate::view::health::HealthView> },
     /// A frame that was dropped: no valid MAVLink in a datagram, or a message that failed
     /// validation (reason names the field).
     Rejected { rx: WallNs, link: Link, reason: String },

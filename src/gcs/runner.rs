@@ -251,8 +251,15 @@ pub async fn run(
                     for (_, conn, seq) in &mut vehicle_conns {
                         let _ = conn.send(&seq.next_header(), &hb).await;
                     }
+                    let now = clock.now();
+                    let st = lock();
+                    if st.vehicles.is_empty() {
+                        continue;
+                    }
+                    vec![GcsEvent::Health { rx: now, health: Box::new(st.health(now)) }]
+                } else {
+                    continue;
                 }
-                continue;
             }
             r = coop.recv_from(&mut buf) => {
                 let Ok((n, from)) = r else { continue };

@@ -27,15 +27,20 @@ use mavlink_core::{MAVLinkMessageRaw, MavlinkReader, Message};
 use nalgebra::{Matrix2, Vector3};
 use serde::Serialize;
 
-use super::link::{LinkStats, SourceKey};
+use super::link::{LinkStats, RateWindow, SourceKey};
 use super::{GCS_COMPID, GCS_SYSID, GcsEvent, Link, TruthPoint, WallNs};
 use crate::estimation::PlatformId;
 use crate::protocol::MavMessage;
 use crate::protocol::signing::{SigningCounters, TeamKey, Verifier};
 use crate::protocol::wire::{self, EstimateReport, GeoOrigin};
 use crate::time::TimeUs;
+use crate::view::VehicleStyle;
+use crate::view::health::{EpochTally, HealthView, NodeHealth, signing_word};
 
 pub use crate::estimation::consistency::{CHI2_2DOF_95, Ellipse95, ellipse95, position_nees};
+
+/// Window of the estimate rate, ns.
+pub const ESTIMATE_RATE_WINDOW_NS: u64 = 10_000_000_000;
 
 /// An estimate's error against the truth at its time.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -75,6 +80,9 @@ pub struct GcsConfig {
     /// Most learned peers (addresses heartbeats go to); silent ones expire after `peer_expiry_ns`.
     pub max_peers: usize,
     pub peer_expiry_ns: u64,
+    /// Payload bytes per second the shared cooperative link carries (the health view shows
+    /// each node's bytes against its share); None: not known.
+    pub link_capacity_bytes_per_s: Option<f64>,
 }
 
 impl Default for GcsConfig {
@@ -92,6 +100,7 @@ impl Default for GcsConfig {
             max_sources: 1024,
             max_peers: 64,
             peer_expiry_ns: 30_000_000_000,
+            link_capacity_bytes_per_s: None,
         }
     }
 }
@@ -147,6 +156,8 @@ pub struct VehicleCounts {
     pub stale_estimates: u64,
     pub restarts: u64,
     pub state_fragments: u64,
+    /// Store snapshot fragments (COOPLOC_STORE_FRAGMENT): the node healing a teammate.
+    pub store_fragments: u64,
     pub ranges: u64,
     pub epochs: u64,
     /// Frames of its own vehicle link, all messages.
@@ -169,6 +180,9 @@ pub struct Vehicle {
     pub truth_untimed: VecDeque<TruthPoint>,
     pending_truth: Option<TruthPoint>,
     last_link_time: Option<TimeUs>,
+    /// When the first estimate came, and the estimates received over the rate window (one
+    /// "byte" each).
+    estimate_rate: Option<(WallNs, RateWindow)>,
     pub counts: VehicleCounts,
 }
 
@@ -182,6 +196,7 @@ impl Vehicle {
             truth_untimed: VecDeque::new(),
             pending_truth: None,
             last_link_time: None,
+            estimate_rate: None,
             counts: VehicleCounts::default(),
         }
     }
@@ -208,6 +223,8 @@ pub struct GcsState {
     given_peers: BTreeSet<SocketAddr>,
     peers: BTreeMap<SocketAddr, WallNs>,
     verifier: Option<Verifier>,
+    /// Disagreements and healing, from the nodes' epoch reports.
+    pub tally: EpochTally,
     pub counters: GcsCounters,
 }
 
@@ -217,14 +234,16 @@ struct Frame<'a> {
     compid: u8,
     seq: u8,
     message_id: u32,
+    signed: bool,
     bytes: &'a [u8],
     message: Result<MavMessage, String>,
 }
 
-fn raw_parts(raw: &MAVLinkMessageRaw) -> (&[u8], mavlink_core::MavlinkVersion) {
+/// A frame's bytes, its version and whether it carries a signature (MAVLink 2 incompat flag 1).
+fn raw_parts(raw: &MAVLinkMessageRaw) -> (&[u8], mavlink_core::MavlinkVersion, bool) {
     match raw {
-        MAVLinkMessageRaw::V1(m) => (m.raw_bytes(), mavlink_core::MavlinkVersion::V1),
-        MAVLinkMessageRaw::V2(m) => (m.raw_bytes(), mavlink_core::MavlinkVersion::V2),
+        MAVLinkMessageRaw::V1(m) => (m.raw_bytes(), mavlink_core::MavlinkVersion::V1, false),
+        MAVLinkMessageRaw::V2(m) => (m.raw_bytes(), mavlink_core::MavlinkVersion::V2, m.incompatibility_flags() & 1 != 0),
     }
 }
 
@@ -232,13 +251,14 @@ fn raw_parts(raw: &MAVLinkMessageRaw) -> (&[u8], mavlink_core::MavlinkVersion) {
 fn read_frames(bytes: &[u8], mut each: impl FnMut(Frame<'_>)) {
     let mut reader = MavlinkReader::new(bytes);
     while let Ok(raw) = reader.read_any_raw_message::<MavMessage>() {
-        let (frame_bytes, version) = raw_parts(&raw);
+        let (frame_bytes, version, signed) = raw_parts(&raw);
         let message = MavMessage::parse(version, raw.message_id(), raw.payload()).map_err(|e| e.to_string());
         each(Frame {
             sysid: raw.system_id(),
             compid: raw.component_id(),
             seq: raw.sequence(),
             message_id: raw.message_id(),
+            signed,
             bytes: frame_bytes,
             message,
         });
@@ -269,6 +289,7 @@ impl GcsState {
             given_peers: BTreeSet::new(),
             peers: BTreeMap::new(),
             verifier,
+            tally: EpochTally::new(),
             counters: GcsCounters::default(),
         }
     }
@@ -371,7 +392,7 @@ impl GcsState {
         };
         let mut frames = Vec::new();
         read_frames(bytes, |f| {
-            frames.push((f.sysid, f.compid, f.seq, f.message_id, f.bytes.to_vec(), f.message));
+            frames.push((f.sysid, f.compid, f.seq, f.message_id, f.signed, f.bytes.to_vec(), f.message));
         });
         let mut events = Vec::with_capacity(frames.len() + 1);
         if frames.is_empty() {
@@ -379,7 +400,7 @@ impl GcsState {
             events.push(GcsEvent::Rejected { rx, link, reason: format!("{} bytes without a valid MAVLink frame", bytes.len()) });
             return events;
         }
-        for (sysid, compid, seq, message_id, frame_bytes, message) in frames {
+        for (sysid, compid, seq, message_id, signed, frame_bytes, message) in frames {
             self.counters.frames += 1;
             if sysid == u32::from(GCS_SYSID) && compid == GCS_COMPID {
                 self.counters.own += 1;
@@ -391,7 +412,7 @@ impl GcsState {
                 self.counters.sources_refused += 1;
             } else {
                 let stats = self.links.entry(key).or_insert_with(|| LinkStats::new(rx, window));
-                stats.observe(rx, seq, frame_bytes.len(), message_name(&message), from);
+                stats.observe(rx, seq, frame_bytes.len(), message_name(&message), from, signed);
             }
             if let (Link::Coop, Some(addr)) = (link, from) {
                 self.learn_peer(addr, rx);
@@ -459,6 +480,7 @@ impl GcsState {
                 Ok(announcement) => {
                     if self.admit(announcement.announcer) {
                         self.vehicle(announcement.announcer).counts.epochs += 1;
+                        self.tally.on_epoch(&announcement);
                         events.push(GcsEvent::Epoch { rx, announcement });
                     }
                 }
@@ -474,6 +496,20 @@ impl GcsState {
                 Ok(f) => {
                     if self.admit(f.platform) {
                         self.vehicle(f.platform).counts.state_fragments += 1;
+                    }
+                }
+                Err(e) => self.reject(rx, Link::Coop, e.to_string(), events),
+            },
+            MavMessage::COOPLOC_STORE_FRAGMENT(m) => match wire::store_fragment_from_message(m) {
+                Ok(f) if u32::from(f.platform) != sysid => self.reject(
+                    rx,
+                    Link::Coop,
+                    format!("COOPLOC_STORE_FRAGMENT of platform {} sent by system {sysid}", f.platform),
+                    events,
+                ),
+                Ok(f) => {
+                    if self.admit(f.platform) {
+                        self.vehicle(f.platform).counts.store_fragments += 1;
                     }
                 }
                 Err(e) => self.reject(rx, Link::Coop, e.to_string(), events),
@@ -503,6 +539,7 @@ impl GcsState {
         let c = &report.position_covariance_m2;
         let ellipse = ellipse95(&Matrix2::new(c[(0, 0)], c[(0, 1)], c[(1, 0)], c[(1, 1)]));
         v.counts.estimates += 1;
+        v.estimate_rate.get_or_insert_with(|| (rx, RateWindow::new(ESTIMATE_RATE_WINDOW_NS))).1.push(rx, 1);
         let vehicle = report.platform;
         events.push(GcsEvent::Estimate { rx, vehicle, report: report.clone(), ellipse });
         v.estimates.push_back(EstimatePoint { rx, report, ellipse, error: ErrorState::Pending });
@@ -599,6 +636,59 @@ impl GcsState {
         resolve_errors(v, rx, max_gap, events);
     }
 
+    /// The team's health now: disagreements and healing from the epoch reports, and per node
+    /// its estimate rate, its bytes per second against its share of the link, its loss and its
+    /// signing (the node's frames on the cooperative network, every component of its system).
+    pub fn health(&self, now: WallNs) -> HealthView {
+        let capacity = self.config.link_capacity_bytes_per_s.filter(|c| c.is_finite() && *c > 0.0);
+        let share = capacity.map(|c| c / self.vehicles.len().max(1) as f64);
+        let nodes: Vec<NodeHealth> = self
+            .vehicles
+            .values()
+            .map(|v| {
+                let sources = self.links.iter().filter(|(k, _)| k.link == Link::Coop && k.sysid == u32::from(v.id));
+                let (mut bytes_per_s, mut signed, mut unsigned, mut lost, mut received) = (0.0, 0, 0, 0, 0);
+                for (_, s) in sources {
+                    bytes_per_s += s.rate.bytes_per_s(now, s.first_heard);
+                    (signed, unsigned) = (signed + s.signed, unsigned + s.unsigned);
+                    (lost, received) = (lost + s.seq.lost, received + s.seq.received);
+                }
+                let style = VehicleStyle::of(v.id);
+                NodeHealth {
+                    id: v.id,
+                    name: style.name,
+                    color: style.color,
+                    estimate_rate_hz: v
+                        .estimate_rate
+                        .as_ref()
+                        .filter(|_| v.counts.estimates >= 2)
+                        .map(|(first, w)| w.bytes_per_s(now, *first)),
+                    bytes_per_s,
+                    budget_bytes_per_s: share,
+                    budget_used_pct: share.map(|b| 100.0 * bytes_per_s / b),
+                    loss_pct: (received >= 2).then(|| 100.0 * lost as f64 / (received + lost) as f64),
+                    signed_frames: signed,
+                    unsigned_frames: unsigned,
+                    signing: signing_word(signed, unsigned),
+                    epochs: self.tally.nodes.get(&v.id).copied().unwrap_or_default(),
+                }
+            })
+            .collect();
+        let team_bytes_per_s: f64 = nodes.iter().map(|n| n.bytes_per_s).sum();
+        HealthView {
+            rx_ns: now.0,
+            last_epoch: self.tally.last_epoch,
+            disagreements: self.tally.disagreements,
+            heals: self.tally.heals,
+            unhealed_since: self.tally.unhealed_since,
+            link_capacity_bytes_per_s: capacity,
+            team_bytes_per_s,
+            team_load_pct: capacity.map(|c| 100.0 * team_bytes_per_s / c),
+            verifying: self.verifier.is_some(),
+            nodes,
+        }
+    }
+
     /// The JSON the web page polls. Series are thinned to at most `max_points` points each.
     pub fn snapshot(&self, now: WallNs, max_points: usize) -> Snapshot {
         let since = |t: WallNs| now.0.saturating_sub(t.0) as f64 * 1e-9;
@@ -636,6 +726,7 @@ impl GcsState {
                 alt_m: self.config.origin.alt_m,
             },
             counters: self.counters,
+            health: self.health(now),
             vehicles,
             links,
         }
@@ -751,6 +842,7 @@ fn vehicle_json(v: &Vehicle, now: WallNs, max_points: usize) -> VehicleJson {
     });
     VehicleJson {
         id: v.id,
+        style: VehicleStyle::of(v.id),
         has_link: v.has_link,
         estimate,
         error: latest_error,
@@ -770,6 +862,7 @@ pub struct Snapshot {
     pub gcs: GcsInfo,
     pub origin: OriginJson,
     pub counters: GcsCounters,
+    pub health: HealthView,
     pub vehicles: Vec<VehicleJson>,
     pub links: Vec<LinkJson>,
 }
@@ -794,6 +887,8 @@ pub struct OriginJson {
 #[derive(Debug, Clone, Serialize)]
 pub struct VehicleJson {
     pub id: PlatformId,
+    /// Name and colour, as every display shows them.
+    pub style: VehicleStyle,
     pub has_link: bool,
     pub estimate: Option<EstimateJson>,
     /// Error of the newest estimate the truth covers.

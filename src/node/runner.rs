@@ -341,14 +341,7 @@ async fn send_all(
                     && let Ok(e) = wire::estimate_from_message(m)
                     && let Ok(mut r) = r.lock()
                 {
-                    let est = crate::recording::PositionEstimate {
-                        t: e.t,
-                        pos_ned_m: e.position_ned_m,
-                        cov_ned_m2: e.position_covariance_m2,
-                        yaw_rad: Some(e.yaw_rad),
-                        vel_ned_m_s: Some(e.velocity_ned_m_s),
-                    };
-                    let _ = r.estimate(e.platform, wall_now_ns(), &est);
+                    let _ = r.estimate(e.platform, wall_now_ns(), &crate::view::foxglove::position_estimate(&e));
                 }
             }
             NodeOutput::Update(u) => {

@@ -65,15 +65,14 @@
 
 pub mod internals;
 mod reader;
-pub mod visual;
 mod writer;
 
+pub use crate::view::foxglove::{PositionEstimate, TruthSample};
 pub use internals::{CoopUpdateRecord, LinkStatsRecord, PeerLinkStats, RangeRecord};
 pub use reader::{
     ChannelInfo, Log, LogEnd, LogIndex, LogReader, LoggedAttachment, LoggedMessage, LoggedMetadata, ReadError, ReadOptions,
     SchemaInfo, read_index, read_log, read_log_from,
 };
-pub use visual::{PositionEstimate, TruthSample};
 pub use writer::{RecordError, Recorder, RecorderOptions, RecorderStats};
 
 pub use crate::protocol::wire::GeoOrigin;
@@ -149,6 +148,18 @@ pub mod topics {
     pub fn truth_pose(id: u16) -> String {
         format!("/vehicle_{id}/truth_pose")
     }
+    /// `/vehicle_<id>/estimate`: the ground station's JSON view of each estimate
+    /// ([`crate::view::foxglove::EstimateJson`]).
+    pub fn estimate(id: u16) -> String {
+        format!("/vehicle_{id}/estimate")
+    }
+    /// `/vehicle_<id>/error`: the error of an estimate against the truth
+    /// ([`crate::view::foxglove::ErrorJson`]).
+    pub fn error(id: u16) -> String {
+        format!("/vehicle_{id}/error")
+    }
+    /// The team's health, once a second ([`crate::view::health::HealthView`]).
+    pub const HEALTH: &str = "/team/health";
     /// `/vehicle_<id>/internals`: one JSON [`crate::recording::CoopUpdateRecord`] per update.
     pub fn internals(id: u16) -> String {
         format!("/vehicle_{id}/internals")

@@ -214,7 +214,7 @@ fn every_channel_kind_round_trips() {
     let s: SceneUpdate = ell.protobuf().unwrap();
     assert_eq!(s.entities[0].id, "vehicle_2_ellipse");
     let size = s.entities[0].spheres[0].size.unwrap();
-    let (major, minor, _) = visual::ellipse_axes(4.0, 0.5, 1.0);
+    let (major, minor, _) = crate::view::foxglove::ellipse_axes(4.0, 0.5, 1.0);
     assert_eq!((size.x, size.y), (2.0 * major, 2.0 * minor));
 
     let tf: Vec<_> = log.topic(topics::TF).collect();

@@ -21,9 +21,9 @@ use serde::Serialize;
 use super::internals::{
     COOP_UPDATE_SCHEMA, COOP_UPDATE_SCHEMA_NAME, CoopUpdateRecord, LINK_STATS_SCHEMA, LINK_STATS_SCHEMA_NAME, LinkStatsRecord,
 };
-use super::visual::{self, PositionEstimate, TruthSample};
 use super::{DIALECT, Direction, FORMAT_VERSION, LOG_METADATA_NAME, Link, MAVLINK_FRAME_ENCODING, topics, wall_now_ns};
 use crate::protocol::wire::GeoOrigin;
+use crate::view::foxglove::{self as fx, PositionEstimate, TruthSample};
 
 /// How a [`Recorder`] writes.
 #[derive(Debug, Clone, PartialEq)]
@@ -238,11 +238,11 @@ impl<W: Write> Recorder<W> {
             return Err(RecordError::NonFinite { topic: topics::pose(id), field });
         }
         if let Some(origin) = self.options.geo_origin {
-            self.foxglove_unflushed(&topics::location(id), wall_ns, &visual::location_fix(&origin, id, est, wall_ns))?;
+            self.foxglove_unflushed(&topics::location(id), wall_ns, &fx::location_fix(&origin, id, est, wall_ns))?;
         }
         self.write_tf(wall_ns)?;
-        self.foxglove_unflushed(&topics::pose(id), wall_ns, &visual::pose_in_ned(&est.pos_ned_m, est.yaw_rad, wall_ns))?;
-        self.foxglove_unflushed(&topics::ellipse(id), wall_ns, &visual::ellipse_update(id, est, wall_ns))?;
+        self.foxglove_unflushed(&topics::pose(id), wall_ns, &fx::pose_in_ned(&est.pos_ned_m, est.yaw_rad, wall_ns))?;
+        self.foxglove_unflushed(&topics::ellipse(id), wall_ns, &fx::ellipse_update(id, est, wall_ns))?;
         self.after_write()
     }
 
@@ -254,10 +254,10 @@ impl<W: Write> Recorder<W> {
             return Err(RecordError::NonFinite { topic: topics::truth_pose(id), field: "truth" });
         }
         if let Some(origin) = self.options.geo_origin {
-            self.foxglove_unflushed(&topics::truth(id), wall_ns, &visual::truth_fix(&origin, id, truth, wall_ns))?;
+            self.foxglove_unflushed(&topics::truth(id), wall_ns, &fx::truth_fix(&origin, id, truth, wall_ns))?;
         }
         self.write_tf(wall_ns)?;
-        let pose = visual::pose_in_ned(&truth.pos_ned_m, truth.yaw_rad, wall_ns);
+        let pose = fx::pose_in_ned(&truth.pos_ned_m, truth.yaw_rad, wall_ns);
         self.foxglove_unflushed(&topics::truth_pose(id), wall_ns, &pose)?;
         self.after_write()
     }
@@ -385,7 +385,7 @@ impl<W: Write> Recorder<W> {
     /// The `/tf` transform, once per chunk.
     fn write_tf(&mut self, wall_ns: u64) -> Result<(), RecordError> {
         if !self.tf_in_chunk {
-            self.foxglove_unflushed(topics::TF, wall_ns, &visual::world_to_ned(wall_ns))?;
+            self.foxglove_unflushed(topics::TF, wall_ns, &fx::world_to_ned(wall_ns))?;
             self.tf_in_chunk = true;
         }
         Ok(())

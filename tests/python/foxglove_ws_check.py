@@ -2,9 +2,11 @@
 
 Connects with the subprotocol `foxglove.sdk.v1` (what the foxglove SDK 0.30 server negotiates;
 older clients' `foxglove.websocket.v1` is not accepted), expects `serverInfo` and `advertise`
-messages naming the documented channels (`/vehicle_<id>/location` and `/vehicle_<id>/truth` as
-protobuf `foxglove.LocationFix` with its schema, `/vehicle_<id>/estimate` and `/error` as JSON,
-`/team/scene` as `foxglove.SceneUpdate`), subscribes to one vehicle's location and waits for a
+messages naming the documented channels (`/vehicle_<id>/location` as protobuf
+`foxglove.LocationFix` with its schema, `/vehicle_<id>/pose` as `foxglove.PoseInFrame`,
+`/vehicle_<id>/ellipse` as `foxglove.SceneUpdate`, `/vehicle_<id>/estimate` as JSON, `/tf` as
+`foxglove.FrameTransform`, `/team/health` as JSON; the truth and error channels appear only with
+truth, which this test sends none of), subscribes to one vehicle's location and waits for a
 binary messageData whose LocationFix (decoded here by hand from the protobuf wire format) is at
 the expected latitude and longitude. Prints one JSON line with what it saw; exits non-zero on any
 mismatch.
@@ -85,10 +87,11 @@ def main():
     args = ap.parse_args()
     ids = [int(x) for x in args.vehicles.split(",")]
     want = {f"/vehicle_{i}/location": ("protobuf", "foxglove.LocationFix") for i in ids}
-    want.update({f"/vehicle_{i}/truth": ("protobuf", "foxglove.LocationFix") for i in ids})
-    want.update({f"/vehicle_{i}/estimate": ("json", None) for i in ids})
-    want.update({f"/vehicle_{i}/error": ("json", None) for i in ids})
-    want["/team/scene"] = ("protobuf", "foxglove.SceneUpdate")
+    want.update({f"/vehicle_{i}/pose": ("protobuf", "foxglove.PoseInFrame") for i in ids})
+    want.update({f"/vehicle_{i}/ellipse": ("protobuf", "foxglove.SceneUpdate") for i in ids})
+    want.update({f"/vehicle_{i}/estimate": ("json", "cooploc.Estimate") for i in ids})
+    want["/tf"] = ("protobuf", "foxglove.FrameTransform")
+    want["/team/health"] = ("json", "cooploc.TeamHealth")
     target = f"/vehicle_{args.vehicle}/location"
 
     deadline = time.monotonic() + args.timeout
@@ -112,8 +115,10 @@ def main():
                             fail(f"{topic}: encoding {ch['encoding']!r}, expected {encoding!r}")
                         if schema_name and ch["schemaName"] != schema_name:
                             fail(f"{topic}: schema {ch['schemaName']!r}, expected {schema_name!r}")
-                        if schema_name and not base64.b64decode(ch.get("schema", "")):
+                        if encoding == "protobuf" and not base64.b64decode(ch.get("schema", "")):
                             fail(f"{topic}: empty protobuf schema")
+                        if encoding == "json" and json.loads(ch.get("schema", "{}")).get("type") != "object":
+                            fail(f"{topic}: not a JSON schema of an object")
                     subscribed = 7
                     sub = {"op": "subscribe", "subscriptions": [{"id": subscribed, "channelId": channels[target]["id"]}]}
                     ws.send(json.dumps(sub))

@@ -63,6 +63,11 @@ pub struct Args {
     /// Most vehicles shown (new system ids beyond it are refused and counted).
     #[arg(long, default_value_t = 64)]
     max_vehicles: usize,
+    /// Payload bytes per second the shared cooperative link carries, all nodes together (e.g.
+    /// 5400 for a SiK radio at 64 kbit/s; `cooploc budget` lists links): the health view shows
+    /// each node's bytes against its share. Without it only the bytes are shown.
+    #[arg(long, value_name = "BYTES_PER_S")]
+    link_capacity: Option<f64>,
 }
 
 fn parse_addr(s: &str) -> Result<SocketAddr, String> {
@@ -117,6 +122,11 @@ fn validate(args: Args) -> anyhow::Result<Validated> {
     if ids.len() > args.max_vehicles {
         bail!("{} --vehicle links but --max-vehicles {}", ids.len(), args.max_vehicles);
     }
+    if let Some(c) = args.link_capacity
+        && !(c.is_finite() && c > 0.0)
+    {
+        bail!("--link-capacity {c}: must be a positive number of bytes per second");
+    }
     let team_key = match &args.team_key {
         Some(path) => Some(cooploc::protocol::signing::TeamKey::from_file(path).context("--team-key")?),
         None => None,
@@ -127,6 +137,7 @@ fn validate(args: Args) -> anyhow::Result<Validated> {
         estimate_history: args.history,
         team_key,
         max_vehicles: args.max_vehicles,
+        link_capacity_bytes_per_s: args.link_capacity,
         ..GcsConfig::default()
     };
     let links = GcsLinks {
@@ -166,7 +177,7 @@ pub fn run_cmd(args: Args) -> anyhow::Result<()> {
         });
         let mut sinks: Vec<Box<dyn cooploc::gcs::GcsSink>> = Vec::new();
         if let Some(r) = &run_recorder {
-            sinks.push(Box::new(cooploc::gcs::RecorderSink(r.clone())));
+            sinks.push(Box::new(cooploc::gcs::RecorderSink::new(r.clone())));
         }
         let summary = run(config, links, sinks, tx, crate::signal::shutdown_signal()).await;
         let _ = announce.await;

@@ -1,4 +1,6 @@
-//! Estimates and truth as Foxglove well-known messages (pure functions, no I/O).
+//! Estimates and truth as Foxglove well-known messages (pure functions, no I/O): what the
+//! ground station's live server and every MCAP recorder publish, on the topics of
+//! [`crate::recording::topics`].
 //!
 //! cooploc works in a local NED frame (metres, z down) with yaw measured clockwise from north.
 //! Foxglove expects:
@@ -11,15 +13,19 @@
 //!
 //! The 95 % ellipse is the horizontal (N, E) marginal of the position covariance: semi-axes
 //! `sqrt(chi2_2(0.95) * lambda_i)` along its eigenvectors, drawn as a sphere flattened to
-//! [`ELLIPSE_THICKNESS_M`].
+//! [`ELLIPSE_THICKNESS_M`], labelled with the vehicle's name. Colours are the palette of
+//! [`super::PALETTE`]: the estimate opaque, its ellipse at [`ELLIPSE_ALPHA`], the truth at
+//! [`TRUTH_ALPHA`].
 
 use foxglove::messages::{
     Color, FrameTransform, KeyValuePair, LocationFix, Pose, PoseInFrame, Quaternion, SceneEntity, SceneUpdate, SpherePrimitive,
-    Timestamp, Vector3 as FxVector3, location_fix::PositionCovarianceType,
+    TextPrimitive, Timestamp, Vector3 as FxVector3, location_fix::PositionCovarianceType,
 };
 use nalgebra::{Matrix3, Vector3};
+use serde::Serialize;
 
-use crate::protocol::wire::{GeoOrigin, ned_to_geodetic};
+use crate::estimation::consistency::Ellipse95;
+use crate::protocol::wire::{EstimateReport, GeoOrigin, ned_to_geodetic};
 use crate::time::TimeUs;
 
 /// Name of the local NED frame in the Foxglove messages.
@@ -29,6 +35,9 @@ pub const WORLD_FRAME: &str = "world";
 pub use crate::estimation::consistency::CHI2_2DOF_95;
 /// Vertical size of the drawn ellipse, m.
 pub const ELLIPSE_THICKNESS_M: f64 = 0.05;
+/// Opacity of an ellipse, and of a truth marker.
+pub const ELLIPSE_ALPHA: f64 = 0.35;
+pub const TRUTH_ALPHA: f64 = 0.5;
 
 /// A vehicle's position estimate, as the recorder takes it.
 #[derive(Debug, Clone, PartialEq)]
@@ -77,22 +86,10 @@ pub fn timestamp(wall_ns: u64) -> Timestamp {
     }
 }
 
-/// A colour per vehicle (a ten-colour palette, by id), with alpha `a`.
+/// The colour of vehicle `id` ([`super::vehicle_rgb`]) with alpha `a`.
 pub fn vehicle_color(id: u16, a: f64) -> Color {
-    const PALETTE: [(f64, f64, f64); 10] = [
-        (0.122, 0.467, 0.706),
-        (1.000, 0.498, 0.055),
-        (0.173, 0.627, 0.173),
-        (0.839, 0.153, 0.157),
-        (0.580, 0.404, 0.741),
-        (0.549, 0.337, 0.294),
-        (0.890, 0.467, 0.761),
-        (0.498, 0.498, 0.498),
-        (0.737, 0.741, 0.133),
-        (0.090, 0.745, 0.812),
-    ];
-    let (r, g, b) = PALETTE[id as usize % PALETTE.len()];
-    Color { r, g, b, a }
+    let [r, g, b] = super::vehicle_rgb(id);
+    Color { r: f64::from(r) / 255.0, g: f64::from(g) / 255.0, b: f64::from(b) / 255.0, a }
 }
 
 /// The NED covariance expressed in ENU: `E = N_e`, `N = N_n`, `U = -D`.
@@ -153,7 +150,7 @@ pub fn truth_fix(origin: &GeoOrigin, id: u16, truth: &TruthSample, wall_ns: u64)
         position_covariance_type: PositionCovarianceType::Unknown as i32,
         heading: truth.yaw_rad,
         velocity: None,
-        color: Some(Color { r: 0.1, g: 0.1, b: 0.1, a: 1.0 }),
+        color: Some(vehicle_color(id, TRUTH_ALPHA)),
         metadata: vec![KeyValuePair { key: "t_us".into(), value: truth.t.0.to_string() }],
     }
 }
@@ -196,7 +193,15 @@ pub fn ellipse_update(id: u16, est: &PositionEstimate, wall_ns: u64) -> SceneUpd
     let sphere = SpherePrimitive {
         pose: Some(Pose { position: Some(fx_vector(&est.pos_ned_m)), orientation: Some(yaw_quaternion(angle)) }),
         size: Some(FxVector3 { x: 2.0 * major, y: 2.0 * minor, z: ELLIPSE_THICKNESS_M }),
-        color: Some(vehicle_color(id, 0.35)),
+        color: Some(vehicle_color(id, ELLIPSE_ALPHA)),
+    };
+    let label = TextPrimitive {
+        pose: Some(Pose { position: Some(fx_vector(&est.pos_ned_m)), orientation: Some(yaw_quaternion(0.0)) }),
+        billboard: true,
+        font_size: 14.0,
+        scale_invariant: true,
+        color: Some(vehicle_color(id, 1.0)),
+        text: super::vehicle_name(id),
     };
     SceneUpdate {
         deletions: vec![],
@@ -208,16 +213,163 @@ pub fn ellipse_update(id: u16, est: &PositionEstimate, wall_ns: u64) -> SceneUpd
             frame_locked: false,
             metadata: vec![KeyValuePair { key: "t_us".into(), value: est.t.0.to_string() }],
             spheres: vec![sphere],
+            texts: vec![label],
             ..Default::default()
         }],
     }
 }
+
+/// The estimate a node reports (COOPLOC_ESTIMATE), as a display draws it.
+pub fn position_estimate(r: &EstimateReport) -> PositionEstimate {
+    PositionEstimate {
+        t: r.t,
+        pos_ned_m: r.position_ned_m,
+        cov_ned_m2: r.position_covariance_m2,
+        yaw_rad: Some(r.yaw_rad),
+        vel_ned_m_s: Some(r.velocity_ned_m_s),
+    }
+}
+
+/// The JSON view of an estimate (`/vehicle_<id>/estimate`): what the page's vehicle card shows.
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct EstimateJson {
+    pub vehicle: u16,
+    pub t_s: f64,
+    pub epoch: u32,
+    pub method: &'static str,
+    pub north_m: f64,
+    pub east_m: f64,
+    pub down_m: f64,
+    pub yaw_deg: f64,
+    /// Null when no joint update has run.
+    pub nis: Option<f64>,
+    pub participants: u8,
+    pub ranges: u8,
+    pub semi_major_95_m: Option<f64>,
+    pub semi_minor_95_m: Option<f64>,
+    /// Bearing of the major axis from north towards east, degrees.
+    pub major_bearing_95_deg: Option<f64>,
+}
+
+impl EstimateJson {
+    pub fn of(r: &EstimateReport, ellipse: Option<&Ellipse95>) -> Self {
+        let p = &r.position_ned_m;
+        EstimateJson {
+            vehicle: r.platform,
+            t_s: r.t.as_secs_f64(),
+            epoch: r.epoch,
+            method: r.method.short_name(),
+            north_m: p[0],
+            east_m: p[1],
+            down_m: p[2],
+            yaw_deg: r.yaw_rad.to_degrees(),
+            nis: r.nis.is_finite().then_some(r.nis),
+            participants: r.participants,
+            ranges: r.ranges,
+            semi_major_95_m: ellipse.map(|e| e.semi_major_m),
+            semi_minor_95_m: ellipse.map(|e| e.semi_minor_m),
+            major_bearing_95_deg: ellipse.map(|e| e.major_bearing_deg),
+        }
+    }
+}
+
+/// JSON schema of [`EstimateJson`].
+pub const ESTIMATE_SCHEMA_NAME: &str = "cooploc.Estimate";
+pub const ESTIMATE_SCHEMA: &str = r#"{"type":"object","properties":{"vehicle":{"type":"integer"},"t_s":{"type":"number"},"epoch":{"type":"integer"},"method":{"type":"string"},"north_m":{"type":"number"},"east_m":{"type":"number"},"down_m":{"type":"number"},"yaw_deg":{"type":"number"},"nis":{"type":["number","null"]},"participants":{"type":"integer"},"ranges":{"type":"integer"},"semi_major_95_m":{"type":["number","null"]},"semi_minor_95_m":{"type":["number","null"]},"major_bearing_95_deg":{"type":["number","null"]}},"required":["vehicle","t_s","epoch","method","north_m","east_m","down_m","yaw_deg","nis","participants","ranges","semi_major_95_m","semi_minor_95_m","major_bearing_95_deg"]}"#;
+
+/// The error of an estimate against the truth (`/vehicle_<id>/error`).
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct ErrorJson {
+    pub vehicle: u16,
+    pub t_s: f64,
+    pub horizontal_m: f64,
+    /// Position NEES over N, E, D (null: covariance not positive definite).
+    pub nees: Option<f64>,
+}
+
+pub const ERROR_SCHEMA_NAME: &str = "cooploc.TruthError";
+pub const ERROR_SCHEMA: &str = r#"{"type":"object","properties":{"vehicle":{"type":"integer"},"t_s":{"type":"number"},"horizontal_m":{"type":"number"},"nees":{"type":["number","null"]}},"required":["vehicle","t_s","horizontal_m","nees"]}"#;
+
+/// JSON schema of [`super::health::HealthView`] (`/team/health`).
+pub const HEALTH_SCHEMA_NAME: &str = "cooploc.TeamHealth";
+pub const HEALTH_SCHEMA: &str = r#"{"type":"object","properties":{"rx_ns":{"type":"integer"},"last_epoch":{"type":["integer","null"]},"disagreements":{"type":"integer"},"heals":{"type":"integer"},"unhealed_since":{"type":["integer","null"]},"link_capacity_bytes_per_s":{"type":["number","null"]},"team_bytes_per_s":{"type":"number"},"team_load_pct":{"type":["number","null"]},"verifying":{"type":"boolean"},"nodes":{"type":"array","items":{"type":"object","properties":{"id":{"type":"integer"},"name":{"type":"string"},"color":{"type":"string"},"estimate_rate_hz":{"type":["number","null"]},"bytes_per_s":{"type":"number"},"budget_bytes_per_s":{"type":["number","null"]},"budget_used_pct":{"type":["number","null"]},"loss_pct":{"type":["number","null"]},"signed_frames":{"type":"integer"},"unsigned_frames":{"type":"integer"},"signing":{"type":"string"},"outvoted":{"type":"integer"},"partial":{"type":"integer"},"failed":{"type":"integer"},"store_wanted":{"type":"integer"}},"required":["id","name","color","estimate_rate_hz","bytes_per_s","budget_bytes_per_s","budget_used_pct","loss_pct","signed_frames","unsigned_frames","signing","outvoted","partial","failed","store_wanted"]}}},"required":["rx_ns","last_epoch","disagreements","heals","unhealed_since","link_capacity_bytes_per_s","team_bytes_per_s","team_load_pct","verifying","nodes"]}"#;
 
 #[cfg(test)]
 mod tests {
     use super::*;
     use approx::assert_relative_eq;
     use nalgebra::{Rotation3, UnitQuaternion};
+
+    /// Every field the JSON channels carry is named (and required) by their schema.
+    #[test]
+    fn json_schemas_name_every_field() {
+        use crate::estimation::Method;
+        use crate::view::health::{EpochTally, HealthView, NodeHealth};
+        fn keys(v: &serde_json::Value) -> Vec<String> {
+            let mut k: Vec<String> = v.as_object().unwrap().keys().cloned().collect();
+            k.sort();
+            k
+        }
+        fn required(schema: &str, nodes: bool) -> Vec<String> {
+            let js: serde_json::Value = serde_json::from_str(schema).unwrap();
+            let js = if nodes { &js["properties"]["nodes"]["items"] } else { &js };
+            let mut props = keys(&js["properties"]);
+            let mut req: Vec<String> =
+                js["required"].as_array().unwrap().iter().map(|v| v.as_str().unwrap().to_string()).collect();
+            req.sort();
+            props.sort();
+            assert_eq!(props, req, "properties and required differ");
+            req
+        }
+        let report = EstimateReport {
+            platform: 2,
+            t: TimeUs(1_500_000),
+            epoch: 3,
+            method: Method::Decentralized,
+            position_ned_m: Vector3::new(1.0, 2.0, 3.0),
+            velocity_ned_m_s: Vector3::zeros(),
+            yaw_rad: 0.1,
+            position_covariance_m2: Matrix3::identity(),
+            yaw_variance_rad2: 0.01,
+            nis: f64::NAN,
+            participants: 3,
+            ranges: 2,
+        };
+        let est = serde_json::to_value(EstimateJson::of(&report, None)).unwrap();
+        assert_eq!(keys(&est), required(ESTIMATE_SCHEMA, false));
+        assert!(est["nis"].is_null(), "NaN NIS is null");
+        let err = serde_json::to_value(ErrorJson { vehicle: 2, t_s: 1.0, horizontal_m: 0.5, nees: None }).unwrap();
+        assert_eq!(keys(&err), required(ERROR_SCHEMA, false));
+        let node = NodeHealth {
+            id: 2,
+            name: "vehicle 2".into(),
+            color: "#ff7f0e".into(),
+            estimate_rate_hz: Some(1.0),
+            bytes_per_s: 10.0,
+            budget_bytes_per_s: None,
+            budget_used_pct: None,
+            loss_pct: None,
+            signed_frames: 0,
+            unsigned_frames: 1,
+            signing: "unsigned",
+            epochs: EpochTally::new().nodes.get(&2).copied().unwrap_or_default(),
+        };
+        let health = HealthView {
+            rx_ns: 1,
+            last_epoch: None,
+            disagreements: 0,
+            heals: 0,
+            unhealed_since: None,
+            link_capacity_bytes_per_s: None,
+            team_bytes_per_s: 10.0,
+            team_load_pct: None,
+            verifying: false,
+            nodes: vec![node],
+        };
+        let h = serde_json::to_value(&health).unwrap();
+        assert_eq!(keys(&h), required(HEALTH_SCHEMA, false));
+        assert_eq!(keys(&h["nodes"][0]), required(HEALTH_SCHEMA, true));
+    }
 
     #[test]
     fn enu_covariance_permutes_and_flips() {

@@ -1,0 +1,1155 @@
+"""cooploc for MAVProxy: the team's cooperative estimates, agreement and link figures.
+
+Load it with ``module load cooploc`` (see tools/mavproxy/README.md for the install and the
+``--dialect cooploc`` start). It listens to every link MAVProxy has and never sends anything
+unless asked (``cooploc refresh``); it does not change the target system, swallow packets or
+block MAVProxy's loop.
+
+What it reads
+-------------
+- The cooploc dialect (dialects/cooploc.xml): COOPLOC_STATE_FRAGMENT (61000), COOPLOC_RANGE
+  (61001), COOPLOC_ESTIMATE (61002), COOPLOC_EPOCH (61003), COOPLOC_STORE_FRAGMENT (61004),
+  COOPLOC_RANGE_BEARING (61005). With ``--dialect cooploc`` MAVProxy decodes them; under another
+  dialect (MAVProxy's default ``all``, or ``ardupilotmega``) they arrive as ``UNKNOWN_610xx`` and
+  the module decodes them itself with bindings mavgen makes from the cooploc XML (``$MDEF/v1.0``
+  or the repository's ``dialects/``).
+- HEARTBEAT, COMMAND_ACK and the frame headers of the companion nodes: system id = platform id,
+  component 191 (MAV_TYPE_ONBOARD_CONTROLLER).
+
+Per vehicle
+-----------
+- The latest COOPLOC_ESTIMATE by ``time_usec`` (the same message arrives on several links: an
+  older one is ignored, a repeat is not counted twice; a jump back of more than 5 s is a restarted
+  node: the track starts over and ``restarts`` counts it).
+- The 95 % horizontal error ellipse from the NN, NE, EE entries of ``pos_covariance``:
+  semi-axes ``sqrt(5.991464547107979 * eigenvalue)`` (chi-square, 2 dof, 95 %), the bearing of
+  the major axis from north towards east in (-90, 90] degrees (as ``cooploc gcs`` gives it).
+- Link loss from the MAVLink sequence numbers of the node's frames (source (id, 191)), per
+  MAVProxy link: ``lost / (received + lost)`` in %; estimate rate (estimates a second) and the
+  node's bytes a second (frame bytes from (id, 191), a frame seen on two links counted once), both
+  over the last 10 s of receive time; whether its frames are signed (MAVLink 2 ``incompat_flags``
+  bit 0; pymavlink's ``get_signed()`` is only true for a signature it checked with its own key).
+- Validation: a non-finite number, a negative variance, an unknown method, an estimate whose
+  ``platform`` (an epoch whose ``announcer``, a range whose ``from_platform``, ...) is not the
+  sending system, is counted in ``rejected`` and dropped.
+
+Agreement (COOPLOC_EPOCH), the same rules as ``cooploc gcs``
+-----------------------------------------------------------
+- A *report* is a COOPLOC_EPOCH in state APPLIED (1), PARTIAL (2) or FAILED (3), keyed by
+  (epoch, announcer); the first one per key counts, repeats (other links, resends) are ignored.
+  Its pair is (digest, participants), participants being the first ``count`` entries in the
+  order sent.
+- An epoch with two or more reports *disagrees* when two of its pairs differ. The team counter
+  ``disagreements`` counts each epoch once, when it first disagrees.
+- Per vehicle, ``disagreements`` counts the epochs where its report differs from the majority:
+  the most common pair, a tie going to the pair reported by the lowest announcer id (evaluated
+  on the reports held: an epoch's count may change while its reports come in).
+- ``heals``: an epoch that disagrees for the first time sets ``unhealed`` and remembers the
+  latest such epoch id; when a report leaves an epoch with two or more reports all agreeing,
+  ``unhealed`` is set and that epoch's id is greater than the remembered one, the team counts a
+  heal and clears ``unhealed``. Per vehicle, ``heals`` counts the healing epochs its report
+  agreed with (its report there when the heal was counted, or a later agreeing one).
+  Reports are judged as they arrive: a heal whose epoch a late report shows disagreeing is
+  withdrawn.
+- Per vehicle: ``partial`` and ``failed`` reports, ``store_wanted`` (STORE_WANTED (4)
+  announcements, one per (epoch, announcer)), COOPLOC_STORE_FRAGMENT frames received.
+- Bounded: the last 256 epochs (by arrival of their first announcement) and 64 vehicles; what a
+  hostile sender adds beyond is refused and counted.
+
+Commands
+--------
+``cooploc status``: one ``cooploc vehicle <id> key=value ...`` line per vehicle and one
+``cooploc team ...`` line. ``cooploc team``: a compact table. ``cooploc origin LAT LON ALT``:
+the team's NED origin for the map (default 34.7 0.0 0.0). ``cooploc refresh [ID]``: asks
+node ID (0: every node) for its estimate (COMMAND_LONG MAV_CMD_REQUEST_MESSAGE 512, param1 =
+61002, target component 191, on every link); the COMMAND_ACKs are counted per vehicle.
+``cooploc graph nis|error|rate ID``: a live graph through MAVProxy's graph module.
+``cooploc set [NAME [VALUE]]``: settings (``statusfile``: append the status lines to this file
+every ``status_period`` s; ``map``: draw on MAVProxy's map).
+
+The map (when ``module load map`` works, i.e. wx is installed): a marker per vehicle (its
+heading) and its 95 % ellipse, in the colour every cooploc display gives it
+(:data:`PALETTE`, index ``(id - 1) mod 10``).
+"""
+
+import collections
+import math
+import os
+import sys
+import time
+import traceback
+
+try:  # MAVProxy is needed to run as a module, not to use the pure functions below.
+    from MAVProxy.modules.lib import mp_module
+    from MAVProxy.modules.lib import mp_settings
+    _MPModule = mp_module.MPModule
+except ImportError:  # pragma: no cover - exercised only without MAVProxy installed
+    mp_module = None
+    mp_settings = None
+    _MPModule = object
+
+# ---- constants ------------------------------------------------------------------------------
+
+#: Chi-square quantile, 2 degrees of freedom, 95 %.
+CHI2_2DOF_95 = 5.991464547107979
+#: Equatorial radius of the flat-Earth conversion, m.
+EARTH_RADIUS_M = 6378137.0
+#: Default NED origin (lat, lon in degrees, alt in m): the same as ``cooploc gcs``.
+DEFAULT_ORIGIN = (34.7, 0.0, 0.0)
+#: Component id of the cooploc companion nodes.
+NODE_COMPID = 191
+#: Estimate time going back more than this is a restarted node, us.
+RESTART_US = 5_000_000
+#: Window of the rates, s.
+RATE_WINDOW_S = 10.0
+#: Bounds of the tables.
+MAX_EPOCHS = 256
+MAX_VEHICLES = 64
+#: Colours of the platforms (index (id - 1) mod 10), shared by every cooploc display.
+PALETTE = ["1f77b4", "ff7f0e", "2ca02c", "d62728", "9467bd",
+           "8c564b", "e377c2", "7f7f7f", "bcbd22", "17becf"]
+
+MSG_STATE_FRAGMENT = 61000
+MSG_RANGE = 61001
+MSG_ESTIMATE = 61002
+MSG_EPOCH = 61003
+MSG_STORE_FRAGMENT = 61004
+MSG_RANGE_BEARING = 61005
+COOPLOC_MESSAGE_IDS = frozenset(range(61000, 61006))
+
+MAV_CMD_REQUEST_MESSAGE = 512
+MAVLINK_IFLAG_SIGNED = 1
+
+#: COOPLOC_METHOD, names without the prefix, lower case.
+METHODS = {
+    0: "dead_reckoning",
+    1: "no_propagation",
+    2: "decentralized",
+    3: "centralized",
+    4: "covariance_intersection",
+}
+#: COOPLOC_EPOCH_STATE.
+EPOCH_COLLECTING, EPOCH_APPLIED, EPOCH_PARTIAL, EPOCH_FAILED, EPOCH_STORE_WANTED = range(5)
+REPORT_STATES = (EPOCH_APPLIED, EPOCH_PARTIAL, EPOCH_FAILED)
+MAX_PARTICIPANTS = 64
+FRAGMENT_DATA = 232
+MAX_RANGE_BEARING_M = 10_000.0
+
+
+# ---- pure functions -------------------------------------------------------------------------
+
+def ellipse95(nn, ne, ee):
+    """The 95 % horizontal error ellipse of an N/E position covariance (m^2).
+
+    Returns ``(semi_major_m, semi_minor_m, bearing_deg)``: the semi-axes are
+    ``sqrt(CHI2_2DOF_95 * eigenvalue)``, the bearing is the major axis's direction from north
+    towards east, in (-90, 90]. None when an entry is not finite or the larger eigenvalue is
+    negative (a negative smaller one is clamped to 0, as ``cooploc gcs`` does).
+    """
+    if not all(math.isfinite(v) for v in (nn, ne, ee)):
+        return None
+    mean = 0.5 * (nn + ee)
+    radius = math.hypot(0.5 * (nn - ee), ne)
+    major, minor = mean + radius, max(mean - radius, 0.0)
+    if major < 0.0:
+        return None
+    angle = 0.5 * math.atan2(2.0 * ne, nn - ee)
+    if angle <= -math.pi / 2:
+        angle += math.pi
+    return (math.sqrt(CHI2_2DOF_95 * major), math.sqrt(CHI2_2DOF_95 * minor), math.degrees(angle))
+
+
+def ellipse_points_ne(north, east, semi_major, semi_minor, bearing_deg, segments=36):
+    """Points (N, E) of an ellipse centred at (north, east), its major axis along
+    ``bearing_deg`` (from north towards east): ``segments + 1`` points, the last equal to the
+    first (a closed polygon), starting at the major axis's forward end."""
+    b = math.radians(bearing_deg)
+    cb, sb = math.cos(b), math.sin(b)
+    points = []
+    for k in range(segments + 1):
+        t = 2.0 * math.pi * (k % segments) / segments
+        u, v = semi_major * math.cos(t), semi_minor * math.sin(t)
+        # u along the major axis (cb, sb) in (N, E), v along the minor axis (-sb, cb).
+        points.append((north + u * cb - v * sb, east + u * sb + v * cb))
+    return points
+
+
+def ned_to_geo(north, east, down, origin=DEFAULT_ORIGIN):
+    """Flat-Earth NED (m) about ``origin`` (lat, lon in degrees, alt in m) to (lat, lon, alt):
+    ``lat = lat0 + degrees(N / R)``, ``lon = lon0 + degrees(E / (R cos(radians(lat0))))``,
+    ``alt = alt0 - D``, R = 6378137 m."""
+    lat0, lon0, alt0 = origin
+    lat = lat0 + math.degrees(north / EARTH_RADIUS_M)
+    lon = lon0 + math.degrees(east / (EARTH_RADIUS_M * math.cos(math.radians(lat0))))
+    return (lat, lon, alt0 - down)
+
+
+def ellipse_polygon_latlon(north, east, ellipse, origin=DEFAULT_ORIGIN, segments=36):
+    """The 95 % ellipse ``(semi_major, semi_minor, bearing_deg)`` about (north, east) as a closed
+    list of (lat, lon), for the map."""
+    a, b, bearing = ellipse
+    return [ned_to_geo(n, e, 0.0, origin)[:2]
+            for n, e in ellipse_points_ne(north, east, a, b, bearing, segments)]
+
+
+def colour_rgb(platform):
+    """The platform's colour as an (r, g, b) tuple of 0..255."""
+    h = PALETTE[(int(platform) - 1) % len(PALETTE)]
+    return (int(h[0:2], 16), int(h[2:4], 16), int(h[4:6], 16))
+
+
+def method_name(value):
+    """COOPLOC_METHOD value to its name without prefix, lower case (None if unknown)."""
+    return METHODS.get(value)
+
+
+def seq_gap(last, seq):
+    """Frames lost between sequence numbers ``last`` and ``seq`` (uint8, wrapping at 255)."""
+    return (seq - last - 1) % 256
+
+
+def fmt_float(v):
+    """``repr`` of a float, '-' for NaN (what ``cooploc status`` prints for decoded fields)."""
+    return "-" if isinstance(v, float) and math.isnan(v) else repr(v)
+
+
+class SeqLoss:
+    """Frames received and lost (sequence gaps) of one source on one link."""
+
+    __slots__ = ("last", "received", "lost")
+
+    def __init__(self):
+        self.last = None
+        self.received = 0
+        self.lost = 0
+
+    def observe(self, seq):
+        if self.last is not None:
+            self.lost += seq_gap(self.last, seq)
+        self.last = seq
+        self.received += 1
+
+    def loss_pct(self):
+        total = self.received + self.lost
+        return 100.0 * self.lost / total if total else 0.0
+
+
+class RateWindow:
+    """Amounts over the last ``window_s`` seconds, in buckets (bounded memory at any rate)."""
+
+    def __init__(self, window_s=RATE_WINDOW_S, bucket_s=0.25):
+        self.window_s = window_s
+        self.bucket_s = bucket_s
+        self.buckets = collections.deque()  # [bucket index, amount]
+        self.first = None
+
+    def add(self, now, amount=1.0):
+        if self.first is None:
+            self.first = now
+        i = int(now // self.bucket_s)
+        if self.buckets and self.buckets[-1][0] == i:
+            self.buckets[-1][1] += amount
+        else:
+            self.buckets.append([i, amount])
+        self._prune(now)
+
+    def _prune(self, now):
+        oldest = int((now - self.window_s) // self.bucket_s)
+        while self.buckets and self.buckets[0][0] <= oldest:
+            self.buckets.popleft()
+
+    def total(self, now):
+        self._prune(now)
+        return sum(a for _, a in self.buckets)
+
+    def rate(self, now):
+        """Amount a second over the window (over the time since the first amount, at least 1 s,
+        while that is shorter than the window)."""
+        if self.first is None:
+            return 0.0
+        span = min(self.window_s, max(1.0, now - self.first))
+        return self.total(now) / span
+
+
+def majority_pair(reports):
+    """The majority pair of ``reports`` ({announcer: pair}): the most common, a tie going to the
+    pair of the lowest announcer id."""
+    counts = {}
+    lowest = {}
+    for announcer, pair in reports.items():
+        counts[pair] = counts.get(pair, 0) + 1
+        lowest[pair] = min(lowest.get(pair, announcer), announcer)
+    return max(counts, key=lambda p: (counts[p], -lowest[p]))
+
+
+def differing_announcers(reports):
+    """Announcers whose pair differs from the majority (none with fewer than two reports)."""
+    if len(reports) < 2:
+        return []
+    majority = majority_pair(reports)
+    return sorted(a for a, p in reports.items() if p != majority)
+
+
+class _Epoch:
+    __slots__ = ("reports", "wanted", "disagreed", "healed")
+
+    def __init__(self):
+        self.reports = {}      # announcer -> (digest, participants tuple)
+        self.wanted = set()    # announcers that asked for a store (STORE_WANTED)
+        self.disagreed = False
+        self.healed = False    # this epoch counted a heal
+
+
+class AnnouncerCounts:
+    """Per-announcer figures of :class:`EpochTracker`."""
+
+    __slots__ = ("reports", "partial", "failed", "store_wanted", "heals", "differs_evicted")
+
+    def __init__(self):
+        self.reports = 0
+        self.partial = 0
+        self.failed = 0
+        self.store_wanted = 0
+        self.heals = 0
+        self.differs_evicted = 0
+
+
+class EpochTracker:
+    """Disagreements and heals over COOPLOC_EPOCH reports (the rules in the module docstring)."""
+
+    def __init__(self, max_epochs=MAX_EPOCHS, max_announcers=MAX_VEHICLES):
+        self.max_epochs = max_epochs
+        self.max_announcers = max_announcers
+        self.epochs = collections.OrderedDict()  # epoch id -> _Epoch, in order of arrival
+        self.per = {}                            # announcer -> AnnouncerCounts
+        self.disagreements = 0
+        self.heals = 0
+        self.unhealed = False
+        self.unhealed_epoch = None
+        self.latest_epoch = None
+        self.duplicates = 0
+        self.refused = 0
+
+    def add(self, epoch, announcer, state, digest, participants):
+        """One COOPLOC_EPOCH announcement; returns what it was ('report', 'store_wanted',
+        'duplicate', 'ignored' for COLLECTING or an unknown state, 'refused' beyond the caps)."""
+        if state not in REPORT_STATES and state != EPOCH_STORE_WANTED:
+            return "ignored"
+        counts = self.per.get(announcer)
+        if counts is None:
+            if len(self.per) >= self.max_announcers:
+                self.refused += 1
+                return "refused"
+            counts = self.per[announcer] = AnnouncerCounts()
+        e = self.epochs.get(epoch)
+        if e is None:
+            e = self.epochs[epoch] = _Epoch()
+            while len(self.epochs) > self.max_epochs:
+                self._evict()
+        if self.latest_epoch is None or epoch > self.latest_epoch:
+            self.latest_epoch = epoch
+        if state == EPOCH_STORE_WANTED:
+            if announcer in e.wanted:
+                self.duplicates += 1
+                return "duplicate"
+            e.wanted.add(announcer)
+            counts.store_wanted += 1
+            return "store_wanted"
+        if announcer in e.reports:
+            self.duplicates += 1
+            return "duplicate"
+        e.reports[announcer] = (int(digest), tuple(participants))
+        counts.reports += 1
+        if state == EPOCH_PARTIAL:
+            counts.partial += 1
+        elif state == EPOCH_FAILED:
+            counts.failed += 1
+        if len(e.reports) >= 2:
+            if len(set(e.reports.values())) > 1:
+                if not e.disagreed:
+                    e.disagreed = True
+                    self.disagreements += 1
+                    if e.healed:
+                        # Its first reports agreed and were taken for a heal; a late one says
+                        # otherwise: the heal is withdrawn (as cooploc gcs does).
+                        e.healed = False
+                        self.heals -= 1
+                        for a in e.reports:
+                            if a != announcer:
+                                self.per[a].heals -= 1
+                    if not self.unhealed or epoch > self.unhealed_epoch:
+                        self.unhealed_epoch = epoch
+                    self.unhealed = True
+            elif e.healed:
+                counts.heals += 1  # one more announcer agrees with the healing epoch
+            elif self.unhealed and epoch > self.unhealed_epoch:
+                self.heals += 1
+                self.unhealed = False
+                e.healed = True
+                for a in e.reports:
+                    self.per[a].heals += 1
+        return "report"
+
+    def _evict(self):
+        _, e = self.epochs.popitem(last=False)
+        for a in differing_announcers(e.reports):
+            self.per[a].differs_evicted += 1
+
+    def differs(self, announcer):
+        """Epochs where ``announcer``'s report differs from the majority."""
+        counts = self.per.get(announcer)
+        if counts is None:
+            return 0
+        held = sum(1 for e in self.epochs.values() if announcer in differing_announcers(e.reports))
+        return counts.differs_evicted + held
+
+    def counts(self, announcer):
+        return self.per.get(announcer) or AnnouncerCounts()
+
+
+# ---- validation of decoded messages ---------------------------------------------------------
+
+class Rejected(Exception):
+    """A message that fails the checks (counted, dropped)."""
+
+
+def _finite(msg, name, value):
+    if not math.isfinite(value):
+        raise Rejected("%s.%s is not finite (%r)" % (msg, name, value))
+    return value
+
+
+def check_estimate(m, sysid):
+    """Checks a decoded COOPLOC_ESTIMATE from system ``sysid``; raises :class:`Rejected`."""
+    name = "COOPLOC_ESTIMATE"
+    for f in ("x", "y", "z", "vx", "vy", "vz", "yaw", "yaw_variance"):
+        _finite(name, f, getattr(m, f))
+    cov = list(m.pos_covariance)
+    if len(cov) != 6:
+        raise Rejected("%s.pos_covariance has %d entries" % (name, len(cov)))
+    for v in cov:
+        _finite(name, "pos_covariance", v)
+    if cov[0] < 0.0 or cov[3] < 0.0 or cov[5] < 0.0:
+        raise Rejected("%s.pos_covariance: negative variance" % name)
+    if m.yaw_variance < 0.0:
+        raise Rejected("%s.yaw_variance: negative" % name)
+    if m.method not in METHODS:
+        raise Rejected("%s.method %r unknown" % (name, m.method))
+    if m.platform != sysid:
+        raise Rejected("%s.platform %d from system %d" % (name, m.platform, sysid))
+
+
+def check_epoch(m, sysid):
+    """Checks a COOPLOC_EPOCH; returns its participants (the first ``count``)."""
+    if m.announcer != sysid:
+        raise Rejected("COOPLOC_EPOCH of platform %d sent by system %d" % (m.announcer, sysid))
+    n = m.count
+    if n > MAX_PARTICIPANTS:
+        raise Rejected("COOPLOC_EPOCH.count %d > %d" % (n, MAX_PARTICIPANTS))
+    participants = list(m.participants)[:n]
+    if len(set(participants)) != len(participants):
+        raise Rejected("COOPLOC_EPOCH.participants: a platform listed twice")
+    return participants
+
+
+def check_range(m, sysid):
+    name = "COOPLOC_RANGE"
+    if _finite(name, "distance", m.distance) < 0.0:
+        raise Rejected("%s.distance negative" % name)
+    if not _finite(name, "sigma", m.sigma) > 0.0:
+        raise Rejected("%s.sigma not positive" % name)
+    if m.from_platform == m.to_platform:
+        raise Rejected("%s.to_platform equals from_platform" % name)
+    if m.from_platform != sysid:
+        raise Rejected("%s from platform %d sent by system %d" % (name, m.from_platform, sysid))
+
+
+def check_range_bearing(m, sysid):
+    name = "COOPLOC_RANGE_BEARING"
+    r = _finite(name, "range", m.range)
+    if not 0.0 < r <= MAX_RANGE_BEARING_M:
+        raise Rejected("%s.range %r m out of (0, %g]" % (name, r, MAX_RANGE_BEARING_M))
+    if abs(_finite(name, "bearing", m.bearing)) > 2.0 * math.pi:
+        raise Rejected("%s.bearing more than one turn" % name)
+    if m.target_kind not in (0, 1) or (m.target_kind == 0 and m.target == m.observer):
+        raise Rejected("%s: bad target" % name)
+    if m.observer != sysid:
+        raise Rejected("%s of observer %d sent by system %d" % (name, m.observer, sysid))
+
+
+def check_fragment(m, sysid, name):
+    if not 1 <= m.data_len <= FRAGMENT_DATA:
+        raise Rejected("%s.data_len %d outside 1..%d" % (name, m.data_len, FRAGMENT_DATA))
+    if m.platform != sysid:
+        raise Rejected("%s of platform %d sent by system %d" % (name, m.platform, sysid))
+
+
+def frame_header(msgbuf):
+    """(msgid, sysid, compid, seq, incompat_flags) of a raw MAVLink 1 or 2 frame, or None."""
+    if len(msgbuf) >= 10 and msgbuf[0] == 0xFD:
+        return (msgbuf[7] | msgbuf[8] << 8 | msgbuf[9] << 16, msgbuf[5], msgbuf[6], msgbuf[4], msgbuf[2])
+    if len(msgbuf) >= 6 and msgbuf[0] == 0xFE:
+        return (msgbuf[5], msgbuf[3], msgbuf[4], msgbuf[2], 0)
+    return None
+
+
+# ---- the dialect when MAVProxy runs another one -----------------------------------------------
+
+def find_dialect_xml():
+    """cooploc.xml: ``$MDEF/v1.0/cooploc.xml``, else the repository's ``dialects/cooploc.xml``
+    next to this file's ``tools/mavproxy`` (None if neither exists)."""
+    candidates = []
+    if os.environ.get("MDEF"):
+        candidates.append(os.path.join(os.environ["MDEF"], "v1.0", "cooploc.xml"))
+    here = os.path.dirname(os.path.realpath(__file__))
+    candidates.append(os.path.join(here, "..", "..", "dialects", "cooploc.xml"))
+    for c in candidates:
+        if os.path.isfile(c):
+            return os.path.normpath(c)
+    return None
+
+
+def generate_bindings(xml_path):
+    """pymavlink bindings (MAVLink 2) generated by mavgen from ``xml_path`` into a temporary
+    directory and imported under a private name; returns the module."""
+    import contextlib
+    import importlib.util
+    import io
+    import tempfile
+    from pymavlink.generator import mavgen
+    out_dir = tempfile.mkdtemp(prefix="mavproxy-cooploc-")
+    out = os.path.join(out_dir, "cooploc_bindings.py")
+    opts = mavgen.Opts(out, wire_protocol="2.0", language="Python3", validate=False)
+    with contextlib.redirect_stdout(io.StringIO()):
+        if not mavgen.mavgen(opts, [xml_path]):
+            raise RuntimeError("mavgen refused %s" % xml_path)
+    spec = importlib.util.spec_from_file_location("_mavproxy_cooploc_bindings", out)
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    return mod
+
+
+# ---- the module ---------------------------------------------------------------------------------
+
+class VehicleView:
+    """What the module knows of one platform."""
+
+    def __init__(self, vid, now):
+        self.id = vid
+        self.created = now
+        self.est = None             # the latest COOPLOC_ESTIMATE (pymavlink message)
+        self.est_payload = None
+        self.ellipse = None
+        self.est_rate = RateWindow()
+        self.bytes_rate = RateWindow()
+        self.signed_rate = RateWindow()
+        self.unsigned_rate = RateWindow()
+        self.recent_frames = collections.deque(maxlen=128)
+        self.recent_set = set()
+        self.loss = {}              # MAVProxy link number -> SeqLoss of (id, 191)
+        self.hb_time = None
+        self.hb_type = None
+        self.estimates = 0
+        self.repeats = 0
+        self.stale = 0
+        self.restarts = 0
+        self.rejected = 0
+        self.state_fragments = 0
+        self.store_fragments = 0
+        self.ranges = 0
+        self.range_bearings = 0
+        self.acks = 0
+        self.acks_refused = 0
+        self.map_drawn = False
+
+    def seen_frame(self, key):
+        """True if this frame (its bytes' hash) was seen lately on another link."""
+        if key in self.recent_set:
+            return True
+        if len(self.recent_frames) == self.recent_frames.maxlen:
+            self.recent_set.discard(self.recent_frames[0])
+        self.recent_frames.append(key)
+        self.recent_set.add(key)
+        return False
+
+    def signed_text(self, now):
+        s, u = self.signed_rate.total(now), self.unsigned_rate.total(now)
+        if s == 0 and u == 0:
+            return "-"
+        return "yes" if u == 0 else ("no" if s == 0 else "mixed")
+
+    def loss_text(self):
+        if not self.loss:
+            return "-"
+        return ",".join("%d:%.2f" % (link, self.loss[link].loss_pct()) for link in sorted(self.loss))
+
+
+class CooplocModule(_MPModule):
+    """MAVProxy module ``cooploc`` (see the module docstring)."""
+
+    def __init__(self, mpstate):
+        super(CooplocModule, self).__init__(mpstate, "cooploc", "cooperative localization (cooploc) team view",
+                                            public=True, multi_vehicle=True)
+        self.vehicles = {}
+        self.epochs = EpochTracker()
+        self.origin = DEFAULT_ORIGIN
+        self.vehicles_refused = 0
+        self.last_rejected = None
+        self.rejected_unknown = 0    # rejected messages of systems without a place in the table
+        self.undecoded = 0           # cooploc frames no bindings could decode
+        self.refresh_sent = 0
+        self.errors = 0
+        self.last_error = None
+        self._tracebacks_shown = 0
+        self._last_status = 0.0
+        self._last_file = 0.0
+        self._last_map = 0.0
+        self._graphs = []            # (graph, vehicle id, kind)
+        self._hooked = []
+        self.settings_cooploc = mp_settings.MPSettings([
+            ("statusfile", str, ""),
+            ("status_period", float, 1.0),
+            ("map", bool, True),
+            ("map_period", float, 1.0),
+        ])
+        self.add_command("cooploc", self.cmd_cooploc, "cooperative localization team view",
+                         ["status", "team", "origin", "refresh", "graph <nis|error|rate>",
+                          "set (COOPLOCSETTING)"])
+        self.add_completion_function("(COOPLOCSETTING)", self.settings_cooploc.completion)
+        self.bindings = None
+        self.bindings_note = None
+        self._mav = None
+        self._setup_bindings()
+        self._hook_links()
+
+    # ---- set-up -------------------------------------------------------------------------------
+
+    def _setup_bindings(self):
+        """Own bindings when MAVProxy's dialect lacks the cooploc messages."""
+        from pymavlink import mavutil
+        if hasattr(mavutil.mavlink, "MAVLINK_MSG_ID_COOPLOC_ESTIMATE"):
+            return
+        xml = find_dialect_xml()
+        if xml is None:
+            self.bindings_note = ("MAVProxy's dialect has no cooploc messages and no cooploc.xml was found: "
+                                  "start MAVProxy with MDEF and --dialect cooploc (tools/mavproxy/README.md)")
+        else:
+            try:
+                self.bindings = generate_bindings(xml)
+                self._mav = self.bindings.MAVLink(None)
+                self.bindings_note = ("MAVProxy's dialect (%s) has no cooploc messages: decoding them with bindings "
+                                      "from %s" % (getattr(mavutil, "current_dialect", "?"), xml))
+            except Exception as e:
+                self.bindings_note = "no cooploc bindings: %s" % e
+        print("cooploc: " + self.bindings_note)
+
+    def _hook_links(self):
+        """Per-link frame accounting: a message hook on every MAVProxy link (links added later
+        are hooked from idle_task)."""
+        for master in self.mpstate.mav_master:
+            hooks = getattr(master, "message_hooks", None)
+            if hooks is not None and self._link_hook not in hooks:
+                hooks.append(self._link_hook)
+                self._hooked.append(master)
+
+    def unload(self):
+        for master in self._hooked:
+            try:
+                master.message_hooks.remove(self._link_hook)
+            except (AttributeError, ValueError):
+                pass
+        self._hooked = []
+        self._map_clear()
+        self.remove_command("cooploc")
+        super(CooplocModule, self).unload()
+
+    # ---- errors -------------------------------------------------------------------------------
+
+    def _error(self, where, e):
+        """A programming error (or a message no check foresaw): counted, remembered, the first
+        few shown with their traceback; MAVProxy goes on."""
+        self.errors += 1
+        self.last_error = "%s: %s: %s" % (where, type(e).__name__, e)
+        if self._tracebacks_shown < 3:
+            self._tracebacks_shown += 1
+            print("cooploc: error in %s (counted, MAVProxy goes on; `cooploc status` shows the last):" % where)
+            traceback.print_exc(file=sys.stdout)
+
+    # ---- vehicles -----------------------------------------------------------------------------
+
+    def _vehicle(self, sysid, now):
+        v = self.vehicles.get(sysid)
+        if v is not None:
+            return v
+        if not 1 <= sysid <= 255:
+            return None
+        if len(self.vehicles) >= MAX_VEHICLES:
+            self.vehicles_refused += 1
+            return None
+        v = self.vehicles[sysid] = VehicleView(sysid, now)
+        return v
+
+    def _reject(self, sysid, reason):
+        v = self.vehicles.get(sysid)
+        if v is not None:
+            v.rejected += 1
+        else:
+            self.rejected_unknown += 1
+        self.last_rejected = reason
+
+    # ---- packets ------------------------------------------------------------------------------
+
+    def _link_hook(self, master, msg):
+        """pymavlink message hook (every message of every link, before the modules see it):
+        sequence loss, bytes and signing of the nodes' frames (source (id, 191))."""
+        try:
+            if msg.get_type() == "BAD_DATA":
+                return
+            buf = msg.get_msgbuf()
+            if msg.get_msgId() < 0:
+                h = frame_header(buf)
+                if h is None:
+                    return
+                _, sysid, compid, seq, flags = h
+            else:
+                hdr = msg.get_header()
+                sysid, compid, seq, flags = hdr.srcSystem, hdr.srcComponent, hdr.seq, hdr.incompat_flags
+            if compid != NODE_COMPID:
+                return
+            now = time.monotonic()
+            v = self._vehicle(sysid, now)
+            if v is None:
+                return
+            link = getattr(master, "linknum", 0)
+            loss = v.loss.get(link)
+            if loss is None:
+                loss = v.loss[link] = SeqLoss()
+            loss.observe(seq)
+            if not v.seen_frame(hash(bytes(buf))):
+                v.bytes_rate.add(now, len(buf))
+                (v.signed_rate if flags & MAVLINK_IFLAG_SIGNED else v.unsigned_rate).add(now)
+        except Exception as e:
+            self._error("link hook", e)
+
+    def mavlink_packet(self, m):
+        """Every packet of every link (the module is multi-vehicle); never raises."""
+        try:
+            self._packet(m)
+        except Exception as e:
+            self._error("mavlink_packet %s" % m.get_type(), e)
+
+    def _decoded(self, m):
+        """The cooploc message (or HEARTBEAT / COMMAND_ACK) ``m`` stands for, or None."""
+        mtype = m.get_type()
+        if not mtype.startswith("UNKNOWN_"):
+            return m
+        h = frame_header(m.get_msgbuf())
+        if h is None or h[0] not in COOPLOC_MESSAGE_IDS:
+            return None
+        if self._mav is None:
+            self.undecoded += 1
+            return None
+        try:
+            return self._mav.decode(bytearray(m.get_msgbuf()))
+        except Exception as e:  # a bad CRC or length: the frame is not a valid cooploc message
+            self._reject(h[1], "undecodable %s: %s" % (mtype, e))
+            return None
+
+    def _packet(self, m):
+        m = self._decoded(m)
+        if m is None:
+            return
+        mtype = m.get_type()
+        sysid, compid = m.get_srcSystem(), m.get_srcComponent()
+        if mtype == "HEARTBEAT":
+            if compid == NODE_COMPID:
+                v = self._vehicle(sysid, time.monotonic())
+                if v is not None:
+                    v.hb_time = time.monotonic()
+                    v.hb_type = m.type
+            return
+        if mtype == "COMMAND_ACK":
+            # Acks of our REQUEST_MESSAGE: addressed to this ground station (or to every one).
+            ours = getattr(getattr(self.mpstate, "settings", None), "source_system", 255)
+            if compid == NODE_COMPID and m.command == MAV_CMD_REQUEST_MESSAGE and m.target_system in (0, ours):
+                v = self.vehicles.get(sysid)
+                if v is not None:
+                    if m.result == 0:
+                        v.acks += 1
+                    else:
+                        v.acks_refused += 1
+            return
+        if not mtype.startswith("COOPLOC_"):
+            return
+        now = time.monotonic()
+        try:
+            if mtype == "COOPLOC_ESTIMATE":
+                check_estimate(m, sysid)
+                v = self._vehicle(sysid, now)
+                if v is not None:
+                    self._estimate(v, m, now)
+            elif mtype == "COOPLOC_EPOCH":
+                participants = check_epoch(m, sysid)
+                if self._vehicle(sysid, now) is not None:
+                    self.epochs.add(m.epoch, m.announcer, m.state, m.digest, participants)
+            elif mtype == "COOPLOC_RANGE":
+                check_range(m, sysid)
+                v = self._vehicle(sysid, now)
+                if v is not None:
+                    v.ranges += 1
+            elif mtype == "COOPLOC_STATE_FRAGMENT":
+                check_fragment(m, sysid, mtype)
+                v = self._vehicle(sysid, now)
+                if v is not None:
+                    v.state_fragments += 1
+            elif mtype == "COOPLOC_STORE_FRAGMENT":
+                check_fragment(m, sysid, mtype)
+                v = self._vehicle(sysid, now)
+                if v is not None:
+                    v.store_fragments += 1
+            elif mtype == "COOPLOC_RANGE_BEARING":
+                check_range_bearing(m, sysid)
+                v = self._vehicle(sysid, now)
+                if v is not None:
+                    v.range_bearings += 1
+        except Rejected as r:
+            self._reject(sysid, str(r))
+
+    def _estimate(self, v, m, now):
+        payload = bytes(m.get_payload() or b"")
+        if v.est is not None:
+            last = v.est.time_usec
+            if m.time_usec < last:
+                if last - m.time_usec > RESTART_US:
+                    v.restarts += 1
+                    v.est = None
+                else:
+                    v.stale += 1
+                    return
+            elif m.time_usec == last and payload == v.est_payload:
+                v.repeats += 1
+                return
+        v.est = m
+        v.est_payload = payload
+        c = m.pos_covariance
+        v.ellipse = ellipse95(c[0], c[1], c[3])
+        v.estimates += 1
+        v.est_rate.add(now)
+        self._feed_graphs(v, now)
+
+    # ---- idle ---------------------------------------------------------------------------------
+
+    def idle_task(self):
+        try:
+            now = time.monotonic()
+            if now - self._last_status >= 1.0:
+                self._last_status = now
+                self._hook_links()
+                self.console.set_status("cooploc", self.summary(), row=5)
+            period = max(0.1, float(self.settings_cooploc.status_period))
+            if self.settings_cooploc.statusfile and now - self._last_file >= period:
+                self._last_file = now
+                self._write_statusfile()
+            if self.settings_cooploc.map and now - self._last_map >= max(0.1, float(self.settings_cooploc.map_period)):
+                self._last_map = now
+                self._map_update()
+        except Exception as e:
+            self._error("idle_task", e)
+
+    def summary(self):
+        return "cooploc: %d vehicles, epoch %s, disagreements %d, heals %d" % (
+            len(self.vehicles), "-" if self.epochs.latest_epoch is None else self.epochs.latest_epoch,
+            self.epochs.disagreements, self.epochs.heals)
+
+    def _write_statusfile(self):
+        with open(self.settings_cooploc.statusfile, "a") as f:
+            f.write("cooploc time=%.3f\n" % time.time())
+            for line in self.status_lines():
+                f.write(line + "\n")
+
+    # ---- status -------------------------------------------------------------------------------
+
+    def vehicle_line(self, v, now):
+        e = v.est
+        items = []
+        if e is None:
+            items += ["t_us=-"] + ["%s=-" % k for k in ("x", "y", "z", "vx", "vy", "vz", "yaw", "nis", "epoch",
+                                                     "method", "participants", "ranges")]
+        else:
+            items.append("t_us=%d" % e.time_usec)
+            items += ["%s=%s" % (k, fmt_float(getattr(e, k))) for k in ("x", "y", "z", "vx", "vy", "vz", "yaw", "nis")]
+            items += ["epoch=%d" % e.epoch, "method=%s" % method_name(e.method),
+                      "participants=%d" % e.participants, "ranges=%d" % e.ranges]
+        if v.ellipse is None:
+            items += ["semi_major_95=-", "semi_minor_95=-", "bearing_95_deg=-"]
+        else:
+            items += ["semi_major_95=%.3f" % v.ellipse[0], "semi_minor_95=%.3f" % v.ellipse[1],
+                      "bearing_95_deg=%.1f" % v.ellipse[2]]
+        c = self.epochs.counts(v.id)
+        items += [
+            "loss_pct=%s" % v.loss_text(),
+            "rate_hz=%.2f" % v.est_rate.rate(now),
+            "bytes_per_s=%.0f" % v.bytes_rate.rate(now),
+            "signed=%s" % v.signed_text(now),
+            "disagreements=%d" % self.epochs.differs(v.id),
+            "heals=%d" % c.heals,
+            "reports=%d" % c.reports,
+            "partial=%d" % c.partial,
+            "failed=%d" % c.failed,
+            "store_wanted=%d" % c.store_wanted,
+            "store_fragments=%d" % v.store_fragments,
+            "state_fragments=%d" % v.state_fragments,
+            "range_msgs=%d" % v.ranges,
+            "range_bearings=%d" % v.range_bearings,
+            "estimates=%d" % v.estimates,
+            "acks=%d" % v.acks,
+            "acks_refused=%d" % v.acks_refused,
+            "restarts=%d" % v.restarts,
+            "stale=%d" % v.stale,
+            "rejected=%d" % v.rejected,
+            "hb_type=%s" % ("-" if v.hb_type is None else v.hb_type),
+            "hb_age_s=%s" % ("-" if v.hb_time is None else "%.1f" % (now - v.hb_time)),
+        ]
+        return "cooploc vehicle %d %s" % (v.id, " ".join(items))
+
+    def team_line(self):
+        t = self.epochs
+        return ("cooploc team vehicles=%d epoch=%s disagreements=%d heals=%d unhealed=%d epochs_held=%d "
+                "duplicate_reports=%d vehicles_refused=%d rejected_unknown=%d undecoded=%d refresh_sent=%d "
+                "origin=%r,%r,%r errors=%d last_rejected=%r last_error=%r" % (
+                    len(self.vehicles), "-" if t.latest_epoch is None else t.latest_epoch, t.disagreements,
+                    t.heals, int(t.unhealed), len(t.epochs), t.duplicates, self.vehicles_refused + t.refused,
+                    self.rejected_unknown, self.undecoded, self.refresh_sent, self.origin[0], self.origin[1],
+                    self.origin[2], self.errors, self.last_rejected, self.last_error))
+
+    def status_lines(self):
+        now = time.monotonic()
+        return [self.vehicle_line(self.vehicles[k], now) for k in sorted(self.vehicles)] + [self.team_line()]
+
+    def _out(self, lines):
+        """Prints (stdout: MAVProxy's console when headless) and, with a GUI console, writes
+        there too."""
+        for line in lines:
+            print(line)
+        console = self.mpstate.console
+        if type(console).__name__ != "SimpleConsole":
+            for line in lines:
+                console.writeln(line)
+        sys.stdout.flush()
+
+    def team_table(self):
+        now = time.monotonic()
+        rows = [("id", "method", "epoch", "ellipse95 m (deg)", "part", "loss %", "est/s", "B/s", "signed", "disagree")]
+        for k in sorted(self.vehicles):
+            v = self.vehicles[k]
+            e = v.est
+            el = "-" if v.ellipse is None else "%.2fx%.2f (%.0f)" % v.ellipse
+            rows.append((str(k), "-" if e is None else method_name(e.method), "-" if e is None else str(e.epoch), el,
+                         "-" if e is None else str(e.participants), v.loss_text(), "%.2f" % v.est_rate.rate(now),
+                         "%.0f" % v.bytes_rate.rate(now), v.signed_text(now), str(self.epochs.differs(k))))
+        widths = [max(len(r[i]) for r in rows) for i in range(len(rows[0]))]
+        lines = ["  ".join(c.ljust(w) for c, w in zip(r, widths)).rstrip() for r in rows]
+        lines.append(self.summary())
+        return lines
+
+    # ---- commands -----------------------------------------------------------------------------
+
+    def cmd_cooploc(self, args):
+        usage = "usage: cooploc <status|team|origin LAT LON ALT|refresh [ID]|graph nis|error|rate ID|set>"
+        if not args:
+            print(usage)
+            return
+        try:
+            cmd = args[0]
+            if cmd == "status":
+                self._out(self.status_lines())
+            elif cmd == "team":
+                self._out(self.team_table())
+            elif cmd == "origin":
+                self.cmd_origin(args[1:])
+            elif cmd == "refresh":
+                self.cmd_refresh(args[1:])
+            elif cmd == "graph":
+                self.cmd_graph(args[1:])
+            elif cmd == "set":
+                self.settings_cooploc.command(args[1:])
+            else:
+                print(usage)
+        except Exception as e:
+            self._error("command %s" % " ".join(args), e)
+
+    def cmd_origin(self, args):
+        if not args:
+            print("cooploc origin %r %r %r" % self.origin)
+            return
+        try:
+            lat, lon, alt = (float(a) for a in args[:3]) if len(args) >= 3 else (float(args[0]), float(args[1]), 0.0)
+        except (ValueError, IndexError):
+            print("usage: cooploc origin LAT LON ALT")
+            return
+        if not (-90.0 < lat < 90.0 and -180.0 <= lon <= 180.0 and math.isfinite(alt)):
+            print("cooploc origin: latitude in (-90, 90), longitude in [-180, 180]")
+            return
+        self.origin = (lat, lon, alt)
+        for v in self.vehicles.values():
+            v.map_drawn = False
+        print("cooploc origin %r %r %r" % self.origin)
+
+    def cmd_refresh(self, args):
+        try:
+            target = int(args[0]) if args else 0
+        except ValueError:
+            print("usage: cooploc refresh [ID]")
+            return
+        if not 0 <= target <= 255:
+            print("cooploc refresh: ID in 0..255 (0: every node)")
+            return
+        links = 0
+        for master in self.mpstate.mav_master:
+            master.mav.command_long_send(target, NODE_COMPID, MAV_CMD_REQUEST_MESSAGE, 0,
+                                         float(MSG_ESTIMATE), 0, 0, 0, 0, 0, 0)
+            links += 1
+        self.refresh_sent += 1
+        print("cooploc refresh: REQUEST_MESSAGE COOPLOC_ESTIMATE to %s on %d links" % (
+            "every node" if target == 0 else "node %d" % target, links))
+
+    # ---- graphs -------------------------------------------------------------------------------
+
+    GRAPH_KINDS = ("nis", "error", "rate")
+
+    def _module_named(self, name):
+        m = self.module(name)
+        if m is not None:
+            return m
+        for (mod, _) in self.mpstate.modules:
+            if getattr(mod, "name", None) == name:
+                return mod
+        return None
+
+    def cmd_graph(self, args):
+        if len(args) != 2 or args[0] not in self.GRAPH_KINDS:
+            print("usage: cooploc graph nis|error|rate ID (error: semi-major axis of the 95% ellipse, m)")
+            return
+        kind, vid = args[0], int(args[1])
+        graph = self._module_named("graph")
+        if graph is None:
+            print("cooploc graph: MAVProxy's graph module is not loaded: `module load graph` (needs wx and "
+                  "matplotlib), then `cooploc graph %s %d` again" % (kind, vid))
+            return
+        # The graph module is single-vehicle (it only sees the target system's packets, on the
+        # primary link): the module names the graph with a field no message provides, so that
+        # the graph module leaves it alone, and feeds it each new estimate of that vehicle.
+        label = "cooploc.v%d.%s" % (vid, kind)
+        before = list(getattr(graph, "graphs", []))
+        self.mpstate.functions.process_stdin("graph %s" % label)
+        created = [g for g in getattr(graph, "graphs", []) if g not in before]
+        if created and hasattr(created[-1], "livegraph"):
+            self._graphs.append((created[-1], vid, kind))
+            print("cooploc graph: %s of vehicle %d" % (kind, vid))
+            return
+        # Another graph module: its own expression, filtered for the vehicle (it updates only
+        # while that vehicle is MAVProxy's target system).
+        fields = {
+            "nis": "COOPLOC_ESTIMATE.nis",
+            "error": "sqrt(%r*((COOPLOC_ESTIMATE.pos_covariance[0]+COOPLOC_ESTIMATE.pos_covariance[3])/2+"
+                     "sqrt(((COOPLOC_ESTIMATE.pos_covariance[0]-COOPLOC_ESTIMATE.pos_covariance[3])/2)**2+"
+                     "COOPLOC_ESTIMATE.pos_covariance[1]**2)))" % CHI2_2DOF_95,
+            "rate": "COOPLOC_ESTIMATE.epoch",
+        }
+        self.mpstate.functions.process_stdin("graph %s{COOPLOC_ESTIMATE.platform==%d}" % (fields[kind], vid))
+        print("cooploc graph: the graph module's own expression (updates while vehicle %d is the target system%s)"
+              % (vid, "; rate shows the epoch instead" if kind == "rate" else ""))
+
+    def _feed_graphs(self, v, now):
+        if not self._graphs:
+            return
+        alive = []
+        for g, vid, kind in self._graphs:
+            lg = getattr(g, "livegraph", None)
+            if lg is None or not lg.is_alive():
+                continue
+            alive.append((g, vid, kind))
+            if vid != v.id:
+                continue
+            if kind == "nis":
+                value = v.est.nis
+            elif kind == "error":
+                value = v.ellipse[0] if v.ellipse else float("nan")
+            else:
+                value = v.est_rate.rate(now)
+            lg.add_values([value])
+        self._graphs = alive
+
+    # ---- map ----------------------------------------------------------------------------------
+
+    def _map(self):
+        mod = self.module("map")
+        return getattr(mod, "map", None) if mod is not None else None
+
+    def _map_update(self):
+        slipmap = self._map()
+        if slipmap is None:
+            return
+        mp_slipmap = slip_objects()
+        for vid, v in self.vehicles.items():
+            e = v.est
+            if e is None:
+                continue
+            rgb = colour_rgb(vid)
+            lat, lon, _ = ned_to_geo(e.x, e.y, e.z, self.origin)
+            key = "cooploc_%d" % vid
+            yaw_deg = math.degrees(e.yaw)
+            if not v.map_drawn:
+                slipmap.add_object(mp_slipmap.SlipIcon(key, (lat, lon), marker_image(rgb), layer="cooploc",
+                                                       rotation=yaw_deg, label=str(vid), colour=rgb))
+                v.map_drawn = True
+            else:
+                slipmap.set_position(key, (lat, lon), layer="cooploc", rotation=yaw_deg)
+            if v.ellipse is not None:
+                points = ellipse_polygon_latlon(e.x, e.y, v.ellipse, self.origin)
+                try:
+                    poly = mp_slipmap.SlipPolygon(key + "_ellipse", points, layer="cooploc", colour=rgb,
+                                                  linewidth=2, showcircles=False)
+                except TypeError:  # an older MAVProxy: no showcircles
+                    poly = mp_slipmap.SlipPolygon(key + "_ellipse", points, layer="cooploc", colour=rgb, linewidth=2)
+                slipmap.add_object(poly)
+
+    def _map_clear(self):
+        try:
+            slipmap = self._map()
+            if slipmap is None:
+                return
+            for vid in self.vehicles:
+                slipmap.remove_object("cooploc_%d" % vid)
+                slipmap.remove_object("cooploc_%d_ellipse" % vid)
+        except Exception as e:
+            self._error("map clear", e)
+
+
+def slip_objects():
+    """MAVProxy's map objects (SlipIcon, SlipPolygon, ...): mp_slipmap_util defines them and
+    needs only OpenCV and numpy; mp_slipmap (which also needs wx) re-exports them."""
+    try:
+        from MAVProxy.modules.mavproxy_map import mp_slipmap_util
+        return mp_slipmap_util
+    except ImportError:
+        from MAVProxy.modules.mavproxy_map import mp_slipmap
+        return mp_slipmap
+
+
+def marker_image(rgb, size=17):
+    """A BGR image (numpy, black = transparent for SlipIcon) of a triangle pointing up (north at
+    rotation 0) in colour ``rgb``."""
+    import numpy as np
+    img = np.zeros((size, size, 3), dtype=np.uint8)
+    c = (size - 1) / 2.0
+    for row in range(size):
+        half = c * row / (size - 1)  # the apex at the top row
+        lo, hi = int(round(c - half)), int(round(c + half))
+        img[row, lo:hi + 1] = (rgb[2], rgb[1], rgb[0])
+    return img
+
+
+def init(mpstate):
+    """MAVProxy's entry point."""
+    return CooplocModule(mpstate)
