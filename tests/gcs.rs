@@ -588,3 +588,87 @@ fn a_signed_ground_station_reads_only_the_teams_frames() {
 fn node_heartbeat_signed(s: &mut cooploc::protocol::signing::Signer, id: u8, unix_us: u64) -> Vec<u8> {
     s.frame(MavHeader { system_id: u32::from(id), component_id: NODE_COMPID, sequence: 9 }, &node_heartbeat(), unix_us)
 }
+
+/// The Foxglove layout users import (`tools/foxglove/cooploc-layout.json`) names only channels
+/// cooploc publishes (live and in logs), only fields their schemas have, the palette's colours,
+/// and a layout tree whose panels all exist.
+#[test]
+fn the_foxglove_layout_names_what_cooploc_publishes() {
+    use cooploc::recording::topics;
+    use cooploc::view::foxglove::{ERROR_SCHEMA, ESTIMATE_SCHEMA, HEALTH_SCHEMA};
+    let text = std::fs::read_to_string(concat!(env!("CARGO_MANIFEST_DIR"), "/tools/foxglove/cooploc-layout.json")).unwrap();
+    let layout: Value = serde_json::from_str(&text).expect("the layout is JSON");
+    let configs = layout["configById"].as_object().expect("configById");
+    // The panel tree references panels that exist, and every panel is placed.
+    fn leaves(v: &Value, out: &mut Vec<String>) {
+        match v {
+            Value::String(s) => out.push(s.clone()),
+            Value::Object(o) => ["first", "second"].iter().for_each(|k| leaves(&o[*k], out)),
+            other => panic!("layout node {other}"),
+        }
+    }
+    let mut placed = Vec::new();
+    leaves(&layout["layout"], &mut placed);
+    placed.sort();
+    let mut ids: Vec<String> = configs.keys().cloned().collect();
+    ids.sort();
+    assert_eq!(placed, ids);
+    let mut published: Vec<String> = vec![topics::TF.into(), topics::HEALTH.into()];
+    for id in 1..=3u16 {
+        published.extend([
+            topics::location(id),
+            topics::truth(id),
+            topics::pose(id),
+            topics::truth_pose(id),
+            topics::ellipse(id),
+            topics::estimate(id),
+            topics::error(id),
+        ]);
+    }
+    let fields = |schema: &str, nodes: bool| -> Vec<String> {
+        let js: Value = serde_json::from_str(schema).unwrap();
+        let props = if nodes { &js["properties"]["nodes"]["items"]["properties"] } else { &js["properties"] };
+        props.as_object().unwrap().keys().cloned().collect()
+    };
+    let mut named = 0;
+    for (panel, cfg) in configs {
+        let mut topics_here: Vec<String> = Vec::new();
+        for key in ["topicColors", "topics"] {
+            if let Some(o) = cfg[key].as_object() {
+                topics_here.extend(o.keys().cloned());
+            }
+        }
+        for key in ["followTopic", "topicPath"] {
+            if let Some(t) = cfg[key].as_str() {
+                topics_here.push(t.to_string());
+            }
+        }
+        for path in cfg["paths"].as_array().into_iter().flatten() {
+            let value = path["value"].as_str().unwrap();
+            let (topic, field) = value.split_once('.').unwrap();
+            topics_here.push(topic.to_string());
+            let (schema_fields, last) = if topic == topics::HEALTH {
+                (fields(HEALTH_SCHEMA, true), field.rsplit('.').next().unwrap())
+            } else if topic.ends_with("/estimate") {
+                (fields(ESTIMATE_SCHEMA, false), field)
+            } else {
+                assert!(topic.ends_with("/error"), "{panel}: plot of {topic}");
+                (fields(ERROR_SCHEMA, false), field)
+            };
+            assert!(schema_fields.iter().any(|f| f == last), "{panel}: {value}: no field {last}");
+            let label = path["label"].as_str().unwrap();
+            let id: u16 = label.trim_start_matches("vehicle ").parse().unwrap();
+            assert_eq!(path["color"].as_str().unwrap(), cooploc::view::vehicle_hex(id), "{panel}: {label}'s colour");
+        }
+        for t in &topics_here {
+            assert!(published.contains(t), "{panel}: {t} is not a channel cooploc publishes");
+            named += 1;
+        }
+        if let Some(colors) = cfg["topicColors"].as_object() {
+            for id in 1..=3u16 {
+                assert_eq!(colors[&topics::location(id)].as_str().unwrap(), cooploc::view::vehicle_hex(id));
+            }
+        }
+    }
+    assert!(named >= 20, "the layout shows the team ({named} topics)");
+}

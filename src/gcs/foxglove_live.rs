@@ -3,7 +3,7 @@
 //!
 //! The channels are those of an MCAP log ([`crate::recording`]), with the same topics and the
 //! same messages, built by the same functions ([`crate::view::foxglove`]), so that a live
-//! session and a recorded one look the same in Foxglove (and `layouts/cooploc.foxglove.json`
+//! session and a recorded one look the same in Foxglove (and `tools/foxglove/cooploc-layout.json`
 //! fits both):
 //!
 //! | topic | schema | from |
