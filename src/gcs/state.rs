@@ -23,7 +23,7 @@
 use std::collections::{BTreeMap, BTreeSet, VecDeque};
 use std::net::SocketAddr;
 
-use mavlink_core::{MAVLinkMessageRaw, MavlinkReader, Message};
+use mavlink_core::Message;
 use nalgebra::{Matrix2, Vector3};
 use serde::Serialize;
 
@@ -228,43 +228,6 @@ pub struct GcsState {
     pub counters: GcsCounters,
 }
 
-/// One frame read from bytes.
-struct Frame<'a> {
-    sysid: u32,
-    compid: u8,
-    seq: u8,
-    message_id: u32,
-    signed: bool,
-    bytes: &'a [u8],
-    message: Result<MavMessage, String>,
-}
-
-/// A frame's bytes, its version and whether it carries a signature (MAVLink 2 incompat flag 1).
-fn raw_parts(raw: &MAVLinkMessageRaw) -> (&[u8], mavlink_core::MavlinkVersion, bool) {
-    match raw {
-        MAVLinkMessageRaw::V1(m) => (m.raw_bytes(), mavlink_core::MavlinkVersion::V1, false),
-        MAVLinkMessageRaw::V2(m) => (m.raw_bytes(), mavlink_core::MavlinkVersion::V2, m.incompatibility_flags() & 1 != 0),
-    }
-}
-
-/// Every CRC-valid frame (MAVLink 1 or 2) in `bytes`, in order; garbage between frames is skipped.
-fn read_frames(bytes: &[u8], mut each: impl FnMut(Frame<'_>)) {
-    let mut reader = MavlinkReader::new(bytes);
-    while let Ok(raw) = reader.read_any_raw_message::<MavMessage>() {
-        let (frame_bytes, version, signed) = raw_parts(&raw);
-        let message = MavMessage::parse(version, raw.message_id(), raw.payload()).map_err(|e| e.to_string());
-        each(Frame {
-            sysid: raw.system_id(),
-            compid: raw.component_id(),
-            seq: raw.sequence(),
-            message_id: raw.message_id(),
-            signed,
-            bytes: frame_bytes,
-            message,
-        });
-    }
-}
-
 fn message_name(m: &Result<MavMessage, String>) -> &'static str {
     match m {
         Ok(m) => m.message_name(),
@@ -391,9 +354,10 @@ impl GcsState {
             _ => bytes,
         };
         let mut frames = Vec::new();
-        read_frames(bytes, |f| {
-            frames.push((f.sysid, f.compid, f.seq, f.message_id, f.signed, f.bytes.to_vec(), f.message));
-        });
+        for f in crate::protocol::framing::frames(bytes) {
+            let h = f.header;
+            frames.push((h.system_id, h.component_id, h.sequence, f.message_id, f.signed, f.bytes.to_vec(), f.message));
+        }
         let mut events = Vec::with_capacity(frames.len() + 1);
         if frames.is_empty() {
             self.counters.bad_datagrams += 1;

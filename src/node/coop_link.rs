@@ -106,7 +106,7 @@ impl StreamFramer {
             };
             self.skipped += start as u64;
             at += start;
-            let Some(len) = super::vehicle_link::frame_len(&self.buf[at..]) else {
+            let Some(len) = crate::protocol::framing::frame_len(&self.buf[at..]) else {
                 break; // not all there yet
             };
             let frame = &self.buf[at..at + len];

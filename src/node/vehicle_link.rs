@@ -187,29 +187,18 @@ fn unix_now_us() -> u64 {
 
 /// The MAVLink v1 and v2 frames of one datagram, in order; reading stops at the first bytes that
 /// are not a complete frame of the dialect (CRC, unknown message, truncation).
-pub fn split_frames(mut bytes: &[u8]) -> Vec<Received> {
+pub fn split_frames(bytes: &[u8]) -> Vec<Received> {
     let mut out = Vec::new();
-    while !bytes.is_empty() {
-        let Some(len) = frame_len(bytes) else { break };
-        let frame = &bytes[..len];
-        match wire::from_any_frame(frame) {
-            Ok((header, msg)) => out.push((header, msg, frame.to_vec())),
-            Err(_) => break,
+    let mut next = 0;
+    for f in crate::protocol::framing::frames(bytes) {
+        let Ok(msg) = f.message else { break };
+        if f.offset != next {
+            break; // bytes that were not a frame came first
         }
-        bytes = &bytes[len..];
+        next = f.offset + f.bytes.len();
+        out.push((f.header, msg, f.bytes.to_vec()));
     }
     out
-}
-
-/// Length of the frame at the start of `bytes` from its header, if it is all there.
-pub(crate) fn frame_len(bytes: &[u8]) -> Option<usize> {
-    let payload = usize::from(*bytes.get(1)?);
-    let len = match bytes[0] {
-        0xFE => 8 + payload,
-        0xFD => 12 + payload + if bytes.get(2)? & 0x01 != 0 { 13 } else { 0 },
-        _ => return None,
-    };
-    (bytes.len() >= len).then_some(len)
 }
 
 #[cfg(test)]

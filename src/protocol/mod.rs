@@ -11,6 +11,7 @@
 pub mod budget;
 pub mod compact;
 pub mod fragment;
+pub mod framing;
 pub mod record;
 pub mod signing;
 pub mod wire;

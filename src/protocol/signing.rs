@@ -28,6 +28,7 @@ use mavlink_core::{MAVLinkV2MessageRaw, MavHeader, MavlinkVersion, Message};
 use sha2::{Digest, Sha256};
 
 use super::MavMessage;
+use super::framing::{IFLAG_SIGNED, SIGNATURE_LEN};
 
 /// Unix time of the signing epoch, 2015-01-01 00:00:00 UTC, s.
 const SIGNING_EPOCH_UNIX_S: u64 = 1_420_070_400;
@@ -71,10 +72,8 @@ impl Stream {
         self.seen.retain(|&t| t > floor);
     }
 }
-/// Incompatibility flag of a signed frame.
-const IFLAG_SIGNED: u8 = 0x01;
+/// Bytes of a MAVLink 2 header.
 const HEADER_LEN: usize = 10;
-const SIGNATURE_LEN: usize = 13;
 
 /// The team's secret key.
 #[derive(Clone, PartialEq, Eq)]
@@ -329,10 +328,10 @@ impl Verifier {
         if flags & !IFLAG_SIGNED != 0 {
             return Err((Refusal::Malformed, 1));
         }
-        let len = HEADER_LEN + usize::from(bytes[1]) + 2 + if signed { SIGNATURE_LEN } else { 0 };
-        if bytes.len() < len {
+        // bytes[0] is MAVLink 2's start marker: the length its header declares, if all there.
+        let Some(len) = super::framing::frame_len(bytes) else {
             return Err((Refusal::Malformed, 1));
-        }
+        };
         let mut buf = [0u8; mavlink_core::consts::MAX_FRAME_SIZE];
         buf[..len].copy_from_slice(&bytes[..len]);
         let raw = MAVLinkV2MessageRaw::from_bytes_unparsed(buf);

@@ -46,17 +46,20 @@ pub fn to_frame(header: MavHeader, msg: &MavMessage) -> Vec<u8> {
     out
 }
 
-/// Parses the first MAVLink 2 frame in `bytes` (any garbage before it is skipped).
+/// The first MAVLink 2 frame in `bytes` (any bytes before it are skipped), decoded
+/// ([`super::framing`]).
 pub fn from_frame(bytes: &[u8]) -> Result<(MavHeader, MavMessage), WireError> {
-    let mut reader = mavlink_core::MavlinkReader::new(bytes);
-    reader.read_message::<MavMessage>(MavlinkVersion::V2).map_err(|e| WireError::Frame(e.to_string()))
+    decoded(super::framing::frames(bytes).find(|f| f.version == MavlinkVersion::V2))
 }
 
-/// One MAVLink 1 or 2 frame.
+/// The first MAVLink 1 or 2 frame in `bytes`, decoded ([`super::framing`]).
 pub fn from_any_frame(bytes: &[u8]) -> Result<(MavHeader, MavMessage), WireError> {
-    let version = if bytes.first() == Some(&mavlink_core::MAV_STX) { MavlinkVersion::V1 } else { MavlinkVersion::V2 };
-    let mut reader = mavlink_core::MavlinkReader::new(bytes);
-    reader.read_message::<MavMessage>(version).map_err(|e| WireError::Frame(e.to_string()))
+    decoded(super::framing::frames(bytes).next())
+}
+
+fn decoded(frame: Option<super::framing::Frame<'_>>) -> Result<(MavHeader, MavMessage), WireError> {
+    let frame = frame.ok_or_else(|| WireError::Frame("no whole MAVLink frame with a valid CRC".into()))?;
+    frame.message.map(|m| (frame.header, m)).map_err(WireError::Frame)
 }
 
 /// A HEARTBEAT of an active system of type `mavtype` (vehicle, companion, ground station).
@@ -110,12 +113,7 @@ pub fn command_ack(command: MavCmd, result: MavResult, to: (u8, u8)) -> MavMessa
 /// Every valid MAVLink 2 frame in `bytes` (a datagram may carry several), in order; what is not
 /// a valid frame is skipped.
 pub fn frames(bytes: &[u8]) -> Vec<(MavHeader, MavMessage)> {
-    let mut reader = mavlink_core::MavlinkReader::new(bytes);
-    let mut out = Vec::new();
-    while let Ok(frame) = reader.read_message::<MavMessage>(MavlinkVersion::V2) {
-        out.push(frame);
-    }
-    out
+    super::framing::frames(bytes).filter(|f| f.version == MavlinkVersion::V2).filter_map(|f| f.decoded()).collect()
 }
 
 /// Message id of a message (for counters and logs).

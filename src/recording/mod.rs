@@ -174,18 +174,7 @@ pub fn wall_now_ns() -> u64 {
 /// Length of the MAVLink frame that `bytes` must be exactly, from its header, or why `bytes`
 /// is not one complete v1 or v2 frame.
 pub fn mavlink_frame_len(bytes: &[u8]) -> Result<usize, &'static str> {
-    let (&stx, rest) = bytes.split_first().ok_or("empty")?;
-    let payload_len = *rest.first().ok_or("shorter than a header")? as usize;
-    let expected = match stx {
-        // v1: STX, len, seq, sysid, compid, msgid, payload, crc(2).
-        0xFE => 6 + payload_len + 2,
-        // v2: STX, len, incompat, compat, seq, sysid, compid, msgid(3), payload, crc(2), signature(13).
-        0xFD => {
-            let incompat = *rest.get(1).ok_or("shorter than a header")?;
-            10 + payload_len + 2 + if incompat & 0x01 != 0 { 13 } else { 0 }
-        }
-        _ => return Err("first byte is not a MAVLink start marker (0xFE or 0xFD)"),
-    };
+    let expected = crate::protocol::framing::declared_len(bytes)?;
     match bytes.len().cmp(&expected) {
         std::cmp::Ordering::Equal => Ok(expected),
         std::cmp::Ordering::Less => Err("shorter than the length in its header"),

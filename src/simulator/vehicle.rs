@@ -483,16 +483,14 @@ impl VehicleCore {
     /// in it. Returns whether it held at least one valid frame (the runner learns peers from
     /// that). A run with none counts as malformed.
     pub fn on_bytes(&mut self, now: TimeUs, bytes: &[u8], truth: &Trajectory, out: &mut Vec<Outgoing>) -> bool {
-        let mut reader = mavlink_core::MavlinkReader::new(bytes);
         let mut valid = false;
-        loop {
-            match reader.read_any_message::<MavMessage>() {
-                Ok((header, message)) => {
+        for frame in crate::protocol::framing::frames(bytes) {
+            match frame.message {
+                Ok(message) => {
                     valid = true;
-                    self.on_message(now, header, &message, truth, out);
+                    self.on_message(now, frame.header, &message, truth, out);
                 }
-                Err(mavlink_core::error::MessageReadError::Io(_)) => break,
-                Err(mavlink_core::error::MessageReadError::Parse(e)) => {
+                Err(e) => {
                     tracing::debug!(platform = self.config.platform, error = %e, "undecodable frame");
                     self.counters.malformed += 1;
                 }

@@ -15,6 +15,8 @@ What it reads
   or the repository's ``dialects/``).
 - HEARTBEAT, COMMAND_ACK and the frame headers of the companion nodes: system id = platform id,
   component 191 (MAV_TYPE_ONBOARD_CONTROLLER).
+- Simulated vehicles (``cooploc sitl``, system id = platform id, component 1): SIM_STATE (the
+  truth) and the ``time_usec`` of HIGHRES_IMU and ODOMETRY (the vehicle clock that stamps it).
 
 Per vehicle
 -----------
@@ -32,6 +34,26 @@ Per vehicle
 - Validation: a non-finite number, a negative variance, an unknown method, an estimate whose
   ``platform`` (an epoch whose ``announcer``, a range whose ``from_platform``, ...) is not the
   sending system, is counted in ``rejected`` and dropped.
+
+Error against the truth (simulated vehicles), as ``cooploc gcs`` computes it
+----------------------------------------------------------------------------
+- Truth: SIM_STATE from (id, 1), its position (``lat_int``/``lon_int`` in 1e-7 degrees when
+  non-zero, else ``lat``/``lon``; ``alt``) converted to the team's NED frame about the origin
+  (``cooploc origin``) by the inverse of the flat-Earth conversion (:func:`geo_to_ned`: the
+  longitude difference wrapped to [-180, 180), R = 6378137 m). A non-finite field, a latitude
+  outside [-90, 90] or a quaternion whose norm is not 1 is counted in ``rejected``.
+- SIM_STATE has no time: a sample takes the ``time_usec`` of the next HIGHRES_IMU or ODOMETRY of
+  (id, 1) (a simulator sends the clock-driven messages due at ``t`` just before its samples at
+  ``t``); one still waiting when the next SIM_STATE comes is placed at the last known time. The
+  last 4096 timed samples are kept in time order: a time more than 5 s back is a restarted
+  simulator (they start over), a smaller step back or an equal time is dropped. A frame seen
+  again on another link is used once. Changing the origin drops the samples.
+- An estimate's error: the truth interpolated linearly at its ``time_usec`` between the
+  bracketing samples (at most 1 s apart; none outside the truth's span), the horizontal (N, E)
+  distance in m and the position NEES ``e^T P^-1 e`` over N, E, D with P the 3x3 position
+  covariance from ``pos_covariance`` (none when P is not positive definite). Estimates come
+  before the truth covers their time: the last 64 per vehicle wait, and are resolved when it
+  does. Shown: the error and NEES of the newest resolved estimate, and that estimate's time.
 
 Agreement (COOPLOC_EPOCH), the same rules as ``cooploc gcs``
 -----------------------------------------------------------
@@ -58,12 +80,14 @@ Agreement (COOPLOC_EPOCH), the same rules as ``cooploc gcs``
 
 Commands
 --------
-``cooploc status``: one ``cooploc vehicle <id> key=value ...`` line per vehicle and one
+``cooploc status``: one ``cooploc vehicle <id> key=value ...`` line per vehicle (with
+``error_m``, ``nees``, ``error_t_us``, ``truth_samples``; ``-`` when not known) and one
 ``cooploc team ...`` line. ``cooploc team``: a compact table. ``cooploc origin LAT LON ALT``:
-the team's NED origin for the map (default 34.7 0.0 0.0). ``cooploc refresh [ID]``: asks
+the team's NED origin for the map and the truth (default 34.7 0.0 0.0). ``cooploc refresh [ID]``: asks
 node ID (0: every node) for its estimate (COMMAND_LONG MAV_CMD_REQUEST_MESSAGE 512, param1 =
 61002, target component 191, on every link); the COMMAND_ACKs are counted per vehicle.
-``cooploc graph nis|error|rate ID``: a live graph through MAVProxy's graph module.
+``cooploc graph nis|error|ellipse|rate ID``: a live graph through MAVProxy's graph module (error:
+the horizontal error against the truth, m; ellipse: the 95 % semi-major axis, m).
 ``cooploc set [NAME [VALUE]]``: settings (``statusfile``: append the status lines to this file
 every ``status_period`` s; ``map``: draw on MAVProxy's map).
 
@@ -72,6 +96,7 @@ heading) and its 95 % ellipse, in the colour every cooploc display gives it
 (:data:`PALETTE`, index ``(id - 1) mod 10``).
 """
 
+import bisect
 import collections
 import math
 import os
@@ -100,6 +125,13 @@ DEFAULT_ORIGIN = (34.7, 0.0, 0.0)
 NODE_COMPID = 191
 #: Estimate time going back more than this is a restarted node, us.
 RESTART_US = 5_000_000
+#: Component id of a simulated vehicle (``cooploc sitl``): its SIM_STATE is the truth.
+TRUTH_COMPID = 1
+#: Timed truth samples kept per vehicle; estimates held until the truth covers their time.
+TRUTH_HISTORY = 4096
+PENDING_ESTIMATES = 64
+#: Largest gap between two truth samples the error interpolates across, us.
+MAX_TRUTH_GAP_US = 1_000_000
 #: Window of the rates, s.
 RATE_WINDOW_S = 10.0
 #: Bounds of the tables.
@@ -493,6 +525,228 @@ def frame_header(msgbuf):
     return None
 
 
+# ---- error against truth (simulated vehicles) --------------------------------------------------
+
+def geo_to_ned(lat, lon, alt, origin=DEFAULT_ORIGIN):
+    """Inverse of :func:`ned_to_geo`: (lat, lon in degrees, alt in m) to flat-Earth NED (m) about
+    ``origin``: ``N = radians(lat - lat0) R``, ``E = radians(dlon) R cos(radians(lat0))``,
+    ``D = alt0 - alt``, the longitude difference ``dlon`` wrapped to [-180, 180) (the short way
+    round), R = 6378137 m (``geodetic_to_ned`` of src/protocol/wire.rs)."""
+    lat0, lon0, alt0 = origin
+    dlon = lon - lon0
+    if not -180.0 <= dlon < 180.0:  # wrapped only when needed: adding 180 costs ~3e-9 m of precision
+        dlon = (dlon + 180.0) % 360.0 - 180.0
+    return (math.radians(lat - lat0) * EARTH_RADIUS_M,
+            math.radians(dlon) * EARTH_RADIUS_M * math.cos(math.radians(lat0)),
+            alt0 - alt)
+
+
+def position_nees(error_ned, cov6):
+    """Position NEES ``e^T P^-1 e`` over N, E, D: ``error_ned`` = (eN, eE, eD) m, ``cov6`` the upper
+    triangle of P (NN, NE, ND, EE, ED, DD, m^2, COOPLOC_ESTIMATE.pos_covariance's order). Solved
+    by a Cholesky factorisation; None when P is not positive definite or the result is not
+    finite (``position_nees`` of src/estimation/consistency.rs)."""
+    try:
+        nn, ne, nd, ee, ed, dd = (float(c) for c in cov6)
+        e0, e1, e2 = (float(c) for c in error_ned)
+        if not nn > 0.0:
+            return None
+        l11 = math.sqrt(nn)
+        l21, l31 = ne / l11, nd / l11
+        d2 = ee - l21 * l21
+        if not d2 > 0.0:
+            return None
+        l22 = math.sqrt(d2)
+        l32 = (ed - l31 * l21) / l22
+        d3 = dd - l31 * l31 - l32 * l32
+        if not d3 > 0.0:
+            return None
+        l33 = math.sqrt(d3)
+        y1 = e0 / l11
+        y2 = (e1 - l21 * y1) / l22
+        y3 = (e2 - l31 * y1 - l32 * y2) / l33
+        v = y1 * y1 + y2 * y2 + y3 * y3
+    except (TypeError, ValueError, ZeroDivisionError, OverflowError):
+        return None
+    return v if math.isfinite(v) else None
+
+
+def interpolate_truth(times, positions, t, max_gap_us=MAX_TRUTH_GAP_US):
+    """The truth position at ``t`` (us): linear between the bracketing samples of ``times``
+    (ascending, us) / ``positions`` ((N, E, D) each), at most ``max_gap_us`` apart; a sample at
+    exactly ``t`` as it is; None outside the samples' span (``truth_at`` of src/gcs/state.rs)."""
+    i = bisect.bisect_left(times, t)
+    if i >= len(times):
+        return None
+    ta = times[i]
+    if ta == t:
+        return tuple(positions[i])
+    if i == 0:
+        return None
+    tb = times[i - 1]
+    if ta - tb > max_gap_us:
+        return None
+    f = (t - tb) / (ta - tb)
+    b, a = positions[i - 1], positions[i]
+    return tuple(b[k] + (a[k] - b[k]) * f for k in range(3))
+
+
+def sim_state_ned(m, origin=DEFAULT_ORIGIN):
+    """A SIM_STATE's position in the team's NED frame about ``origin``; raises :class:`Rejected`
+    as ``sim_state_from_message`` of src/protocol/wire.rs does: the 1e-7 degree integers when
+    non-zero (MAVLink's rule), else the float fields; a non-finite number, a latitude outside
+    [-90, 90] or an attitude quaternion whose norm is not 1 (within 1e-3) is refused."""
+    name = "SIM_STATE"
+    lat_int = int(getattr(m, "lat_int", 0) or 0)
+    lon_int = int(getattr(m, "lon_int", 0) or 0)
+    lat = lat_int * 1e-7 if lat_int != 0 else _finite(name, "lat", m.lat)
+    lon = lon_int * 1e-7 if lon_int != 0 else _finite(name, "lon", m.lon)
+    if not -90.0 <= lat <= 90.0:
+        raise Rejected("%s.lat_int: %r deg outside [-90, 90]" % (name, lat))
+    alt = _finite(name, "alt", m.alt)
+    for f in ("vn", "ve", "vd", "yaw"):
+        _finite(name, f, getattr(m, f))
+    q = [_finite(name, f, getattr(m, f)) for f in ("q1", "q2", "q3", "q4")]
+    norm = math.sqrt(sum(c * c for c in q))
+    if not abs(norm - 1.0) < 1e-3:
+        raise Rejected("%s.q1: attitude quaternion norm %r is not 1" % (name, norm))
+    return geo_to_ned(lat, lon, alt, origin)
+
+
+class TruthTrack:
+    """The truth of one simulated vehicle and the error of its estimates against it (the rules of
+    ``cooploc gcs``, src/gcs/state.rs):
+
+    - :meth:`sim_state` (a SIM_STATE's NED position, no time) waits for the vehicle time of the
+      next timed frame, :meth:`timed` (HIGHRES_IMU / ODOMETRY ``time_usec``); a sample still
+      waiting when the next SIM_STATE comes is placed at the last known time (dropped, counted
+      in ``untimed``, when no time is known yet).
+    - Timed samples are kept in time order (the last ``history``): a time more than
+      ``restart_us`` before the last is a restarted simulator (the history starts over,
+      ``restarts``), a smaller step back or an equal time is dropped (``stale``).
+    - :meth:`estimate` holds an estimate (time, NED position, covariance upper triangle) until
+      the truth covers its time (the last ``pending_max``; older ones are dropped, counted in
+      ``dropped``), then computes its horizontal error and NEES against the truth interpolated
+      at that time (``unavailable`` when no truth brackets it within ``max_gap_us``).
+    - ``latest``: (estimate time, horizontal error m, NEES or None) of the newest estimate with
+      an error.
+    """
+
+    def __init__(self, history=TRUTH_HISTORY, pending_max=PENDING_ESTIMATES, max_gap_us=MAX_TRUTH_GAP_US,
+                 restart_us=RESTART_US):
+        self.history = max(2, int(history))
+        self.max_gap_us = max_gap_us
+        self.restart_us = restart_us
+        self.times = collections.deque()      # vehicle time, us, ascending
+        self.positions = collections.deque()  # (N, E, D), m
+        self.waiting = None                   # a SIM_STATE's position waiting for its time
+        self.last_time = None                 # the last timed frame's time_usec
+        self.estimates = collections.deque(maxlen=max(1, int(pending_max)))  # (t, (N, E, D), cov6)
+        self.latest = None
+        self.samples = 0
+        self.stale = 0
+        self.restarts = 0
+        self.untimed = 0
+        self.unavailable = 0
+        self.dropped = 0
+        self.recent = collections.deque(maxlen=64)  # hashes of recent frames (another link's copy)
+        self.recent_set = set()
+
+    def seen_frame(self, key):
+        """True if this frame (its bytes' hash) was seen lately (the same frame on another link)."""
+        if key in self.recent_set:
+            return True
+        if len(self.recent) == self.recent.maxlen:
+            self.recent_set.discard(self.recent[0])
+        self.recent.append(key)
+        self.recent_set.add(key)
+        return False
+
+    def sim_state(self, ned):
+        """A SIM_STATE's position; returns the errors it resolved (see :meth:`resolve`)."""
+        out = []
+        if self.waiting is not None:
+            if self.last_time is None:
+                self.untimed += 1
+            else:
+                out = self._add(self.last_time, self.waiting)
+        self.waiting = tuple(ned)
+        return out
+
+    def timed(self, t):
+        """The vehicle time of a timed frame (HIGHRES_IMU, ODOMETRY); stamps the waiting sample."""
+        self.last_time = t
+        if self.waiting is None:
+            return []
+        ned, self.waiting = self.waiting, None
+        return self._add(t, ned)
+
+    def _add(self, t, ned):
+        if self.times:
+            last = self.times[-1]
+            if t < last and last - t > self.restart_us:
+                self.restarts += 1
+                self.times.clear()
+                self.positions.clear()
+            elif t <= last:
+                self.stale += 1
+                return []
+        self.times.append(t)
+        self.positions.append(ned)
+        while len(self.times) > self.history:
+            self.times.popleft()
+            self.positions.popleft()
+        self.samples += 1
+        return self.resolve()
+
+    def truth_at(self, t):
+        return interpolate_truth(self.times, self.positions, t, self.max_gap_us)
+
+    def estimate(self, t, ned, cov6):
+        """An accepted estimate; returns the errors resolved (this one if the truth covers it)."""
+        if len(self.estimates) == self.estimates.maxlen:
+            self.dropped += 1
+        self.estimates.append((t, tuple(ned), tuple(cov6)))
+        return self.resolve()
+
+    def reset_truth(self):
+        """Forgets the truth samples (the origin changed) and the latest error."""
+        self.times.clear()
+        self.positions.clear()
+        self.waiting = None
+        self.latest = None
+
+    def restart_estimates(self):
+        """The node restarted: its held estimates and its latest error are forgotten."""
+        self.estimates.clear()
+        self.latest = None
+
+    def resolve(self):
+        """Errors of the held estimates the truth now covers, in time order: a list of
+        (t, horizontal error m, NEES or None, truth (N, E, D))."""
+        if not self.times or not self.estimates:
+            return []
+        end = self.times[-1]
+        out, keep = [], []
+        for t, ned, cov in self.estimates:
+            if t > end:
+                keep.append((t, ned, cov))
+                continue
+            truth = self.truth_at(t)
+            if truth is None:
+                self.unavailable += 1
+                continue
+            e = (truth[0] - ned[0], truth[1] - ned[1], truth[2] - ned[2])
+            out.append((t, math.hypot(e[0], e[1]), position_nees(e, cov), truth))
+        if len(keep) != len(self.estimates):
+            self.estimates.clear()
+            self.estimates.extend(keep)
+        for r in out:
+            if self.latest is None or r[0] >= self.latest[0]:
+                self.latest = r[:3]
+        return out
+
+
 # ---- the dialect when MAVProxy runs another one -----------------------------------------------
 
 def find_dialect_xml():
@@ -594,6 +848,7 @@ class CooplocModule(_MPModule):
         self.epochs = EpochTracker()
         self.origin = DEFAULT_ORIGIN
         self.vehicles_refused = 0
+        self.truths = {}             # system id -> TruthTrack (simulated vehicles' truth, errors)
         self.last_rejected = None
         self.rejected_unknown = 0    # rejected messages of systems without a place in the table
         self.undecoded = 0           # cooploc frames no bindings could decode
@@ -613,7 +868,7 @@ class CooplocModule(_MPModule):
             ("map_period", float, 1.0),
         ])
         self.add_command("cooploc", self.cmd_cooploc, "cooperative localization team view",
-                         ["status", "team", "origin", "refresh", "graph <nis|error|rate>",
+                         ["status", "team", "origin", "refresh", "graph <nis|error|ellipse|rate>",
                           "set (COOPLOCSETTING)"])
         self.add_completion_function("(COOPLOCSETTING)", self.settings_cooploc.completion)
         self.bindings = None
@@ -779,6 +1034,9 @@ class CooplocModule(_MPModule):
                     else:
                         v.acks_refused += 1
             return
+        if compid == TRUTH_COMPID and mtype in ("SIM_STATE", "HIGHRES_IMU", "ODOMETRY"):
+            self._truth_message(m, mtype, sysid)
+            return
         if not mtype.startswith("COOPLOC_"):
             return
         now = time.monotonic()
@@ -815,14 +1073,50 @@ class CooplocModule(_MPModule):
         except Rejected as r:
             self._reject(sysid, str(r))
 
+    def _truth(self, sysid):
+        """The TruthTrack of system ``sysid`` (made on first use; at most MAX_VEHICLES, refusals
+        counted in ``vehicles_refused``), or None."""
+        track = self.truths.get(sysid)
+        if track is None and 1 <= sysid <= 255:
+            if len(self.truths) >= MAX_VEHICLES:
+                self.vehicles_refused += 1
+                return None
+            track = self.truths[sysid] = TruthTrack()
+        return track
+
+    def _truth_message(self, m, mtype, sysid):
+        """SIM_STATE, HIGHRES_IMU or ODOMETRY of the simulated vehicle (sysid, 1): the truth and
+        the clock that stamps it."""
+        if mtype == "SIM_STATE":
+            try:
+                ned = sim_state_ned(m, self.origin)
+            except Rejected as r:
+                self._reject(sysid, str(r))
+                return
+        else:
+            t = m.time_usec
+            if not isinstance(t, int) or t < 0:
+                self._reject(sysid, "%s.time_usec %r" % (mtype, t))
+                return
+        track = self._truth(sysid)
+        if track is None or track.seen_frame(hash(bytes(m.get_msgbuf() or b""))):
+            return
+        resolved = track.sim_state(ned) if mtype == "SIM_STATE" else track.timed(t)
+        v = self.vehicles.get(sysid)
+        if resolved and v is not None:
+            self._feed_graphs(v, {"error": [r[1] for r in resolved]})
+
     def _estimate(self, v, m, now):
         payload = bytes(m.get_payload() or b"")
+        track = self._truth(v.id)
         if v.est is not None:
             last = v.est.time_usec
             if m.time_usec < last:
                 if last - m.time_usec > RESTART_US:
                     v.restarts += 1
                     v.est = None
+                    if track is not None:
+                        track.restart_estimates()
                 else:
                     v.stale += 1
                     return
@@ -835,7 +1129,9 @@ class CooplocModule(_MPModule):
         v.ellipse = ellipse95(c[0], c[1], c[3])
         v.estimates += 1
         v.est_rate.add(now)
-        self._feed_graphs(v, now)
+        resolved = track.estimate(m.time_usec, (m.x, m.y, m.z), c) if track is not None else []
+        self._feed_graphs(v, {"nis": [m.nis], "ellipse": [v.ellipse[0] if v.ellipse else float("nan")],
+                              "rate": [v.est_rate.rate(now)], "error": [r[1] for r in resolved]})
 
     # ---- idle ---------------------------------------------------------------------------------
 
@@ -910,6 +1206,14 @@ class CooplocModule(_MPModule):
             "hb_type=%s" % ("-" if v.hb_type is None else v.hb_type),
             "hb_age_s=%s" % ("-" if v.hb_time is None else "%.1f" % (now - v.hb_time)),
         ]
+        track = self.truths.get(v.id)
+        latest = track.latest if track is not None else None
+        items += [
+            "error_m=%s" % ("-" if latest is None else repr(latest[1])),
+            "nees=%s" % ("-" if latest is None or latest[2] is None else repr(latest[2])),
+            "error_t_us=%s" % ("-" if latest is None else "%d" % latest[0]),
+            "truth_samples=%d" % (0 if track is None else track.samples),
+        ]
         return "cooploc vehicle %d %s" % (v.id, " ".join(items))
 
     def team_line(self):
@@ -939,12 +1243,17 @@ class CooplocModule(_MPModule):
 
     def team_table(self):
         now = time.monotonic()
-        rows = [("id", "method", "epoch", "ellipse95 m (deg)", "part", "loss %", "est/s", "B/s", "signed", "disagree")]
+        rows = [("id", "method", "epoch", "ellipse95 m (deg)", "error m", "NEES", "part", "loss %", "est/s", "B/s",
+                 "signed", "disagree")]
         for k in sorted(self.vehicles):
             v = self.vehicles[k]
             e = v.est
             el = "-" if v.ellipse is None else "%.2fx%.2f (%.0f)" % v.ellipse
+            track = self.truths.get(k)
+            latest = track.latest if track is not None else None
             rows.append((str(k), "-" if e is None else method_name(e.method), "-" if e is None else str(e.epoch), el,
+                         "-" if latest is None else "%.2f" % latest[1],
+                         "-" if latest is None or latest[2] is None else "%.2f" % latest[2],
                          "-" if e is None else str(e.participants), v.loss_text(), "%.2f" % v.est_rate.rate(now),
                          "%.0f" % v.bytes_rate.rate(now), v.signed_text(now), str(self.epochs.differs(k))))
         widths = [max(len(r[i]) for r in rows) for i in range(len(rows[0]))]
@@ -955,7 +1264,7 @@ class CooplocModule(_MPModule):
     # ---- commands -----------------------------------------------------------------------------
 
     def cmd_cooploc(self, args):
-        usage = "usage: cooploc <status|team|origin LAT LON ALT|refresh [ID]|graph nis|error|rate ID|set>"
+        usage = "usage: cooploc <status|team|origin LAT LON ALT|refresh [ID]|graph nis|error|ellipse|rate ID|set>"
         if not args:
             print(usage)
             return
@@ -993,6 +1302,8 @@ class CooplocModule(_MPModule):
         self.origin = (lat, lon, alt)
         for v in self.vehicles.values():
             v.map_drawn = False
+        for track in self.truths.values():  # converted about the old origin: start over
+            track.reset_truth()
         print("cooploc origin %r %r %r" % self.origin)
 
     def cmd_refresh(self, args):
@@ -1015,7 +1326,7 @@ class CooplocModule(_MPModule):
 
     # ---- graphs -------------------------------------------------------------------------------
 
-    GRAPH_KINDS = ("nis", "error", "rate")
+    GRAPH_KINDS = ("nis", "error", "ellipse", "rate")
 
     def _module_named(self, name):
         m = self.module(name)
@@ -1028,9 +1339,14 @@ class CooplocModule(_MPModule):
 
     def cmd_graph(self, args):
         if len(args) != 2 or args[0] not in self.GRAPH_KINDS:
-            print("usage: cooploc graph nis|error|rate ID (error: semi-major axis of the 95% ellipse, m)")
+            print("usage: cooploc graph nis|error|ellipse|rate ID (error: horizontal error against the truth, m; "
+                  "ellipse: semi-major axis of the 95% ellipse, m)")
             return
-        kind, vid = args[0], int(args[1])
+        try:
+            kind, vid = args[0], int(args[1])
+        except ValueError:
+            print("usage: cooploc graph nis|error|ellipse|rate ID")
+            return
         graph = self._module_named("graph")
         if graph is None:
             print("cooploc graph: MAVProxy's graph module is not loaded: `module load graph` (needs wx and "
@@ -1038,7 +1354,8 @@ class CooplocModule(_MPModule):
             return
         # The graph module is single-vehicle (it only sees the target system's packets, on the
         # primary link): the module names the graph with a field no message provides, so that
-        # the graph module leaves it alone, and feeds it each new estimate of that vehicle.
+        # the graph module leaves it alone, and feeds it each new value of that vehicle (error:
+        # each estimate whose error against the truth becomes known).
         label = "cooploc.v%d.%s" % (vid, kind)
         before = list(getattr(graph, "graphs", []))
         self.mpstate.functions.process_stdin("graph %s" % label)
@@ -1047,20 +1364,25 @@ class CooplocModule(_MPModule):
             self._graphs.append((created[-1], vid, kind))
             print("cooploc graph: %s of vehicle %d" % (kind, vid))
             return
+        if kind == "error":
+            print("cooploc graph: this graph module takes no values from the module; the error against the "
+                  "truth needs the truth (SIM_STATE) and is not a message field")
+            return
         # Another graph module: its own expression, filtered for the vehicle (it updates only
         # while that vehicle is MAVProxy's target system).
         fields = {
             "nis": "COOPLOC_ESTIMATE.nis",
-            "error": "sqrt(%r*((COOPLOC_ESTIMATE.pos_covariance[0]+COOPLOC_ESTIMATE.pos_covariance[3])/2+"
-                     "sqrt(((COOPLOC_ESTIMATE.pos_covariance[0]-COOPLOC_ESTIMATE.pos_covariance[3])/2)**2+"
-                     "COOPLOC_ESTIMATE.pos_covariance[1]**2)))" % CHI2_2DOF_95,
+            "ellipse": "sqrt(%r*((COOPLOC_ESTIMATE.pos_covariance[0]+COOPLOC_ESTIMATE.pos_covariance[3])/2+"
+                       "sqrt(((COOPLOC_ESTIMATE.pos_covariance[0]-COOPLOC_ESTIMATE.pos_covariance[3])/2)**2+"
+                       "COOPLOC_ESTIMATE.pos_covariance[1]**2)))" % CHI2_2DOF_95,
             "rate": "COOPLOC_ESTIMATE.epoch",
         }
         self.mpstate.functions.process_stdin("graph %s{COOPLOC_ESTIMATE.platform==%d}" % (fields[kind], vid))
         print("cooploc graph: the graph module's own expression (updates while vehicle %d is the target system%s)"
               % (vid, "; rate shows the epoch instead" if kind == "rate" else ""))
 
-    def _feed_graphs(self, v, now):
+    def _feed_graphs(self, v, values):
+        """Adds ``values`` ({kind: [value, ...]}) of vehicle ``v`` to its graphs; forgets closed ones."""
         if not self._graphs:
             return
         alive = []
@@ -1071,13 +1393,8 @@ class CooplocModule(_MPModule):
             alive.append((g, vid, kind))
             if vid != v.id:
                 continue
-            if kind == "nis":
-                value = v.est.nis
-            elif kind == "error":
-                value = v.ellipse[0] if v.ellipse else float("nan")
-            else:
-                value = v.est_rate.rate(now)
-            lg.add_values([value])
+            for value in values.get(kind, ()):
+                lg.add_values([value])
         self._graphs = alive
 
     # ---- map ----------------------------------------------------------------------------------
