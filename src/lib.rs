@@ -33,6 +33,7 @@
 //!   team's health; the Foxglove messages), so the page, live Foxglove and logs agree.
 //! - [`dataset`]: real data sets (UTIAS MRCLAM): the reader, the model every method runs on
 //!   them, their MCAP logs.
+//! - [`geodesy`]: the team's origin on the Earth and NED <-> latitude/longitude.
 //! - [`time`]: the typed timestamp shared by all of the above.
 //!
 //! The `cooploc` binary (`src/bin/cooploc/`, one file per command) only parses arguments,
@@ -42,6 +43,7 @@ pub mod demo;
 pub mod estimation;
 pub mod experiment;
 pub mod gcs;
+pub mod geodesy;
 pub mod node;
 pub mod protocol;
 pub mod recording;

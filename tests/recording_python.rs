@@ -7,11 +7,11 @@ mod common;
 use std::collections::BTreeMap;
 use std::process::Command;
 
+use cooploc::node::log::{CoopUpdateRecord, RangeRecord, record_update};
 use cooploc::protocol::dialect::cooploc::{MavAutopilot, MavType};
 use cooploc::protocol::wire::{self, GeoOrigin};
 use cooploc::recording::{
-    CoopUpdateRecord, Direction, LinkStatsRecord, PeerLinkStats, PositionEstimate, RangeRecord, Recorder, RecorderOptions,
-    TruthSample, read_log,
+    Direction, LinkStatsRecord, PeerLinkStats, PositionEstimate, Recorder, RecorderOptions, TruthSample, read_log,
 };
 use cooploc::time::TimeUs;
 use mavlink_core::MavHeader;
@@ -77,7 +77,7 @@ fn python_mcap_reads_every_channel_kind() {
         nees: None,
         nees_dof: None,
     };
-    rec.coop_update(t0 + 12_000, &update).unwrap();
+    record_update(&mut rec, t0 + 12_000, &update).unwrap();
     let stats = LinkStatsRecord {
         sysid: 2,
         window_s: 1.0,

@@ -10,7 +10,7 @@ use crate::view::foxglove::{self as fx, ErrorJson, EstimateJson};
 
 /// Records what the ground station receives on the cooperative network and what it shows.
 pub struct RecorderSink {
-    recorder: crate::node::runner::SharedRecorder,
+    recorder: crate::recording::SharedRecorder,
     /// Also the estimates' location, pose and ellipse (off when the nodes write theirs into the
     /// same log, as in `cooploc demo`).
     estimate_views: bool,
@@ -18,13 +18,13 @@ pub struct RecorderSink {
 
 impl RecorderSink {
     /// The ground station's own log: everything it receives and shows.
-    pub fn new(recorder: crate::node::runner::SharedRecorder) -> Self {
+    pub fn new(recorder: crate::recording::SharedRecorder) -> Self {
         RecorderSink { recorder, estimate_views: true }
     }
 
     /// A log the nodes write too (their estimates' location, pose and ellipse): the station adds
     /// its frames, the truth, the estimates' JSON, the errors and the health.
-    pub fn beside_nodes(recorder: crate::node::runner::SharedRecorder) -> Self {
+    pub fn beside_nodes(recorder: crate::recording::SharedRecorder) -> Self {
         RecorderSink { recorder, estimate_views: false }
     }
 }

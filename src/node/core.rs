@@ -78,6 +78,7 @@
 
 use std::collections::{BTreeMap, BTreeSet, VecDeque};
 
+use super::log::{CoopUpdateRecord, RangeRecord};
 use crate::estimation::ci::ci_update;
 use crate::estimation::ins::{InsConfig, InsInitialSigma};
 use crate::estimation::nav::{Drive, NavFilter, NavModel, NavState};
@@ -90,7 +91,6 @@ use crate::protocol::dialect::cooploc::{MavCmd, MavResult};
 use crate::protocol::fragment::{Payload, Pushed, Reassembler, fragment};
 use crate::protocol::record::{self, Encoding, FLAG_FRESH, StateRecord};
 use crate::protocol::wire::{self, EpochState};
-use crate::recording::{CoopUpdateRecord, RangeRecord};
 use crate::time::TimeUs;
 
 /// How a node runs.

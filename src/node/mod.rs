@@ -14,6 +14,7 @@ pub mod autopilot;
 pub mod coop_link;
 pub mod core;
 pub mod inputs;
+pub mod log;
 pub mod peers;
 pub mod profile;
 pub mod runner;

@@ -38,44 +38,15 @@ use crate::protocol::MavMessage;
 use crate::protocol::dialect::cooploc::{MavAutopilot, MavType};
 use crate::protocol::signing::{Signer, SigningCounters, TeamKey, Verifier};
 use crate::protocol::wire;
-use crate::recording::{Direction, Link, Recorder, wall_now_ns};
+use crate::recording::{Direction, Link, wall_now_ns};
 use crate::time::TimeUs;
 use mavlink_core::MavHeader;
 
+pub use super::log::{
+    NODE_EVENT_SCHEMA, NODE_EVENT_SCHEMA_NAME, NodeEvent, events_topic, metadata_name, node_metadata, vehicle_attachment_name,
+};
 pub use crate::protocol::wire::COMPANION_COMPID;
-
-/// A recorder shared by the processes of one log (the demo puts every node and the ground station
-/// in one file).
-pub type SharedRecorder = Arc<std::sync::Mutex<Recorder>>;
-
-/// Topic of the node's own events (clock ticks given to the core, end of input), in JSON: with
-/// the raw frames they let `cooploc replay` call the core exactly as the node did.
-pub fn events_topic(id: PlatformId) -> String {
-    format!("/vehicle_{id}/node/events")
-}
-
-/// Schema name of [`NodeEvent`] records.
-pub const NODE_EVENT_SCHEMA_NAME: &str = "cooploc.NodeEvent";
-/// JSON schema of [`NodeEvent`].
-pub const NODE_EVENT_SCHEMA: &str = r#"{"type":"object","title":"cooploc.NodeEvent","properties":{"kind":{"type":"string","enum":["poll","end_of_input","run_pending","init"]},"wall_us":{"type":"integer"},"t0_us":{"type":"integer"},"origin":{"type":"array","items":{"type":"number"},"description":"latitude, longitude (deg) and altitude (m) of the origin, when it came from the vehicle"}},"required":["kind"]}"#;
-
-/// One call the runner made on its core other than `handle` (whose inputs are the frames).
-#[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
-#[serde(tag = "kind", rename_all = "snake_case")]
-pub enum NodeEvent {
-    Poll {
-        wall_us: u64,
-    },
-    EndOfInput,
-    RunPending,
-    /// The core was created at `t0_us` (from the SIM_STATE frame last recorded, when the
-    /// metadata says so), about the vehicle's origin when it came from the vehicle.
-    Init {
-        t0_us: u64,
-        #[serde(default, skip_serializing_if = "Option::is_none")]
-        origin: Option<[f64; 3]>,
-    },
-}
+pub use crate::recording::SharedRecorder;
 
 fn record_event(rec: &Option<SharedRecorder>, id: PlatformId, event: &NodeEvent) {
     if let Some(r) = rec
@@ -93,47 +64,6 @@ fn record_frame(rec: &Option<SharedRecorder>, link: Link, dir: Direction, bytes:
         let _ = r.frame(link, dir, wall_now_ns(), bytes);
         let _ = r.maybe_flush(std::time::Instant::now());
     }
-}
-
-/// Name of the attachment holding node `id`'s vehicle profile in a log.
-pub fn vehicle_attachment_name(id: PlatformId) -> String {
-    format!("vehicle.{id}.toml")
-}
-
-/// Name of the metadata record describing node `id` in a log.
-pub fn metadata_name(id: PlatformId) -> String {
-    format!("cooploc.node.{id}")
-}
-
-/// What a log must hold to rebuild node `cfg`'s core (`cooploc replay`): the configuration and
-/// how it started (the INS settings come from the scenario, attached to the log).
-pub fn node_metadata(cfg: &NodeConfig, init: Option<(TimeUs, &InsState)>) -> std::collections::BTreeMap<String, String> {
-    let mut m = std::collections::BTreeMap::new();
-    m.insert("id".into(), cfg.id.to_string());
-    m.insert("method".into(), cfg.method.short_name().into());
-    m.insert("model".into(), cfg.model.name().into());
-    m.insert("encoding".into(), cfg.encoding.name().to_string());
-    m.insert("team".into(), cfg.team.iter().map(|p| p.to_string()).collect::<Vec<_>>().join(","));
-    m.insert("epoch_timeout_us".into(), cfg.epoch_timeout_us.to_string());
-    m.insert("retry_us".into(), cfg.retry_us.to_string());
-    m.insert("history_us".into(), cfg.history_us.to_string());
-    m.insert("max_lag_us".into(), cfg.max_lag_us.to_string());
-    m.insert("range_grace_us".into(), cfg.range_grace_us.to_string());
-    m.insert("max_lead_us".into(), cfg.max_lead_us.to_string());
-    m.insert("gate_probability".into(), format!("{:e}", cfg.gate_probability));
-    m.insert("independent_start".into(), cfg.independent_start.to_string());
-    m.insert("echo_ranges".into(), cfg.echo_ranges.to_string());
-    match init {
-        Some((t0, state)) => {
-            m.insert("init".into(), "state".into());
-            m.insert("t0_us".into(), t0.0.to_string());
-            m.insert("initial_state".into(), serde_json::to_string(state).unwrap_or_default());
-        }
-        None => {
-            m.insert("init".into(), "sim_state".into());
-        }
-    }
-    m
 }
 
 /// How the node gets its initial state.
@@ -348,7 +278,7 @@ async fn send_all(
                 if let Some(r) = rec
                     && let Ok(mut r) = r.lock()
                 {
-                    let _ = r.coop_update(wall_now_ns(), &u);
+                    let _ = super::log::record_update(&mut r, wall_now_ns(), &u);
                 }
             }
         }

@@ -18,7 +18,6 @@ use super::dialect::cooploc::{
 };
 use super::fragment::{FRAGMENT_DATA, Fragment, Payload};
 use crate::estimation::{ImuSample, Method, OdometerSample, PlatformId, RangeSample};
-use crate::sitl::TruthState;
 use crate::time::TimeUs;
 
 /// A message from the wire that cannot be used.
@@ -787,49 +786,9 @@ pub fn odometer_as_sent(s: &OdometerSample) -> OdometerSample {
 
 // ---- geodetic position and simulator truth ----
 
-/// Equatorial radius of WGS-84, m: the sphere of the flat-Earth approximation below.
-pub const EARTH_RADIUS_M: f64 = 6_378_137.0;
-
-/// Where the origin of the local NED frame sits on the Earth. The simulated world is a flat
-/// tangent plane; positions go on the wire as latitude and longitude by the flat-Earth
-/// (equirectangular) approximation about this point, which is exact to well under a centimetre
-/// over the few kilometres of a scenario (the error grows as distance^2 / R).
-#[derive(Debug, Clone, Copy, PartialEq)]
-pub struct GeoOrigin {
-    pub lat_deg: f64,
-    pub lon_deg: f64,
-    /// Altitude of the NED origin (D = 0), m above the reference.
-    pub alt_m: f64,
-}
-
-/// A geodetic position: degrees and metres (altitude up).
-#[derive(Debug, Clone, Copy, PartialEq)]
-pub struct Geodetic {
-    pub lat_deg: f64,
-    pub lon_deg: f64,
-    pub alt_m: f64,
-}
-
-/// Local NED (m) to latitude, longitude (wrapped to [-180, 180)) and altitude.
-pub fn ned_to_geodetic(origin: &GeoOrigin, pos_ned_m: &Vector3<f64>) -> Geodetic {
-    let lat_deg = origin.lat_deg + (pos_ned_m[0] / EARTH_RADIUS_M).to_degrees();
-    let lon_deg = origin.lon_deg + (pos_ned_m[1] / (EARTH_RADIUS_M * origin.lat_deg.to_radians().cos())).to_degrees();
-    Geodetic { lat_deg, lon_deg: wrap_lon_deg(lon_deg), alt_m: origin.alt_m - pos_ned_m[2] }
-}
-
-/// Inverse of [`ned_to_geodetic`] (the longitude difference is taken the short way round).
-pub fn geodetic_to_ned(origin: &GeoOrigin, g: &Geodetic) -> Vector3<f64> {
-    let dlon = wrap_lon_deg(g.lon_deg - origin.lon_deg);
-    Vector3::new(
-        (g.lat_deg - origin.lat_deg).to_radians() * EARTH_RADIUS_M,
-        dlon.to_radians() * EARTH_RADIUS_M * origin.lat_deg.to_radians().cos(),
-        origin.alt_m - g.alt_m,
-    )
-}
-
-fn wrap_lon_deg(lon: f64) -> f64 {
-    (lon + 180.0).rem_euclid(360.0) - 180.0
-}
+// The team's origin and the NED <-> geodetic conversion live in [`crate::geodesy`]; the wire
+// conversions below use them (and callers may name them from here).
+pub use crate::geodesy::{EARTH_RADIUS_M, GeoOrigin, Geodetic, geodetic_to_ned, ned_to_geodetic};
 
 /// Degrees as MAVLink's `degE7` integer (rounded; saturates outside the i32 range).
 pub fn deg_to_e7(deg: f64) -> i32 {
@@ -840,19 +799,31 @@ pub fn e7_to_deg(v: i32) -> f64 {
     v as f64 * 1e-7
 }
 
+/// A vehicle's true motion, as SIM_STATE carries it (a simulator fills it from its world).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct TrueMotion {
+    pub pos_ned_m: Vector3<f64>,
+    pub vel_ned_m_s: Vector3<f64>,
+    /// Body (FRD) to NED rotation.
+    pub attitude: nalgebra::UnitQuaternion<f64>,
+    /// Kinematic acceleration in the body frame (FRD), m/s^2, gravity not included.
+    pub body_accel_m_s2: Vector3<f64>,
+    /// Angular rate relative to the Earth in the body frame, rad/s.
+    pub body_rate_rad_s: Vector3<f64>,
+}
+
 /// Simulator truth as SIM_STATE: attitude quaternion (body FRD to NED, q1 = w) and Euler angles,
 /// position as latitude/longitude (both the float and the 1e-7 deg integer fields) and altitude,
-/// NED velocity, and body-frame specific force and angular rate relative to the Earth
-/// (`[a_long, v r, -g]` and `[0, 0, r]` on level ground: the vehicle's own motion, without the
-/// Earth-rate term the IMU senses). Standard deviations are zero: this is the truth.
-pub fn truth_to_sim_state(truth: &TruthState, origin: &GeoOrigin, gravity_m_s2: f64) -> MavMessage {
+/// NED velocity, and body-frame specific force (the kinematic acceleration minus gravity) and
+/// angular rate relative to the Earth (the vehicle's own motion, without the Earth-rate term the
+/// IMU senses). Standard deviations are zero: this is the truth.
+pub fn truth_to_sim_state(truth: &TrueMotion, origin: &GeoOrigin, gravity_m_s2: f64) -> MavMessage {
     let q = truth.attitude.quaternion();
     let (roll, pitch, yaw) = truth.attitude.euler_angles();
     let g = ned_to_geodetic(origin, &truth.pos_ned_m);
     let v = truth.vel_ned_m_s;
-    // Specific force in body FRD: kinematic acceleration minus gravity, both rotated into the body.
-    let a_body = Vector3::new(truth.accel_m_s2, truth.speed_m_s * truth.yaw_rate_rad_s, 0.0);
-    let f_body = a_body - truth.attitude.inverse_transform_vector(&Vector3::new(0.0, 0.0, gravity_m_s2));
+    let f_body = truth.body_accel_m_s2 - truth.attitude.inverse_transform_vector(&Vector3::new(0.0, 0.0, gravity_m_s2));
+    let w = truth.body_rate_rad_s;
     MavMessage::SIM_STATE(SIM_STATE_DATA {
         q1: q.w as f32,
         q2: q.i as f32,
@@ -864,9 +835,9 @@ pub fn truth_to_sim_state(truth: &TruthState, origin: &GeoOrigin, gravity_m_s2: 
         xacc: f_body[0] as f32,
         yacc: f_body[1] as f32,
         zacc: f_body[2] as f32,
-        xgyro: 0.0,
-        ygyro: 0.0,
-        zgyro: truth.yaw_rate_rad_s as f32,
+        xgyro: w[0] as f32,
+        ygyro: w[1] as f32,
+        zgyro: w[2] as f32,
         lat: g.lat_deg as f32,
         lon: g.lon_deg as f32,
         alt: g.alt_m as f32,

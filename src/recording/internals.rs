@@ -1,5 +1,5 @@
-//! Filter internals and link statistics: the JSON payloads of `/vehicle_<id>/internals` and
-//! `/links/stats`, with their JSON schemas.
+//! Link statistics: the JSON payload of `/links/stats`, with its JSON schema. (A node's filter
+//! internals, `/vehicle_<id>/internals`, are the node's: [`crate::node::log`].)
 //!
 //! The structs are plain serde types: the recorder serializes them, the ground station and the
 //! replay deserialize the same types. Every field is always present (an absent optional value
@@ -8,50 +8,8 @@
 
 use serde::{Deserialize, Serialize};
 
-/// Schema name of `/vehicle_<id>/internals`.
-pub const COOP_UPDATE_SCHEMA_NAME: &str = "cooploc.CoopUpdate";
 /// Schema name of `/links/stats`.
 pub const LINK_STATS_SCHEMA_NAME: &str = "cooploc.LinkStats";
-
-/// One range of a cooperative update.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-pub struct RangeRecord {
-    /// Platform (system) id that measured.
-    pub from: u16,
-    /// Platform id that was ranged.
-    pub to: u16,
-    pub range_m: f64,
-    pub sigma_m: f64,
-}
-
-/// One cooperative (joint) update, as the vehicle `vehicle` ran it.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-pub struct CoopUpdateRecord {
-    /// Platform id of the vehicle whose node ran the update.
-    pub vehicle: u16,
-    /// Ranging epoch.
-    pub epoch: u32,
-    /// Filter time of the epoch, us (the vehicle's clock).
-    pub t_us: u64,
-    /// Platform ids of the participants, in broadcast order (the joint state's order).
-    pub participants: Vec<u16>,
-    /// The ranges used.
-    pub ranges: Vec<RangeRecord>,
-    /// Innovation `z - h(x)` of the stacked measurement (one entry per scalar measurement, in the
-    /// order of `ranges` for range measurements), m.
-    pub innovation: Vec<f64>,
-    /// Square roots of the diagonal of the innovation covariance `S`, same order, m.
-    pub innovation_sigma: Vec<f64>,
-    /// Normalised innovation squared `r^T S^-1 r`.
-    pub nis: f64,
-    /// Its degrees of freedom (the number of scalar measurements).
-    pub nis_dof: u32,
-    /// Normalised estimation error squared of this vehicle's position after the update, when the
-    /// truth is known (simulation).
-    pub nees: Option<f64>,
-    /// Degrees of freedom of `nees`.
-    pub nees_dof: Option<u32>,
-}
 
 /// Traffic with one peer over the last statistics window.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -79,42 +37,6 @@ pub struct LinkStatsRecord {
     pub window_s: f64,
     pub peers: Vec<PeerLinkStats>,
 }
-
-/// JSON schema (draft 2020-12) of [`CoopUpdateRecord`].
-pub const COOP_UPDATE_SCHEMA: &str = r##"{
-  "$schema": "https://json-schema.org/draft/2020-12/schema",
-  "title": "cooploc.CoopUpdate",
-  "description": "One cooperative (joint) update of a cooploc node",
-  "type": "object",
-  "properties": {
-    "vehicle": {"type": "integer", "minimum": 0, "maximum": 65535, "description": "platform id of the vehicle whose node ran the update"},
-    "epoch": {"type": "integer", "minimum": 0, "description": "ranging epoch"},
-    "t_us": {"type": "integer", "minimum": 0, "description": "filter time of the epoch, us"},
-    "participants": {"type": "array", "items": {"type": "integer", "minimum": 0, "maximum": 65535}, "description": "platform ids in broadcast order"},
-    "ranges": {
-      "type": "array",
-      "items": {
-        "type": "object",
-        "properties": {
-          "from": {"type": "integer", "minimum": 0, "maximum": 65535},
-          "to": {"type": "integer", "minimum": 0, "maximum": 65535},
-          "range_m": {"type": "number"},
-          "sigma_m": {"type": "number"}
-        },
-        "required": ["from", "to", "range_m", "sigma_m"],
-        "additionalProperties": false
-      }
-    },
-    "innovation": {"type": "array", "items": {"type": "number"}, "description": "z - h(x) of the stacked measurement, m"},
-    "innovation_sigma": {"type": "array", "items": {"type": "number"}, "description": "sqrt(diag S), m"},
-    "nis": {"type": "number", "description": "normalised innovation squared"},
-    "nis_dof": {"type": "integer", "minimum": 0},
-    "nees": {"type": ["number", "null"], "description": "NEES of the own position when the truth is known"},
-    "nees_dof": {"type": ["integer", "null"], "minimum": 0}
-  },
-  "required": ["vehicle", "epoch", "t_us", "participants", "ranges", "innovation", "innovation_sigma", "nis", "nis_dof", "nees", "nees_dof"],
-  "additionalProperties": false
-}"##;
 
 /// JSON schema (draft 2020-12) of [`LinkStatsRecord`].
 pub const LINK_STATS_SCHEMA: &str = r##"{
@@ -151,6 +73,7 @@ pub const LINK_STATS_SCHEMA: &str = r##"{
 #[cfg(test)]
 pub(crate) mod tests {
     use super::*;
+    use crate::node::log::{COOP_UPDATE_SCHEMA, CoopUpdateRecord, RangeRecord};
     use serde_json::Value;
 
     pub(crate) fn sample_update() -> CoopUpdateRecord {

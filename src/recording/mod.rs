@@ -37,7 +37,7 @@
 //! | `/vehicle_<id>/truth` | `protobuf` | `foxglove.LocationFix` (`protobuf`) | truth (simulation): lat/lon/alt |
 //! | `/vehicle_<id>/truth_pose` | `protobuf` | `foxglove.PoseInFrame` (`protobuf`) | truth: NED position and yaw in frame `ned` |
 //! | `/tf` | `protobuf` | `foxglove.FrameTransform` (`protobuf`) | the fixed transform `world` (ENU, z up) -> `ned` |
-//! | `/vehicle_<id>/internals` | `json` | `cooploc.CoopUpdate` (`jsonschema`) | one cooperative update: [`CoopUpdateRecord`] |
+//! | `/vehicle_<id>/internals` | `json` | `cooploc.CoopUpdate` (`jsonschema`) | one cooperative update: [`crate::node::log::CoopUpdateRecord`] |
 //! | `/links/stats` | `json` | `cooploc.LinkStats` (`jsonschema`) | per-peer packet counts, loss, rates: [`LinkStatsRecord`] |
 //!
 //! **`mavlink.frame`** (an encoding of our own; MCAP has no registered MAVLink encoding): the
@@ -68,7 +68,11 @@ mod reader;
 mod writer;
 
 pub use crate::view::foxglove::{PositionEstimate, TruthSample};
-pub use internals::{CoopUpdateRecord, LinkStatsRecord, PeerLinkStats, RangeRecord};
+pub use internals::{LinkStatsRecord, PeerLinkStats};
+
+/// A recorder shared by the processes of one log (the demo puts every node and the ground station
+/// in one file).
+pub type SharedRecorder = std::sync::Arc<std::sync::Mutex<Recorder>>;
 pub use reader::{
     ChannelInfo, Log, LogEnd, LogIndex, LogReader, LoggedAttachment, LoggedMessage, LoggedMetadata, ReadError, ReadOptions,
     SchemaInfo, read_index, read_log, read_log_from,
@@ -160,7 +164,7 @@ pub mod topics {
     }
     /// The team's health, once a second ([`crate::view::health::HealthView`]).
     pub const HEALTH: &str = "/team/health";
-    /// `/vehicle_<id>/internals`: one JSON [`crate::recording::CoopUpdateRecord`] per update.
+    /// `/vehicle_<id>/internals`: one JSON [`crate::node::log::CoopUpdateRecord`] per update.
     pub fn internals(id: u16) -> String {
         format!("/vehicle_{id}/internals")
     }

@@ -18,9 +18,7 @@ use mcap::records::MessageHeader;
 use mcap::write::NoSeek;
 use serde::Serialize;
 
-use super::internals::{
-    COOP_UPDATE_SCHEMA, COOP_UPDATE_SCHEMA_NAME, CoopUpdateRecord, LINK_STATS_SCHEMA, LINK_STATS_SCHEMA_NAME, LinkStatsRecord,
-};
+use super::internals::{LINK_STATS_SCHEMA, LINK_STATS_SCHEMA_NAME, LinkStatsRecord};
 use super::{DIALECT, Direction, FORMAT_VERSION, LOG_METADATA_NAME, Link, MAVLINK_FRAME_ENCODING, topics, wall_now_ns};
 use crate::protocol::wire::GeoOrigin;
 use crate::view::foxglove::{self as fx, PositionEstimate, TruthSample};
@@ -260,12 +258,6 @@ impl<W: Write> Recorder<W> {
         let pose = fx::pose_in_ned(&truth.pos_ned_m, truth.yaw_rad, wall_ns);
         self.foxglove_unflushed(&topics::truth_pose(id), wall_ns, &pose)?;
         self.after_write()
-    }
-
-    /// Records one cooperative update on `/vehicle_<update.vehicle>/internals`.
-    pub fn coop_update(&mut self, wall_ns: u64, update: &CoopUpdateRecord) -> Result<(), RecordError> {
-        let topic = topics::internals(update.vehicle);
-        self.json_message(&topic, COOP_UPDATE_SCHEMA_NAME, COOP_UPDATE_SCHEMA, wall_ns, update)
     }
 
     /// Records the process's link statistics on `/links/stats`.

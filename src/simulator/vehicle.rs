@@ -357,7 +357,16 @@ impl VehicleCore {
     }
 
     fn sim_state(&self, t: TimeUs, truth: &Trajectory) -> MavMessage {
-        wire::truth_to_sim_state(&truth.truth_at(t), &self.config.origin, self.config.gravity_m_s2)
+        let tr = truth.truth_at(t);
+        // On level ground: forward acceleration, the turn's centripetal term, a yaw rate.
+        let motion = wire::TrueMotion {
+            pos_ned_m: tr.pos_ned_m,
+            vel_ned_m_s: tr.vel_ned_m_s,
+            attitude: tr.attitude,
+            body_accel_m_s2: nalgebra::Vector3::new(tr.accel_m_s2, tr.speed_m_s * tr.yaw_rate_rad_s, 0.0),
+            body_rate_rad_s: nalgebra::Vector3::new(0.0, 0.0, tr.yaw_rate_rad_s),
+        };
+        wire::truth_to_sim_state(&motion, &self.config.origin, self.config.gravity_m_s2)
     }
 
     /// Earliest simulated time at which a clock-driven message (HEARTBEAT, SIM_STATE) is due.
