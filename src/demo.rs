@@ -66,7 +66,7 @@ pub async fn run_demo(cfg: DemoConfig, ready: impl FnOnce(&DemoAddresses)) -> an
     let toml = std::fs::read(&cfg.scenario).with_context(|| format!("reading {}", cfg.scenario.display()))?;
     let mut scenario = Scenario::from_toml_str(std::str::from_utf8(&toml).context("the scenario is not UTF-8")?)?;
     if let Some(d) = cfg.duration_s {
-        anyhow::ensure!(d.is_finite() && d > 0.0, "--duration-s must be a positive number of seconds, got {d}");
+        anyhow::ensure!(d.is_finite() && d > 0.0, "the duration must be a positive number of seconds, got {d}");
         scenario.duration_s = scenario.duration_s.min(d);
         for schedule in &mut scenario.ranging.schedules {
             if let Some(at) = &mut schedule.at_s {
@@ -78,7 +78,7 @@ pub async fn run_demo(cfg: DemoConfig, ready: impl FnOnce(&DemoAddresses)) -> an
     let world = World::new(&scenario)?;
     let schedule = match cfg.schedule.clone() {
         Some(s) => {
-            scenario.range_epochs(&s).context("--schedule")?;
+            scenario.range_epochs(&s).with_context(|| format!("ranging schedule {s:?}"))?;
             s
         }
         None => scenario.ranging.schedules.first().map(|s| s.name.clone()).context("the scenario has no ranging schedule")?,

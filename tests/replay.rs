@@ -16,23 +16,8 @@ use cooploc::replay::{RUN_METADATA_NAME, compare_methods, replay_nodes, world_of
 const METHODS: [Method; 5] =
     [Method::DeadReckoning, Method::NoPropagation, Method::Decentralized, Method::Centralized, Method::CovarianceIntersection];
 
-/// What `cooploc demo` writes by default, `logs/demo-<seed>-<run>.mcap` (ignored by git, like
-/// in .gitignore): a user who ran the README's first command has one, and it is not a golden log.
-fn demo_default(p: &Path) -> bool {
-    let stem = p.file_stem().and_then(|s| s.to_str()).unwrap_or("");
-    let parts: Vec<&str> = stem.split('-').collect();
-    parts.len() == 3 && parts[0] == "demo" && parts[1..].iter().all(|x| !x.is_empty() && x.bytes().all(|b| b.is_ascii_digit()))
-}
-
 fn committed_logs() -> Vec<PathBuf> {
-    let dir = Path::new(env!("CARGO_MANIFEST_DIR")).join("logs");
-    let mut logs: Vec<PathBuf> = std::fs::read_dir(&dir)
-        .unwrap()
-        .map(|e| e.unwrap().path())
-        .filter(|p| p.extension().is_some_and(|e| e == "mcap"))
-        .filter(|p| !demo_default(p))
-        .collect();
-    logs.sort();
+    let logs = common::committed_logs(&Path::new(env!("CARGO_MANIFEST_DIR")).join("logs"));
     assert!(logs.len() >= 2, "logs/ should hold the demo's logs");
     logs
 }

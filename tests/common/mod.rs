@@ -86,3 +86,24 @@ impl Drop for Kill {
         }
     }
 }
+
+/// What `cooploc demo` writes by default, `logs/demo-<seed>-<run>.mcap` (ignored by git, like
+/// in .gitignore): a user who ran the README's first command has one, and it is not a golden log.
+pub fn demo_default(p: &std::path::Path) -> bool {
+    let stem = p.file_stem().and_then(|s| s.to_str()).unwrap_or("");
+    let parts: Vec<&str> = stem.split('-').collect();
+    parts.len() == 3 && parts[0] == "demo" && parts[1..].iter().all(|x| !x.is_empty() && x.bytes().all(|b| b.is_ascii_digit()))
+}
+
+/// The logs of `dir` (logs/) that the replay tests hold to their golden summaries: every
+/// `.mcap` there but the demo's default output, sorted.
+pub fn committed_logs(dir: &std::path::Path) -> Vec<std::path::PathBuf> {
+    let mut logs: Vec<std::path::PathBuf> = std::fs::read_dir(dir)
+        .unwrap()
+        .map(|e| e.unwrap().path())
+        .filter(|p| p.extension().is_some_and(|e| e == "mcap"))
+        .filter(|p| !demo_default(p))
+        .collect();
+    logs.sort();
+    logs
+}

@@ -35,6 +35,11 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     if !(args.speed.is_finite() && args.speed > 0.0) {
         bail!("--speed must be a positive number, got {}", args.speed);
     }
+    if let Some(d) = args.duration_s
+        && !(d.is_finite() && d > 0.0)
+    {
+        bail!("--duration-s must be a positive number of seconds, got {d}");
+    }
     let log = args.log.clone().unwrap_or_else(|| PathBuf::from(format!("logs/demo-{}-{}.mcap", args.sim.seed, args.sim.run)));
     let cfg = DemoConfig {
         scenario: args.sim.scenario.clone(),
