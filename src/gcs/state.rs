@@ -31,6 +31,7 @@ use super::link::{LinkStats, RateWindow, SourceKey};
 use super::{GCS_COMPID, GCS_SYSID, GcsEvent, Link, TruthPoint, WallNs};
 use crate::estimation::PlatformId;
 use crate::protocol::MavMessage;
+use crate::protocol::coop::CoopMessage;
 use crate::protocol::signing::{SigningCounters, TeamKey, Verifier};
 use crate::protocol::wire::{self, EstimateReport, GeoOrigin};
 use crate::time::TimeUs;
@@ -408,77 +409,40 @@ impl GcsState {
     }
 
     fn on_coop_message(&mut self, rx: WallNs, sysid: u32, message: MavMessage, events: &mut Vec<GcsEvent>) {
-        match &message {
-            MavMessage::COOPLOC_ESTIMATE(m) => match wire::estimate_from_message(m) {
-                Ok(report) if u32::from(report.platform) != sysid => self.reject(
-                    rx,
-                    Link::Coop,
-                    format!("COOPLOC_ESTIMATE.platform {} from system {sysid}", report.platform),
-                    events,
-                ),
-                Ok(report) => self.on_estimate(rx, report, events),
-                Err(e) => self.reject(rx, Link::Coop, e.to_string(), events),
-            },
-            MavMessage::COOPLOC_RANGE(m) => match wire::range_from_message(m) {
-                Ok((_, range)) if u32::from(range.from) != sysid => self.reject(
-                    rx,
-                    Link::Coop,
-                    format!("COOPLOC_RANGE from platform {} sent by system {sysid}", range.from),
-                    events,
-                ),
-                Ok((epoch, range)) => {
-                    if self.admit(range.from) {
-                        self.vehicle(range.from).counts.ranges += 1;
-                        events.push(GcsEvent::Range { rx, epoch, range });
-                    }
+        let Some(decoded) = CoopMessage::decode(&message) else { return };
+        let m = match decoded {
+            Ok(m) => m,
+            Err(e) => return self.reject(rx, Link::Coop, e.to_string(), events),
+        };
+        if u32::from(m.claimed_sender()) != sysid {
+            let reason = format!("{} of platform {} sent by system {sysid}", m.kind().name(), m.claimed_sender());
+            return self.reject(rx, Link::Coop, reason, events);
+        }
+        match m {
+            CoopMessage::Estimate(report) => self.on_estimate(rx, report, events),
+            CoopMessage::Range { epoch, range } => {
+                if self.admit(range.from) {
+                    self.vehicle(range.from).counts.ranges += 1;
+                    events.push(GcsEvent::Range { rx, epoch, range });
                 }
-                Err(e) => self.reject(rx, Link::Coop, e.to_string(), events),
-            },
-            MavMessage::COOPLOC_EPOCH(m) => match wire::epoch_from_message(m) {
-                Ok(a) if u32::from(a.announcer) != sysid => self.reject(
-                    rx,
-                    Link::Coop,
-                    format!("COOPLOC_EPOCH of platform {} sent by system {sysid}", a.announcer),
-                    events,
-                ),
-                Ok(announcement) => {
-                    if self.admit(announcement.announcer) {
-                        self.vehicle(announcement.announcer).counts.epochs += 1;
-                        self.tally.on_epoch(&announcement);
-                        events.push(GcsEvent::Epoch { rx, announcement });
-                    }
+            }
+            CoopMessage::Epoch(announcement) => {
+                if self.admit(announcement.announcer) {
+                    self.vehicle(announcement.announcer).counts.epochs += 1;
+                    self.tally.on_epoch(&announcement);
+                    events.push(GcsEvent::Epoch { rx, announcement });
                 }
-                Err(e) => self.reject(rx, Link::Coop, e.to_string(), events),
-            },
-            MavMessage::COOPLOC_STATE_FRAGMENT(m) => match wire::fragment_from_message(m) {
-                Ok(f) if u32::from(f.platform) != sysid => self.reject(
-                    rx,
-                    Link::Coop,
-                    format!("COOPLOC_STATE_FRAGMENT of platform {} sent by system {sysid}", f.platform),
-                    events,
-                ),
-                Ok(f) => {
-                    if self.admit(f.platform) {
-                        self.vehicle(f.platform).counts.state_fragments += 1;
-                    }
+            }
+            CoopMessage::StateFragment(f) => {
+                if self.admit(f.platform) {
+                    self.vehicle(f.platform).counts.state_fragments += 1;
                 }
-                Err(e) => self.reject(rx, Link::Coop, e.to_string(), events),
-            },
-            MavMessage::COOPLOC_STORE_FRAGMENT(m) => match wire::store_fragment_from_message(m) {
-                Ok(f) if u32::from(f.platform) != sysid => self.reject(
-                    rx,
-                    Link::Coop,
-                    format!("COOPLOC_STORE_FRAGMENT of platform {} sent by system {sysid}", f.platform),
-                    events,
-                ),
-                Ok(f) => {
-                    if self.admit(f.platform) {
-                        self.vehicle(f.platform).counts.store_fragments += 1;
-                    }
+            }
+            CoopMessage::StoreFragment(f) => {
+                if self.admit(f.platform) {
+                    self.vehicle(f.platform).counts.store_fragments += 1;
                 }
-                Err(e) => self.reject(rx, Link::Coop, e.to_string(), events),
-            },
-            _ => {}
+            }
         }
     }
 

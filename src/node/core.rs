@@ -87,6 +87,7 @@ use crate::estimation::{
     OdometerSample, PlatformFilter, PlatformId, RangeSample, StoreRef, UpdateOptions, WheelSample, cooperative_update_with,
 };
 use crate::protocol::MavMessage;
+use crate::protocol::coop::{CoopKind, CoopMessage};
 use crate::protocol::dialect::cooploc::{MavCmd, MavResult};
 use crate::protocol::fragment::{Payload, Pushed, Reassembler, fragment};
 use crate::protocol::record::{self, Encoding, FLAG_FRESH, StateRecord};
@@ -986,17 +987,17 @@ impl NodeCore {
     }
 
     /// A fragment that parsed and claims its sender's platform, else counted as rejected.
+    /// A fragment from `from`, if it is that platform's (counted as rejected otherwise).
     fn fragment_of(
         &mut self,
         from: PlatformId,
-        parsed: Result<crate::protocol::fragment::Fragment, wire::WireError>,
+        f: crate::protocol::fragment::Fragment,
     ) -> Option<crate::protocol::fragment::Fragment> {
-        match parsed {
-            Ok(f) if f.platform == from => Some(f),
-            _ => {
-                self.stats.fragments_rejected += 1;
-                None
-            }
+        if f.platform == from {
+            Some(f)
+        } else {
+            self.stats.fragments_rejected += 1;
+            None
         }
     }
 
@@ -1005,24 +1006,34 @@ impl NodeCore {
             self.estimate_request(from, command, asks, out);
             return;
         }
-        let cooploc = matches!(
-            msg,
-            MavMessage::COOPLOC_STATE_FRAGMENT(_)
-                | MavMessage::COOPLOC_STORE_FRAGMENT(_)
-                | MavMessage::COOPLOC_RANGE(_)
-                | MavMessage::COOPLOC_EPOCH(_)
-        );
-        if !cooploc || from == self.cfg.id {
-            return; // heartbeats, estimates, ground stations; our own traffic looped back
+        // Heartbeats, estimates, ground stations' messages: nothing for the protocol.
+        let Some(decoded) = CoopMessage::decode(&msg) else { return };
+        let kind = match &decoded {
+            Ok(m) => m.kind(),
+            Err(e) => e.kind,
+        };
+        if kind == CoopKind::Estimate || from == self.cfg.id {
+            return; // estimates are for ground stations; our own traffic looped back
         }
         if !self.in_team(from) {
             self.stats.unknown_platforms += 1;
             return;
         }
         self.heard_at.insert(from, self.wall_us);
-        match msg {
-            MavMessage::COOPLOC_STATE_FRAGMENT(m) => {
-                let Some(f) = self.fragment_of(from, wire::fragment_from_message(&m)) else { return };
+        let m = match decoded {
+            Ok(m) => m,
+            Err(e) => {
+                match e.kind {
+                    CoopKind::StateFragment | CoopKind::StoreFragment => self.stats.fragments_rejected += 1,
+                    CoopKind::Range => self.stats.ranges_rejected += 1,
+                    CoopKind::Epoch | CoopKind::Estimate => {}
+                }
+                return;
+            }
+        };
+        match m {
+            CoopMessage::StateFragment(f) => {
+                let Some(f) = self.fragment_of(from, f) else { return };
                 match self.reassembler.push(&f) {
                     Pushed::Complete(rec) => match record::decode_record(rec.platform, TimeUs(rec.time_usec), &rec.bytes) {
                         Ok(r) if Self::plausible(&r) && r.ranges.iter().all(|x| self.in_team(x.to)) => {
@@ -1056,8 +1067,8 @@ impl NodeCore {
                 }
                 self.stats.records_incomplete += self.reassembler.take_dropped().len() as u64;
             }
-            MavMessage::COOPLOC_STORE_FRAGMENT(m) => {
-                let Some(f) = self.fragment_of(from, wire::store_fragment_from_message(&m)) else { return };
+            CoopMessage::StoreFragment(f) => {
+                let Some(f) = self.fragment_of(from, f) else { return };
                 // Only fragments of a store we asked for are kept (nobody can make us hold
                 // another's bytes).
                 if self.want_store.as_ref().is_none_or(|w| w.epoch != f.epoch || !w.members.contains(&from)) {
@@ -1073,16 +1084,16 @@ impl NodeCore {
                 }
                 self.store_reassembler.take_dropped();
             }
-            MavMessage::COOPLOC_RANGE(m) => match wire::range_from_message(&m) {
-                // The joint problem takes ranges from records; a peer's range only makes the
-                // epoch known early.
-                Ok((epoch, r)) if r.from == from && self.in_team(r.to) => {
+            // The joint problem takes ranges from records; a peer's range only makes the epoch
+            // known early.
+            CoopMessage::Range { epoch, range: r } => {
+                if r.from == from && self.in_team(r.to) {
                     self.learn_epoch(epoch, r.t);
+                } else {
+                    self.stats.ranges_rejected += 1;
                 }
-                Ok(_) | Err(_) => self.stats.ranges_rejected += 1,
-            },
-            MavMessage::COOPLOC_EPOCH(m) => {
-                let Ok(a) = wire::epoch_from_message(&m) else { return };
+            }
+            CoopMessage::Epoch(a) => {
                 if a.announcer != from {
                     return;
                 }
@@ -1124,7 +1135,7 @@ impl NodeCore {
                     self.resend(a.epoch, out);
                 }
             }
-            _ => {}
+            CoopMessage::Estimate(_) => {}
         }
     }
 

@@ -10,6 +10,7 @@
 
 pub mod budget;
 pub mod compact;
+pub mod coop;
 pub mod fragment;
 pub mod framing;
 pub mod record;
