@@ -15,6 +15,10 @@
 //!   interpolated linearly at the estimate's time, and the 3-D position NEES
 //!   `e^T P^-1 e`. Computed once the truth covers that time (bracketing samples at most
 //!   [`GcsConfig::max_truth_gap_us`] apart).
+//! - **Health** ([`GcsState::health`]): disagreements and healing from the COOPLOC_EPOCH
+//!   reports ([`crate::view::health::EpochTally`]), and per node its estimate rate, its bytes per
+//!   second against its share of `link_capacity_bytes_per_s`, its loss and whether its frames are
+//!   signed.
 //! - **Bad input** (a datagram without a valid frame, a message that fails the wire
 //!   validation, an estimate claiming another platform's id) is counted and dropped, never a
 //!   panic. A vehicle time that jumps back by more than [`GcsConfig::restart_us`] is a restarted

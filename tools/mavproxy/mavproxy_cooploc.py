@@ -245,6 +245,25 @@ def fmt_float(v):
     return "-" if isinstance(v, float) and math.isnan(v) else repr(v)
 
 
+class RecentFrames:
+    """The last ``size`` frame keys (hashes of their bytes), to take a frame that arrives on
+    several links once."""
+
+    def __init__(self, size):
+        self.order = collections.deque(maxlen=size)
+        self.keys = set()
+
+    def seen(self, key):
+        """True if ``key`` is among the last ``size`` keys; remembers it otherwise."""
+        if key in self.keys:
+            return True
+        if len(self.order) == self.order.maxlen:
+            self.keys.discard(self.order[0])
+        self.order.append(key)
+        self.keys.add(key)
+        return False
+
+
 class SeqLoss:
     """Frames received and lost (sequence gaps) of one source on one link."""
 
@@ -649,18 +668,11 @@ class TruthTrack:
         self.untimed = 0
         self.unavailable = 0
         self.dropped = 0
-        self.recent = collections.deque(maxlen=64)  # hashes of recent frames (another link's copy)
-        self.recent_set = set()
+        self.recent = RecentFrames(64)
 
     def seen_frame(self, key):
         """True if this frame (its bytes' hash) was seen lately (the same frame on another link)."""
-        if key in self.recent_set:
-            return True
-        if len(self.recent) == self.recent.maxlen:
-            self.recent_set.discard(self.recent[0])
-        self.recent.append(key)
-        self.recent_set.add(key)
-        return False
+        return self.recent.seen(key)
 
     def sim_state(self, ned):
         """A SIM_STATE's position; returns the errors it resolved (see :meth:`resolve`)."""
@@ -798,8 +810,7 @@ class VehicleView:
         self.bytes_rate = RateWindow()
         self.signed_rate = RateWindow()
         self.unsigned_rate = RateWindow()
-        self.recent_frames = collections.deque(maxlen=128)
-        self.recent_set = set()
+        self.recent_frames = RecentFrames(128)
         self.loss = {}              # MAVProxy link number -> SeqLoss of (id, 191)
         self.hb_time = None
         self.hb_type = None
@@ -818,13 +829,7 @@ class VehicleView:
 
     def seen_frame(self, key):
         """True if this frame (its bytes' hash) was seen lately on another link."""
-        if key in self.recent_set:
-            return True
-        if len(self.recent_frames) == self.recent_frames.maxlen:
-            self.recent_set.discard(self.recent_frames[0])
-        self.recent_frames.append(key)
-        self.recent_set.add(key)
-        return False
+        return self.recent_frames.seen(key)
 
     def signed_text(self, now):
         s, u = self.signed_rate.total(now), self.unsigned_rate.total(now)
