@@ -72,7 +72,7 @@ fn counts_to_string(c: &ImportCounts) -> BTreeMap<String, String> {
 /// estimates on the estimate channels (`/vehicle_<id>/pose`, `ellipse`, `location`), so that
 /// Foxglove shows them beside the truth. A replay reads only the inputs.
 pub fn write(ds: &Dataset, noise: &NoiseModel, path: &Path, view: Option<&Outcome>) -> Result<u64, DatasetLogError> {
-    let w = |e: crate::recording::RecordError| DatasetLogError::Write(e.to_string());
+    let w = |e: crate::recording::RecorderError| DatasetLogError::Write(e.to_string());
     let options = RecorderOptions { geo_origin: Some(UTIAS_ORIGIN), ..RecorderOptions::default() };
     let mut rec = Recorder::create(path, options).map_err(w)?;
     let robots: Vec<String> = ds.robots.iter().map(|r| r.id.to_string()).collect();

@@ -1,6 +1,6 @@
 //! The ground station's web server: `GET /` is one self-contained page (no CDN, no network: plain
 //! JavaScript and canvas, `page.html` next to this file), `GET /api/state` the JSON it polls
-//! ([`super::state::Snapshot`]).
+//! ([`super::state::StateJson`]).
 
 use std::sync::{Arc, Mutex};
 

@@ -11,14 +11,16 @@
 //!   statistics and [`GcsEvent`]s out. No sockets, no clock.
 //! - [`link`]: link statistics (sequence-gap loss, byte rate over a sliding window).
 //! - [`http`]: the web page (`GET /`) and its JSON (`GET /api/state`).
-//! - [`foxglove_live`]: the Foxglove live WebSocket server (well-known schemas per vehicle).
+//! - [`foxglove_live`]: the Foxglove live WebSocket server (the log's channels, built by
+//!   [`crate::view`]).
+//! - [`log`]: the station's MCAP log ([`RecorderSink`]), with the same channels.
 //! - [`runner`]: the tokio runner that owns the sockets and the timers and hands every
-//!   [`GcsEvent`] to each [`GcsSink`] (Foxglove now; the MCAP recorder can be another).
+//!   [`GcsEvent`] to each [`GcsSink`] (the Foxglove server, the log).
 
 pub mod foxglove_live;
 pub mod http;
 pub mod link;
-pub mod record;
+pub mod log;
 pub mod runner;
 pub mod state;
 
@@ -31,7 +33,7 @@ use crate::estimation::RangeSample;
 use crate::protocol::wire::{EpochAnnouncement, EstimateReport};
 use crate::time::TimeUs;
 pub use link::Link;
-pub use record::RecorderSink;
+pub use log::RecorderSink;
 use state::{Ellipse95, TruthError};
 
 /// MAVLink system id of the ground station (254 when another GCS already uses 255).

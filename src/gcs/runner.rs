@@ -16,7 +16,6 @@ use std::net::SocketAddr;
 use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant, SystemTime, UNIX_EPOCH};
 
-use anyhow::Context as _;
 use mavlink_core::{AsyncMavConnection, MAVLinkMessageRaw, MavHeader};
 use tokio::net::UdpSocket;
 
@@ -122,6 +121,19 @@ fn dispatch(sinks: &mut [Box<dyn GcsSink>], events: &[GcsEvent]) {
     }
 }
 
+/// Why the ground station could not start (each names the address or link at fault).
+#[derive(Debug, thiserror::Error)]
+pub enum GcsError {
+    #[error("binding the cooperative socket {addr}")]
+    Coop { addr: SocketAddr, source: std::io::Error },
+    #[error("binding the web server {addr}")]
+    Http { addr: SocketAddr, source: std::io::Error },
+    #[error("starting the Foxglove server on {addr}: {reason}")]
+    Foxglove { addr: SocketAddr, reason: String },
+    #[error("connecting to vehicle {id} at {url}")]
+    Vehicle { id: PlatformId, url: String, source: std::io::Error },
+}
+
 /// Runs the ground station until `shutdown` resolves (or the idle exit). `extra_sinks` receive
 /// every event besides the Foxglove server (the recorder's hook). `bound` receives the bound
 /// addresses once every server listens; `shared` is the state the web server reads.
@@ -131,7 +143,7 @@ pub async fn run(
     mut extra_sinks: Vec<Box<dyn GcsSink>>,
     bound: tokio::sync::oneshot::Sender<Bound>,
     shutdown: impl Future<Output = ()>,
-) -> anyhow::Result<GcsSummary> {
+) -> Result<GcsSummary, GcsError> {
     let clock = Clock::new();
     let origin = config.origin;
     let state = Arc::new(Mutex::new(GcsState::new(config)));
@@ -141,14 +153,14 @@ pub async fn run(
         lock().add_peer(*p);
     }
 
-    let coop =
-        UdpSocket::bind(links.coop_bind).await.with_context(|| format!("binding the cooperative socket {}", links.coop_bind))?;
-    let coop_addr = coop.local_addr()?;
+    let coop_err = |source| GcsError::Coop { addr: links.coop_bind, source };
+    let coop = UdpSocket::bind(links.coop_bind).await.map_err(coop_err)?;
+    let coop_addr = coop.local_addr().map_err(coop_err)?;
 
     // Web server.
-    let listener =
-        tokio::net::TcpListener::bind(links.http).await.with_context(|| format!("binding the web server {}", links.http))?;
-    let http_addr = listener.local_addr()?;
+    let http_err = |source| GcsError::Http { addr: links.http, source };
+    let listener = tokio::net::TcpListener::bind(links.http).await.map_err(http_err)?;
+    let http_addr = listener.local_addr().map_err(http_err)?;
     let (http_stop_tx, http_stop_rx) = tokio::sync::oneshot::channel::<()>();
     let app = super::http::router(state.clone(), clock);
     let http_task = tokio::spawn(async move {
@@ -172,7 +184,7 @@ pub async fn run(
             .bind(addr.ip().to_string(), addr.port())
             .start()
             .await
-            .with_context(|| format!("starting the Foxglove server on {addr}"))?;
+            .map_err(|e| GcsError::Foxglove { addr, reason: e.to_string() })?;
         let fox_addr = SocketAddr::new(addr.ip(), handle.port());
         sinks.push(Box::new(publisher));
         foxglove = Some((handle, fox_addr));
@@ -184,11 +196,11 @@ pub async fn run(
     let mut vehicle_conns = Vec::new();
     let mut readers = Vec::new();
     for (id, url) in &links.vehicles {
-        let conn = Arc::new(
-            mavlink_core::connect_async::<MavMessage>(url)
-                .await
-                .with_context(|| format!("connecting to vehicle {id} at {url}"))?,
-        );
+        let conn = Arc::new(mavlink_core::connect_async::<MavMessage>(url).await.map_err(|source| GcsError::Vehicle {
+            id: *id,
+            url: url.clone(),
+            source,
+        })?);
         let (id, reader_conn, vtx) = (*id, conn.clone(), vtx.clone());
         readers.push(tokio::spawn(async move {
             loop {

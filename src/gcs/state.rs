@@ -622,7 +622,7 @@ impl GcsState {
     }
 
     /// The JSON the web page polls. Series are thinned to at most `max_points` points each.
-    pub fn snapshot(&self, now: WallNs, max_points: usize) -> Snapshot {
+    pub fn snapshot(&self, now: WallNs, max_points: usize) -> StateJson {
         let since = |t: WallNs| now.0.saturating_sub(t.0) as f64 * 1e-9;
         let vehicles = self.vehicles.values().map(|v| vehicle_json(v, now, max_points)).collect();
         let links = self
@@ -644,7 +644,7 @@ impl GcsState {
                 messages: s.messages.iter().map(|(k, v)| (k.to_string(), *v)).collect(),
             })
             .collect();
-        Snapshot {
+        StateJson {
             gcs: GcsInfo {
                 sysid: GCS_SYSID,
                 compid: GCS_COMPID,
@@ -790,7 +790,7 @@ fn vehicle_json(v: &Vehicle, now: WallNs, max_points: usize) -> VehicleJson {
 // ---- the JSON of `GET /api/state` ----
 
 #[derive(Debug, Clone, Serialize)]
-pub struct Snapshot {
+pub struct StateJson {
     pub gcs: GcsInfo,
     pub origin: OriginJson,
     pub counters: GcsCounters,

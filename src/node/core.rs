@@ -986,7 +986,6 @@ impl NodeCore {
         rec.snapshot.validate().is_ok() && crate::estimation::kalman::is_psd(&rec.snapshot.covariance, 1e-6)
     }
 
-    /// A fragment that parsed and claims its sender's platform, else counted as rejected.
     /// A fragment from `from`, if it is that platform's (counted as rejected otherwise).
     fn fragment_of(
         &mut self,

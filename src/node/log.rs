@@ -173,7 +173,7 @@ pub fn record_update<W: std::io::Write>(
     rec: &mut crate::recording::Recorder<W>,
     wall_ns: u64,
     update: &CoopUpdateRecord,
-) -> Result<(), crate::recording::RecordError> {
+) -> Result<(), crate::recording::RecorderError> {
     rec.json_message(
         &crate::recording::topics::internals(update.vehicle),
         COOP_UPDATE_SCHEMA_NAME,

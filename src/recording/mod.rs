@@ -77,7 +77,7 @@ pub use reader::{
     ChannelInfo, Log, LogEnd, LogIndex, LogReader, LoggedAttachment, LoggedMessage, LoggedMetadata, ReadError, ReadOptions,
     SchemaInfo, read_index, read_log, read_log_from,
 };
-pub use writer::{RecordError, Recorder, RecorderOptions, RecorderStats};
+pub use writer::{Recorder, RecorderError, RecorderOptions, RecorderStats};
 
 pub use crate::protocol::wire::GeoOrigin;
 

@@ -283,7 +283,7 @@ fn bad_inputs_are_refused_and_the_recorder_goes_on() {
     let buf = SharedBuf::default();
     let mut rec = Recorder::new(buf.clone(), options()).unwrap();
     let err = rec.frame(Link::Coop(1), Direction::Rx, T0_NS, b"hello").unwrap_err();
-    assert!(matches!(err, RecordError::NotAFrame { .. }), "{err}");
+    assert!(matches!(err, RecorderError::NotAFrame { .. }), "{err}");
     assert!(err.to_string().contains("/coop/1/rx"), "{err}");
     let mut two = frame(1, 1);
     two.extend(frame(2, 1));
@@ -291,7 +291,7 @@ fn bad_inputs_are_refused_and_the_recorder_goes_on() {
     let mut est = estimate();
     est.cov_ned_m2[(1, 1)] = f64::NAN;
     let err = rec.estimate(1, T0_NS, &est).unwrap_err();
-    assert!(matches!(err, RecordError::NonFinite { field: "cov_ned_m2", .. }), "{err}");
+    assert!(matches!(err, RecorderError::NonFinite { field: "cov_ned_m2", .. }), "{err}");
     rec.frame(Link::Coop(1), Direction::Rx, T0_NS, &frame(3, 1)).unwrap();
     assert!(!rec.is_failed());
     assert_eq!(rec.stats().rejected, 3);
@@ -315,13 +315,13 @@ fn a_write_error_fails_the_recorder_once_without_panicking() {
         }
     }
     let first_error = first_error.expect("the sink filled up");
-    assert!(matches!(first_error, RecordError::Write { .. }), "{first_error}");
+    assert!(matches!(first_error, RecorderError::Write { .. }), "{first_error}");
     assert!(first_error.to_string().contains("disk full"), "{first_error}");
     assert!(rec.is_failed());
     assert!(rec.stats().dropped > 0);
     assert!(rec.stats().failure.as_deref().unwrap().contains("disk full"));
-    assert!(matches!(rec.frame(Link::Coop(1), Direction::Rx, T0_NS, &frame(0, 1)), Err(RecordError::Failed { .. })));
-    assert!(matches!(rec.finish(), Err(RecordError::Failed { .. })));
+    assert!(matches!(rec.frame(Link::Coop(1), Direction::Rx, T0_NS, &frame(0, 1)), Err(RecorderError::Failed { .. })));
+    assert!(matches!(rec.finish(), Err(RecorderError::Failed { .. })));
 }
 
 #[test]

@@ -62,7 +62,7 @@ pub struct RecorderStats {
 
 /// Why a recording call did not record.
 #[derive(Debug, thiserror::Error)]
-pub enum RecordError {
+pub enum RecorderError {
     #[error("cannot create the log file {path}: {source}")]
     Create { path: String, source: std::io::Error },
     #[error("writing the MCAP log {target} failed, nothing more is recorded in it: {}", error_chain(.source))]
@@ -121,21 +121,21 @@ pub struct Recorder<W: Write = BufWriter<File>> {
 
 impl Recorder<BufWriter<File>> {
     /// Creates (or truncates) the file at `path` and starts a log in it.
-    pub fn create(path: impl AsRef<Path>, options: RecorderOptions) -> Result<Self, RecordError> {
+    pub fn create(path: impl AsRef<Path>, options: RecorderOptions) -> Result<Self, RecorderError> {
         let path = path.as_ref();
         let target = path.display().to_string();
-        let file = File::create(path).map_err(|source| RecordError::Create { path: target.clone(), source })?;
+        let file = File::create(path).map_err(|source| RecorderError::Create { path: target.clone(), source })?;
         Self::with_target(BufWriter::with_capacity(64 * 1024, file), target, options)
     }
 }
 
 impl<W: Write> Recorder<W> {
     /// Starts a log on any byte sink (a file, a buffer in tests).
-    pub fn new(writer: W, options: RecorderOptions) -> Result<Self, RecordError> {
+    pub fn new(writer: W, options: RecorderOptions) -> Result<Self, RecorderError> {
         Self::with_target(writer, "<stream>".into(), options)
     }
 
-    fn with_target(writer: W, target: String, options: RecorderOptions) -> Result<Self, RecordError> {
+    fn with_target(writer: W, target: String, options: RecorderOptions) -> Result<Self, RecorderError> {
         let write_options = mcap::WriteOptions::new()
             .compression(Some(mcap::Compression::Zstd))
             .compression_level(options.zstd_level)
@@ -146,8 +146,9 @@ impl<W: Write> Recorder<W> {
             // Build each chunk in memory and write it whole: the file never holds half a chunk.
             .disable_seeking(true)
             .library(format!("cooploc {} (mcap-rs 0.26)", env!("CARGO_PKG_VERSION")));
-        let mcap_writer =
-            write_options.create(NoSeek::new(writer)).map_err(|source| RecordError::Write { target: target.clone(), source })?;
+        let mcap_writer = write_options
+            .create(NoSeek::new(writer))
+            .map_err(|source| RecorderError::Write { target: target.clone(), source })?;
         let mut rec = Recorder {
             writer: Some(mcap_writer),
             target,
@@ -204,11 +205,11 @@ impl<W: Write> Recorder<W> {
 
     /// Records one raw MAVLink frame (exactly one complete v1 or v2 frame, as on the wire) that
     /// the process received (`Rx`) or sent (`Tx`) at `wall_ns`.
-    pub fn frame(&mut self, link: Link, dir: Direction, wall_ns: u64, frame: &[u8]) -> Result<(), RecordError> {
+    pub fn frame(&mut self, link: Link, dir: Direction, wall_ns: u64, frame: &[u8]) -> Result<(), RecorderError> {
         let topic = topics::frames(link, dir);
         if let Err(reason) = super::mavlink_frame_len(frame) {
             self.stats.rejected += 1;
-            return Err(RecordError::NotAFrame { topic, len: frame.len(), reason });
+            return Err(RecorderError::NotAFrame { topic, len: frame.len(), reason });
         }
         let link_name = self.link_names.get(&link).cloned().unwrap_or_default();
         self.write(
@@ -230,10 +231,10 @@ impl<W: Write> Recorder<W> {
 
     /// Records vehicle `id`'s estimate: `/vehicle_<id>/pose`, `/vehicle_<id>/ellipse`, and
     /// `/vehicle_<id>/location` when a geo origin is set.
-    pub fn estimate(&mut self, id: u16, wall_ns: u64, est: &PositionEstimate) -> Result<(), RecordError> {
+    pub fn estimate(&mut self, id: u16, wall_ns: u64, est: &PositionEstimate) -> Result<(), RecorderError> {
         if let Some(field) = est.non_finite_field() {
             self.stats.rejected += 1;
-            return Err(RecordError::NonFinite { topic: topics::pose(id), field });
+            return Err(RecorderError::NonFinite { topic: topics::pose(id), field });
         }
         if let Some(origin) = self.options.geo_origin {
             self.foxglove_unflushed(&topics::location(id), wall_ns, &fx::location_fix(&origin, id, est, wall_ns))?;
@@ -246,10 +247,10 @@ impl<W: Write> Recorder<W> {
 
     /// Records vehicle `id`'s true position: `/vehicle_<id>/truth_pose`, and
     /// `/vehicle_<id>/truth` when a geo origin is set.
-    pub fn truth(&mut self, id: u16, wall_ns: u64, truth: &TruthSample) -> Result<(), RecordError> {
+    pub fn truth(&mut self, id: u16, wall_ns: u64, truth: &TruthSample) -> Result<(), RecorderError> {
         if !truth.pos_ned_m.iter().all(|v| v.is_finite()) || !truth.yaw_rad.is_none_or(f64::is_finite) {
             self.stats.rejected += 1;
-            return Err(RecordError::NonFinite { topic: topics::truth_pose(id), field: "truth" });
+            return Err(RecorderError::NonFinite { topic: topics::truth_pose(id), field: "truth" });
         }
         if let Some(origin) = self.options.geo_origin {
             self.foxglove_unflushed(&topics::truth(id), wall_ns, &fx::truth_fix(&origin, id, truth, wall_ns))?;
@@ -261,12 +262,12 @@ impl<W: Write> Recorder<W> {
     }
 
     /// Records the process's link statistics on `/links/stats`.
-    pub fn link_stats(&mut self, wall_ns: u64, stats: &LinkStatsRecord) -> Result<(), RecordError> {
+    pub fn link_stats(&mut self, wall_ns: u64, stats: &LinkStatsRecord) -> Result<(), RecorderError> {
         self.json_message(topics::LINK_STATS, LINK_STATS_SCHEMA_NAME, LINK_STATS_SCHEMA, wall_ns, stats)
     }
 
     /// Records any Foxglove well-known message (protobuf) on `topic`.
-    pub fn foxglove_message<T: foxglove::Encode>(&mut self, topic: &str, wall_ns: u64, msg: &T) -> Result<(), RecordError> {
+    pub fn foxglove_message<T: foxglove::Encode>(&mut self, topic: &str, wall_ns: u64, msg: &T) -> Result<(), RecorderError> {
         self.foxglove_unflushed(topic, wall_ns, msg)?;
         self.after_write()
     }
@@ -279,12 +280,12 @@ impl<W: Write> Recorder<W> {
         schema: &str,
         wall_ns: u64,
         value: &T,
-    ) -> Result<(), RecordError> {
+    ) -> Result<(), RecorderError> {
         let data = match serde_json::to_vec(value) {
             Ok(d) => d,
             Err(e) => {
                 self.stats.rejected += 1;
-                return Err(RecordError::Encode { topic: topic.into(), schema: schema_name.into(), reason: e.to_string() });
+                return Err(RecorderError::Encode { topic: topic.into(), schema: schema_name.into(), reason: e.to_string() });
             }
         };
         let spec = || ChannelSpec {
@@ -297,7 +298,7 @@ impl<W: Write> Recorder<W> {
     }
 
     /// Writes a metadata record `name` (e.g. the node's configuration).
-    pub fn metadata(&mut self, name: &str, entries: BTreeMap<String, String>) -> Result<(), RecordError> {
+    pub fn metadata(&mut self, name: &str, entries: BTreeMap<String, String>) -> Result<(), RecorderError> {
         let writer = self.writer_or_drop()?;
         let res = writer.write_metadata(&mcap::records::Metadata { name: name.into(), metadata: entries });
         self.check(res)?;
@@ -306,7 +307,7 @@ impl<W: Write> Recorder<W> {
 
     /// Writes an attachment (e.g. the scenario TOML, media type `application/toml`), stamped
     /// with the wall clock now.
-    pub fn attachment(&mut self, name: &str, media_type: &str, data: &[u8]) -> Result<(), RecordError> {
+    pub fn attachment(&mut self, name: &str, media_type: &str, data: &[u8]) -> Result<(), RecorderError> {
         let now = wall_now_ns();
         let writer = self.writer_or_drop()?;
         let res = writer.attach(&mcap::Attachment {
@@ -323,7 +324,7 @@ impl<W: Write> Recorder<W> {
     /// Flushes if [`RecorderOptions::flush_interval`] has passed since the last flush at `now`;
     /// returns whether it did. Every recording call runs this with the current time; a runner
     /// also calls it from a timer, so that the last messages before a quiet period reach the file.
-    pub fn maybe_flush(&mut self, now: Instant) -> Result<bool, RecordError> {
+    pub fn maybe_flush(&mut self, now: Instant) -> Result<bool, RecorderError> {
         if now.saturating_duration_since(self.last_flush) < self.options.flush_interval {
             return Ok(false);
         }
@@ -332,12 +333,12 @@ impl<W: Write> Recorder<W> {
     }
 
     /// Closes the current chunk and flushes the file now.
-    pub fn flush(&mut self) -> Result<(), RecordError> {
+    pub fn flush(&mut self) -> Result<(), RecorderError> {
         self.flush_at(Instant::now())
     }
 
     /// Writes the summary and flushes: the file is complete. Returns the final counters.
-    pub fn finish(mut self) -> Result<RecorderStats, RecordError> {
+    pub fn finish(mut self) -> Result<RecorderStats, RecorderError> {
         let Some(mut writer) = self.writer.take() else {
             return Err(self.failed_error());
         };
@@ -351,14 +352,14 @@ impl<W: Write> Recorder<W> {
             }
             Err(source) => {
                 tracing::error!(log = %self.target, error = %error_chain(&source), "finishing the MCAP log failed");
-                Err(RecordError::Write { target: self.target, source })
+                Err(RecorderError::Write { target: self.target, source })
             }
         }
     }
 
     // ---- internals ----
 
-    fn flush_at(&mut self, now: Instant) -> Result<(), RecordError> {
+    fn flush_at(&mut self, now: Instant) -> Result<(), RecorderError> {
         let writer = self.writer.as_mut().ok_or_else(|| Self::failed_error_of(&self.target, &self.stats))?;
         let res = writer.flush();
         self.check(res)?;
@@ -370,12 +371,12 @@ impl<W: Write> Recorder<W> {
         Ok(())
     }
 
-    fn after_write(&mut self) -> Result<(), RecordError> {
+    fn after_write(&mut self) -> Result<(), RecorderError> {
         self.maybe_flush(Instant::now()).map(|_| ())
     }
 
     /// The `/tf` transform, once per chunk.
-    fn write_tf(&mut self, wall_ns: u64) -> Result<(), RecordError> {
+    fn write_tf(&mut self, wall_ns: u64) -> Result<(), RecorderError> {
         if !self.tf_in_chunk {
             self.foxglove_unflushed(topics::TF, wall_ns, &fx::world_to_ned(wall_ns))?;
             self.tf_in_chunk = true;
@@ -383,13 +384,13 @@ impl<W: Write> Recorder<W> {
         Ok(())
     }
 
-    fn foxglove_unflushed<T: foxglove::Encode>(&mut self, topic: &str, wall_ns: u64, msg: &T) -> Result<(), RecordError> {
+    fn foxglove_unflushed<T: foxglove::Encode>(&mut self, topic: &str, wall_ns: u64, msg: &T) -> Result<(), RecorderError> {
         let schema = T::get_schema();
         let mut data = Vec::with_capacity(msg.encoded_len().unwrap_or(256));
         if let Err(e) = msg.encode(&mut data) {
             self.stats.rejected += 1;
             let schema = schema.map_or_else(String::new, |s| s.name);
-            return Err(RecordError::Encode { topic: topic.into(), schema, reason: e.to_string() });
+            return Err(RecorderError::Encode { topic: topic.into(), schema, reason: e.to_string() });
         }
         let spec = || ChannelSpec {
             schema: schema.map(|s| (s.name, s.encoding, s.data)),
@@ -400,7 +401,7 @@ impl<W: Write> Recorder<W> {
     }
 
     /// Writes one message, creating its channel on first use; does not flush.
-    fn write(&mut self, topic: &str, spec: impl FnOnce() -> ChannelSpec, wall_ns: u64, data: &[u8]) -> Result<(), RecordError> {
+    fn write(&mut self, topic: &str, spec: impl FnOnce() -> ChannelSpec, wall_ns: u64, data: &[u8]) -> Result<(), RecorderError> {
         let channel_id = match self.channels.get(topic) {
             Some(&id) => id,
             None => {
@@ -428,7 +429,7 @@ impl<W: Write> Recorder<W> {
         Ok(())
     }
 
-    fn writer_or_drop(&mut self) -> Result<&mut mcap::Writer<NoSeek<W>>, RecordError> {
+    fn writer_or_drop(&mut self) -> Result<&mut mcap::Writer<NoSeek<W>>, RecorderError> {
         match self.writer.as_mut() {
             Some(w) => Ok(w),
             None => {
@@ -439,7 +440,7 @@ impl<W: Write> Recorder<W> {
     }
 
     /// Passes a result through; on error the recorder fails (once, logged).
-    fn check<T>(&mut self, res: mcap::McapResult<T>) -> Result<T, RecordError> {
+    fn check<T>(&mut self, res: mcap::McapResult<T>) -> Result<T, RecorderError> {
         res.map_err(|source| {
             let chain = error_chain(&source);
             tracing::error!(log = %self.target, error = %chain, "writing the MCAP log failed; nothing more is recorded in it");
@@ -449,15 +450,15 @@ impl<W: Write> Recorder<W> {
             if let Some(writer) = self.writer.take() {
                 drop(writer.into_inner());
             }
-            RecordError::Write { target: self.target.clone(), source }
+            RecorderError::Write { target: self.target.clone(), source }
         })
     }
 
-    fn failed_error(&self) -> RecordError {
+    fn failed_error(&self) -> RecorderError {
         Self::failed_error_of(&self.target, &self.stats)
     }
 
-    fn failed_error_of(target: &str, stats: &RecorderStats) -> RecordError {
-        RecordError::Failed { target: target.to_string(), first_error: stats.failure.clone().unwrap_or_default() }
+    fn failed_error_of(target: &str, stats: &RecorderStats) -> RecorderError {
+        RecorderError::Failed { target: target.to_string(), first_error: stats.failure.clone().unwrap_or_default() }
     }
 }
