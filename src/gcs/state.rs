@@ -358,18 +358,11 @@ impl GcsState {
             }
             _ => bytes,
         };
-        let mut frames = Vec::new();
+        let mut events = Vec::new();
+        let mut found = false;
         for f in crate::protocol::framing::frames(bytes) {
-            let h = f.header;
-            frames.push((h.system_id, h.component_id, h.sequence, f.message_id, f.signed, f.bytes.to_vec(), f.message));
-        }
-        let mut events = Vec::with_capacity(frames.len() + 1);
-        if frames.is_empty() {
-            self.counters.bad_datagrams += 1;
-            events.push(GcsEvent::Rejected { rx, link, reason: format!("{} bytes without a valid MAVLink frame", bytes.len()) });
-            return events;
-        }
-        for (sysid, compid, seq, message_id, signed, frame_bytes, message) in frames {
+            found = true;
+            let (sysid, compid, seq, message_id) = (f.header.system_id, f.header.component_id, f.header.sequence, f.message_id);
             self.counters.frames += 1;
             if sysid == u32::from(GCS_SYSID) && compid == GCS_COMPID {
                 self.counters.own += 1;
@@ -381,13 +374,13 @@ impl GcsState {
                 self.counters.sources_refused += 1;
             } else {
                 let stats = self.links.entry(key).or_insert_with(|| LinkStats::new(rx, window));
-                stats.observe(rx, seq, frame_bytes.len(), message_name(&message), from, signed);
+                stats.observe(rx, seq, f.bytes.len(), message_name(&f.message), from, f.signed);
             }
             if let (Link::Coop, Some(addr)) = (link, from) {
                 self.learn_peer(addr, rx);
             }
-            events.push(GcsEvent::Frame { rx, link, from, sysid, compid, message_id, bytes: frame_bytes });
-            let message = match message {
+            events.push(GcsEvent::Frame { rx, link, from, sysid, compid, message_id, bytes: f.bytes.to_vec() });
+            let message = match f.message {
                 Ok(m) => m,
                 Err(e) => {
                     self.reject(rx, link, format!("message {message_id} from {sysid}/{compid}: {e}"), &mut events);
@@ -403,6 +396,10 @@ impl GcsState {
                 Link::Coop => self.on_coop_message(rx, sysid, message, &mut events),
                 Link::Vehicle(id) => self.on_vehicle_message(rx, id, sysid, message, &mut events),
             }
+        }
+        if !found {
+            self.counters.bad_datagrams += 1;
+            events.push(GcsEvent::Rejected { rx, link, reason: format!("{} bytes without a valid MAVLink frame", bytes.len()) });
         }
         events
     }
@@ -937,6 +934,66 @@ mod tests {
 
     fn close(a: f64, b: f64, tol: f64) -> bool {
         (a - b).abs() <= tol
+    }
+
+    /// The health as the station sees it on a bad network: a forged epoch report (announcer 2
+    /// sent by system 9) is rejected and moves nothing; a lost report leaves an epoch unjudged;
+    /// a late, disagreeing report withdraws the heal its epoch's first reports made; repeats
+    /// count once; sequence gaps are loss; the budget share and the signing follow the frames.
+    #[test]
+    fn health_under_forged_lost_late_and_repeated_reports() {
+        use crate::protocol::dialect::cooploc::CooplocEpochState as St;
+        let mut gcs = GcsState::new(GcsConfig { link_capacity_bytes_per_s: Some(3000.0), ..GcsConfig::default() });
+        let mut seq = [0u8; 10];
+        let mut send = |gcs: &mut GcsState, sysid: u8, epoch: u32, announcer: u16, digest: u64, at: f64| {
+            let a = wire::EpochAnnouncement {
+                epoch,
+                t: TimeUs(u64::from(epoch) * 1_000_000),
+                announcer,
+                participants: vec![1, 2, 3],
+                state: St::COOPLOC_EPOCH_STATE_APPLIED,
+                digest,
+            };
+            let n = &mut seq[usize::from(sysid)];
+            // Node 3 loses every other frame on the way.
+            *n = n.wrapping_add(if sysid == 3 { 2 } else { 1 });
+            let f = frame(sysid, NODE_COMPID, *n, &wire::epoch_to_message(&a).unwrap());
+            gcs.on_coop_datagram(s(at), addr(14_000 + u16::from(sysid)), &f)
+        };
+        for id in 1..=3u8 {
+            send(&mut gcs, id, 1, u16::from(id), 7, 1.0);
+        }
+        // Epoch 2: node 3 holds another store. A forger tells the station node 2 agrees with it.
+        send(&mut gcs, 1, 2, 1, 8, 2.0);
+        let forged = send(&mut gcs, 9, 2, 2, 9, 2.0);
+        assert!(matches!(forged.last(), Some(GcsEvent::Rejected { .. })), "{forged:?}");
+        send(&mut gcs, 2, 2, 2, 8, 2.0);
+        send(&mut gcs, 3, 2, 3, 9, 2.1);
+        send(&mut gcs, 3, 2, 3, 9, 2.2); // repeated
+        // Epoch 3: nodes 1 and 2 agree first (a heal), node 3's late report disagrees.
+        send(&mut gcs, 1, 3, 1, 10, 3.0);
+        send(&mut gcs, 2, 3, 2, 10, 3.0);
+        assert_eq!(gcs.health(s(3.0)).heals, 1);
+        send(&mut gcs, 3, 3, 3, 11, 3.5);
+        // Epoch 4: node 2's report is lost; one report alone judges nothing.
+        send(&mut gcs, 1, 4, 1, 12, 4.0);
+        let h = gcs.health(s(4.0));
+        assert_eq!((h.disagreements, h.heals, h.unhealed_since, h.last_epoch), (2, 0, Some(3), Some(4)));
+        let node = |id: u16| h.nodes.iter().find(|n| n.id == id).unwrap().clone();
+        assert_eq!((node(1).epochs.outvoted, node(3).epochs.outvoted), (0, 2));
+        assert!(!h.nodes.iter().any(|n| n.id == 9), "the forger is no node");
+        let loss3 = node(3).loss_pct.unwrap();
+        // Four frames received, three lost between them (before the first is not known).
+        assert!((loss3 - 300.0 / 7.0).abs() < 1e-9 && node(1).loss_pct == Some(0.0), "loss {loss3}");
+        assert_eq!((node(1).signing, node(1).unsigned_frames), ("unsigned", 4));
+        assert_eq!(node(1).budget_bytes_per_s, Some(1000.0), "a third of the capacity each");
+        assert!(node(1).bytes_per_s > 0.0 && h.team_load_pct.unwrap() > 0.0);
+        // Then the team agrees again: healed.
+        for id in 1..=3u8 {
+            send(&mut gcs, id, 5, u16::from(id), 13, 5.0);
+        }
+        let h = gcs.health(s(5.0));
+        assert_eq!((h.heals, h.unhealed_since), (1, None));
     }
 
     #[test]

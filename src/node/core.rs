@@ -1001,8 +1001,8 @@ impl NodeCore {
     }
 
     fn peer_message(&mut self, from: PlatformId, msg: MavMessage, out: &mut Vec<NodeOutput>) {
-        if let Some((command, asks)) = wire::estimate_request(&msg, self.cfg.id) {
-            self.estimate_request(from, command, asks, out);
+        if let Some(asks_estimate) = wire::estimate_request(&msg, self.cfg.id) {
+            self.estimate_request(from, asks_estimate, out);
             return;
         }
         // Heartbeats, estimates, ground stations' messages: nothing for the protocol.
@@ -1143,24 +1143,21 @@ impl NodeCore {
     /// [`ESTIMATE_REQUEST_INTERVAL_US`] of wall time (the next ones are TEMPORARILY_REJECTED), so
     /// that a flood of requests cannot turn the node into an amplifier. A request for another
     /// message is UNSUPPORTED. The filter is not touched.
-    fn estimate_request(&mut self, from: PlatformId, command: MavCmd, asks: Result<(), ()>, out: &mut Vec<NodeOutput>) {
-        let to = (u8::try_from(from).unwrap_or(0), 0);
-        let result = match asks {
-            Err(()) => MavResult::MAV_RESULT_UNSUPPORTED,
-            Ok(()) if self.last_estimate_answer.is_some_and(|at| self.wall_us < at + ESTIMATE_REQUEST_INTERVAL_US) => {
-                MavResult::MAV_RESULT_TEMPORARILY_REJECTED
-            }
-            Ok(()) => MavResult::MAV_RESULT_ACCEPTED,
+    fn estimate_request(&mut self, from: PlatformId, asks_estimate: bool, out: &mut Vec<NodeOutput>) {
+        let too_soon = self.last_estimate_answer.is_some_and(|at| self.wall_us < at + ESTIMATE_REQUEST_INTERVAL_US);
+        let result = match (asks_estimate, too_soon) {
+            (false, _) => MavResult::MAV_RESULT_UNSUPPORTED,
+            (true, true) => MavResult::MAV_RESULT_TEMPORARILY_REJECTED,
+            (true, false) => MavResult::MAV_RESULT_ACCEPTED,
         };
+        let to = (u8::try_from(from).unwrap_or(0), 0);
+        out.push(NodeOutput::ToPeers(wire::command_ack(MavCmd::MAV_CMD_REQUEST_MESSAGE, result, to)));
         if result == MavResult::MAV_RESULT_ACCEPTED {
             self.stats.estimate_requests += 1;
             self.last_estimate_answer = Some(self.wall_us);
+            out.push(NodeOutput::ToPeers(wire::estimate_to_message(&self.estimate())));
         } else {
             self.stats.estimate_requests_refused += 1;
-        }
-        out.push(NodeOutput::ToPeers(wire::command_ack(command, result, to)));
-        if result == MavResult::MAV_RESULT_ACCEPTED {
-            out.push(NodeOutput::ToPeers(wire::estimate_to_message(&self.estimate())));
         }
     }
 

@@ -205,11 +205,7 @@ pub fn split_frames(bytes: &[u8]) -> Vec<Received> {
 mod tests {
     use super::*;
     use crate::protocol::dialect::cooploc::{MavAutopilot, MavType};
-
-    fn hb(seq: u8) -> Vec<u8> {
-        let msg = wire::heartbeat(MavType::MAV_TYPE_GROUND_ROVER, MavAutopilot::MAV_AUTOPILOT_ARDUPILOTMEGA);
-        wire::to_frame(MavHeader { system_id: 1, component_id: 1, sequence: seq }, &msg)
-    }
+    use crate::protocol::framing::heartbeat_frame as hb;
 
     #[test]
     fn a_datagram_with_several_frames_gives_them_all_and_stops_at_garbage() {

@@ -122,16 +122,20 @@ fn frame_at(rest: &[u8], offset: usize) -> Option<Frame<'_>> {
     Some(Frame { offset, bytes, header, version, message_id: raw.message_id(), signed, message })
 }
 
+/// A vehicle's HEARTBEAT frame (system 1, component 1) with sequence `seq`, for tests.
+#[cfg(test)]
+pub(crate) fn heartbeat_frame(seq: u8) -> Vec<u8> {
+    use crate::protocol::dialect::cooploc::{MavAutopilot, MavType};
+    let msg = super::wire::heartbeat(MavType::MAV_TYPE_GROUND_ROVER, MavAutopilot::MAV_AUTOPILOT_ARDUPILOTMEGA);
+    super::wire::to_frame(MavHeader { system_id: 1, component_id: 1, sequence: seq }, &msg)
+}
+
 #[cfg(test)]
 mod tests {
+    use super::heartbeat_frame as hb;
     use super::*;
     use crate::protocol::dialect::cooploc::{MavAutopilot, MavType};
     use crate::protocol::wire;
-
-    fn hb(seq: u8) -> Vec<u8> {
-        let msg = wire::heartbeat(MavType::MAV_TYPE_GROUND_ROVER, MavAutopilot::MAV_AUTOPILOT_ARDUPILOTMEGA);
-        wire::to_frame(MavHeader { system_id: 1, component_id: 1, sequence: seq }, &msg)
-    }
 
     #[test]
     fn frames_are_found_in_order_with_garbage_between_them_skipped_and_counted() {

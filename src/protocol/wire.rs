@@ -80,22 +80,17 @@ pub const COMPANION_COMPID: u8 = 191;
 pub const ESTIMATE_MESSAGE_ID: u32 = 61002;
 
 /// A ground station's request to a node on the cooperative network: MAV_CMD_REQUEST_MESSAGE
-/// (COMMAND_LONG or COMMAND_INT) for COOPLOC_ESTIMATE, addressed to `node` (system 0 or `node`,
-/// component 0 or [`COMPANION_COMPID`]). `Some(command)` when the message is such a command,
-/// with `Ok(())` when it asks for COOPLOC_ESTIMATE and `Err(())` when it asks for another
-/// message (the node answers UNSUPPORTED); `None` when it is not a request to this node.
-pub fn estimate_request(msg: &MavMessage, node: PlatformId) -> Option<(MavCmd, Result<(), ()>)> {
+/// (COMMAND_LONG or COMMAND_INT) addressed to `node` (system 0 or `node`, component 0 or
+/// [`COMPANION_COMPID`]). `Some(true)` when it asks for COOPLOC_ESTIMATE, `Some(false)` for
+/// another message (the node answers UNSUPPORTED), `None` when it is not such a request.
+pub fn estimate_request(msg: &MavMessage, node: PlatformId) -> Option<bool> {
     let (command, param1, target) = match msg {
         MavMessage::COMMAND_LONG(c) => (c.command, c.param1, (c.target_system, c.target_component)),
         MavMessage::COMMAND_INT(c) => (c.command, c.param1, (c.target_system, c.target_component)),
         _ => return None,
     };
     let ours = (target.0 == 0 || u16::from(target.0) == node) && (target.1 == 0 || target.1 == COMPANION_COMPID);
-    if command != MavCmd::MAV_CMD_REQUEST_MESSAGE || !ours {
-        return None;
-    }
-    let asks_estimate = param1.is_finite() && param1 == ESTIMATE_MESSAGE_ID as f32;
-    Some((command, if asks_estimate { Ok(()) } else { Err(()) }))
+    (command == MavCmd::MAV_CMD_REQUEST_MESSAGE && ours).then(|| param1.is_finite() && param1 == ESTIMATE_MESSAGE_ID as f32)
 }
 
 /// The COMMAND_ACK a node sends `to` (system, component) for `command`.

@@ -118,40 +118,42 @@ fn fx_vector(v: &Vector3<f64>) -> FxVector3 {
     FxVector3 { x: v[0], y: v[1], z: v[2] }
 }
 
-/// The estimate as a `foxglove.LocationFix` about `origin`, covariance KNOWN (ENU). The filter
-/// time goes into the metadata as `t_us`.
-pub fn location_fix(origin: &GeoOrigin, id: u16, est: &PositionEstimate, wall_ns: u64) -> LocationFix {
-    let g = ned_to_geodetic(origin, &est.pos_ned_m);
+/// A `foxglove.LocationFix` of a NED position about `origin` at filter time `t` (in the
+/// metadata as `t_us`), in the frame `frame_id`; covariance, heading, velocity and colour unset.
+fn fix(origin: &GeoOrigin, frame_id: String, pos_ned_m: &Vector3<f64>, t: TimeUs, wall_ns: u64) -> LocationFix {
+    let g = ned_to_geodetic(origin, pos_ned_m);
     LocationFix {
         timestamp: Some(timestamp(wall_ns)),
-        frame_id: format!("vehicle_{id}"),
+        frame_id,
         latitude: g.lat_deg,
         longitude: g.lon_deg,
         altitude: g.alt_m,
+        metadata: vec![KeyValuePair { key: "t_us".into(), value: t.0.to_string() }],
+        ..Default::default()
+    }
+}
+
+/// The estimate as a `foxglove.LocationFix` about `origin`, covariance KNOWN (ENU). The filter
+/// time goes into the metadata as `t_us`.
+pub fn location_fix(origin: &GeoOrigin, id: u16, est: &PositionEstimate, wall_ns: u64) -> LocationFix {
+    LocationFix {
         position_covariance: row_major(&cov_ned_to_enu(&est.cov_ned_m2)),
         position_covariance_type: PositionCovarianceType::Known as i32,
         heading: est.yaw_rad,
         velocity: est.vel_ned_m_s.map(|v| FxVector3 { x: v[1], y: v[0], z: -v[2] }),
         color: Some(vehicle_color(id, 1.0)),
-        metadata: vec![KeyValuePair { key: "t_us".into(), value: est.t.0.to_string() }],
+        ..fix(origin, format!("vehicle_{id}"), &est.pos_ned_m, est.t, wall_ns)
     }
 }
 
 /// The truth as a `foxglove.LocationFix` (no covariance: type UNKNOWN, zeros).
 pub fn truth_fix(origin: &GeoOrigin, id: u16, truth: &TruthSample, wall_ns: u64) -> LocationFix {
-    let g = ned_to_geodetic(origin, &truth.pos_ned_m);
     LocationFix {
-        timestamp: Some(timestamp(wall_ns)),
-        frame_id: format!("vehicle_{id}_truth"),
-        latitude: g.lat_deg,
-        longitude: g.lon_deg,
-        altitude: g.alt_m,
         position_covariance: vec![0.0; 9],
         position_covariance_type: PositionCovarianceType::Unknown as i32,
         heading: truth.yaw_rad,
-        velocity: None,
         color: Some(vehicle_color(id, TRUTH_ALPHA)),
-        metadata: vec![KeyValuePair { key: "t_us".into(), value: truth.t.0.to_string() }],
+        ..fix(origin, format!("vehicle_{id}_truth"), &truth.pos_ned_m, truth.t, wall_ns)
     }
 }
 

@@ -64,9 +64,8 @@ pub struct EpochTally {
     pub heals: u64,
     /// The latest disagreeing epoch not yet followed by an agreeing one.
     pub unhealed_since: Option<u32>,
-    /// The last heal: the agreeing epoch and the disagreement it healed (withdrawn when a late
-    /// report shows that epoch disagreeing too).
-    last_heal: Option<(u32, u32)>,
+    /// The epoch of the last heal (withdrawn when a late report shows it disagreeing too).
+    last_heal: Option<u32>,
     /// The highest epoch reported.
     pub last_epoch: Option<u32>,
     pub nodes: BTreeMap<PlatformId, NodeEpochCounts>,
@@ -133,10 +132,10 @@ impl EpochTally {
         let first = reports.values().next();
         let agree = reports.values().all(|r| Some(r) == first);
         if agree {
-            if let Some(d) = self.unhealed_since.filter(|&d| epoch > d) {
+            if self.unhealed_since.is_some_and(|d| epoch > d) {
                 self.heals += 1;
                 self.unhealed_since = None;
-                self.last_heal = Some((epoch, d));
+                self.last_heal = Some(epoch);
             }
             return;
         }
@@ -144,11 +143,10 @@ impl EpochTally {
             self.disagreements += 1;
         }
         // The first reports of this epoch agreed and were taken for a heal: a late one says
-        // otherwise, so the heal is withdrawn.
-        if let Some((_, healed)) = self.last_heal.filter(|&(h, _)| h == epoch) {
+        // otherwise, so the heal is withdrawn (and the team is unhealed since this epoch, below).
+        if self.last_heal == Some(epoch) {
             self.heals -= 1;
             self.last_heal = None;
-            self.unhealed_since = Some(healed.max(self.unhealed_since.unwrap_or(healed)));
         }
         if self.unhealed_since.is_none_or(|d| epoch > d) {
             self.unhealed_since = Some(epoch);
