@@ -104,7 +104,7 @@ fn ins(c: &mut Criterion) {
 fn cooperative_event(c: &mut Criterion) {
     let mut group = c.benchmark_group("cooperative_event");
     group.sample_size(20);
-    for n in [3usize, 16, 64] {
+    for n in [3usize, 8, 16, 32, 64] {
         let snapshots = team_snapshots(n);
         let ranges = ring_ranges(n);
         let mut store = CrossCovariances::new();

@@ -122,7 +122,9 @@ pub fn replay_nodes(log: &Log) -> Result<Vec<NodeReplay>, ReplayError> {
         return Err(ReplayError::NoNode);
     }
     let world = world_of(log)?;
-    ids.into_iter().map(|id| replay_node(log, &world, id)).collect()
+    // Nodes are independent of one another: one per core.
+    use rayon::prelude::*;
+    ids.into_par_iter().map(|id| replay_node(log, &world, id)).collect()
 }
 
 fn replay_node(log: &Log, world: &World, id: PlatformId) -> Result<NodeReplay, ReplayError> {

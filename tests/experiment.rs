@@ -130,3 +130,38 @@ fn bad_scenario_files_name_the_field() {
     }
     let _ = std::fs::remove_dir_all(&dir);
 }
+
+/// The experiment's outputs are those of the code before the speed work, bit for bit: every
+/// speed-up must leave every number alone (tests/golden/experiment-paper-3runs-seed7/README.md).
+#[test]
+fn experiment_outputs_are_unchanged_bit_for_bit() {
+    use sha2::Digest;
+    let golden = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/golden/experiment-paper-3runs-seed7");
+    let out = tempfile_dir("golden");
+    let status = cooploc()
+        .args(["experiment", "sitl/scenarios/paper.toml", "--runs", "3", "--seed", "7", "--no-plots", "--out"])
+        .arg(&out)
+        .current_dir(env!("CARGO_MANIFEST_DIR"))
+        .output()
+        .unwrap();
+    assert!(status.status.success(), "{}", String::from_utf8_lossy(&status.stderr));
+    let curves = std::fs::read(out.join("error_curves.csv")).unwrap();
+    let digest: String = sha2::Sha256::digest(&curves).iter().map(|b| format!("{b:02x}")).collect();
+    let bless = std::env::var_os("COOPLOC_BLESS").is_some();
+    if bless {
+        for f in ["summary.json", "final_errors.csv"] {
+            std::fs::copy(out.join(f), golden.join(f)).unwrap();
+        }
+        std::fs::write(golden.join("error_curves.csv.sha256"), format!("{digest}  error_curves.csv\n")).unwrap();
+    }
+    for f in ["summary.json", "final_errors.csv"] {
+        let (got, want) = (std::fs::read_to_string(out.join(f)).unwrap(), std::fs::read_to_string(golden.join(f)).unwrap());
+        if let Some((i, (g, w))) = got.lines().zip(want.lines()).enumerate().find(|(_, (g, w))| g != w) {
+            panic!("{f} line {}: got `{g}`, golden `{w}`", i + 1);
+        }
+        assert_eq!(got.len(), want.len(), "{f}: same lines but different length");
+    }
+    let want = std::fs::read_to_string(golden.join("error_curves.csv.sha256")).unwrap();
+    assert_eq!(want.split_whitespace().next(), Some(digest.as_str()), "error_curves.csv differs from the golden digest");
+    let _ = std::fs::remove_dir_all(&out);
+}

@@ -675,7 +675,6 @@ pub fn cooperative_update_with(
             passive = Some(x);
         }
     }
-    let prior = p.clone();
 
     // The gate: each measurement's own innovation against its predicted covariance.
     let mut gated = Vec::new();
@@ -773,7 +772,7 @@ pub fn cooperative_update_with(
             Correction { id: s.id, dx: up.dx.rows(o, d).into_owned(), p: up.p.view((o, o), (d, d)).into_owned() }
         })
         .collect();
-    Ok(EventOutcome { corrections, diagnostics: up.diagnostics, prior_covariance: prior, gated, weights })
+    Ok(EventOutcome { corrections, diagnostics: up.diagnostics, prior_covariance: p, gated, weights })
 }
 
 #[cfg(test)]

@@ -200,13 +200,17 @@ pub fn joint_update(
     let (chol, s) = innovation_factor(s)?;
     let l = chol.l();
     // W = L^-1 (H P) = U^T, so that P_post = P - W^T W and K = W^T L^-1.
-    let w = l.solve_lower_triangular(&hp).ok_or(EstimationError::NotPositiveDefinite { what: "innovation covariance factor" })?;
+    // Solved along the contiguous columns of (H P)^T = P H^T, all right-hand sides at once.
+    let mut w_t = ph_t;
+    if !super::dense::solve_lower_transposed(&l, &mut w_t) {
+        return Err(EstimationError::NotPositiveDefinite { what: "innovation covariance factor" });
+    }
+    let w = w_t.transpose();
     let white_residual = l
         .solve_lower_triangular(&meas.residual)
         .ok_or(EstimationError::NotPositiveDefinite { what: "innovation covariance factor" })?;
-    let mut p_post = p.clone();
-    p_post.gemm_tr(-1.0, &w, &w, 1.0);
-    symmetrize(&mut p_post);
+    // P - W^T W, symmetrised: each entry computed once for both triangles (super::dense).
+    let p_post = super::dense::symmetric_downdate(p, &w);
     let dx = w.tr_mul(&white_residual);
     let nis = white_residual.norm_squared();
     let passive = match passive {
@@ -234,7 +238,16 @@ pub fn joint_update(
 
 /// The nonzero entries `(column, value)` of each row of `h`.
 fn row_nonzeros(h: &DMatrix<f64>) -> Vec<Vec<(usize, f64)>> {
-    (0..h.nrows()).map(|r| (0..h.ncols()).filter(|&c| h[(r, c)] != 0.0).map(|c| (c, h[(r, c)])).collect()).collect()
+    // Column by column (nalgebra's storage order): each row's nonzeros come out by column.
+    let mut rows = vec![Vec::new(); h.nrows()];
+    for (c, col) in h.column_iter().enumerate() {
+        for (r, &v) in col.iter().enumerate() {
+            if v != 0.0 {
+                rows[r].push((c, v));
+            }
+        }
+    }
+    rows
 }
 
 /// `A H^T` for a sparse `H` given by its row nonzeros: column `r` is `sum_c H[r, c] A[:, c]`.

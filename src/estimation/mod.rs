@@ -10,6 +10,7 @@
 //! | [`nav`] | the navigation filter a node runs: the INS or the planar robot, one type |
 //! | [`linear`] | generic linear-Gaussian platform |
 //! | [`coop`] | the paper's cooperative joint update and the cross-covariance store (Eq. 10) |
+//! | [`dense`] | the joint update's rank-m downdate, symmetric and vectorised, rounded as nalgebra rounds it |
 //! | [`ci`] | covariance-intersection baseline |
 //! | [`team`] | a team under one [`Method`]: dead reckoning, no-propagation, decentralized, centralized, CI |
 //! | [`consistency`] | NEES and chi-square bands |
@@ -20,6 +21,7 @@
 pub mod ci;
 pub mod consistency;
 pub mod coop;
+pub mod dense;
 mod error;
 pub mod inputs;
 pub mod ins;

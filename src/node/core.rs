@@ -883,8 +883,12 @@ impl NodeCore {
         if let Some(c) = correction {
             f.apply_joint(&c.dx, &c.p)?;
         }
-        let saved = (std::mem::replace(&mut self.filter, f.clone()), self.history.clone(), self.open_instant);
-        self.history.truncate(pos);
+        // What a failed replay puts back: the filter, the checkpoints it rebuilds (moved out,
+        // not copied: a replay after an epoch rebuilds seconds of 200 Hz checkpoints), the
+        // open instant.
+        let saved_filter = std::mem::replace(&mut self.filter, f.clone());
+        let saved_tail = self.history.split_off(pos);
+        let saved_open = self.open_instant;
         self.history.push_back((tc, f));
         self.open_instant = None;
         let replay: Vec<Drive> = self
@@ -897,7 +901,10 @@ impl NodeCore {
             .collect();
         for s in &replay {
             if let Err(e) = self.integrate(s, false) {
-                (self.filter, self.history, self.open_instant) = saved;
+                self.filter = saved_filter;
+                self.history.truncate(pos);
+                self.history.extend(saved_tail);
+                self.open_instant = saved_open;
                 return Err(e);
             }
             self.stats.replayed_inputs += 1;

@@ -1,0 +1,333 @@
+//! Dense kernels of the joint update that keep nalgebra's rounding.
+//!
+//! The joint update of a large team is a rank-`m` downdate of the `16 N` joint covariance,
+//! `P - W^T W` (see [`super::kalman::joint_update`]): about `(16 N)^2 m` multiply-adds, the cost
+//! of a cooperative event of 32 or 64 platforms. nalgebra computes it as a general product,
+//! every entry of both triangles, one dot product at a time. Here the result is symmetric by
+//! construction, so each dot product is computed once for both triangles, four at a time
+//! against one shared column, on AVX2 where the processor has it.
+//!
+//! Every entry is rounded exactly as `p.clone().gemm_tr(-1.0, w, w, 1.0)` followed by
+//! [`super::kalman::symmetrize`] rounds it: each dot product sums in nalgebra's order (eight
+//! interleaved partial sums, then `(s0 + s4) + (s1 + s5) + ...`, then the tail), with separate
+//! multiplies and adds (Rust never fuses them), so the vector width changes nothing. The
+//! experiment's outputs are unchanged bit for bit (tests/golden), and the tests below compare
+//! with nalgebra exactly, not to a tolerance.
+
+use nalgebra::DMatrix;
+
+/// `a . b` summed as nalgebra's `dot` sums a dynamic column pair.
+#[inline(always)]
+fn dot_body(a: &[f64], b: &[f64]) -> f64 {
+    let m = a.len().min(b.len());
+    let mut acc = [0.0f64; 8];
+    let full = m - m % 8;
+    for (ca, cb) in a[..full].chunks_exact(8).zip(b[..full].chunks_exact(8)) {
+        for k in 0..8 {
+            acc[k] += ca[k] * cb[k];
+        }
+    }
+    finish(&acc, &a[full..m], &b[full..m])
+}
+
+#[inline(always)]
+fn finish(acc: &[f64; 8], a_tail: &[f64], b_tail: &[f64]) -> f64 {
+    let mut res = 0.0;
+    res += acc[0] + acc[4];
+    res += acc[1] + acc[5];
+    res += acc[2] + acc[6];
+    res += acc[3] + acc[7];
+    for (x, y) in a_tail.iter().zip(b_tail) {
+        res += x * y;
+    }
+    res
+}
+
+/// `[a . b0, a . b1, a . b2, a . b3]`, each summed as [`dot_body`] sums it; `a` is loaded once.
+#[inline(always)]
+fn dots4_body(a: &[f64], b: [&[f64]; 4]) -> [f64; 4] {
+    let m = a.len();
+    let full = m - m % 8;
+    let mut acc = [[0.0f64; 8]; 4];
+    let mut c = 0;
+    while c < full {
+        let ca = &a[c..c + 8];
+        for (acc, b) in acc.iter_mut().zip(&b) {
+            let cb = &b[c..c + 8];
+            for k in 0..8 {
+                acc[k] += ca[k] * cb[k];
+            }
+        }
+        c += 8;
+    }
+    std::array::from_fn(|q| finish(&acc[q], &a[full..m], &b[q][full..m]))
+}
+
+/// The dot products `W[:, i] . W[:, j]` for `i >= j`, into the lower triangle of `out`
+/// (column `j` from row `j` down, contiguous).
+#[inline(always)]
+fn lower_gram_body(w: &DMatrix<f64>, out: &mut DMatrix<f64>) {
+    let (n, m) = (w.ncols(), w.nrows());
+    let ws = w.as_slice();
+    let col = |i: usize| &ws[i * m..(i + 1) * m];
+    let os = out.as_mut_slice();
+    for j in 0..n {
+        let cj = col(j);
+        let oj = &mut os[j * n..(j + 1) * n];
+        oj[j] = dot_body(cj, cj);
+        let mut i = j + 1;
+        while i + 4 <= n {
+            let d = dots4_body(cj, [col(i), col(i + 1), col(i + 2), col(i + 3)]);
+            oj[i..i + 4].copy_from_slice(&d);
+            i += 4;
+        }
+        while i < n {
+            oj[i] = dot_body(col(i), cj);
+            i += 1;
+        }
+    }
+}
+
+/// [`dots4_body`] with AVX2 intrinsics: partial sums 0..3 in one register, 4..7 in another,
+/// each lane the scalar partial sum it replaces (separate multiplies and adds, as the scalar
+/// code; the finish is the scalar one).
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2")]
+fn dots4_avx2(a: &[f64], b: [&[f64]; 4]) -> [f64; 4] {
+    use std::arch::x86_64::{__m256d, _mm256_add_pd, _mm256_loadu_pd, _mm256_mul_pd, _mm256_setzero_pd, _mm256_storeu_pd};
+    let m = a.len();
+    assert!(b.iter().all(|b| b.len() == m), "dots4: columns of different lengths");
+    let full = m - m % 8;
+    let mut lo: [__m256d; 4] = [_mm256_setzero_pd(); 4];
+    let mut hi: [__m256d; 4] = [_mm256_setzero_pd(); 4];
+    let mut c = 0;
+    while c < full {
+        // SAFETY: c + 8 <= full <= m, the length of `a` and of every `b` (asserted above).
+        unsafe {
+            let a_lo = _mm256_loadu_pd(a.as_ptr().add(c));
+            let a_hi = _mm256_loadu_pd(a.as_ptr().add(c + 4));
+            for q in 0..4 {
+                lo[q] = _mm256_add_pd(lo[q], _mm256_mul_pd(a_lo, _mm256_loadu_pd(b[q].as_ptr().add(c))));
+                hi[q] = _mm256_add_pd(hi[q], _mm256_mul_pd(a_hi, _mm256_loadu_pd(b[q].as_ptr().add(c + 4))));
+            }
+        }
+        c += 8;
+    }
+    std::array::from_fn(|q| {
+        let mut acc = [0.0f64; 8];
+        // SAFETY: `acc` holds 8 doubles, two stores of 4.
+        unsafe {
+            _mm256_storeu_pd(acc.as_mut_ptr(), lo[q]);
+            _mm256_storeu_pd(acc.as_mut_ptr().add(4), hi[q]);
+        }
+        finish(&acc, &a[full..m], &b[q][full..m])
+    })
+}
+
+/// [`lower_gram_body`] with [`dots4_avx2`], in blocks of eight columns `j` (12 kB at 192 rows,
+/// kept in L1) against every column `i` below them, which is then read once per block instead
+/// of once per column.
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2")]
+fn lower_gram_avx2(w: &DMatrix<f64>, out: &mut DMatrix<f64>) {
+    const BLOCK: usize = 8;
+    let (n, m) = (w.ncols(), w.nrows());
+    let ws = w.as_slice();
+    let col = |i: usize| &ws[i * m..(i + 1) * m];
+    let os = out.as_mut_slice();
+    for j0 in (0..n).step_by(BLOCK) {
+        let j1 = (j0 + BLOCK).min(n);
+        for i in j0..n {
+            let ci = col(i);
+            let top = j1.min(i + 1);
+            let mut j = j0;
+            while j + 4 <= top {
+                let d = dots4_avx2(ci, [col(j), col(j + 1), col(j + 2), col(j + 3)]);
+                for (q, d) in d.into_iter().enumerate() {
+                    os[(j + q) * n + i] = d;
+                }
+                j += 4;
+            }
+            while j < top {
+                os[j * n + i] = dot_body(ci, col(j));
+                j += 1;
+            }
+        }
+    }
+}
+
+/// `out = P - G`, symmetrised, from the lower triangle of the Gram matrix `G` in `out`: square
+/// tiles, so that both triangles are read and written a cache line at a time.
+fn downdate_from_lower_gram(p: &DMatrix<f64>, out: &mut DMatrix<f64>) {
+    const TILE: usize = 32;
+    let n = p.nrows();
+    let (ps, os) = (p.as_slice(), out.as_mut_slice());
+    for j0 in (0..n).step_by(TILE) {
+        for i0 in (j0..n).step_by(TILE) {
+            for j in j0..(j0 + TILE).min(n) {
+                for i in i0.max(j)..(i0 + TILE).min(n) {
+                    // (i, j) of the lower triangle is at j n + i, its mirror (j, i) at i n + j.
+                    let (lo, up) = (j * n + i, i * n + j);
+                    let d = os[lo];
+                    if i == j {
+                        // gemm_tr writes alpha * d + beta * p with alpha = -1, beta = 1.
+                        os[lo] = -d + ps[lo];
+                    } else {
+                        // ... and symmetrize averages the two triangles.
+                        let v = 0.5 * ((-d + ps[lo]) + (-d + ps[up]));
+                        os[lo] = v;
+                        os[up] = v;
+                    }
+                }
+            }
+        }
+    }
+}
+
+/// `P - W^T W`, symmetrised, for a symmetric-shaped `P` (`n x n`) and `W` (`m x n`): equal
+/// bit for bit to `p.clone().gemm_tr(-1.0, w, w, 1.0)` followed by
+/// [`super::kalman::symmetrize`], in about half the work.
+pub fn symmetric_downdate(p: &DMatrix<f64>, w: &DMatrix<f64>) -> DMatrix<f64> {
+    let n = p.nrows();
+    assert!(p.ncols() == n && w.ncols() == n, "symmetric_downdate: P is {}x{}, W is {}x{}", n, p.ncols(), w.nrows(), w.ncols());
+    let mut out = DMatrix::zeros(n, n);
+    lower_gram(w, &mut out);
+    downdate_from_lower_gram(p, &mut out);
+    out
+}
+
+fn lower_gram(w: &DMatrix<f64>, out: &mut DMatrix<f64>) {
+    #[cfg(target_arch = "x86_64")]
+    if std::arch::is_x86_feature_detected!("avx2") {
+        // SAFETY: the processor has AVX2 (checked just above).
+        unsafe { lower_gram_avx2(w, out) };
+        return;
+    }
+    lower_gram_body(w, out);
+}
+
+/// `B^T <- (L^-1 B)^T` in place, for a lower-triangular `L` (`m x m`) and `B^T` (`n x m`):
+/// every column of `B` solved as nalgebra's `solve_lower_triangular` solves it (divide by the
+/// diagonal, then `b[k] = -b[i] L[k, i] + b[k]` for `k > i`, in that order), but all `n` at
+/// once along the contiguous columns of `B^T`. False, with `bt` partly solved, when a diagonal
+/// entry is zero (nalgebra's `None`).
+pub fn solve_lower_transposed(l: &DMatrix<f64>, bt: &mut DMatrix<f64>) -> bool {
+    assert!(
+        l.nrows() == l.ncols() && bt.ncols() == l.nrows(),
+        "solve_lower_transposed: L is {}x{}, B^T is {}x{}",
+        l.nrows(),
+        l.ncols(),
+        bt.nrows(),
+        bt.ncols()
+    );
+    #[cfg(target_arch = "x86_64")]
+    if std::arch::is_x86_feature_detected!("avx2") {
+        // SAFETY: the processor has AVX2 (checked just above).
+        return unsafe { solve_lower_transposed_avx2(l, bt) };
+    }
+    solve_lower_transposed_body(l, bt)
+}
+
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2")]
+fn solve_lower_transposed_avx2(l: &DMatrix<f64>, bt: &mut DMatrix<f64>) -> bool {
+    solve_lower_transposed_body(l, bt)
+}
+
+#[inline(always)]
+fn solve_lower_transposed_body(l: &DMatrix<f64>, bt: &mut DMatrix<f64>) -> bool {
+    let (m, n) = (l.nrows(), bt.nrows());
+    let data = bt.as_mut_slice();
+    for i in 0..m {
+        let diag = l[(i, i)];
+        if diag == 0.0 {
+            return false;
+        }
+        let (done, rest) = data.split_at_mut((i + 1) * n);
+        let ci = &mut done[i * n..];
+        for v in ci.iter_mut() {
+            *v /= diag;
+        }
+        for (k, ck) in rest.chunks_exact_mut(n).enumerate() {
+            let lk = l[(i + 1 + k, i)];
+            for (y, x) in ck.iter_mut().zip(ci.iter()) {
+                *y += -*x * lk;
+            }
+        }
+    }
+    true
+}
+
+#[cfg(test)]
+mod tests {
+    use rand::{Rng, SeedableRng};
+    use rand_chacha::ChaCha8Rng;
+
+    use super::*;
+    use crate::estimation::kalman::symmetrize;
+
+    fn reference(p: &DMatrix<f64>, w: &DMatrix<f64>) -> DMatrix<f64> {
+        let mut out = p.clone();
+        out.gemm_tr(-1.0, w, w, 1.0);
+        symmetrize(&mut out);
+        out
+    }
+
+    /// Every shape around the kernels' edges (tails of the 8-long sums, of the 4-wide blocks),
+    /// a `P` that is not exactly symmetric, both code paths: equal bit for bit.
+    #[test]
+    fn the_downdate_rounds_exactly_as_nalgebra_and_symmetrize() {
+        let mut rng = ChaCha8Rng::seed_from_u64(5);
+        for n in [1, 2, 3, 4, 5, 7, 8, 9, 16, 17, 48, 50] {
+            for m in [1, 2, 3, 7, 8, 9, 15, 16, 17, 24] {
+                let w = DMatrix::from_fn(m, n, |_, _| rng.random_range(-1.0..1.0) * 10f64.powi(rng.random_range(-3..3)));
+                let p = DMatrix::from_fn(n, n, |_, _| rng.random_range(-5.0..5.0));
+                let want = reference(&p, &w);
+                let got = symmetric_downdate(&p, &w);
+                let mut portable = DMatrix::zeros(n, n);
+                lower_gram_body(&w, &mut portable);
+                downdate_from_lower_gram(&p, &mut portable);
+                for (k, (a, b)) in want.iter().zip(got.iter()).enumerate() {
+                    assert_eq!(a.to_bits(), b.to_bits(), "n {n}, m {m}, entry {k}: {a:e} vs {b:e}");
+                }
+                assert_eq!(got.as_slice(), portable.as_slice(), "n {n}, m {m}: the portable path differs");
+            }
+        }
+    }
+
+    /// Triangular solves of many right-hand sides at once: equal bit for bit to nalgebra's, and
+    /// a zero diagonal refused as nalgebra refuses it.
+    #[test]
+    fn the_transposed_solve_rounds_exactly_as_nalgebra() {
+        let mut rng = ChaCha8Rng::seed_from_u64(3);
+        for m in [1, 2, 3, 5, 9, 24] {
+            for n in [1, 3, 4, 7, 48, 130] {
+                let a = DMatrix::from_fn(m, m, |_, _| rng.random_range(-1.0..1.0));
+                let l = (&a * a.transpose() + DMatrix::identity(m, m)).cholesky().unwrap().l();
+                let b = DMatrix::from_fn(m, n, |_, _| rng.random_range(-1e3..1e3));
+                let want = l.solve_lower_triangular(&b).unwrap();
+                let mut bt = b.transpose();
+                assert!(solve_lower_transposed(&l, &mut bt));
+                let mut portable = b.transpose();
+                assert!(solve_lower_transposed_body(&l, &mut portable));
+                for (k, (x, y)) in want.transpose().iter().zip(bt.iter()).enumerate() {
+                    assert_eq!(x.to_bits(), y.to_bits(), "m {m}, n {n}, entry {k}");
+                }
+                assert_eq!(bt.as_slice(), portable.as_slice());
+                let mut singular = l.clone();
+                singular[(m - 1, m - 1)] = 0.0;
+                assert_eq!(singular.solve_lower_triangular(&b).is_none(), !solve_lower_transposed(&singular, &mut b.transpose()));
+            }
+        }
+    }
+
+    #[test]
+    fn dot_sums_in_nalgebras_order() {
+        let mut rng = ChaCha8Rng::seed_from_u64(9);
+        for m in 0..40 {
+            let a = nalgebra::DVector::from_fn(m, |_, _| rng.random_range(-1.0..1.0) * 1e3);
+            let b = nalgebra::DVector::from_fn(m, |_, _| rng.random_range(-1.0..1.0) * 1e-3);
+            assert_eq!(dot_body(a.as_slice(), b.as_slice()).to_bits(), a.dot(&b).to_bits(), "m {m}");
+        }
+    }
+}
