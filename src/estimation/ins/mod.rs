@@ -505,7 +505,7 @@ fn phi_rows(f: &FdtBlocks, c: &[f64; ERROR_DIM], o: &mut [f64; ERROR_DIM]) {
 
 /// `out = m (I + F dt)^T`: column `c` of the product is `m[:, c] + sum_k F dt[c, k] m[:, k]`, a
 /// few contiguous 16-long column updates (only columns 0..9 differ from `m`).
-#[inline]
+#[inline(always)]
 fn times_phi_transpose(f: &FdtBlocks, m: &Columns, out: &mut Columns) {
     out[ACCEL_BIAS..].copy_from_slice(&m[ACCEL_BIAS..]);
     for i in 0..3 {
@@ -532,6 +532,7 @@ fn times_phi_transpose(f: &FdtBlocks, m: &Columns, out: &mut Columns) {
 /// False when an entry is NaN or infinite, by a branch-free sum (NaN and infinities propagate
 /// through it). A sum that overflows also reads as non-finite: a matrix with entries near
 /// `f64::MAX` has diverged anyway.
+#[inline(always)]
 fn all_finite(m: &Columns) -> bool {
     let mut acc = [0.0; ERROR_DIM];
     for c in m {
@@ -551,9 +552,9 @@ fn all_finite(m: &Columns) -> bool {
 ///   top-right block is the transpose of the bottom-left (the result is symmetric); its
 ///   bottom-right block is `P`'s.
 #[allow(clippy::needless_range_loop)] // (i, j) and (j, i) pairs: indices read clearer than iterators
-fn propagate_covariance(f: &FdtBlocks, p: &Matrix16, qd_diag: &Vector16) -> Matrix16 {
+#[inline(always)]
+fn propagate_covariance_body(f: &FdtBlocks, p: &Matrix16, qd_diag: &Vector16, out: &mut Matrix16) {
     const TOP: usize = ACCEL_BIAS; // rows 0..9 are the ones Phi changes
-    let mut out = Matrix16::zeros();
     times_phi_transpose(f, &p.data.0, &mut out.data.0);
     let m = &mut out.data.0;
     for c in m.iter_mut().take(TOP) {
@@ -573,13 +574,66 @@ fn propagate_covariance(f: &FdtBlocks, p: &Matrix16, qd_diag: &Vector16) -> Matr
     for (j, q) in qd_diag.iter().enumerate() {
         m[j][j] += q;
     }
+}
+
+// The covariance step compiled twice: for the baseline x86-64 (SSE2) and for AVX2, chosen at
+// run time. Separate multiplies and adds either way (Rust never fuses them), so both round
+// alike; only the vector width differs. Results go to `out` (every entry written), and the
+// answer is whether every entry is finite.
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2")]
+fn propagate_covariance_avx2(f: &FdtBlocks, p: &Matrix16, qd_diag: &Vector16, out: &mut Matrix16) -> bool {
+    propagate_covariance_body(f, p, qd_diag, out);
+    all_finite(&out.data.0)
+}
+
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2")]
+fn times_phi_transpose_avx2(f: &FdtBlocks, m: &Matrix16, out: &mut Matrix16) -> bool {
+    times_phi_transpose(f, &m.data.0, &mut out.data.0);
+    all_finite(&out.data.0)
+}
+
+fn has_avx2() -> bool {
+    #[cfg(target_arch = "x86_64")]
+    return std::arch::is_x86_feature_detected!("avx2");
+    #[cfg(not(target_arch = "x86_64"))]
+    false
+}
+
+/// `out = Phi P Phi^T + diag(qd)` (see [`propagate_covariance_body`]); whether it is finite.
+fn propagate_covariance_into(f: &FdtBlocks, p: &Matrix16, qd_diag: &Vector16, out: &mut Matrix16) -> bool {
+    #[cfg(target_arch = "x86_64")]
+    if has_avx2() {
+        // SAFETY: the processor has AVX2 (checked just above).
+        return unsafe { propagate_covariance_avx2(f, p, qd_diag, out) };
+    }
+    propagate_covariance_body(f, p, qd_diag, out);
+    all_finite(&out.data.0)
+}
+
+/// `out = M (I + F dt)^T`; whether it is finite.
+fn times_phi_transpose_into(f: &FdtBlocks, m: &Matrix16, out: &mut Matrix16) -> bool {
+    #[cfg(target_arch = "x86_64")]
+    if has_avx2() {
+        // SAFETY: the processor has AVX2 (checked just above).
+        return unsafe { times_phi_transpose_avx2(f, m, out) };
+    }
+    times_phi_transpose(f, &m.data.0, &mut out.data.0);
+    all_finite(&out.data.0)
+}
+
+/// `Phi P Phi^T + diag(qd)`.
+fn propagate_covariance(f: &FdtBlocks, p: &Matrix16, qd_diag: &Vector16) -> Matrix16 {
+    let mut out = Matrix16::zeros();
+    propagate_covariance_into(f, p, qd_diag, &mut out);
     out
 }
 
 /// `M (I + F dt)^T`.
 fn times_phi_transpose_matrix(f: &FdtBlocks, m: &Matrix16) -> Matrix16 {
     let mut out = Matrix16::zeros();
-    times_phi_transpose(f, &m.data.0, &mut out.data.0);
+    times_phi_transpose_into(f, m, &mut out);
     out
 }
 
@@ -604,6 +658,8 @@ pub struct InsFilter {
     /// IMU steps whose covariance propagation is still to be applied: summed `F dt`, summed
     /// `dt`, count (see [`InsConfig::covariance_decimation`]).
     pending: Option<(FdtBlocks, f64, u32)>,
+    /// The Earth's rotation over the last step's `dt` (its bits), as a quaternion.
+    earth_turn: Option<(u64, UnitQuaternion<f64>)>,
 }
 
 impl InsFilter {
@@ -645,6 +701,7 @@ impl InsFilter {
             prev_dtheta: Vector3::zeros(),
             prev_dv: Vector3::zeros(),
             pending: None,
+            earth_turn: None,
         })
     }
 
@@ -771,7 +828,17 @@ impl InsFilter {
         let v_mid = x.vel_ned_m_s + 0.5 * dv_no_coriolis;
         let vel = x.vel_ned_m_s + dv_no_coriolis - 2.0 * dt * self.w_ie_n.cross(&v_mid);
         let pos = x.pos_ned_m + 0.5 * dt * (x.vel_ned_m_s + vel);
-        let q = UnitQuaternion::from_scaled_axis(-zeta) * x.att_frd_to_ned * UnitQuaternion::from_scaled_axis(dtheta_c);
+        // The Earth's turn over `dt` (the same for every step of a steady IMU rate: computed once).
+        let earth_turn = match self.earth_turn {
+            Some((bits, q)) if bits == dt.to_bits() => q,
+            _ => {
+                let q = UnitQuaternion::from_scaled_axis(-zeta);
+                self.earth_turn = Some((dt.to_bits(), q));
+                q
+            }
+        };
+        let x = &self.x;
+        let q = earth_turn * x.att_frd_to_ned * UnitQuaternion::from_scaled_axis(dtheta_c);
         let att = UnitQuaternion::new_normalize(q.into_inner());
 
         let fdt = FdtBlocks::new(dt, &r, &(r * f_b), &self.w_ie_n);
@@ -779,32 +846,32 @@ impl InsFilter {
             Some((acc, sum_dt, n)) => (acc.add(&fdt), sum_dt + dt, n + 1),
             None => (fdt, dt, 1),
         };
-        let (p, psi_t, pending) = if pending.2 >= self.config.covariance_decimation {
-            let (fdt, sum_dt, _) = pending;
-            let p = propagate_covariance(&fdt, &self.p, &(self.q_psd * sum_dt));
-            (Some(p), self.track_psi.then(|| times_phi_transpose_matrix(&fdt, &self.psi_t)), None)
-        } else {
-            (None, None, Some(pending))
-        };
 
         let next = InsState { pos_ned_m: pos, vel_ned_m_s: vel, att_frd_to_ned: att, ..*x };
         if !next.is_finite() {
             return Err(EstimationError::NonFinite { what: "propagated INS state" });
         }
-        if p.as_ref().is_some_and(|m| !all_finite(&m.data.0)) {
-            return Err(EstimationError::NonFinite { what: "propagated INS covariance" });
-        }
-        if psi_t.as_ref().is_some_and(|m| !all_finite(&m.data.0)) {
-            return Err(EstimationError::NonFinite { what: "propagated INS Psi" });
+        if pending.2 >= self.config.covariance_decimation {
+            // Computed into locals and checked before anything is stored (on error nothing
+            // changes), then copied in once each.
+            let (fdt, sum_dt, _) = pending;
+            let mut p = Matrix16::zeros();
+            if !propagate_covariance_into(&fdt, &self.p, &(self.q_psd * sum_dt), &mut p) {
+                return Err(EstimationError::NonFinite { what: "propagated INS covariance" });
+            }
+            if self.track_psi {
+                let mut psi_t = Matrix16::zeros();
+                if !times_phi_transpose_into(&fdt, &self.psi_t, &mut psi_t) {
+                    return Err(EstimationError::NonFinite { what: "propagated INS Psi" });
+                }
+                self.psi_t = psi_t;
+            }
+            self.p = p;
+            self.pending = None;
+        } else {
+            self.pending = Some(pending);
         }
         self.x = next;
-        if let Some(p) = p {
-            self.p = p;
-        }
-        if let Some(psi_t) = psi_t {
-            self.psi_t = psi_t;
-        }
-        self.pending = pending;
         self.t = s.t;
         self.prev_dtheta = dtheta;
         self.prev_dv = dv;
