@@ -7,15 +7,23 @@
 //! - `replay/nodes_30s`: `cooploc replay`'s work on the committed 30 s demo log
 //!   (`logs/demo-dcl-30s.mcap`): read and decode the log, rerun every node's core on its
 //!   recorded inputs. Real time divided by this is the replay speed.
+//! - `team/N`: a team of N node cores (the node's whole protocol: fragments, reassembly,
+//!   store digests, the joint update every node computes, the INS at 200 Hz) run in-process by
+//!   [`cooploc::experiment::faults::run_case`] with no faults, for 4 s of vehicle time with
+//!   ranging at 1 Hz. N vehicles 100 m apart in a line, radios reaching 310 m: each ranges to
+//!   up to 6 neighbours. Divided by `4 N`, the median is one node's CPU time per second at real
+//!   time: its share of a core.
 
 use std::hint::black_box;
 use std::path::Path;
 
 use cooploc::estimation::Method;
+use cooploc::experiment::faults::{Faults, run_case};
 use cooploc::experiment::{ExperimentSpec, InputSource, run_once};
+use cooploc::protocol::record::Encoding;
 use cooploc::recording::read_log;
 use cooploc::replay::replay_nodes;
-use cooploc::sitl::scenario::Scenario;
+use cooploc::sitl::scenario::{PlatformSpec, Scenario, Segment};
 use cooploc::sitl::world::World;
 use criterion::{Criterion, criterion_group, criterion_main};
 
@@ -54,5 +62,44 @@ fn replay(c: &mut Criterion) {
     group.finish();
 }
 
-criterion_group!(benches, experiment, replay);
+/// The paper scenario's sensors with `n` vehicles driving north side by side, 100 m apart, for
+/// `duration_s`, radios reaching 310 m (three neighbours on each side).
+pub fn line_team(n: usize, duration_s: f64) -> Scenario {
+    let mut s = Scenario::from_path(root().join("sitl/scenarios/paper.toml")).expect("paper scenario");
+    s.name = format!("line-{n}");
+    s.duration_s = duration_s;
+    s.ranging.max_range_m = Some(310.0);
+    s.ranging.schedules.retain(|r| r.name == "1hz");
+    let template = s.platforms[0].clone();
+    s.platforms = (0..n)
+        .map(|i| PlatformSpec {
+            id: i as u16 + 1,
+            start_ned_m: [0.0, 100.0 * i as f64, 0.0],
+            start_yaw_deg: 0.0,
+            start_speed_m_s: 10.0,
+            segments: vec![Segment { duration_s, accel_m_s2: 0.0, yaw_rate_deg_s: 0.0 }],
+            ..template.clone()
+        })
+        .collect();
+    s
+}
+
+fn team(c: &mut Criterion) {
+    let mut group = c.benchmark_group("team");
+    group.sample_size(10);
+    for n in [3usize, 8, 16, 32, 64] {
+        let world = World::new(&line_team(n, 4.0)).expect("world");
+        group.bench_function(format!("{n}"), |b| {
+            b.iter(|| {
+                let out = run_case(&world, &Faults::default(), Method::Decentralized, "1hz", 1, 0, Encoding::F64).expect("run");
+                assert_eq!(out.divergent_epochs, 0, "the team disagreed");
+                assert!(out.nodes.iter().all(|n| n.stats.epochs_applied >= 3), "a node missed epochs");
+                black_box(out)
+            })
+        });
+    }
+    group.finish();
+}
+
+criterion_group!(benches, experiment, replay, team);
 criterion_main!(benches);

@@ -132,6 +132,10 @@ pub struct Sensors {
 pub struct Ranging {
     /// White noise on each range, m.
     pub sigma_m: f64,
+    /// The radios' reach, m: two platforms range only while they are at most this far apart
+    /// (large teams, where each member reaches a few neighbours). Absent: every pair ranges.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub max_range_m: Option<f64>,
     pub schedules: Vec<RangeSchedule>,
 }
 
@@ -290,6 +294,11 @@ impl Scenario {
                     format!("must divide the IMU rate {} Hz evenly, got {rate}", s.imu_rate_hz),
                 ));
             }
+        }
+        if let Some(reach) = self.ranging.max_range_m
+            && !(reach.is_finite() && reach > 0.0)
+        {
+            return Err(invalid("ranging.max_range_m", format!("must be a positive distance in m, got {reach}")));
         }
         for (i, sched) in self.ranging.schedules.iter().enumerate() {
             let field = format!("ranging.schedules[{i}]");

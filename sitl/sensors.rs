@@ -71,6 +71,8 @@ pub struct SensorModel {
     pub odometer_sigma_m_s: f64,
     pub odometer_scale_sigma: f64,
     pub range_sigma_m: f64,
+    /// The radios' reach, m (see [`crate::sitl::scenario::Ranging::max_range_m`]).
+    pub range_max_m: Option<f64>,
     /// The wheeled robots' odometry, when the scenario has any.
     pub wheels: Option<WheelModel>,
 }
@@ -106,6 +108,7 @@ impl SensorModel {
             odometer_sigma_m_s: s.odometer_sigma_m_s,
             odometer_scale_sigma: s.odometer_scale_sigma,
             range_sigma_m: scenario.ranging.sigma_m,
+            range_max_m: scenario.ranging.max_range_m,
             wheels: scenario.wheels.map(|w| WheelModel {
                 rate_hz: w.rate_hz,
                 speed_sigma_m_s: w.speed_sigma_m_s,
@@ -370,7 +373,7 @@ fn odometer_time_us(rate_hz: f64, m: u64) -> u64 {
 
 /// The ranges measured at `t` among `trajs`: one per unordered pair, `from` the lower id, in
 /// increasing order of `(from, to)`.
-pub fn ranges_at(trajs: &[Trajectory], sigma_m: f64, t: TimeUs, seed: u64, run: u32) -> Vec<RangeSample> {
+pub fn ranges_at(trajs: &[Trajectory], sigma_m: f64, max_m: Option<f64>, t: TimeUs, seed: u64, run: u32) -> Vec<RangeSample> {
     let mut sorted: Vec<&Trajectory> = trajs.iter().collect();
     sorted.sort_by_key(|tr| tr.id());
     let positions: Vec<_> = sorted.iter().map(|tr| tr.truth_at(t).pos_ned_m).collect();
@@ -378,6 +381,9 @@ pub fn ranges_at(trajs: &[Trajectory], sigma_m: f64, t: TimeUs, seed: u64, run: 
     for i in 0..sorted.len() {
         for j in i + 1..sorted.len() {
             let (from, to) = (sorted[i].id(), sorted[j].id());
+            if max_m.is_some_and(|reach| (positions[i] - positions[j]).norm() > reach) {
+                continue; // out of the radios' reach
+            }
             let mut rng = stream_rng(seed, run, Stream::Range, &[u64::from(from), u64::from(to), t.0]);
             let range_m = (positions[i] - positions[j]).norm() + sigma_m * normal(&mut rng);
             out.push(RangeSample { t, from, to, range_m, sigma_m });
@@ -396,6 +402,33 @@ mod tests {
         let mut s = Scenario::from_toml_str(SMALL).unwrap();
         edit(&mut s);
         World::new(&s).unwrap()
+    }
+
+    /// Radios that reach only so far: the pairs farther apart do not range, the others range as
+    /// they did (same noise draws); a reach that is not a positive distance is refused.
+    #[test]
+    fn ranges_beyond_the_radios_reach_are_not_taken() {
+        let path = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("sitl/scenarios/paper.toml");
+        let paper = Scenario::from_path(&path).unwrap();
+        let all = World::new(&paper).unwrap().ranges("1hz", 1, 0).unwrap();
+        let (t, first) = &all[0];
+        let mut lengths: Vec<f64> = first.iter().map(|r| r.range_m).collect();
+        lengths.sort_by(f64::total_cmp);
+        assert!(lengths.len() == 3 && lengths[2] - lengths[0] > 10.0, "the paper's pairs are at different distances");
+        let reach = 0.5 * (lengths[0] + lengths[2]);
+        let mut near = paper.clone();
+        near.ranging.max_range_m = Some(reach);
+        let kept = World::new(&near).unwrap().ranges("1hz", 1, 0).unwrap();
+        assert_eq!(kept[0].0, *t);
+        let want: Vec<&RangeSample> = first.iter().filter(|r| r.range_m <= reach).collect();
+        assert!(!want.is_empty() && want.len() < first.len());
+        assert_eq!(kept[0].1.iter().collect::<Vec<_>>(), want);
+        for bad in [0.0, -5.0, f64::NAN, f64::INFINITY] {
+            let mut s = paper.clone();
+            s.ranging.max_range_m = Some(bad);
+            let e = s.validate().unwrap_err().to_string();
+            assert!(e.contains("ranging.max_range_m"), "{e}");
+        }
     }
 
     /// Sample standard deviation.

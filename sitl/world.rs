@@ -203,7 +203,7 @@ impl World {
         let epochs = self.scenario.range_epochs(schedule)?;
         Ok(epochs
             .into_iter()
-            .map(|t| (t, sensors::ranges_at(&self.trajectories, self.model.range_sigma_m, t, seed, run)))
+            .map(|t| (t, sensors::ranges_at(&self.trajectories, self.model.range_sigma_m, self.model.range_max_m, t, seed, run)))
             .collect())
     }
 
@@ -304,7 +304,10 @@ impl Iterator for SimEvents<'_> {
             1 => self.odometer[i].as_mut()?.next().map(|s| SimEvent::Odometer(ids[i].id(), s)),
             _ => {
                 self.epochs.next();
-                Some(SimEvent::Ranges(t, sensors::ranges_at(ids, self.world.model.range_sigma_m, t, self.seed, self.run)))
+                Some(SimEvent::Ranges(
+                    t,
+                    sensors::ranges_at(ids, self.world.model.range_sigma_m, self.world.model.range_max_m, t, self.seed, self.run),
+                ))
             }
         }
     }

@@ -256,10 +256,19 @@ fn split(
 /// that platform's `Psi`, as the holder of the store saw it. The blocks of platform `k` are in
 /// the reference of `k`'s own `Psi` only if `k` itself last reset it at that same update; a node
 /// compares the two before it trusts a store (see `node::core`).
-#[derive(Debug, Clone, Default, PartialEq)]
+#[derive(Debug, Clone, Default)]
 pub struct CrossCovariances {
     blocks: BTreeMap<(PlatformId, PlatformId), DMatrix<f64>>,
     refs: BTreeMap<PlatformId, StoreRef>,
+    /// [`Self::digest`], once computed; emptied by every change. A node takes the digest of
+    /// its store several times per epoch, and a 64-member team's store is 4 MB to hash.
+    digest: std::sync::OnceLock<u64>,
+}
+
+impl PartialEq for CrossCovariances {
+    fn eq(&self, other: &Self) -> bool {
+        self.blocks == other.blocks && self.refs == other.refs
+    }
 }
 
 /// The joint update that last reset a platform's `Psi`: its epoch and a token of what it ran on
@@ -338,6 +347,7 @@ impl CrossCovariances {
     }
 
     fn set(&mut self, i: PlatformId, j: PlatformId, c: DMatrix<f64>) {
+        self.digest.take();
         if i < j {
             self.blocks.insert((i, j), c);
         } else {
@@ -347,12 +357,14 @@ impl CrossCovariances {
 
     /// Forgets every block that involves `id` (a platform that left the team for good).
     pub fn forget(&mut self, id: PlatformId) {
+        self.digest.take();
         self.blocks.retain(|(a, b), _| *a != id && *b != id);
         self.refs.remove(&id);
     }
 
     /// Forgets everything.
     pub fn clear(&mut self) {
+        self.digest.take();
         self.blocks.clear();
         self.refs.clear();
     }
@@ -363,6 +375,7 @@ impl CrossCovariances {
     }
 
     pub fn set_reference(&mut self, id: PlatformId, r: StoreRef) {
+        self.digest.take();
         self.refs.insert(id, r);
     }
 
@@ -405,6 +418,10 @@ impl CrossCovariances {
     /// different ones otherwise except with probability about 2^-64. Never 0 (0 means "no store"
     /// on the wire).
     pub fn digest(&self) -> u64 {
+        *self.digest.get_or_init(|| self.compute_digest())
+    }
+
+    fn compute_digest(&self) -> u64 {
         let mut h = Fnv::new();
         for ((a, b), m) in &self.blocks {
             h.eat(&a.to_le_bytes());
@@ -803,6 +820,32 @@ mod tests {
             })
             .collect();
         (p, snaps)
+    }
+
+    /// The digest is kept between changes and recomputed after every one: each change moves it,
+    /// and the kept value is always the one a fresh computation gives.
+    #[test]
+    fn the_kept_digest_follows_every_change() {
+        let mut s = CrossCovariances::new();
+        let mut seen = vec![s.digest()];
+        let mut check = |s: &CrossCovariances| {
+            assert_eq!(s.digest(), s.compute_digest());
+            assert!(!seen.contains(&s.digest()), "a change left the digest as it was");
+            seen.push(s.digest());
+        };
+        s.set(1, 2, DMatrix::from_element(2, 2, 0.5));
+        check(&s);
+        s.set(2, 3, DMatrix::from_element(2, 2, 0.25));
+        check(&s);
+        s.set_reference(2, StoreRef { epoch: 4, token: 9 });
+        check(&s);
+        s.forget(3);
+        check(&s);
+        let copy = s.clone();
+        assert_eq!(copy, s);
+        s.clear();
+        assert_eq!(s.digest(), s.compute_digest());
+        assert_eq!(s, CrossCovariances::new(), "equality ignores what was kept");
     }
 
     fn bound_prior(snaps: &[Snapshot], scope: BoundScope) -> DMatrix<f64> {
