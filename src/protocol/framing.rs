@@ -9,7 +9,7 @@
 //! start of such a frame are skipped one at a time (as MAVLink parsers resynchronise) and
 //! counted in [`Frames::skipped`].
 
-use mavlink_core::{MAVLinkMessageRaw, MavHeader, MavlinkReader, MavlinkVersion, Message};
+use mavlink_core::{MavHeader, MavlinkVersion, Message};
 
 use super::MavMessage;
 
@@ -108,18 +108,51 @@ impl<'a> Iterator for Frames<'a> {
 fn frame_at(rest: &[u8], offset: usize) -> Option<Frame<'_>> {
     let len = frame_len(rest)?;
     let bytes = &rest[..len];
-    let raw = MavlinkReader::new(bytes).read_any_raw_message::<MavMessage>().ok()?;
-    let (raw_bytes, version, signed) = match &raw {
-        MAVLinkMessageRaw::V1(m) => (m.raw_bytes(), MavlinkVersion::V1, false),
-        MAVLinkMessageRaw::V2(m) => (m.raw_bytes(), MavlinkVersion::V2, m.incompatibility_flags() & IFLAG_SIGNED != 0),
+    let payload_len = usize::from(bytes[1]);
+    // Header fields by version; a MAVLink 2 frame with an incompatibility flag other than
+    // "signed" (32-bit system ids, or one not defined) is not one of ours.
+    let (version, header_len, message_id, header, signed) = match bytes[0] {
+        STX_V1 => (
+            MavlinkVersion::V1,
+            6,
+            u32::from(bytes[5]),
+            MavHeader { system_id: u32::from(bytes[3]), component_id: bytes[4], sequence: bytes[2] },
+            false,
+        ),
+        _ => {
+            let incompat = bytes[2];
+            if incompat & !IFLAG_SIGNED != 0 {
+                return None;
+            }
+            (
+                MavlinkVersion::V2,
+                10,
+                u32::from_le_bytes([bytes[7], bytes[8], bytes[9], 0]),
+                MavHeader { system_id: u32::from(bytes[5]), component_id: bytes[6], sequence: bytes[4] },
+                incompat & IFLAG_SIGNED != 0,
+            )
+        }
     };
-    // The reader resynchronises on its own: only a frame that starts here and fills `len` is it.
-    if raw_bytes.len() != len || raw_bytes[0] != bytes[0] {
+    let crc_at = header_len + payload_len;
+    let expected = u16::from_le_bytes([bytes[crc_at], bytes[crc_at + 1]]);
+    if x25_crc(&bytes[1..crc_at], MavMessage::extra_crc(message_id)) != expected {
         return None;
     }
-    let header = MavHeader { system_id: raw.system_id(), component_id: raw.component_id(), sequence: raw.sequence() };
-    let message = MavMessage::parse(version, raw.message_id(), raw.payload()).map_err(|e| e.to_string());
-    Some(Frame { offset, bytes, header, version, message_id: raw.message_id(), signed, message })
+    let message = MavMessage::parse(version, message_id, &bytes[header_len..crc_at]).map_err(|e| e.to_string());
+    Some(Frame { offset, bytes, header, version, message_id, signed, message })
+}
+
+/// MAVLink's checksum (CRC-16/MCRF4XX, "X.25") of `data` followed by the message's CRC extra
+/// byte, as the MAVLink C library accumulates it byte by byte.
+fn x25_crc(data: &[u8], extra: u8) -> u16 {
+    let mut crc: u16 = 0xFFFF;
+    for &b in data.iter().chain(std::iter::once(&extra)) {
+        let mut t = b ^ (crc & 0xFF) as u8;
+        t ^= t << 4;
+        let t = u16::from(t);
+        crc = (crc >> 8) ^ (t << 8) ^ (t << 3) ^ (t >> 4);
+    }
+    crc
 }
 
 /// A vehicle's HEARTBEAT frame (system 1, component 1) with sequence `seq`, for tests.
@@ -145,6 +178,37 @@ mod tests {
         let n = hb(1).len();
         assert_eq!(got, vec![(2, 1), (2 + n + 2, 2)]);
         assert_eq!(it.skipped(), 2 + 2 + 5, "two bytes before, two between, a cut frame after");
+    }
+
+    /// Our checksum is mavlink's, on any bytes and extra byte.
+    #[test]
+    fn the_checksum_is_mavlinks() {
+        let mut x: u32 = 12345;
+        for n in 0..300 {
+            let data: Vec<u8> = (0..n)
+                .map(|_| {
+                    x = x.wrapping_mul(1_103_515_245).wrapping_add(12345);
+                    (x >> 16) as u8
+                })
+                .collect();
+            let extra = (n * 7) as u8;
+            assert_eq!(x25_crc(&data, extra), mavlink_core::calculate_crc(&data, extra), "{n} bytes");
+        }
+    }
+
+    /// A frame with a 32-bit system id (or an incompatibility flag not defined) is refused, as
+    /// before; a signed one is whole and says so (see below).
+    #[test]
+    fn frames_with_flags_we_do_not_speak_are_refused() {
+        for flag in [0x02u8, 0x04, 0x80] {
+            let mut f = hb(3);
+            f[2] |= flag;
+            // A valid checksum over the changed header: only the flag is wrong.
+            let crc_at = 10 + usize::from(f[1]);
+            let crc = x25_crc(&f[1..crc_at], MavMessage::extra_crc(0));
+            f[crc_at..crc_at + 2].copy_from_slice(&crc.to_le_bytes());
+            assert_eq!(frames(&f).count(), 0, "incompat flag {flag:#x}");
+        }
     }
 
     #[test]
