@@ -194,8 +194,7 @@ pub fn joint_update(
     // H P = (P H^T)^T because P is symmetric.
     let nonzeros = row_nonzeros(&meas.h);
     let ph_t = sparse_mul_transposed(p, &nonzeros);
-    let hp = ph_t.transpose(); // m x n
-    let mut s = sparse_mul_transposed(&hp, &nonzeros) + &meas.r;
+    let mut s = h_times_transposed(&ph_t, &nonzeros) + &meas.r;
     symmetrize(&mut s);
     let (chol, s) = innovation_factor(s)?;
     let l = chol.l();
@@ -262,6 +261,18 @@ fn sparse_mul_transposed(a: &DMatrix<f64>, h_rows: &[Vec<(usize, f64)>]) -> DMat
     out
 }
 
+/// `(A^T H^T)` for `A = P H^T` (`n x m`) and a sparse `H`: entry `(r, c)` is
+/// `sum_k H[c, k] A[k, r]`, summed over the nonzeros of row `c` in order, as
+/// [`sparse_mul_transposed`] of `A^T` sums it (its axpy adds `v x` to the running sum), without
+/// forming `A^T`.
+fn h_times_transposed(a: &DMatrix<f64>, h_rows: &[Vec<(usize, f64)>]) -> DMatrix<f64> {
+    let m = h_rows.len();
+    DMatrix::from_fn(a.ncols(), m, |r, c| {
+        let col = a.column(r);
+        h_rows[c].iter().fold(0.0, |acc, &(k, v)| v * col[k] + acc)
+    })
+}
+
 /// Time update of a covariance and its recursive coefficient matrix (paper Eq. 3 and Eq. 6):
 /// `P <- Phi P Phi^T + Qd`, `Psi <- Phi Psi`.
 pub fn propagate(
@@ -326,6 +337,21 @@ mod tests {
             r: dmatrix![0.5, 0.1; 0.1, 0.4],
         };
         (p, m)
+    }
+
+    /// H (P H^T) read straight from P H^T equals, bit for bit, the product through its transpose.
+    #[test]
+    fn the_innovation_product_skips_the_transpose_exactly() {
+        let p = DMatrix::from_fn(9, 9, |r, c| ((r * 7 + c * 3) % 11) as f64 * 0.37 - 1.3);
+        let h = DMatrix::from_fn(4, 9, |r, c| if (r + c) % 3 == 0 { (r as f64 + 1.0) * 0.7 - c as f64 * 0.21 } else { 0.0 });
+        let nz = row_nonzeros(&h);
+        let ph_t = sparse_mul_transposed(&p, &nz);
+        let want = sparse_mul_transposed(&ph_t.transpose(), &nz);
+        let got = h_times_transposed(&ph_t, &nz);
+        assert_eq!(want.shape(), got.shape());
+        for (a, b) in want.iter().zip(got.iter()) {
+            assert_eq!(a.to_bits(), b.to_bits());
+        }
     }
 
     #[test]
