@@ -41,6 +41,7 @@ def main():
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
+    import matplotlib.ticker
 
     fig, ax = plt.subplots(figsize=(6.4, 4.2), dpi=120)
     ax.loglog(SIZES, [a * 1e3 for a in node], "o-", label="one node, whole protocol (team/N)")
@@ -51,6 +52,7 @@ def main():
     ax.text(SIZES[0], 55.0, "5 % of a core at 1 Hz", color="red", fontsize=8)
     ax.set_xticks(SIZES)
     ax.set_xticklabels([str(n) for n in SIZES])
+    ax.xaxis.set_minor_formatter(matplotlib.ticker.NullFormatter())
     ax.set_xlabel("team size N (each member ranging to up to 6 neighbours, 1 Hz)")
     ax.set_ylabel("CPU ms per second of operation")
     ax.set_title("Per-node cost against team size (criterion medians)")
