@@ -9,8 +9,6 @@ use std::path::PathBuf;
 use std::sync::{Arc, Mutex};
 use std::time::Duration;
 
-use anyhow::Context;
-
 use crate::estimation::{Method, PlatformId};
 use crate::experiment::{FilterRun, initial_state};
 use crate::gcs::GcsSink;
@@ -24,6 +22,36 @@ use crate::recording::{Link, Recorder, RecorderOptions, read_log};
 use crate::replay::{NodeReplay, RUN_METADATA_NAME, compare_methods, replay_nodes};
 use crate::simulator::{BoundEndpoint, Interval, Simulator, SitlConfig, Speed, StreamDefaults, default_endpoints};
 use crate::sitl::{Scenario, World};
+
+/// What stopped the demo: a setting, or the step that failed and why.
+#[derive(Debug, thiserror::Error)]
+pub enum DemoError {
+    #[error("{0}")]
+    Invalid(String),
+    #[error("{what}: {source}")]
+    Step {
+        what: String,
+        #[source]
+        source: Box<dyn std::error::Error + Send + Sync>,
+    },
+}
+
+/// Names the step a failure happened in (the demo's `?`s).
+trait Step<T> {
+    fn step(self, what: impl Into<String>) -> Result<T, DemoError>;
+}
+
+impl<T, E: Into<Box<dyn std::error::Error + Send + Sync>>> Step<T> for Result<T, E> {
+    fn step(self, what: impl Into<String>) -> Result<T, DemoError> {
+        self.map_err(|e| DemoError::Step { what: what.into(), source: e.into() })
+    }
+}
+
+impl<T> Step<T> for Option<T> {
+    fn step(self, what: impl Into<String>) -> Result<T, DemoError> {
+        self.ok_or_else(|| DemoError::Invalid(what.into()))
+    }
+}
 
 /// What to run.
 #[derive(Debug, Clone)]
@@ -62,11 +90,14 @@ pub struct DemoReport {
 }
 
 /// Runs the demo; `ready` is called once every server listens.
-pub async fn run_demo(cfg: DemoConfig, ready: impl FnOnce(&DemoAddresses)) -> anyhow::Result<DemoReport> {
-    let toml = std::fs::read(&cfg.scenario).with_context(|| format!("reading {}", cfg.scenario.display()))?;
-    let mut scenario = Scenario::from_toml_str(std::str::from_utf8(&toml).context("the scenario is not UTF-8")?)?;
+pub async fn run_demo(cfg: DemoConfig, ready: impl FnOnce(&DemoAddresses)) -> Result<DemoReport, DemoError> {
+    let toml = std::fs::read(&cfg.scenario).step(format!("reading {}", cfg.scenario.display()))?;
+    let mut scenario =
+        Scenario::from_toml_str(std::str::from_utf8(&toml).step("the scenario is not UTF-8")?).step("the scenario")?;
     if let Some(d) = cfg.duration_s {
-        anyhow::ensure!(d.is_finite() && d > 0.0, "the duration must be a positive number of seconds, got {d}");
+        if !(d.is_finite() && d > 0.0) {
+            return Err(DemoError::Invalid(format!("the duration must be a positive number of seconds, got {d}")));
+        }
         scenario.duration_s = scenario.duration_s.min(d);
         for schedule in &mut scenario.ranging.schedules {
             if let Some(at) = &mut schedule.at_s {
@@ -74,21 +105,21 @@ pub async fn run_demo(cfg: DemoConfig, ready: impl FnOnce(&DemoAddresses)) -> an
             }
         }
     }
-    let scenario_text = toml::to_string(&scenario).context("re-encoding the scenario")?;
-    let world = World::new(&scenario)?;
+    let scenario_text = toml::to_string(&scenario).step("re-encoding the scenario")?;
+    let world = World::new(&scenario).step("the scenario")?;
     let schedule = match cfg.schedule.clone() {
         Some(s) => {
-            scenario.range_epochs(&s).with_context(|| format!("ranging schedule {s:?}"))?;
+            scenario.range_epochs(&s).step(format!("ranging schedule {s:?}"))?;
             s
         }
-        None => scenario.ranging.schedules.first().map(|s| s.name.clone()).context("the scenario has no ranging schedule")?,
+        None => scenario.ranging.schedules.first().map(|s| s.name.clone()).step("the scenario has no ranging schedule")?,
     };
     let origin = GeoOrigin { lat_deg: scenario.latitude_deg, lon_deg: 0.0, alt_m: 0.0 };
     if let Some(dir) = cfg.log.parent() {
-        std::fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))?;
+        std::fs::create_dir_all(dir).step(format!("creating {}", dir.display()))?;
     }
     let mut rec = Recorder::create(&cfg.log, RecorderOptions { geo_origin: Some(origin), ..RecorderOptions::default() })
-        .with_context(|| format!("creating the log {}", cfg.log.display()))?;
+        .step(format!("creating the log {}", cfg.log.display()))?;
     rec.metadata(
         RUN_METADATA_NAME,
         [
@@ -99,13 +130,14 @@ pub async fn run_demo(cfg: DemoConfig, ready: impl FnOnce(&DemoAddresses)) -> an
             ("command".to_string(), std::env::args().collect::<Vec<_>>().join(" ")),
         ]
         .into(),
-    )?;
-    rec.attachment("scenario.toml", "application/toml", scenario_text.as_bytes())?;
+    )
+    .step("the log")?;
+    rec.attachment("scenario.toml", "application/toml", scenario_text.as_bytes()).step("the log")?;
     let recorder: SharedRecorder = Arc::new(Mutex::new(rec));
 
     // The simulator, on ephemeral ports, holding its clock until every vehicle has a node.
     let ids = world.platform_ids();
-    let endpoints = default_endpoints(&ids, "127.0.0.1".parse().expect("an address"), 0)?;
+    let endpoints = default_endpoints(&ids, "127.0.0.1".parse().expect("an address"), 0).step("the vehicles' endpoints")?;
     let sitl = SitlConfig {
         schedule: schedule.clone(),
         seed: cfg.seed,
@@ -120,7 +152,7 @@ pub async fn run_demo(cfg: DemoConfig, ready: impl FnOnce(&DemoAddresses)) -> an
         origin: None,
         stream_rates: Vec::new(),
     };
-    let sim = Simulator::bind(world.clone(), sitl).await?;
+    let sim = Simulator::bind(world.clone(), sitl).await.step("starting the simulator")?;
     let vehicles: Vec<(PlatformId, SocketAddr)> = sim
         .endpoints()
         .into_iter()
@@ -135,7 +167,7 @@ pub async fn run_demo(cfg: DemoConfig, ready: impl FnOnce(&DemoAddresses)) -> an
     let mut node_tasks = Vec::new();
     let (stop_tx, stop_rx) = tokio::sync::watch::channel(false);
     for &(id, addr) in &vehicles {
-        let (t0, state) = initial_state(&world, cfg.seed, cfg.run, id)?;
+        let (t0, state) = initial_state(&world, cfg.seed, cfg.run, id).step(format!("platform {id}'s initial state"))?;
         // an INS vehicle or a wheeled robot, as the scenario says
         let model = crate::experiment::nav_model(&world, id);
         let node_cfg = NodeConfig::for_model(id, cfg.method, model, Encoding::F64, ids.clone());
@@ -143,12 +175,12 @@ pub async fn run_demo(cfg: DemoConfig, ready: impl FnOnce(&DemoAddresses)) -> an
         meta.insert("origin_lat_deg".into(), origin.lat_deg.to_string());
         meta.insert("origin_lon_deg".into(), origin.lon_deg.to_string());
         {
-            let mut r = recorder.lock().map_err(|_| anyhow::anyhow!("recorder lock poisoned"))?;
-            r.metadata(&metadata_name(id), meta)?;
+            let mut r = recorder.lock().map_err(|_| DemoError::Invalid("recorder lock poisoned".into()))?;
+            r.metadata(&metadata_name(id), meta).step("the log")?;
             r.declare_link(Link::Vehicle(id as u8), format!("udpout:{addr}"));
         }
         let state = crate::estimation::nav::NavState::for_model(&model, state);
-        let core = NodeCore::new(node_cfg, t0, state).context("node configuration")?;
+        let core = NodeCore::new(node_cfg, t0, state).step("node configuration")?;
         let links = Links {
             vehicle: format!("udpout:{addr}"),
             coop: crate::node::coop_link::CoopSpec::udp("127.0.0.1:0".parse().expect("an address")),
@@ -172,7 +204,7 @@ pub async fn run_demo(cfg: DemoConfig, ready: impl FnOnce(&DemoAddresses)) -> an
             bound_tx,
             shutdown,
         )));
-        node_addrs.push((id, bound_rx.await.context("a node did not start")?.context("a demo node has a UDP address")?));
+        node_addrs.push((id, bound_rx.await.step("a node did not start")?.step("a demo node has a UDP address")?));
     }
 
     // The ground station, after the nodes (its vehicle links would start the clock).
@@ -191,7 +223,7 @@ pub async fn run_demo(cfg: DemoConfig, ready: impl FnOnce(&DemoAddresses)) -> an
     let gcs_task = tokio::spawn(run_gcs(gcs_cfg, gcs_links, vec![sink], gcs_bound_tx, async move {
         let _ = gcs_stop_rx.await;
     }));
-    let gcs_bound = gcs_bound_rx.await.context("the ground station did not start")?;
+    let gcs_bound = gcs_bound_rx.await.step("the ground station did not start")?;
     ready(&DemoAddresses {
         http: gcs_bound.http,
         foxglove: gcs_bound.foxglove,
@@ -199,28 +231,29 @@ pub async fn run_demo(cfg: DemoConfig, ready: impl FnOnce(&DemoAddresses)) -> an
         nodes: node_addrs.clone(),
     });
 
-    let sim_report = sim.run(std::future::pending::<()>()).await?;
+    let sim_report = sim.run(std::future::pending::<()>()).await.step("the simulator")?;
     tracing::info!(reason = ?sim_report.reason, "simulation finished");
     let mut nodes = Vec::new();
     for task in node_tasks {
         // Every node stops by itself once its vehicle is silent (idle exit).
         match tokio::time::timeout(Duration::from_secs(30), task).await {
-            Ok(joined) => nodes.push(joined.context("a node task panicked")??),
+            Ok(joined) => nodes.push(joined.step("a node task panicked")?.step("a node")?),
             Err(_) => {
                 let _ = stop_tx.send(true);
-                anyhow::bail!("a node did not stop within 30 s of the end of the simulation");
+                return Err(DemoError::Invalid("a node did not stop within 30 s of the end of the simulation".into()));
             }
         }
     }
     tokio::time::sleep(Duration::from_millis(700)).await; // the ground station's last page refresh
     let _ = gcs_stop_tx.send(());
     let _ = gcs_task.await;
-    let rec = Arc::try_unwrap(recorder).map_err(|_| anyhow::anyhow!("the log is still in use"))?;
-    let stats = rec.into_inner().map_err(|_| anyhow::anyhow!("recorder lock poisoned"))?.finish()?;
+    let rec = Arc::try_unwrap(recorder).map_err(|_| DemoError::Invalid("the log is still in use".into()))?;
+    let stats =
+        rec.into_inner().map_err(|_| DemoError::Invalid("recorder lock poisoned".into()))?.finish().step("closing the log")?;
 
     // Read the log back: replay every node, run every method on what the vehicles sent.
-    let log = read_log(&cfg.log).with_context(|| format!("reading back {}", cfg.log.display()))?;
-    let replays = replay_nodes(&log)?;
+    let log = read_log(&cfg.log).step(format!("reading back {}", cfg.log.display()))?;
+    let replays = replay_nodes(&log).step("replaying the nodes")?;
     let methods = compare_methods(
         &log,
         &[
@@ -230,6 +263,7 @@ pub async fn run_demo(cfg: DemoConfig, ready: impl FnOnce(&DemoAddresses)) -> an
             Method::Centralized,
             Method::CovarianceIntersection,
         ],
-    )?;
+    )
+    .step("running every method on the logged inputs")?;
     Ok(DemoReport { nodes, replays, methods, log: cfg.log.clone(), log_messages: stats.messages_written })
 }

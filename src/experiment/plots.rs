@@ -7,7 +7,7 @@
 
 use std::path::{Path, PathBuf};
 
-use anyhow::anyhow;
+use super::report::ReportError;
 use plotters::coord::Shift;
 use plotters::prelude::*;
 
@@ -15,12 +15,20 @@ use super::report::{ScheduleSummary, Tracks};
 use crate::estimation::Method;
 
 /// The embedded font, registered once as plotters' "sans-serif".
-fn register_font() -> anyhow::Result<()> {
+fn register_font() -> Result<(), ReportError> {
     static REGISTERED: std::sync::OnceLock<bool> = std::sync::OnceLock::new();
     let ok = *REGISTERED.get_or_init(|| {
         plotters::style::register_font("sans-serif", FontStyle::Normal, include_bytes!("fonts/DejaVuSans.ttf")).is_ok()
     });
-    if ok { Ok(()) } else { Err(anyhow!("the embedded font fonts/DejaVuSans.ttf could not be read")) }
+    if ok { Ok(()) } else { Err(ReportError::Plot("the embedded font fonts/DejaVuSans.ttf could not be read".into())) }
+}
+
+/// A figure drawn, or why not.
+type Drawn = Result<(), ReportError>;
+
+/// A plotting backend's error, as text (its types differ per backend).
+fn plot_err(e: impl std::fmt::Display) -> ReportError {
+    ReportError::Plot(e.to_string())
 }
 
 fn color(m: Method) -> RGBColor {
@@ -57,12 +65,12 @@ fn draw_errors<DB: DrawingBackend>(
     s: &ScheduleSummary,
     methods: &[Method],
     title: &str,
-) -> anyhow::Result<()>
+) -> Result<(), ReportError>
 where
     DB::ErrorType: 'static,
 {
-    root.fill(&WHITE).map_err(|e| anyhow!("{e}"))?;
-    let root = root.titled(title, ("sans-serif", 22)).map_err(|e| anyhow!("{e}"))?;
+    root.fill(&WHITE).map_err(plot_err)?;
+    let root = root.titled(title, ("sans-serif", 22)).map_err(plot_err)?;
     let platforms: Vec<_> = s.methods.first().map(|m| m.platforms.iter().map(|p| p.id).collect()).unwrap_or_default();
     let panels = root.split_evenly((2, platforms.len().max(1)));
     for (row, what) in ["position error RMS (m)", "heading error RMS (deg)"].iter().enumerate() {
@@ -77,14 +85,14 @@ where
                 .x_label_area_size(30)
                 .y_label_area_size(50)
                 .build_cartesian_2d(0.0..t_max, 0.0..y_max)
-                .map_err(|e| anyhow!("{e}"))?;
-            chart.configure_mesh().x_desc("time (s)").y_desc(*what).draw().map_err(|e| anyhow!("{e}"))?;
+                .map_err(plot_err)?;
+            chart.configure_mesh().x_desc("time (s)").y_desc(*what).draw().map_err(plot_err)?;
             for c in &curves {
                 let rgb = color(c.method);
                 let width = if c.method == Method::Centralized { 1 } else { 2 };
                 let series = chart
                     .draw_series(LineSeries::new(c.t_s.iter().copied().zip(y(c)), rgb.stroke_width(width)))
-                    .map_err(|e| anyhow!("{e}"))?;
+                    .map_err(plot_err)?;
                 if row == 0 && col == 0 {
                     series
                         .label(label(c.method))
@@ -98,19 +106,19 @@ where
                     .background_style(WHITE.mix(0.85))
                     .border_style(BLACK)
                     .draw()
-                    .map_err(|e| anyhow!("{e}"))?;
+                    .map_err(plot_err)?;
             }
         }
     }
-    root.present().map_err(|e| anyhow!("{e}"))?;
+    root.present().map_err(plot_err)?;
     Ok(())
 }
 
-fn draw_tracks<DB: DrawingBackend>(root: DrawingArea<DB, Shift>, tracks: &Tracks) -> anyhow::Result<()>
+fn draw_tracks<DB: DrawingBackend>(root: DrawingArea<DB, Shift>, tracks: &Tracks) -> Result<(), ReportError>
 where
     DB::ErrorType: 'static,
 {
-    root.fill(&WHITE).map_err(|e| anyhow!("{e}"))?;
+    root.fill(&WHITE).map_err(plot_err)?;
     let all = tracks.truth.iter().flat_map(|(_, t)| t.iter());
     let (mut n0, mut n1, mut e0, mut e1) = (f64::MAX, f64::MIN, f64::MAX, f64::MIN);
     for p in all {
@@ -128,24 +136,24 @@ where
         .x_label_area_size(35)
         .y_label_area_size(55)
         .build_cartesian_2d(ec - span / 2.0..ec + span / 2.0, nc - span / 2.0..nc + span / 2.0)
-        .map_err(|e| anyhow!("{e}"))?;
-    chart.configure_mesh().x_desc("east (m)").y_desc("north (m)").draw().map_err(|e| anyhow!("{e}"))?;
+        .map_err(plot_err)?;
+    chart.configure_mesh().x_desc("east (m)").y_desc("north (m)").draw().map_err(plot_err)?;
     for (k, (id, t)) in tracks.truth.iter().enumerate() {
         let c = PALETTE[k % PALETTE.len()];
         chart
             .draw_series(LineSeries::new(t.iter().map(|p| (p[1], p[0])), c.stroke_width(3)))
-            .map_err(|e| anyhow!("{e}"))?
+            .map_err(plot_err)?
             .label(format!("platform {id} truth"))
             .legend(move |(x, y)| PathElement::new(vec![(x, y), (x + 18, y)], c.stroke_width(3)));
         if let Some(start) = t.first() {
-            chart.draw_series([Circle::new((start[1], start[0]), 5, c.filled())]).map_err(|e| anyhow!("{e}"))?;
+            chart.draw_series([Circle::new((start[1], start[0]), 5, c.filled())]).map_err(plot_err)?;
         }
     }
     for (method, id, t) in &tracks.estimated {
         let k = tracks.truth.iter().position(|(i, _)| i == id).unwrap_or(0);
         let c = PALETTE[k % PALETTE.len()];
         let style = if *method == Method::DeadReckoning { c.mix(0.5).stroke_width(1) } else { BLACK.mix(0.6).stroke_width(1) };
-        let series = chart.draw_series(LineSeries::new(t.iter().map(|p| (p[1], p[0])), style)).map_err(|e| anyhow!("{e}"))?;
+        let series = chart.draw_series(LineSeries::new(t.iter().map(|p| (p[1], p[0])), style)).map_err(plot_err)?;
         if k == 0 {
             series
                 .label(format!("{} estimate", label(*method)))
@@ -158,20 +166,20 @@ where
         .background_style(WHITE.mix(0.85))
         .border_style(BLACK)
         .draw()
-        .map_err(|e| anyhow!("{e}"))?;
-    root.present().map_err(|e| anyhow!("{e}"))?;
+        .map_err(plot_err)?;
+    root.present().map_err(plot_err)?;
     Ok(())
 }
 
 /// Writes the figures; returns the paths written.
-pub fn write_plots(dir: &Path, summaries: &[ScheduleSummary], tracks: &Tracks) -> anyhow::Result<Vec<PathBuf>> {
+pub fn write_plots(dir: &Path, summaries: &[ScheduleSummary], tracks: &Tracks) -> Result<Vec<PathBuf>, ReportError> {
     register_font()?;
     let mut written = Vec::new();
     let mut emit = |stem: &str,
                     size: (u32, u32),
-                    f: &dyn Fn(DrawingArea<BitMapBackend, Shift>) -> anyhow::Result<()>,
-                    g: &dyn Fn(DrawingArea<SVGBackend, Shift>) -> anyhow::Result<()>|
-     -> anyhow::Result<()> {
+                    f: &dyn Fn(DrawingArea<BitMapBackend, Shift>) -> Drawn,
+                    g: &dyn Fn(DrawingArea<SVGBackend, Shift>) -> Drawn|
+     -> Result<(), ReportError> {
         let png = dir.join(format!("{stem}.png"));
         f(BitMapBackend::new(&png, size).into_drawing_area())?;
         let svg = dir.join(format!("{stem}.svg"));

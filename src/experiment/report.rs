@@ -278,6 +278,27 @@ pub fn table(s: &ScheduleSummary) -> String {
     out
 }
 
+/// What stopped the experiment's files or figures from being written.
+#[derive(Debug, thiserror::Error)]
+pub enum ReportError {
+    #[error("{what}: {source}")]
+    Io {
+        what: String,
+        #[source]
+        source: std::io::Error,
+    },
+    #[error("writing {path}: {source}")]
+    Csv {
+        path: String,
+        #[source]
+        source: csv::Error,
+    },
+    #[error("summary.json: {0}")]
+    Json(#[from] serde_json::Error),
+    #[error("plotting: {0}")]
+    Plot(String),
+}
+
 /// Writes `summary.json`, `final_errors.csv`, `error_curves.csv` and the plots into `dir`.
 pub fn write_all(
     dir: &Path,
@@ -287,9 +308,8 @@ pub fn write_all(
     summaries: &[ScheduleSummary],
     tracks: &Tracks,
     plots: bool,
-) -> anyhow::Result<Vec<std::path::PathBuf>> {
-    use anyhow::Context as _;
-    std::fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))?;
+) -> Result<Vec<std::path::PathBuf>, ReportError> {
+    std::fs::create_dir_all(dir).map_err(|source| ReportError::Io { what: format!("creating {}", dir.display()), source })?;
     let mut written = Vec::new();
 
     #[derive(Serialize)]
@@ -308,12 +328,15 @@ pub fn write_all(
         position_error: "horizontal (north, east) distance between estimate and truth at the end of the run",
         schedules: summaries,
     };
-    std::fs::write(&path, serde_json::to_string_pretty(&json)?).with_context(|| format!("writing {}", path.display()))?;
+    std::fs::write(&path, serde_json::to_string_pretty(&json)?)
+        .map_err(|source| ReportError::Io { what: format!("writing {}", path.display()), source })?;
     written.push(path);
 
     let path = dir.join("final_errors.csv");
-    let mut w = csv::Writer::from_path(&path).with_context(|| format!("writing {}", path.display()))?;
-    w.write_record(["run", "schedule", "method", "platform", "final_pos_err_m", "final_heading_err_deg", "final_nees"])?;
+    let csv_err = |source| ReportError::Csv { path: path.display().to_string(), source };
+    let mut w = csv::Writer::from_path(&path).map_err(csv_err)?;
+    w.write_record(["run", "schedule", "method", "platform", "final_pos_err_m", "final_heading_err_deg", "final_nees"])
+        .map_err(csv_err)?;
     for r in results {
         for (schedule, runs) in &r.schedules {
             for fr in runs {
@@ -327,17 +350,19 @@ pub fn write_all(
                         format!("{:.6}", e.pos_err_m),
                         format!("{:.6}", e.heading_err_deg),
                         format!("{:.4}", p.final_nees),
-                    ])?;
+                    ])
+                    .map_err(csv_err)?;
                 }
             }
         }
     }
-    w.flush()?;
+    w.flush().map_err(|source| ReportError::Io { what: format!("writing {}", path.display()), source })?;
     written.push(path);
 
     let path = dir.join("error_curves.csv");
-    let mut w = csv::Writer::from_path(&path).with_context(|| format!("writing {}", path.display()))?;
-    w.write_record(["schedule", "method", "platform", "t_s", "pos_rms_m", "heading_rms_deg"])?;
+    let csv_err = |source| ReportError::Csv { path: path.display().to_string(), source };
+    let mut w = csv::Writer::from_path(&path).map_err(csv_err)?;
+    w.write_record(["schedule", "method", "platform", "t_s", "pos_rms_m", "heading_rms_deg"]).map_err(csv_err)?;
     for s in summaries {
         for c in &s.curves {
             for k in 0..c.t_s.len() {
@@ -348,11 +373,12 @@ pub fn write_all(
                     format!("{:.3}", c.t_s[k]),
                     format!("{:.6}", c.pos_rms_m[k]),
                     format!("{:.6}", c.heading_rms_deg[k]),
-                ])?;
+                ])
+                .map_err(csv_err)?;
             }
         }
     }
-    w.flush()?;
+    w.flush().map_err(|source| ReportError::Io { what: format!("writing {}", path.display()), source })?;
     written.push(path);
 
     if plots {

@@ -19,6 +19,7 @@
 //!   Writes go through a bounded queue: a radio slower than the node drops whole batches
 //!   (counted), it never stalls the filter.
 
+use super::error::NodeError;
 use std::net::{Ipv4Addr, SocketAddr, SocketAddrV4};
 
 use tokio::io::{AsyncReadExt as _, AsyncWriteExt as _};
@@ -214,37 +215,39 @@ fn group_socket(m: &Multicast, recv_buffer: usize) -> std::io::Result<UdpSocket>
 }
 
 /// Sets `socket` up to send to `m.group` and opens the group's receive socket.
-fn join(socket: &UdpSocket, bind: &SocketAddr, m: &Multicast, recv_buffer: usize) -> anyhow::Result<(UdpSocket, SocketAddr)> {
-    use anyhow::Context as _;
-    anyhow::ensure!(m.group.ip().is_multicast(), "multicast group {}: not a multicast address (224.0.0.0/4)", m.group);
-    anyhow::ensure!(bind.is_ipv4(), "multicast group {}: the cooperative socket must be IPv4, not {bind}", m.group);
+fn join(socket: &UdpSocket, bind: &SocketAddr, m: &Multicast, recv_buffer: usize) -> Result<(UdpSocket, SocketAddr), NodeError> {
+    if !m.group.ip().is_multicast() {
+        return Err(NodeError::Invalid(format!("multicast group {}: not a multicast address (224.0.0.0/4)", m.group)));
+    }
+    if !bind.is_ipv4() {
+        return Err(NodeError::Invalid(format!("multicast group {}: the cooperative socket must be IPv4, not {bind}", m.group)));
+    }
     let s = socket2::SockRef::from(socket);
-    s.set_multicast_ttl_v4(m.ttl).context("multicast TTL")?;
-    s.set_multicast_loop_v4(true).context("multicast loopback")?;
+    s.set_multicast_ttl_v4(m.ttl).map_err(NodeError::io("multicast TTL"))?;
+    s.set_multicast_loop_v4(true).map_err(NodeError::io("multicast loopback"))?;
     let iface = match (m.interface.is_unspecified(), bind.ip()) {
         (true, std::net::IpAddr::V4(ip)) if !ip.is_unspecified() => ip,
         _ => m.interface,
     };
-    s.set_multicast_if_v4(&iface).with_context(|| format!("multicast interface {iface}"))?;
+    s.set_multicast_if_v4(&iface).map_err(NodeError::io(format!("multicast interface {iface}")))?;
     let joined = group_socket(&Multicast { interface: iface, ..*m }, recv_buffer)
-        .with_context(|| format!("joining multicast group {} on interface {iface}", m.group))?;
+        .map_err(NodeError::io(format!("joining multicast group {} on interface {iface}", m.group)))?;
     Ok((joined, SocketAddr::V4(m.group)))
 }
 
 impl CoopLink {
     /// Opens the link: binds the sockets (with `recv_buffer` bytes of receive buffer) or the
     /// serial device.
-    pub async fn open(spec: &CoopSpec, recv_buffer: usize) -> anyhow::Result<Self> {
-        use anyhow::Context as _;
+    pub async fn open(spec: &CoopSpec, recv_buffer: usize) -> Result<Self, NodeError> {
         match spec {
             CoopSpec::Udp { bind, multicast, max_datagram } => {
                 let socket = super::vehicle_link::bind_udp(*bind, recv_buffer)
-                    .with_context(|| format!("binding the cooperative socket {bind}"))?;
+                    .map_err(NodeError::io(format!("binding the cooperative socket {bind}")))?;
                 let group = match multicast {
                     Some(m) => match join(&socket, bind, m, recv_buffer) {
                         Ok(g) => Some(g),
                         Err(e) if !m.required => {
-                            tracing::warn!(error = %format!("{e:#}"), "no multicast on this link: sending to unicast peers only");
+                            tracing::warn!(error = %e, "no multicast on this link: sending to unicast peers only");
                             None
                         }
                         Err(e) => return Err(e),
@@ -257,7 +260,7 @@ impl CoopLink {
                 use tokio_serial::SerialPortBuilderExt as _;
                 let port = tokio_serial::new(path, *baud)
                     .open_native_async()
-                    .with_context(|| format!("opening the cooperative radio {path} at {baud} baud"))?;
+                    .map_err(|e| NodeError::Invalid(format!("opening the cooperative radio {path} at {baud} baud: {e}")))?;
                 let (mut reader, mut writer) = tokio::io::split(port);
                 let (tx, mut wrx) = tokio::sync::mpsc::channel::<Vec<u8>>(SERIAL_QUEUE);
                 let (rtx, rx) = tokio::sync::mpsc::channel::<Vec<u8>>(1024);

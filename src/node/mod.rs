@@ -9,10 +9,12 @@
 //! | [`coop_link`] | the cooperative link: UDP (packed datagrams, unicast peers, a multicast group) or a serial radio |
 //! | [`peers`] | where the cooperative traffic goes: given peers, team members, a few ground stations, bounded and expiring |
 //! | [`runner`] | the tokio runner that owns the sockets and the clock |
+//! | [`error`] | what can stop a node (`NodeError`): links that do not open, settings, a vehicle that goes away |
 //! | [`vehicle_link`] | the MAVLink connection to the vehicle (UDP, TCP, serial) |
 pub mod autopilot;
 pub mod coop_link;
 pub mod core;
+pub mod error;
 pub mod inputs;
 pub mod log;
 pub mod peers;

@@ -20,6 +20,7 @@
 //! - Bad input (malformed frames, NaN or absurd values, time going backwards, unknown platforms)
 //!   is counted, logged and dropped; nothing from the network can panic the process.
 
+use super::error::NodeError;
 use std::net::SocketAddr;
 use std::sync::Arc;
 use std::time::Duration;
@@ -111,13 +112,12 @@ pub struct Links {
 pub const SIGNING_STATE_EVERY: u32 = 5;
 
 /// Reads a signing state file: 0 when it does not exist yet.
-pub fn load_signing_state(path: &std::path::Path) -> anyhow::Result<u64> {
+pub fn load_signing_state(path: &std::path::Path) -> Result<u64, NodeError> {
     match std::fs::read_to_string(path) {
-        Ok(text) => {
-            crate::protocol::signing::parse_state(&text).map_err(|e| anyhow::anyhow!("signing state {}: {e}", path.display()))
-        }
+        Ok(text) => crate::protocol::signing::parse_state(&text)
+            .map_err(|e| NodeError::Invalid(format!("signing state {}: {e}", path.display()))),
         Err(e) if e.kind() == std::io::ErrorKind::NotFound => Ok(0),
-        Err(e) => Err(anyhow::anyhow!("signing state {}: {e}", path.display())),
+        Err(e) => Err(NodeError::io(format!("signing state {}", path.display()))(e)),
     }
 }
 
@@ -318,8 +318,7 @@ pub async fn run(
     recorder: Option<SharedRecorder>,
     bound: tokio::sync::oneshot::Sender<Option<SocketAddr>>,
     shutdown: impl std::future::Future<Output = ()>,
-) -> anyhow::Result<NodeSummary> {
-    use anyhow::Context as _;
+) -> Result<NodeSummary, NodeError> {
     let team = match &init {
         NodeInit::Ready(core) => core.config().team.clone(),
         NodeInit::Pending { config, .. } => config.team.clone(),
@@ -330,15 +329,15 @@ pub async fn run(
     };
     // The origin came from the vehicle (recorded with the Init event, for replay).
     let mut origin_from_vehicle: Option<wire::GeoOrigin> = None;
-    let sysid = u8::try_from(id).context("a node's platform id is a MAVLink system id (1..=255)")?;
+    let sysid = u8::try_from(id)
+        .map_err(|_| NodeError::Invalid(format!("platform id {id}: a node's platform id is a MAVLink system id (1..=255)")))?;
     let mut last_imu_t: Option<TimeUs> = None;
     let mut before_init = 0u64;
     let mut sim_state_init = None;
     let (mut last_vehicle_seq, mut vehicle_lost): (Option<u8>, u64) = (None, 0);
     let clock = std::time::Instant::now();
     let wall_us = move || clock.elapsed().as_micros() as u64;
-    let mut vehicle =
-        VehicleLink::open(&links.vehicle).await.with_context(|| format!("connecting to the vehicle at {}", links.vehicle))?;
+    let mut vehicle = VehicleLink::open(&links.vehicle).await?;
     if let Some(key) = &links.vehicle_key {
         vehicle.sign(key, sysid);
     }
@@ -464,7 +463,7 @@ pub async fn run(
                 continue;
             }
             frame = vrx.recv() => {
-                let Some((header, msg, bytes)) = frame else { anyhow::bail!("vehicle link closed") };
+                let Some((header, msg, bytes)) = frame else { return Err(NodeError::VehicleClosed) };
                 record_frame(&recorder, Link::Vehicle(sysid), Direction::Rx, &bytes);
                 summary_counts.0 += 1;
                 last_vehicle = tokio::time::Instant::now();
@@ -502,7 +501,7 @@ pub async fn run(
                     }
                 }
                 if let Some((config, Some(origin), Some((t0, state)))) = &pending_init {
-                    let made = NodeCore::new(config.clone(), *t0, NavState::for_model(&config.model, *state)).context("node configuration")?;
+                    let made = NodeCore::new(config.clone(), *t0, NavState::for_model(&config.model, *state))?;
                     tracing::info!(platform = id, t0 = %t0, pos = ?made.filter().position_ned_m(), lat_deg = origin.lat_deg, "initialised");
                     let o = origin_from_vehicle.map(|o| [o.lat_deg, o.lon_deg, o.alt_m]);
                     record_event(&recorder, id, &NodeEvent::Init { t0_us: t0.0, origin: o });
@@ -558,7 +557,7 @@ pub async fn run(
             r = coop.recv(&mut buf) => {
                 let (n, from) = match r {
                     Ok(got) => got,
-                    Err(e) if e.kind() == std::io::ErrorKind::BrokenPipe => anyhow::bail!("{e}"),
+                    Err(e) if e.kind() == std::io::ErrorKind::BrokenPipe => return Err(NodeError::io("the cooperative radio")(e)),
                     Err(_) => continue,
                 };
                 if n == 0 && from == Source::Radio {

@@ -14,6 +14,7 @@
 //! others are refused and counted. UDP links use [`crate::protocol::signing`] (with its
 //! reordering window); stream links the mavlink crate's own signing (a stream does not reorder).
 
+use super::error::NodeError;
 use std::net::SocketAddr;
 use std::sync::Mutex;
 
@@ -41,13 +42,12 @@ pub enum VehicleLink {
 }
 
 /// Resolves `host:port` of a URL.
-async fn resolve(url: &str, rest: &str) -> anyhow::Result<SocketAddr> {
-    use anyhow::Context as _;
+async fn resolve(url: &str, rest: &str) -> Result<SocketAddr, NodeError> {
     tokio::net::lookup_host(rest)
         .await
-        .with_context(|| format!("vehicle URL {url:?}: {rest:?} is not HOST:PORT"))?
+        .map_err(NodeError::io(format!("vehicle URL {url:?}: {rest:?} is not HOST:PORT")))?
         .next()
-        .with_context(|| format!("vehicle URL {url:?}: {rest:?} resolves to no address"))
+        .ok_or_else(|| NodeError::Invalid(format!("vehicle URL {url:?}: {rest:?} resolves to no address")))
 }
 
 /// A UDP socket with the large receive buffer, bound to `addr`.
@@ -70,11 +70,11 @@ pub fn recv_buffer_size(socket: &UdpSocket) -> std::io::Result<usize> {
 
 impl VehicleLink {
     /// Opens the link named by a MAVLink connection URL.
-    pub async fn open(url: &str) -> anyhow::Result<Self> {
-        use anyhow::Context as _;
+    pub async fn open(url: &str) -> Result<Self, NodeError> {
         if let Some(rest) = url.strip_prefix("udpin:") {
             let addr = resolve(url, rest).await?;
-            let socket = bind_udp(addr, VEHICLE_RECV_BUFFER).with_context(|| format!("binding the vehicle socket {addr}"))?;
+            let socket =
+                bind_udp(addr, VEHICLE_RECV_BUFFER).map_err(NodeError::io(format!("binding the vehicle socket {addr}")))?;
             return Ok(Self::Udp { socket, peer: Mutex::new(None), learn_peer: true, signing: None });
         }
         if let Some(rest) = url.strip_prefix("udpout:") {
@@ -89,10 +89,10 @@ impl VehicleLink {
             }
             .parse()
             .expect("literal");
-            let socket = bind_udp(local, VEHICLE_RECV_BUFFER).context("binding the vehicle socket")?;
+            let socket = bind_udp(local, VEHICLE_RECV_BUFFER).map_err(NodeError::io("binding the vehicle socket"))?;
             return Ok(Self::Udp { socket, peer: Mutex::new(Some(addr)), learn_peer: false, signing: None });
         }
-        let conn = mavlink_core::connect_async::<MavMessage>(url).await?;
+        let conn = mavlink_core::connect_async::<MavMessage>(url).await.map_err(NodeError::io(format!("vehicle URL {url:?}")))?;
         Ok(Self::Crate(Box::new(conn)))
     }
 
