@@ -413,6 +413,33 @@ impl CoopLink {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// Links that cannot open say which step failed and why, as typed errors: a group that is
+    /// not a multicast address (asked for by name), a radio device that is not there.
+    #[tokio::test]
+    async fn links_that_cannot_open_name_the_step() {
+        let bind: SocketAddr = "127.0.0.1:0".parse().unwrap();
+        let group = Multicast { group: "10.1.2.3:14550".parse().unwrap(), required: true, ..Multicast::default() };
+        let spec = CoopSpec::Udp { bind, multicast: Some(group), max_datagram: 0 };
+        match CoopLink::open(&spec, 1 << 16).await {
+            Err(NodeError::Invalid(m)) => assert!(m.contains("not a multicast address"), "{m}"),
+            Err(e) => panic!("unexpected error {e}"),
+            Ok(_) => panic!("a unicast address taken as a group"),
+        }
+        let spec = CoopSpec::Serial { path: "/dev/cooploc-no-such-radio".into(), baud: 57_600 };
+        let e = CoopLink::open(&spec, 1 << 16).await.err().expect("no such device");
+        assert!(e.to_string().contains("opening the cooperative radio /dev/cooploc-no-such-radio at 57600 baud"), "{e}");
+        let taken = std::net::UdpSocket::bind("127.0.0.1:0").unwrap();
+        let spec = CoopSpec::udp(taken.local_addr().unwrap());
+        match CoopLink::open(&spec, 1 << 16).await {
+            Err(NodeError::Io { what, source }) => {
+                assert!(what.starts_with("binding the cooperative socket 127.0.0.1:"), "{what}");
+                assert_eq!(source.kind(), std::io::ErrorKind::AddrInUse);
+            }
+            Err(e) => panic!("unexpected error {e}"),
+            Ok(_) => panic!("bound a port already taken"),
+        }
+    }
     use crate::protocol::dialect::cooploc::{MavAutopilot, MavType};
     use crate::protocol::wire;
     use mavlink_core::MavHeader;
