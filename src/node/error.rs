@@ -21,9 +21,6 @@ pub enum NodeError {
     /// The vehicle's link closed under the node.
     #[error("vehicle link closed")]
     VehicleClosed,
-    /// The node's log could not be written.
-    #[error("node log: {0}")]
-    Log(String),
 }
 
 impl NodeError {
