@@ -64,14 +64,7 @@ fn cooploc() -> Command {
 /// in position RMS, and covariance transfer better than none over four events.
 #[test]
 fn paper_experiment_reproduces_the_papers_comparisons() {
-    let out = tempfile_dir("paper");
-    let status = cooploc()
-        .args(["experiment", "sitl/scenarios/paper.toml", "--runs", "50", "--seed", "1", "--no-plots", "--out"])
-        .arg(&out)
-        .current_dir(env!("CARGO_MANIFEST_DIR"))
-        .output()
-        .unwrap();
-    assert!(status.status.success(), "{}", String::from_utf8_lossy(&status.stderr));
+    let out = run_paper_experiment("paper", 50, 1);
     let json: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(out.join("summary.json")).unwrap()).unwrap();
     let schedule = |name: &str| json["schedules"].as_array().unwrap().iter().find(|s| s["schedule"] == name).unwrap().clone();
     let avg = |s: &serde_json::Value, method: &str, field: &str| {
@@ -96,6 +89,21 @@ fn paper_experiment_reproduces_the_papers_comparisons() {
     let cl = avg(&hz, "decentralized", "final_pos_err_mean_m");
     assert!(cl < 0.7 * dr_pos, "1 Hz: cooperative {cl:.2} m vs dead reckoning {dr_pos:.2} m");
     let _ = std::fs::remove_dir_all(&out);
+}
+
+/// Runs `cooploc experiment` on the paper scenario (`--no-plots`) into a fresh temporary
+/// folder named by `tag`; returns the folder. Fails the test with the command's stderr.
+fn run_paper_experiment(tag: &str, runs: u32, seed: u64) -> std::path::PathBuf {
+    let out = tempfile_dir(tag);
+    let (runs, seed) = (runs.to_string(), seed.to_string());
+    let status = cooploc()
+        .args(["experiment", "sitl/scenarios/paper.toml", "--runs", &runs, "--seed", &seed, "--no-plots", "--out"])
+        .arg(&out)
+        .current_dir(env!("CARGO_MANIFEST_DIR"))
+        .output()
+        .unwrap();
+    assert!(status.status.success(), "{}", String::from_utf8_lossy(&status.stderr));
+    out
 }
 
 fn tempfile_dir(tag: &str) -> std::path::PathBuf {
@@ -137,14 +145,7 @@ fn bad_scenario_files_name_the_field() {
 fn experiment_outputs_are_unchanged_bit_for_bit() {
     use sha2::Digest;
     let golden = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/golden/experiment-paper-3runs-seed7");
-    let out = tempfile_dir("golden");
-    let status = cooploc()
-        .args(["experiment", "sitl/scenarios/paper.toml", "--runs", "3", "--seed", "7", "--no-plots", "--out"])
-        .arg(&out)
-        .current_dir(env!("CARGO_MANIFEST_DIR"))
-        .output()
-        .unwrap();
-    assert!(status.status.success(), "{}", String::from_utf8_lossy(&status.stderr));
+    let out = run_paper_experiment("golden", 3, 7);
     let curves = std::fs::read(out.join("error_curves.csv")).unwrap();
     let digest: String = sha2::Sha256::digest(&curves).iter().map(|b| format!("{b:02x}")).collect();
     let bless = std::env::var_os("COOPLOC_BLESS").is_some();

@@ -184,6 +184,16 @@ fn downdate_from_lower_gram(p: &DMatrix<f64>, out: &mut DMatrix<f64>) {
     }
 }
 
+/// Whether this processor has AVX2: the estimation core's hand kernels are compiled twice
+/// (baseline x86-64 and AVX2) and pick one with this, at run time. The standard library caches
+/// the answer.
+pub(crate) fn has_avx2() -> bool {
+    #[cfg(target_arch = "x86_64")]
+    return std::arch::is_x86_feature_detected!("avx2");
+    #[cfg(not(target_arch = "x86_64"))]
+    false
+}
+
 /// `P - W^T W`, symmetrised, for a symmetric-shaped `P` (`n x n`) and `W` (`m x n`): equal
 /// bit for bit to `p.clone().gemm_tr(-1.0, w, w, 1.0)` followed by
 /// [`super::kalman::symmetrize`], in about half the work.
@@ -198,7 +208,7 @@ pub fn symmetric_downdate(p: &DMatrix<f64>, w: &DMatrix<f64>) -> DMatrix<f64> {
 
 fn lower_gram(w: &DMatrix<f64>, out: &mut DMatrix<f64>) {
     #[cfg(target_arch = "x86_64")]
-    if std::arch::is_x86_feature_detected!("avx2") {
+    if has_avx2() {
         // SAFETY: the processor has AVX2 (checked just above).
         unsafe { lower_gram_avx2(w, out) };
         return;
@@ -221,7 +231,7 @@ pub fn solve_lower_transposed(l: &DMatrix<f64>, bt: &mut DMatrix<f64>) -> bool {
         bt.ncols()
     );
     #[cfg(target_arch = "x86_64")]
-    if std::arch::is_x86_feature_detected!("avx2") {
+    if has_avx2() {
         // SAFETY: the processor has AVX2 (checked just above).
         return unsafe { solve_lower_transposed_avx2(l, bt) };
     }

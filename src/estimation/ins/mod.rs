@@ -577,63 +577,72 @@ fn propagate_covariance_body(f: &FdtBlocks, p: &Matrix16, qd_diag: &Vector16, ou
 }
 
 // The covariance step compiled twice: for the baseline x86-64 (SSE2) and for AVX2, chosen at
-// run time. Separate multiplies and adds either way (Rust never fuses them), so both round
-// alike; only the vector width differs. Results go to `out` (every entry written), and the
-// answer is whether every entry is finite.
+// run time (see `dense::has_avx2`). Separate multiplies and adds either way (Rust never fuses
+// them), so both round alike; only the vector width differs.
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx2")]
-fn propagate_covariance_avx2(f: &FdtBlocks, p: &Matrix16, qd_diag: &Vector16, out: &mut Matrix16) -> bool {
-    propagate_covariance_body(f, p, qd_diag, out);
-    all_finite(&out.data.0)
+fn covariance_step_avx2(
+    f: &FdtBlocks,
+    p: &Matrix16,
+    qd_diag: &Vector16,
+    p_out: &mut Matrix16,
+    psi_t: Option<(&Matrix16, &mut Matrix16)>,
+) -> Result<(), &'static str> {
+    covariance_step_body(f, p, qd_diag, p_out, psi_t)
 }
 
-#[cfg(target_arch = "x86_64")]
-#[target_feature(enable = "avx2")]
-fn times_phi_transpose_avx2(f: &FdtBlocks, m: &Matrix16, out: &mut Matrix16) -> bool {
-    times_phi_transpose(f, &m.data.0, &mut out.data.0);
-    all_finite(&out.data.0)
-}
-
-fn has_avx2() -> bool {
-    #[cfg(target_arch = "x86_64")]
-    return std::arch::is_x86_feature_detected!("avx2");
-    #[cfg(not(target_arch = "x86_64"))]
-    false
-}
-
-/// `out = Phi P Phi^T + diag(qd)` (see [`propagate_covariance_body`]); whether it is finite.
-fn propagate_covariance_into(f: &FdtBlocks, p: &Matrix16, qd_diag: &Vector16, out: &mut Matrix16) -> bool {
-    #[cfg(target_arch = "x86_64")]
-    if has_avx2() {
-        // SAFETY: the processor has AVX2 (checked just above).
-        return unsafe { propagate_covariance_avx2(f, p, qd_diag, out) };
+#[inline(always)]
+fn covariance_step_body(
+    f: &FdtBlocks,
+    p: &Matrix16,
+    qd_diag: &Vector16,
+    p_out: &mut Matrix16,
+    psi_t: Option<(&Matrix16, &mut Matrix16)>,
+) -> Result<(), &'static str> {
+    propagate_covariance_body(f, p, qd_diag, p_out);
+    if !all_finite(&p_out.data.0) {
+        return Err("propagated INS covariance");
     }
-    propagate_covariance_body(f, p, qd_diag, out);
-    all_finite(&out.data.0)
-}
-
-/// `out = M (I + F dt)^T`; whether it is finite.
-fn times_phi_transpose_into(f: &FdtBlocks, m: &Matrix16, out: &mut Matrix16) -> bool {
-    #[cfg(target_arch = "x86_64")]
-    if has_avx2() {
-        // SAFETY: the processor has AVX2 (checked just above).
-        return unsafe { times_phi_transpose_avx2(f, m, out) };
+    if let Some((m, out)) = psi_t {
+        times_phi_transpose(f, &m.data.0, &mut out.data.0);
+        if !all_finite(&out.data.0) {
+            return Err("propagated INS Psi");
+        }
     }
-    times_phi_transpose(f, &m.data.0, &mut out.data.0);
-    all_finite(&out.data.0)
+    Ok(())
 }
 
-/// `Phi P Phi^T + diag(qd)`.
+/// One covariance step: `p_out = Phi P Phi^T + diag(qd)` (see [`propagate_covariance_body`])
+/// and, when given, `Psi^T` advanced to `Psi^T Phi^T` (every entry of the outputs written).
+/// The error names the first output that is not finite.
+fn covariance_step_into(
+    f: &FdtBlocks,
+    p: &Matrix16,
+    qd_diag: &Vector16,
+    p_out: &mut Matrix16,
+    psi_t: Option<(&Matrix16, &mut Matrix16)>,
+) -> Result<(), &'static str> {
+    #[cfg(target_arch = "x86_64")]
+    if crate::estimation::dense::has_avx2() {
+        // SAFETY: the processor has AVX2 (checked just above).
+        return unsafe { covariance_step_avx2(f, p, qd_diag, p_out, psi_t) };
+    }
+    covariance_step_body(f, p, qd_diag, p_out, psi_t)
+}
+
+/// `Phi P Phi^T + diag(qd)` (for tests: not checked for finiteness).
+#[cfg(test)]
 fn propagate_covariance(f: &FdtBlocks, p: &Matrix16, qd_diag: &Vector16) -> Matrix16 {
     let mut out = Matrix16::zeros();
-    propagate_covariance_into(f, p, qd_diag, &mut out);
+    let _ = covariance_step_into(f, p, qd_diag, &mut out, None);
     out
 }
 
-/// `M (I + F dt)^T`.
+/// `M (I + F dt)^T` (for tests).
+#[cfg(test)]
 fn times_phi_transpose_matrix(f: &FdtBlocks, m: &Matrix16) -> Matrix16 {
     let mut out = Matrix16::zeros();
-    times_phi_transpose_into(f, m, &mut out);
+    times_phi_transpose(f, &m.data.0, &mut out.data.0);
     out
 }
 
@@ -763,23 +772,46 @@ impl InsFilter {
         match &self.pending {
             None => (self.p, self.psi_t),
             Some((fdt, sum_dt, _)) => {
-                let p = propagate_covariance(fdt, &self.p, &(self.q_psd * *sum_dt));
-                let psi_t = if self.track_psi { times_phi_transpose_matrix(fdt, &self.psi_t) } else { self.psi_t };
+                let (mut p, mut psi_t) = (Matrix16::zeros(), self.psi_t);
+                let _ = self.propagated_into(fdt, *sum_dt, &mut p, self.track_psi.then_some(&mut psi_t));
                 (p, psi_t)
             }
         }
     }
 
+    /// The stored covariance carried over `fdt` (`sum_dt` s of process noise) into `p`, and the
+    /// transposed `Psi` into `psi_t` when given; the error names the first that is not finite.
+    fn propagated_into(
+        &self,
+        fdt: &FdtBlocks,
+        sum_dt: f64,
+        p: &mut Matrix16,
+        psi_t: Option<&mut Matrix16>,
+    ) -> Result<(), EstimationError> {
+        covariance_step_into(fdt, &self.p, &(self.q_psd * sum_dt), p, psi_t.map(|out| (&self.psi_t, out)))
+            .map_err(|what| EstimationError::NonFinite { what })
+    }
+
+    /// Applies the pending propagation over `fdt` (computed into locals and checked before
+    /// anything is stored: on error nothing changes).
+    fn apply_propagation(&mut self, fdt: &FdtBlocks, sum_dt: f64) -> Result<(), EstimationError> {
+        let mut p = Matrix16::zeros();
+        if self.track_psi {
+            let mut psi_t = Matrix16::zeros();
+            self.propagated_into(fdt, sum_dt, &mut p, Some(&mut psi_t))?;
+            self.psi_t = psi_t;
+        } else {
+            self.propagated_into(fdt, sum_dt, &mut p, None)?;
+        }
+        self.p = p;
+        self.pending = None;
+        Ok(())
+    }
+
     /// Applies any pending covariance propagation.
     fn flush(&mut self) -> Result<(), EstimationError> {
-        if self.pending.is_some() {
-            let (p, psi_t) = self.current();
-            if !all_finite(&p.data.0) || !all_finite(&psi_t.data.0) {
-                return Err(EstimationError::NonFinite { what: "propagated INS covariance" });
-            }
-            self.p = p;
-            self.psi_t = psi_t;
-            self.pending = None;
+        if let Some((fdt, sum_dt, _)) = self.pending {
+            self.apply_propagation(&fdt, sum_dt)?;
         }
         Ok(())
     }
@@ -829,13 +861,11 @@ impl InsFilter {
         let vel = x.vel_ned_m_s + dv_no_coriolis - 2.0 * dt * self.w_ie_n.cross(&v_mid);
         let pos = x.pos_ned_m + 0.5 * dt * (x.vel_ned_m_s + vel);
         // The Earth's turn over `dt` (the same for every step of a steady IMU rate: computed once).
+        // The Earth's turn over `dt` (the same for every step of a steady IMU rate: computed
+        // once, and kept only once the step succeeds).
         let earth_turn = match self.earth_turn {
             Some((bits, q)) if bits == dt.to_bits() => q,
-            _ => {
-                let q = UnitQuaternion::from_scaled_axis(-zeta);
-                self.earth_turn = Some((dt.to_bits(), q));
-                q
-            }
+            _ => UnitQuaternion::from_scaled_axis(-zeta),
         };
         let x = &self.x;
         let q = earth_turn * x.att_frd_to_ned * UnitQuaternion::from_scaled_axis(dtheta_c);
@@ -852,25 +882,12 @@ impl InsFilter {
             return Err(EstimationError::NonFinite { what: "propagated INS state" });
         }
         if pending.2 >= self.config.covariance_decimation {
-            // Computed into locals and checked before anything is stored (on error nothing
-            // changes), then copied in once each.
             let (fdt, sum_dt, _) = pending;
-            let mut p = Matrix16::zeros();
-            if !propagate_covariance_into(&fdt, &self.p, &(self.q_psd * sum_dt), &mut p) {
-                return Err(EstimationError::NonFinite { what: "propagated INS covariance" });
-            }
-            if self.track_psi {
-                let mut psi_t = Matrix16::zeros();
-                if !times_phi_transpose_into(&fdt, &self.psi_t, &mut psi_t) {
-                    return Err(EstimationError::NonFinite { what: "propagated INS Psi" });
-                }
-                self.psi_t = psi_t;
-            }
-            self.p = p;
-            self.pending = None;
+            self.apply_propagation(&fdt, sum_dt)?;
         } else {
             self.pending = Some(pending);
         }
+        self.earth_turn = Some((dt.to_bits(), earth_turn));
         self.x = next;
         self.t = s.t;
         self.prev_dtheta = dtheta;

@@ -592,6 +592,22 @@ fn bad_imu_samples_are_rejected_without_change() {
     assert_eq!(f.time(), TimeUs(1_010_000));
 }
 
+/// A step whose covariance overflows is refused, naming it, and leaves the filter as it was:
+/// state, covariance, `Psi`, and the cached Earth turn of the new step length alike.
+#[test]
+fn a_covariance_that_overflows_is_refused_without_change() {
+    let cfg = InsConfig { covariance_decimation: 1, ..noise_free(45.0) };
+    let r = yaw_q(0.2);
+    let f_b = r.inverse_transform_vector(&-cfg.gravity_ned_m_s2());
+    let w_b = r.inverse_transform_vector(&cfg.earth_rate_ned_rad_s());
+    // Position variances near f64::MAX: finite, but any step's sum overflows.
+    let huge = InsInitialSigma { pos_ned_m: Vector3::repeat(1e154), ..small_sigma() };
+    let mut f = InsFilter::new(cfg, TimeUs(1_000_000), InsState::at_rest(r), huge).unwrap();
+    let before = f.clone();
+    assert_eq!(f.propagate(&imu(1_005_000, f_b, w_b)), Err(EstimationError::NonFinite { what: "propagated INS covariance" }));
+    assert_eq!(f, before);
+}
+
 #[test]
 fn config_parsing_defaults_and_validation() {
     let cfg: InsConfig = toml::from_str(
