@@ -92,6 +92,8 @@ use super::platform::{Geometry, Heading, PlatformFilter, check_joint_writeback};
 use super::{EstimationError, ImuSample, LinearizedMeasurement, OdometerSample, UpdateDiagnostics, kalman};
 use crate::time::TimeUs;
 
+mod local_update;
+
 #[cfg(test)]
 mod tests;
 
@@ -630,6 +632,11 @@ fn covariance_step_into(
     covariance_step_body(f, p, qd_diag, p_out, psi_t)
 }
 
+/// An error naming `what` when an entry of `m` is not finite (by [`all_finite`], branch-free).
+fn check_finite16(m: &Matrix16, what: &'static str) -> Result<(), EstimationError> {
+    if all_finite(&m.data.0) { Ok(()) } else { Err(EstimationError::NonFinite { what }) }
+}
+
 /// `Phi P Phi^T + diag(qd)` (for tests: not checked for finiteness).
 #[cfg(test)]
 fn propagate_covariance(f: &FdtBlocks, p: &Matrix16, qd_diag: &Vector16) -> Matrix16 {
@@ -965,6 +972,50 @@ fn reset_covariance(g: &Matrix16, p: &Matrix16) -> Matrix16 {
     0.5 * (out + out.transpose())
 }
 
+impl InsFilter {
+    /// [`PlatformFilter::update_local`] on nalgebra's dynamic-size routines, for any number of
+    /// rows (the caller has validated `meas` and flushed pending propagation).
+    fn update_local_general(&mut self, meas: &LinearizedMeasurement) -> Result<UpdateDiagnostics, EstimationError> {
+        let m = meas.len();
+        let h = Rows16::from_fn(m, |r, c| meas.h[(r, c)]);
+        let hp = &h * self.p;
+        let mut s = DMatrix::from_fn(m, m, |r, c| hp.row(r).dot(&h.row(c))) + &meas.r;
+        kalman::symmetrize(&mut s);
+        let chol = nalgebra::Cholesky::new(s.clone())
+            .ok_or(EstimationError::NotPositiveDefinite { what: "innovation covariance H P H^T + R" })?;
+        let l = chol.l();
+        let not_pd = EstimationError::NotPositiveDefinite { what: "innovation covariance factor" };
+        let w = l.solve_lower_triangular(&hp).ok_or(not_pd.clone())?;
+        let white = l.solve_lower_triangular(&meas.residual).ok_or(not_pd.clone())?;
+        let dx: Vector16 = w.tr_mul(&white);
+        let p_post = self.p - w.tr_mul(&w);
+        let x = self.x.injected(&dx)?;
+        let g = reset_jacobian(&dx);
+        let p = reset_covariance(&g, &p_post);
+        check_finite16(&p, "INS covariance after reset")?;
+        let psi_t = if self.track_psi {
+            // Psi is stored transposed: Psi^T+ = Psi^T - (L^-1 H Psi)^T W, then columns of the
+            // attitude block times G_att^T.
+            let z = l.solve_lower_triangular(&(&h * self.psi_t.transpose())).ok_or(not_pd)?;
+            let mut psi_t = self.psi_t - z.tr_mul(&w);
+            let g_att = g.fixed_view::<3, 3>(ATT, ATT).into_owned();
+            let cols = psi_t.fixed_columns::<3>(ATT) * g_att.transpose();
+            psi_t.fixed_columns_mut::<3>(ATT).copy_from(&cols);
+            check_finite16(&psi_t, "INS Psi after update")?;
+            Some(psi_t)
+        } else {
+            None
+        };
+        self.x = x;
+        self.p = p;
+        if let Some(psi_t) = psi_t {
+            self.psi_t = psi_t;
+        }
+        let nis = white.norm_squared();
+        Ok(UpdateDiagnostics { innovation: meas.residual.clone(), innovation_cov: s, nis })
+    }
+}
+
 impl PlatformFilter for InsFilter {
     fn dim(&self) -> usize {
         ERROR_DIM
@@ -986,52 +1037,16 @@ impl PlatformFilter for InsFilter {
         }
     }
 
-    /// The optimal-gain update in fixed-width form (this is the odometer's path, 10 Hz per
-    /// vehicle and once per local measurement for every method of every Monte Carlo run).
-    /// With `S = L L^T` and `W = L^-1 H P`: `P+ = P - W^T W` (the optimal-gain covariance as a
-    /// symmetric downdate, equal to the Joseph form for the optimal gain), `dx = W^T L^-1 r`, and
-    /// `Psi+ = (I - K H) Psi = Psi - W^T L^-1 (H Psi)` with `K = W^T L^-1`; then the error reset:
-    /// `P <- G P G^T`, `Psi <- G Psi`.
+    /// The optimal-gain update. With `S = L L^T` and `W = L^-1 H P`: `P+ = P - W^T W` (the
+    /// optimal-gain covariance as a symmetric downdate, equal to the Joseph form for the
+    /// optimal gain), `dx = W^T L^-1 r`, and `Psi+ = (I - K H) Psi = Psi - W^T L^-1 (H Psi)` with
+    /// `K = W^T L^-1`; then the error reset: `P <- G P G^T`, `Psi <- G Psi`. Measurements of up
+    /// to [`local_update::MAX_ROWS`] rows (all an INS node fuses) take the fixed-size path, the
+    /// same results bit for bit.
     fn update_local(&mut self, meas: &LinearizedMeasurement) -> Result<UpdateDiagnostics, EstimationError> {
         meas.validate(ERROR_DIM)?;
         self.flush()?;
-        let m = meas.len();
-        let h = Rows16::from_fn(m, |r, c| meas.h[(r, c)]);
-        let hp = &h * self.p;
-        let mut s = DMatrix::from_fn(m, m, |r, c| hp.row(r).dot(&h.row(c))) + &meas.r;
-        kalman::symmetrize(&mut s);
-        let chol = nalgebra::Cholesky::new(s.clone())
-            .ok_or(EstimationError::NotPositiveDefinite { what: "innovation covariance H P H^T + R" })?;
-        let l = chol.l();
-        let not_pd = EstimationError::NotPositiveDefinite { what: "innovation covariance factor" };
-        let w = l.solve_lower_triangular(&hp).ok_or(not_pd.clone())?;
-        let white = l.solve_lower_triangular(&meas.residual).ok_or(not_pd.clone())?;
-        let dx: Vector16 = w.tr_mul(&white);
-        let p_post = self.p - w.tr_mul(&w);
-        let x = self.x.injected(&dx)?;
-        let g = reset_jacobian(&dx);
-        let p = reset_covariance(&g, &p_post);
-        kalman::check_finite(&p, "INS covariance after reset")?;
-        let psi_t = if self.track_psi {
-            // Psi is stored transposed: Psi^T+ = Psi^T - (L^-1 H Psi)^T W, then columns of the
-            // attitude block times G_att^T.
-            let z = l.solve_lower_triangular(&(&h * self.psi_t.transpose())).ok_or(not_pd)?;
-            let mut psi_t = self.psi_t - z.tr_mul(&w);
-            let g_att = g.fixed_view::<3, 3>(ATT, ATT).into_owned();
-            let cols = psi_t.fixed_columns::<3>(ATT) * g_att.transpose();
-            psi_t.fixed_columns_mut::<3>(ATT).copy_from(&cols);
-            kalman::check_finite(&psi_t, "INS Psi after update")?;
-            Some(psi_t)
-        } else {
-            None
-        };
-        self.x = x;
-        self.p = p;
-        if let Some(psi_t) = psi_t {
-            self.psi_t = psi_t;
-        }
-        let nis = white.norm_squared();
-        Ok(UpdateDiagnostics { innovation: meas.residual.clone(), innovation_cov: s, nis })
+        if meas.len() <= local_update::MAX_ROWS { self.update_local_small(meas) } else { self.update_local_general(meas) }
     }
 
     fn apply_joint(&mut self, dx: &DVector<f64>, p: &DMatrix<f64>) -> Result<(), EstimationError> {
@@ -1040,7 +1055,7 @@ impl PlatformFilter for InsFilter {
         let x = self.x.injected(&dx)?;
         let g = reset_jacobian(&dx);
         let p = reset_covariance(&g, &to_matrix16(p));
-        kalman::check_finite(&p, "INS covariance after reset")?;
+        check_finite16(&p, "INS covariance after reset")?;
         self.x = x;
         self.p = p;
         // The joint update started from the covariance at the present (pending steps included).

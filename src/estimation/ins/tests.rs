@@ -780,3 +780,40 @@ fn decimated_covariance_propagation() {
         Err(EstimationError::InvalidValue { what: "covariance_decimation", value: 0.0 })
     );
 }
+
+/// The fixed-size local update gives what the general one gives, bit for bit (compared through
+/// `{:?}`, which tells `-0.0` from `0.0`): every size it takes, with and without `Psi`, `H`
+/// with exact zeros (as real Jacobians have) and a row of zeros, covariances at several scales.
+#[test]
+fn fixed_size_local_update_equals_the_general_one_bit_for_bit() {
+    use nalgebra::{DMatrix, DVector};
+    let mut rng = ChaCha8Rng::seed_from_u64(16);
+    let n = Normal::new(0.0, 1.0).unwrap();
+    let cfg = noise_free(45.0);
+    let base = InsFilter::new(cfg, TimeUs(1_000_000), InsState::at_rest(yaw_q(0.3)), small_sigma()).unwrap();
+    let mut compared = 0;
+    for trial in 0..60 {
+        let m = 1 + trial % local_update::MAX_ROWS;
+        let scale = [1e-6, 1.0, 1e4][trial % 3];
+        let mut f = base.clone();
+        f.p = random_spd(&mut rng) * scale;
+        f.psi_t = random_matrix(&mut rng);
+        f.track_psi = trial % 2 == 0;
+        let mut h = DMatrix::from_fn(m, ERROR_DIM, |_, _| if n.sample(&mut rng) > 0.3 { 0.0 } else { n.sample(&mut rng) });
+        if trial % 7 == 3 {
+            h.row_mut(0).fill(0.0); // a row of signed-zero sums
+        }
+        let a = DMatrix::from_fn(m, m, |_, _| n.sample(&mut rng));
+        let meas = LinearizedMeasurement {
+            h,
+            residual: DVector::from_fn(m, |_, _| 1e-3 * n.sample(&mut rng)),
+            r: &a * a.transpose() * 0.1 + DMatrix::identity(m, m) * 0.01,
+        };
+        let (mut small, mut general) = (f.clone(), f.clone());
+        let (ds, dg) = (small.update_local_small(&meas), general.update_local_general(&meas));
+        assert_eq!(format!("{ds:?}"), format!("{dg:?}"), "trial {trial}: diagnostics");
+        assert_eq!(format!("{small:?}"), format!("{general:?}"), "trial {trial}: filter");
+        compared += ds.is_ok() as usize;
+    }
+    assert!(compared >= 50, "only {compared} of 60 updates went through");
+}
