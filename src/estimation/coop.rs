@@ -76,6 +76,7 @@ use std::collections::BTreeMap;
 use nalgebra::{DMatrix, DVector};
 
 use super::EstimationError;
+use super::dense;
 use super::inputs::RangeSample;
 use super::kalman::{self, LinearizedMeasurement, UpdateDiagnostics};
 use super::platform::{PlatformId, Snapshot};
@@ -755,11 +756,14 @@ pub fn cooperative_update_with(
         kalman::joint_update(&p, &LinearizedMeasurement { h, residual, r }, passive.as_ref())?
     };
     // Never hand back a participant's covariance that is not positive definite.
+    let mut own_blocks = Vec::with_capacity(snapshots.len());
     for s in snapshots {
         let (o, d) = offset[&s.id];
-        if !kalman::is_psd(&up.p.view((o, o), (d, d)).into_owned(), 1e-9) {
+        let block = dense::block(&up.p, (o, o), (d, d));
+        if !kalman::is_psd(&block, 1e-9) {
             return Err(EstimationError::NotPositiveDefinite { what: "a participant's posterior covariance" });
         }
+        own_blocks.push(block);
     }
 
     // Step 5: store the new cross blocks (only now that nothing can fail).
@@ -770,23 +774,24 @@ pub fn cooperative_update_with(
         for (a, sa) in snapshots.iter().enumerate() {
             for sb in &snapshots[a + 1..] {
                 let ((oa, da), (ob, db)) = (offset[&sa.id], offset[&sb.id]);
-                cross.set(sa.id, sb.id, up.p.view((oa, ob), (da, db)).into_owned());
+                cross.set(sa.id, sb.id, dense::block(&up.p, (oa, ob), (da, db)));
             }
         }
         if let Some(x) = &up.passive {
             for (k, col, dk) in &passive_ids {
                 for s in snapshots {
                     let (o, d) = offset[&s.id];
-                    cross.set(s.id, *k, x.view((o, *col), (d, *dk)).into_owned());
+                    cross.set(s.id, *k, dense::block(x, (o, *col), (d, *dk)));
                 }
             }
         }
     }
     let corrections = snapshots
         .iter()
-        .map(|s| {
+        .zip(own_blocks)
+        .map(|(s, p)| {
             let (o, d) = offset[&s.id];
-            Correction { id: s.id, dx: up.dx.rows(o, d).into_owned(), p: up.p.view((o, o), (d, d)).into_owned() }
+            Correction { id: s.id, dx: up.dx.rows(o, d).into_owned(), p }
         })
         .collect();
     Ok(EventOutcome { corrections, diagnostics: up.diagnostics, prior_covariance: p, gated, weights })

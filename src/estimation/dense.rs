@@ -184,6 +184,27 @@ fn downdate_from_lower_gram(p: &DMatrix<f64>, out: &mut DMatrix<f64>) {
     }
 }
 
+/// A copy of the `shape` block of `m` that starts at `start`, column slice by column slice
+/// (nalgebra's `view(..).into_owned()` goes entry by entry through an iterator).
+pub fn block(m: &DMatrix<f64>, start: (usize, usize), shape: (usize, usize)) -> DMatrix<f64> {
+    let ((r, c), (nr, nc)) = (start, shape);
+    assert!(
+        r + nr <= m.nrows() && c + nc <= m.ncols(),
+        "block {shape:?} at {start:?} outside a {}x{} matrix",
+        m.nrows(),
+        m.ncols()
+    );
+    let mut out = DMatrix::zeros(nr, nc);
+    if nr > 0 {
+        let src = m.as_slice();
+        for (j, col) in out.as_mut_slice().chunks_exact_mut(nr).enumerate() {
+            let from = (c + j) * m.nrows() + r;
+            col.copy_from_slice(&src[from..from + nr]);
+        }
+    }
+    out
+}
+
 /// Whether this processor has AVX2: the estimation core's hand kernels are compiled twice
 /// (baseline x86-64 and AVX2) and pick one with this, at run time. The standard library caches
 /// the answer.
@@ -275,6 +296,16 @@ mod tests {
 
     use super::*;
     use crate::estimation::kalman::symmetrize;
+
+    /// Every block of a few shapes, empty ones and the whole included: what nalgebra's view
+    /// copies.
+    #[test]
+    fn block_copies_what_the_view_holds() {
+        let m = DMatrix::from_fn(7, 5, |r, c| (10 * r + c) as f64);
+        for (r, c, nr, nc) in [(0, 0, 7, 5), (2, 1, 3, 4), (6, 4, 1, 1), (3, 2, 0, 2), (1, 1, 4, 0)] {
+            assert_eq!(block(&m, (r, c), (nr, nc)), m.view((r, c), (nr, nc)).into_owned(), "{nr}x{nc} at ({r}, {c})");
+        }
+    }
 
     fn reference(p: &DMatrix<f64>, w: &DMatrix<f64>) -> DMatrix<f64> {
         let mut out = p.clone();
