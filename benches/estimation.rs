@@ -96,7 +96,7 @@ fn ins(c: &mut Criterion) {
     }
     let odo = OdometerSample { t: f.time(), speed_m_s: 10.05 };
     group.bench_function("odometer_update", |b| {
-        b.iter_batched(|| f.clone(), |mut f| black_box(f.update_odometer(black_box(&odo)).unwrap()), BatchSize::SmallInput)
+        b.iter_batched(|| f, |mut f| black_box(f.update_odometer(black_box(&odo)).unwrap()), BatchSize::SmallInput)
     });
     group.finish();
 }

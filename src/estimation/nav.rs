@@ -121,13 +121,32 @@ impl Drive {
 }
 
 /// The INS or the planar robot.
-#[derive(Debug, Clone)]
+#[derive(Debug)]
 // A node clones its filter into a checkpoint at every instant: boxing the INS would add an
 // allocation to each, for the common case, to save memory in the rare one.
 #[allow(clippy::large_enum_variant)]
 pub enum NavFilter {
     Ins(InsFilter),
     Planar(PlanarFilter),
+}
+
+impl Clone for NavFilter {
+    fn clone(&self) -> Self {
+        match self {
+            NavFilter::Ins(f) => NavFilter::Ins(*f),
+            NavFilter::Planar(f) => NavFilter::Planar(f.clone()),
+        }
+    }
+
+    /// In place: an INS over an INS is one copy of its values (a node's checkpoint at every
+    /// instant is written this way into a recycled slot).
+    fn clone_from(&mut self, source: &Self) {
+        match (self, source) {
+            (NavFilter::Ins(to), NavFilter::Ins(from)) => *to = *from,
+            (NavFilter::Planar(to), NavFilter::Planar(from)) => to.clone_from(from),
+            (to, from) => *to = from.clone(),
+        }
+    }
 }
 
 const WRONG_DRIVE: EstimationError = EstimationError::NotApplicable("a drive sample of another model");
@@ -375,5 +394,34 @@ mod tests {
         let c = f.output_covariances();
         assert_eq!(c.pose[(5, 5)], f.covariance()[(2, 2)]);
         assert_eq!(c.position()[(2, 2)], PLANAR_UNESTIMATED_VARIANCE);
+    }
+
+    /// Writing a filter over another in place (a node's checkpoint slot) leaves what a fresh
+    /// copy would be, for every pair of models.
+    #[test]
+    fn clone_from_is_a_copy_for_every_pair_of_models() {
+        let planar = NavModel::Planar {
+            config: PlanarConfig::from_sample_sigmas(0.05, 0.01, 20.0),
+            initial_sigma: PlanarSigma { pos_m: 1.0, yaw_rad: 0.01 },
+        };
+        let sigma = crate::estimation::ins::InsInitialSigma {
+            pos_ned_m: Vector3::repeat(1.0),
+            vel_ned_m_s: Vector3::repeat(0.1),
+            att_ned_rad: Vector3::repeat(0.01),
+            accel_bias_frd_m_s2: Vector3::repeat(0.01),
+            gyro_bias_frd_rad_s: Vector3::repeat(1e-4),
+            odometer_scale: 0.01,
+        };
+        let ins = NavModel::Ins { config: InsConfig::default(), initial_sigma: sigma };
+        let at_rest = InsState::at_rest(UnitQuaternion::from_euler_angles(0.0, 0.0, 0.3));
+        let make = |model: &NavModel, t: u64| NavFilter::new(*model, TimeUs(t), NavState::for_model(model, at_rest)).unwrap();
+        let filters = [make(&ins, 0), make(&ins, 5), make(&planar, 0), make(&planar, 7)];
+        for to in &filters {
+            for from in &filters {
+                let mut slot = to.clone();
+                slot.clone_from(from);
+                assert_eq!(format!("{slot:?}"), format!("{from:?}"));
+            }
+        }
     }
 }

@@ -429,6 +429,10 @@ struct WantStore {
 /// Store snapshots kept for teammates that ask (the last epochs we took part in).
 const SNAPSHOTS_KEPT: usize = 4;
 
+/// How many freed checkpoint slots a node keeps for the next checkpoints (about a second of
+/// 200 Hz instants; a slot is one filter, under 5 kB for the INS).
+const MAX_SPARE_CHECKPOINTS: usize = 256;
+
 /// The records that share a store valid for every participant of an epoch (see
 /// [`choose_store`]).
 #[derive(Debug, Clone, PartialEq)]
@@ -485,8 +489,12 @@ fn choose_store(records: &[StateRecord]) -> Option<StoreChoice> {
 pub struct NodeCore {
     cfg: NodeConfig,
     filter: NavFilter,
-    /// Checkpoints at the end of instants, oldest first.
-    history: VecDeque<(TimeUs, NavFilter)>,
+    /// Checkpoints at the end of instants, oldest first (boxed: moved as pointers, and their
+    /// slots recycled through `spare`).
+    history: VecDeque<(TimeUs, Box<NavFilter>)>,
+    /// Slots of checkpoints that left the history, written over in place by the next ones (one
+    /// copy of the filter per instant, no allocation).
+    spare: Vec<Box<NavFilter>>,
     /// Vehicle inputs after the oldest checkpoint, in time order (odometer samples ahead of the
     /// filter included: they wait for the IMU sample that covers them).
     inputs: VecDeque<Stamped>,
@@ -567,13 +575,14 @@ impl NodeCore {
         }
         let mut filter = NavFilter::new(cfg.model, t0, initial.into())?;
         filter.set_track_psi(cfg.method.needs_psi());
-        let history = VecDeque::from([(t0, filter.clone())]);
+        let history = VecDeque::from([(t0, Box::new(filter.clone()))]);
         let gate = UpdateOptions::gate_for_probability(cfg.gate_probability);
         Ok(Self {
             fresh: cfg.independent_start,
             cfg,
             filter,
             history,
+            spare: Vec::new(),
             inputs: VecDeque::new(),
             marks: BTreeSet::new(),
             open_instant: None,
@@ -699,7 +708,7 @@ impl NodeCore {
             if self.stats.imu == 0 {
                 // A start long before the vehicle's clock: the initial state is for "now".
                 self.filter.restart_clock(s.t());
-                self.history = VecDeque::from([(s.t(), self.filter.clone())]);
+                self.history = VecDeque::from([(s.t(), Box::new(self.filter.clone()))]);
                 self.inputs.clear();
                 self.marks.clear();
                 self.stats.clock_restarts += 1;
@@ -847,7 +856,14 @@ impl NodeCore {
     /// Closes the open instant: its checkpoint.
     fn checkpoint_open(&mut self) {
         if let Some(t) = self.open_instant.take() {
-            self.history.push_back((t, self.filter.clone()));
+            let slot = match self.spare.pop() {
+                Some(mut slot) => {
+                    (*slot).clone_from(&self.filter);
+                    slot
+                }
+                None => Box::new(self.filter.clone()),
+            };
+            self.history.push_back((t, slot));
         }
     }
 
@@ -858,7 +874,11 @@ impl NodeCore {
         let horizon = self.filter.time().0.saturating_sub(self.cfg.history_us);
         let keep_from = self.epochs.values().map(|e| e.t.0).min().unwrap_or(u64::MAX).min(horizon);
         while self.history.len() > 1 && self.history[0].0.0 < keep_from && self.history[1].0.0 <= keep_from {
-            self.history.pop_front();
+            if let Some((_, slot)) = self.history.pop_front()
+                && self.spare.len() < MAX_SPARE_CHECKPOINTS
+            {
+                self.spare.push(slot);
+            }
         }
         let oldest = self.history[0].0;
         while self.inputs.front().is_some_and(|i| i.t() <= oldest) {
@@ -886,7 +906,7 @@ impl NodeCore {
         // What a failed replay puts back: the filter, the checkpoints it rebuilds (moved out,
         // not copied: a replay after an epoch rebuilds seconds of 200 Hz checkpoints), the
         // open instant.
-        let saved_filter = std::mem::replace(&mut self.filter, f.clone());
+        let saved_filter = std::mem::replace(&mut self.filter, (*f).clone());
         let saved_tail = self.history.split_off(pos);
         let saved_open = self.open_instant;
         self.history.push_back((tc, f));
@@ -909,6 +929,9 @@ impl NodeCore {
             }
             self.stats.replayed_inputs += 1;
         }
+        // The checkpoints the replay rebuilt replace the saved ones: their slots are free.
+        let room = MAX_SPARE_CHECKPOINTS.saturating_sub(self.spare.len());
+        self.spare.extend(saved_tail.into_iter().map(|(_, slot)| slot).take(room));
         if self.ended {
             self.checkpoint_open();
         }
@@ -1188,7 +1211,7 @@ impl NodeCore {
     }
 
     fn checkpoint_at(&self, t: TimeUs) -> Option<&NavFilter> {
-        self.history.iter().rev().find(|(tc, _)| *tc == t).map(|(_, f)| f)
+        self.history.iter().rev().find(|(tc, _)| *tc == t).map(|(_, f)| &**f)
     }
 
     /// Broadcasts, resolves and retries until nothing more can be done now. Epochs go strictly

@@ -653,8 +653,9 @@ fn times_phi_transpose_matrix(f: &FdtBlocks, m: &Matrix16) -> Matrix16 {
     out
 }
 
-/// The INS error-state EKF of one land vehicle.
-#[derive(Debug, Clone, PartialEq)]
+/// The INS error-state EKF of one land vehicle. Plain values only (`Copy`): a node's
+/// checkpoint is one copy of it.
+#[derive(Debug, Clone, Copy, PartialEq)]
 pub struct InsFilter {
     config: InsConfig,
     w_ie_n: Vector3<f64>,

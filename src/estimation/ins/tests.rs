@@ -298,7 +298,7 @@ fn error_model_matches_finite_differences() {
             Vector3::new(0.1 * t.sin(), 0.05 * (1.3 * t).cos(), 0.2 + 0.1 * (0.5 * t).sin()),
         )
     };
-    let mut est = base.clone();
+    let mut est = base;
     for k in 1..=steps {
         est.propagate(&sample(k)).unwrap();
     }
@@ -310,7 +310,7 @@ fn error_model_matches_finite_differences() {
     for (i, &e) in eps.iter().enumerate() {
         let mut dx0 = Vector16::zeros();
         dx0[i] = e;
-        let mut truth = base.clone();
+        let mut truth = base;
         truth.x = base.x.injected(&dx0).unwrap();
         for k in 1..=steps {
             truth.propagate(&sample(k)).unwrap();
@@ -370,7 +370,7 @@ fn odometer_jacobian_matches_numerical_derivative() {
         }
     }
     // Linearising changes nothing.
-    let before = f.clone();
+    let before = f;
     let _ = f.odometer_measurement(&s).unwrap();
     assert_eq!(f, before);
 }
@@ -432,7 +432,7 @@ fn apply_joint_uses_reset_jacobian() {
     f.apply_joint(&dx, &p).unwrap();
     assert_eq!(f.psi(), DMatrix::identity(ERROR_DIM, ERROR_DIM));
     // Bad write-backs change nothing.
-    let snapshot = f.clone();
+    let snapshot = f;
     assert!(f.apply_joint(&DVector::zeros(15), &p).is_err());
     let mut bad = p.clone();
     bad[(3, 4)] = f64::NAN;
@@ -560,7 +560,7 @@ fn bad_imu_samples_are_rejected_without_change() {
     let w_b = r.inverse_transform_vector(&cfg.earth_rate_ned_rad_s());
     let mut f = InsFilter::new(cfg, TimeUs(1_000_000), InsState::at_rest(r), small_sigma()).unwrap();
     f.propagate(&imu(1_005_000, f_b, w_b)).unwrap();
-    let before = f.clone();
+    let before = f;
     let nan_f = Vector3::new(f64::NAN, 0.0, -G);
     let cases = [
         (imu(1_010_000, nan_f, w_b), EstimationError::NonFinite { what: "IMU specific force" }),
@@ -603,7 +603,7 @@ fn a_covariance_that_overflows_is_refused_without_change() {
     // Position variances near f64::MAX: finite, but any step's sum overflows.
     let huge = InsInitialSigma { pos_ned_m: Vector3::repeat(1e154), ..small_sigma() };
     let mut f = InsFilter::new(cfg, TimeUs(1_000_000), InsState::at_rest(r), huge).unwrap();
-    let before = f.clone();
+    let before = f;
     assert_eq!(f.propagate(&imu(1_005_000, f_b, w_b)), Err(EstimationError::NonFinite { what: "propagated INS covariance" }));
     assert_eq!(f, before);
 }
@@ -745,7 +745,7 @@ fn decimated_covariance_propagation() {
         b.propagate(&sample(k)).unwrap();
     }
     // Mid-interval: three steps pending. Reading is pure.
-    let before = a.clone();
+    let before = a;
     let (p_mid, psi_mid) = (a.covariance16(), a.psi16());
     assert_eq!(a, before);
     // Stepping three samples at once drops the second-order products of F dt, the largest of
@@ -795,7 +795,7 @@ fn fixed_size_local_update_equals_the_general_one_bit_for_bit() {
     for trial in 0..60 {
         let m = 1 + trial % local_update::MAX_ROWS;
         let scale = [1e-6, 1.0, 1e4][trial % 3];
-        let mut f = base.clone();
+        let mut f = base;
         f.p = random_spd(&mut rng) * scale;
         f.psi_t = random_matrix(&mut rng);
         f.track_psi = trial % 2 == 0;
@@ -809,7 +809,7 @@ fn fixed_size_local_update_equals_the_general_one_bit_for_bit() {
             residual: DVector::from_fn(m, |_, _| 1e-3 * n.sample(&mut rng)),
             r: &a * a.transpose() * 0.1 + DMatrix::identity(m, m) * 0.01,
         };
-        let (mut small, mut general) = (f.clone(), f.clone());
+        let (mut small, mut general) = (f, f);
         let (ds, dg) = (small.update_local_small(&meas), general.update_local_general(&meas));
         assert_eq!(format!("{ds:?}"), format!("{dg:?}"), "trial {trial}: diagnostics");
         assert_eq!(format!("{small:?}"), format!("{general:?}"), "trial {trial}: filter");
