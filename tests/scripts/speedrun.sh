@@ -20,5 +20,5 @@ wait $SP
 END=$(date +%s.%N)
 wait
 echo "speed $SPEED sitl wall $(echo "$END - $START" | bc) s"
-for i in 1 2 3; do grep "done" $D/node$i.out | grep -o "dropped_inputs [0-9]* vehicle_frames [0-9]* vehicle_lost [0-9]*" | sed "s/^/node $i /"; grep "stats" $D/node$i.out | sed -E 's/.*imu: ([0-9]+), odometer: ([0-9]+), imu_rejected: ([0-9]+), odometer_unmatched: ([0-9]+), odometer_rejected: ([0-9]+).*records_resent: ([0-9]+).*epochs_applied: ([0-9]+), epochs_partial: ([0-9]+).*epoch_disagreements: ([0-9]+).*/imu \1 odo \2 rej \3\/\4\/\5 resent \6 applied \7 partial \8 disagree \9/' | sed "s/^/node $i /"; done
+for i in 1 2 3; do grep "done" $D/node$i.out | grep -o "dropped_inputs [0-9]* vehicle_frames [0-9]* vehicle_lost [0-9]*" | sed "s/^/node $i /"; grep "stats" $D/node$i.out | grep -oE "(imu|odometer|imu_rejected|odometer_rejected|records_resent|epochs_applied|epochs_partial|epoch_disagreements): [0-9]+" | tr '\n' ' ' | sed "s/^/node $i /"; echo; done
 rm -rf $D
