@@ -18,7 +18,7 @@
 
 use nalgebra::DMatrix;
 
-use super::{ATT, ERROR_DIM, InsFilter, Matrix16, Vector16, check_finite16, reset_covariance, reset_jacobian};
+use super::{ERROR_DIM, InsFilter, Matrix16, Vector16};
 use crate::estimation::{EstimationError, LinearizedMeasurement, UpdateDiagnostics, kalman};
 
 /// The most rows the fixed-size path takes: from 6 rows on, nalgebra hands `H P` to
@@ -150,12 +150,8 @@ impl InsFilter {
                 *v -= g;
             }
         }
-        let x = self.x.injected(&dx)?;
-        let g = reset_jacobian(&dx);
-        let p = reset_covariance(&g, &p_post);
-        check_finite16(&p, "INS covariance after reset")?;
         let psi_t = if self.track_psi {
-            // Psi^T+ = Psi^T - (L^-1 H Psi)^T W, then the attitude columns times G_att^T.
+            // Psi^T+ = Psi^T - (L^-1 H Psi)^T W.
             let mut z = rows_times(&h, m, &self.psi_t);
             if !solve_rows(&l, &mut z, m) {
                 return Err(not_pd);
@@ -166,19 +162,11 @@ impl InsFilter {
                     *v -= g;
                 }
             }
-            let g_att = g.fixed_view::<3, 3>(ATT, ATT).into_owned();
-            let cols = psi_t.fixed_columns::<3>(ATT) * g_att.transpose();
-            psi_t.fixed_columns_mut::<3>(ATT).copy_from(&cols);
-            check_finite16(&psi_t, "INS Psi after update")?;
             Some(psi_t)
         } else {
             None
         };
-        self.x = x;
-        self.p = p;
-        if let Some(psi_t) = psi_t {
-            self.psi_t = psi_t;
-        }
+        self.finish_local_update(&dx, &p_post, psi_t)?;
         let nis = gram_column(&white, &white, 0, m)[0];
         Ok(UpdateDiagnostics { innovation: meas.residual.clone(), innovation_cov: s, nis })
     }

@@ -990,30 +990,42 @@ impl InsFilter {
         let white = l.solve_lower_triangular(&meas.residual).ok_or(not_pd.clone())?;
         let dx: Vector16 = w.tr_mul(&white);
         let p_post = self.p - w.tr_mul(&w);
-        let x = self.x.injected(&dx)?;
-        let g = reset_jacobian(&dx);
-        let p = reset_covariance(&g, &p_post);
-        check_finite16(&p, "INS covariance after reset")?;
         let psi_t = if self.track_psi {
-            // Psi is stored transposed: Psi^T+ = Psi^T - (L^-1 H Psi)^T W, then columns of the
-            // attitude block times G_att^T.
+            // Psi is stored transposed: Psi^T+ = Psi^T - (L^-1 H Psi)^T W.
             let z = l.solve_lower_triangular(&(&h * self.psi_t.transpose())).ok_or(not_pd)?;
-            let mut psi_t = self.psi_t - z.tr_mul(&w);
-            let g_att = g.fixed_view::<3, 3>(ATT, ATT).into_owned();
-            let cols = psi_t.fixed_columns::<3>(ATT) * g_att.transpose();
-            psi_t.fixed_columns_mut::<3>(ATT).copy_from(&cols);
-            check_finite16(&psi_t, "INS Psi after update")?;
-            Some(psi_t)
+            Some(self.psi_t - z.tr_mul(&w))
         } else {
             None
+        };
+        self.finish_local_update(&dx, &p_post, psi_t)?;
+        let nis = white.norm_squared();
+        Ok(UpdateDiagnostics { innovation: meas.residual.clone(), innovation_cov: s, nis })
+    }
+
+    /// The end of both local-update paths: the error reset of the state, of `P+` and, when
+    /// tracked, of `Psi^T+` (its attitude columns times `G_att^T`), each checked; then all three
+    /// stored together (on error nothing changes).
+    fn finish_local_update(&mut self, dx: &Vector16, p_post: &Matrix16, psi_t: Option<Matrix16>) -> Result<(), EstimationError> {
+        let x = self.x.injected(dx)?;
+        let g = reset_jacobian(dx);
+        let p = reset_covariance(&g, p_post);
+        check_finite16(&p, "INS covariance after reset")?;
+        let psi_t = match psi_t {
+            Some(mut psi_t) => {
+                let g_att = g.fixed_view::<3, 3>(ATT, ATT).into_owned();
+                let cols = psi_t.fixed_columns::<3>(ATT) * g_att.transpose();
+                psi_t.fixed_columns_mut::<3>(ATT).copy_from(&cols);
+                check_finite16(&psi_t, "INS Psi after update")?;
+                Some(psi_t)
+            }
+            None => None,
         };
         self.x = x;
         self.p = p;
         if let Some(psi_t) = psi_t {
             self.psi_t = psi_t;
         }
-        let nis = white.norm_squared();
-        Ok(UpdateDiagnostics { innovation: meas.residual.clone(), innovation_cov: s, nis })
+        Ok(())
     }
 }
 
