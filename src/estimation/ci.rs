@@ -49,6 +49,73 @@ fn golden_section(mut lo: f64, mut hi: f64, iterations: usize, f: impl Fn(f64) -
     0.5 * (lo + hi)
 }
 
+/// The largest stacked sub-state [`scalar_trial_trace`] takes (two positions and headings).
+const SCALAR_MAX_DIM: usize = 8;
+
+/// The objective of the weight search for a scalar measurement (a range): the trace of the
+/// `block` (offset, size) of the posterior of
+/// `kalman::joint_update(diag(A_k / w_k), meas, None)`, or infinity where that update fails;
+/// computed on the stack with every operation of that update in its order (the axpy of
+/// `P H^T`, the fold of `H P H^T`, the Cholesky of the 1x1 `S`, the division by its root, the
+/// Gram entries `0 + w_i w_j`, the downdate and its symmetrising average, the finiteness checks
+/// of the posterior and the correction), so that it returns the same bits; the test
+/// `scalar_trial_trace_equals_the_joint_update_bit_for_bit` holds it to that. `meas` must have
+/// one row and pass `validate` on the stacked dimension (at most [`SCALAR_MAX_DIM`]).
+fn scalar_trial_trace(marginals: &[DMatrix<f64>], weights: &[f64], meas: &LinearizedMeasurement, block: (usize, usize)) -> f64 {
+    const N: usize = SCALAR_MAX_DIM;
+    let n = meas.h.ncols();
+    debug_assert!(meas.h.nrows() == 1 && n <= N);
+    // The prior: diag(A_k / w_k), zeros elsewhere.
+    let mut p = [[0.0f64; N]; N]; // p[column][row]
+    let mut off = 0;
+    for (a, w) in marginals.iter().zip(weights) {
+        let d = a.nrows();
+        for j in 0..d {
+            for i in 0..d {
+                p[off + j][off + i] = a[(i, j)] / *w;
+            }
+        }
+        off += d;
+    }
+    // P H^T: one axpy per nonzero of H, in column order (nalgebra's axpy, `v x 1 + 1 y`, rounds
+    // as `y + v x`); then H P H^T, folded over the same nonzeros.
+    let mut ph_t = [0.0f64; N];
+    let h = meas.h.row(0);
+    for (pc, &v) in p.iter().zip(h.iter()).filter(|(_, v)| **v != 0.0) {
+        for (y, x) in ph_t.iter_mut().zip(pc).take(n) {
+            *y += v * *x;
+        }
+    }
+    let mut hph = 0.0;
+    for (x, &v) in ph_t.iter().zip(h.iter()).filter(|(_, v)| **v != 0.0) {
+        hph += v * *x;
+    }
+    let s = hph + meas.r[(0, 0)];
+    if s.is_nan() || s <= 0.0 {
+        return f64::INFINITY; // not positive definite
+    }
+    let l = s.sqrt();
+    let mut w = [0.0f64; N];
+    for (w, x) in w.iter_mut().zip(&ph_t).take(n) {
+        *w = *x / l;
+    }
+    let white = meas.residual[0] / l;
+    let mut finite = true;
+    let mut trace = 0.0;
+    for j in 0..n {
+        finite &= (w[j] * white).is_finite();
+        for i in j..n {
+            let g = 0.0 + w[i] * w[j];
+            let v = if i == j { -g + p[j][i] } else { 0.5 * ((-g + p[j][i]) + (-g + p[i][j])) };
+            finite &= v.is_finite();
+            if i == j && j >= block.0 && j < block.0 + block.1 {
+                trace += v;
+            }
+        }
+    }
+    if finite { trace } else { f64::INFINITY }
+}
+
 /// The columns of `h` that hold a nonzero entry.
 fn measured_columns(h: &DMatrix<f64>) -> Vec<usize> {
     (0..h.ncols()).filter(|&c| h.column(c).iter().any(|v| *v != 0.0)).collect()
@@ -103,6 +170,7 @@ pub fn ci_update(snapshots: &[Snapshot], measurements: &[CoopMeasurement]) -> Re
             }
             p
         };
+        let scalar_ok = m == 1 && n <= SCALAR_MAX_DIM && stacked.validate(n).is_ok();
         // Each involved platform fuses for itself, all from the same prior.
         let mut fused = Vec::with_capacity(idx.len());
         let mut off = 0;
@@ -118,6 +186,13 @@ pub fn ci_update(snapshots: &[Snapshot], measurements: &[CoopMeasurement]) -> Re
             };
             let w = if idx.len() == 1 {
                 1.0
+            } else if scalar_ok {
+                // A range: the search's 42 trial updates on the stack (same numbers, see
+                // `scalar_trial_trace`).
+                golden_section(1e-3, 1.0 - 1e-3, 40, |w| {
+                    let ws = if k == 0 { [w, 1.0 - w] } else { [1.0 - w, w] };
+                    scalar_trial_trace(&marginals, &ws, &stacked, (off, *d))
+                })
             } else {
                 golden_section(1e-3, 1.0 - 1e-3, 40, |w| {
                     kalman::joint_update(&bound(&weights(w)), &stacked, None)
@@ -161,6 +236,84 @@ pub fn ci_update(snapshots: &[Snapshot], measurements: &[CoopMeasurement]) -> Re
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// The slow objective `scalar_trial_trace` replaces.
+    fn trial_trace_by_joint_update(
+        marginals: &[DMatrix<f64>],
+        weights: &[f64],
+        meas: &LinearizedMeasurement,
+        block: (usize, usize),
+    ) -> f64 {
+        let n: usize = marginals.iter().map(|a| a.nrows()).sum();
+        let mut p = DMatrix::zeros(n, n);
+        let mut off = 0;
+        for (a, w) in marginals.iter().zip(weights) {
+            p.view_mut((off, off), (a.nrows(), a.nrows())).copy_from(&(a / *w));
+            off += a.nrows();
+        }
+        kalman::joint_update(&p, meas, None)
+            .map(|u| u.p.view((block.0, block.0), (block.1, block.1)).trace())
+            .unwrap_or(f64::INFINITY)
+    }
+
+    /// Same bits as the joint update on random priors and ranges, with zeros (and negative
+    /// zeros) in the Jacobian, weights near both ends, a noise of zero, an indefinite prior,
+    /// values large enough to overflow the posterior, and residuals that overflow the correction.
+    #[test]
+    fn scalar_trial_trace_equals_the_joint_update_bit_for_bit() {
+        use rand::{Rng, SeedableRng};
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(7);
+        let mut cases = 0;
+        let mut infinite = 0;
+        for case in 0..20_000 {
+            let dims: Vec<usize> = (0..rng.random_range(1..=2)).map(|_| rng.random_range(1..=4)).collect();
+            let n: usize = dims.iter().sum();
+            let scale = match case % 50 {
+                0 => 1e154,
+                1 => 1e-160,
+                _ => 10f64.powi(rng.random_range(-3..4)),
+            };
+            let marginals: Vec<DMatrix<f64>> = dims
+                .iter()
+                .map(|&d| {
+                    let a = DMatrix::from_fn(d, d, |_, _| rng.random_range(-1.0..1.0) * scale);
+                    let mut m = &a * a.transpose();
+                    if case % 37 == 0 {
+                        m[(0, 0)] = -m[(0, 0)] - 1.0; // indefinite
+                    }
+                    m
+                })
+                .collect();
+            let h = DMatrix::from_fn(1, n, |_, _| match rng.random_range(0..6) {
+                0 => 0.0,
+                1 => -0.0,
+                _ => rng.random_range(-1.0..1.0),
+            });
+            let r = if case % 41 == 0 { 0.0 } else { rng.random_range(1e-4..1.0) };
+            let meas = LinearizedMeasurement {
+                h,
+                // A residual near the largest value: the correction overflows, the posterior not.
+                residual: DVector::from_element(1, if case % 43 == 0 { 1.7e308 } else { rng.random_range(-5.0..5.0) }),
+                r: DMatrix::from_element(1, 1, r),
+            };
+            let w = match case % 7 {
+                0 => 1e-3,
+                1 => 1.0 - 1e-3,
+                _ => rng.random_range(1e-3..1.0),
+            };
+            let weights: Vec<f64> = if dims.len() == 1 { vec![1.0] } else { vec![w, 1.0 - w] };
+            let d0 = dims[0];
+            for block in [(0, d0), (d0, n - d0)] {
+                let fast = scalar_trial_trace(&marginals, &weights, &meas, block);
+                let slow = trial_trace_by_joint_update(&marginals, &weights, &meas, block);
+                assert_eq!(fast.to_bits(), slow.to_bits(), "case {case}, block {block:?}: {fast} vs {slow}");
+                cases += 1;
+                infinite += usize::from(fast.is_infinite());
+            }
+        }
+        // Both outcomes were exercised.
+        assert!(infinite > 100 && infinite < cases / 2, "{infinite} of {cases} failed updates");
+    }
 
     #[test]
     fn golden_section_finds_a_parabola_minimum() {

@@ -227,14 +227,78 @@ pub fn symmetric_downdate(p: &DMatrix<f64>, w: &DMatrix<f64>) -> DMatrix<f64> {
     out
 }
 
+/// Up to this many rows of `W`, [`lower_gram_lanes_avx2`] computes four entries per vector
+/// instead of one dot product's partial sums per vector (a short dot product is mostly its
+/// finish).
+const LANES_MAX_ROWS: usize = 16;
+
 fn lower_gram(w: &DMatrix<f64>, out: &mut DMatrix<f64>) {
     #[cfg(target_arch = "x86_64")]
     if has_avx2() {
-        // SAFETY: the processor has AVX2 (checked just above).
-        unsafe { lower_gram_avx2(w, out) };
+        if w.nrows() <= LANES_MAX_ROWS {
+            let w_t = w.transpose();
+            // SAFETY: the processor has AVX2 (checked just above).
+            unsafe { lower_gram_lanes_avx2(w, &w_t, out) };
+        } else {
+            // SAFETY: the processor has AVX2 (checked just above).
+            unsafe { lower_gram_avx2(w, out) };
+        }
         return;
     }
     lower_gram_body(w, out);
+}
+
+/// [`lower_gram_body`] for a short `W` (`m` rows, `W^T` given too): four entries `(i..i+4, j)`
+/// of a column at once, one lane each, every lane running [`dot_body`]'s sums for its own
+/// entry (the eight partial sums, their pairing, the tail; separate multiplies and adds), so
+/// each rounds as the scalar dot product does. Rows of a column left over at the bottom take
+/// [`dot_body`] itself.
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2")]
+fn lower_gram_lanes_avx2(w: &DMatrix<f64>, w_t: &DMatrix<f64>, out: &mut DMatrix<f64>) {
+    use std::arch::x86_64::{
+        __m256d, _mm256_add_pd, _mm256_loadu_pd, _mm256_mul_pd, _mm256_set1_pd, _mm256_setzero_pd, _mm256_storeu_pd,
+    };
+    let (n, m) = (w.ncols(), w.nrows());
+    assert!(w_t.nrows() == n && w_t.ncols() == m && out.nrows() == n && out.ncols() == n, "lower_gram_lanes: shapes");
+    let full = m - m % 8;
+    let (ws, ts) = (w.as_slice(), w_t.as_slice());
+    let col = |i: usize| &ws[i * m..(i + 1) * m];
+    let os = out.as_mut_slice();
+    for j in 0..n {
+        let cj = col(j);
+        let mut i = j;
+        while i + 4 <= n {
+            // SAFETY: every load reads W^T[i..i + 4, k] = ts[k n + i..k n + i + 4] with
+            // k < m and i + 4 <= n, inside the n m entries of `ts` (its shape is asserted).
+            let res = unsafe {
+                let lanes = |k: usize| _mm256_loadu_pd(ts.as_ptr().add(k * n + i));
+                let mut acc: [__m256d; 8] = [_mm256_setzero_pd(); 8];
+                let mut c = 0;
+                while c < full {
+                    for (k, a) in acc.iter_mut().enumerate() {
+                        *a = _mm256_add_pd(*a, _mm256_mul_pd(lanes(c + k), _mm256_set1_pd(cj[c + k])));
+                    }
+                    c += 8;
+                }
+                let mut res = _mm256_setzero_pd();
+                for k in 0..4 {
+                    res = _mm256_add_pd(res, _mm256_add_pd(acc[k], acc[k + 4]));
+                }
+                for (t, b) in cj.iter().enumerate().skip(full) {
+                    res = _mm256_add_pd(res, _mm256_mul_pd(lanes(t), _mm256_set1_pd(*b)));
+                }
+                res
+            };
+            // SAFETY: i + 4 <= n: entries (i..i + 4, j) of the n x n output.
+            unsafe { _mm256_storeu_pd(os.as_mut_ptr().add(j * n + i), res) };
+            i += 4;
+        }
+        while i < n {
+            os[j * n + i] = dot_body(col(i), cj);
+            i += 1;
+        }
+    }
 }
 
 /// `B^T <- (L^-1 B)^T` in place, for a lower-triangular `L` (`m x m`) and `B^T` (`n x m`):
@@ -314,14 +378,19 @@ mod tests {
         out
     }
 
-    /// Every shape around the kernels' edges (tails of the 8-long sums, of the 4-wide blocks),
-    /// a `P` that is not exactly symmetric, both code paths: equal bit for bit.
+    /// Every shape around the kernels' edges (tails of the 8-long sums, of the 4-wide blocks,
+    /// the short-`W` lanes kernel and the long one), signed zeros in `W`, a `P` that is not
+    /// exactly symmetric, every code path: equal bit for bit.
     #[test]
     fn the_downdate_rounds_exactly_as_nalgebra_and_symmetrize() {
         let mut rng = ChaCha8Rng::seed_from_u64(5);
         for n in [1, 2, 3, 4, 5, 7, 8, 9, 16, 17, 48, 50] {
             for m in [1, 2, 3, 7, 8, 9, 15, 16, 17, 24] {
-                let w = DMatrix::from_fn(m, n, |_, _| rng.random_range(-1.0..1.0) * 10f64.powi(rng.random_range(-3..3)));
+                let w = DMatrix::from_fn(m, n, |_, _| match rng.random_range(0..12) {
+                    0 => 0.0,
+                    1 => -0.0,
+                    _ => rng.random_range(-1.0..1.0) * 10f64.powi(rng.random_range(-3..3)),
+                });
                 let p = DMatrix::from_fn(n, n, |_, _| rng.random_range(-5.0..5.0));
                 let want = reference(&p, &w);
                 let got = symmetric_downdate(&p, &w);

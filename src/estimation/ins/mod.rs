@@ -532,10 +532,11 @@ fn times_phi_transpose(f: &FdtBlocks, m: &Columns, out: &mut Columns) {
 }
 
 /// False when an entry is NaN or infinite, by a branch-free sum (NaN and infinities propagate
-/// through it). A sum that overflows also reads as non-finite: a matrix with entries near
-/// `f64::MAX` has diverged anyway.
+/// through it). Stricter than [`kalman::all_finite`], and half its work in the covariance step:
+/// a sum that overflows also reads as non-finite, so a covariance with entries near `f64::MAX`
+/// (diverged anyway) is refused too.
 #[inline(always)]
-fn all_finite(m: &Columns) -> bool {
+fn sum_is_finite(m: &Columns) -> bool {
     let mut acc = [0.0; ERROR_DIM];
     for c in m {
         for (a, v) in acc.iter_mut().zip(c) {
@@ -602,12 +603,12 @@ fn covariance_step_body(
     psi_t: Option<(&Matrix16, &mut Matrix16)>,
 ) -> Result<(), &'static str> {
     propagate_covariance_body(f, p, qd_diag, p_out);
-    if !all_finite(&p_out.data.0) {
+    if !sum_is_finite(&p_out.data.0) {
         return Err("propagated INS covariance");
     }
     if let Some((m, out)) = psi_t {
         times_phi_transpose(f, &m.data.0, &mut out.data.0);
-        if !all_finite(&out.data.0) {
+        if !sum_is_finite(&out.data.0) {
             return Err("propagated INS Psi");
         }
     }
@@ -632,9 +633,10 @@ fn covariance_step_into(
     covariance_step_body(f, p, qd_diag, p_out, psi_t)
 }
 
-/// An error naming `what` when an entry of `m` is not finite (by [`all_finite`], branch-free).
+/// An error naming `what` when an entry of `m` is not finite or their sum overflows (by
+/// [`sum_is_finite`], branch-free).
 fn check_finite16(m: &Matrix16, what: &'static str) -> Result<(), EstimationError> {
-    if all_finite(&m.data.0) { Ok(()) } else { Err(EstimationError::NonFinite { what }) }
+    if sum_is_finite(&m.data.0) { Ok(()) } else { Err(EstimationError::NonFinite { what }) }
 }
 
 /// `Phi P Phi^T + diag(qd)` (for tests: not checked for finiteness).
@@ -868,7 +870,6 @@ impl InsFilter {
         let v_mid = x.vel_ned_m_s + 0.5 * dv_no_coriolis;
         let vel = x.vel_ned_m_s + dv_no_coriolis - 2.0 * dt * self.w_ie_n.cross(&v_mid);
         let pos = x.pos_ned_m + 0.5 * dt * (x.vel_ned_m_s + vel);
-        // The Earth's turn over `dt` (the same for every step of a steady IMU rate: computed once).
         // The Earth's turn over `dt` (the same for every step of a steady IMU rate: computed
         // once, and kept only once the step succeeds).
         let earth_turn = match self.earth_turn {
