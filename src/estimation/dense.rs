@@ -156,9 +156,107 @@ fn lower_gram_avx2(w: &DMatrix<f64>, out: &mut DMatrix<f64>) {
     }
 }
 
+/// `out = P - G`, symmetrised, from the lower triangle of the Gram matrix `G` in `out`
+/// (see [`downdate_from_lower_gram_body`]; on AVX2, 4x4 blocks off the diagonal are read,
+/// computed and written four entries at a time, the upper one transposed in registers).
+fn downdate_from_lower_gram(p: &DMatrix<f64>, out: &mut DMatrix<f64>) {
+    #[cfg(target_arch = "x86_64")]
+    if has_avx2() {
+        // SAFETY: the processor has AVX2 (checked just above).
+        unsafe { downdate_from_lower_gram_avx2(p, out) };
+        return;
+    }
+    downdate_from_lower_gram_body(p, out);
+}
+
+/// One entry `(i, j)`, `i >= j`, of [`downdate_from_lower_gram_body`].
+#[inline(always)]
+fn downdate_entry(ps: &[f64], os: &mut [f64], n: usize, i: usize, j: usize) {
+    // (i, j) of the lower triangle is at j n + i, its mirror (j, i) at i n + j.
+    let (lo, up) = (j * n + i, i * n + j);
+    let d = os[lo];
+    if i == j {
+        // gemm_tr writes alpha * d + beta * p with alpha = -1, beta = 1.
+        os[lo] = -d + ps[lo];
+    } else {
+        // ... and symmetrize averages the two triangles.
+        let v = 0.5 * ((-d + ps[lo]) + (-d + ps[up]));
+        os[lo] = v;
+        os[up] = v;
+    }
+}
+
+/// [`downdate_from_lower_gram_body`] with the 4x4 blocks below the diagonal blocks in AVX2
+/// registers: each lane computes `0.5 * ((-d + p_lo) + (-d + p_up))` as the scalar entry does
+/// (a negation, adds and a multiply: the same rounding); the diagonal blocks and the rows
+/// past the last multiple of four go entry by entry.
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2")]
+fn downdate_from_lower_gram_avx2(p: &DMatrix<f64>, out: &mut DMatrix<f64>) {
+    use std::arch::x86_64::{
+        __m256d, _mm256_add_pd, _mm256_loadu_pd, _mm256_mul_pd, _mm256_permute2f128_pd, _mm256_set1_pd, _mm256_storeu_pd,
+        _mm256_sub_pd, _mm256_unpackhi_pd, _mm256_unpacklo_pd,
+    };
+    // The transpose of four rows of four.
+    let transpose4 = |r: [__m256d; 4]| -> [__m256d; 4] {
+        let t0 = _mm256_unpacklo_pd(r[0], r[1]);
+        let t1 = _mm256_unpackhi_pd(r[0], r[1]);
+        let t2 = _mm256_unpacklo_pd(r[2], r[3]);
+        let t3 = _mm256_unpackhi_pd(r[2], r[3]);
+        [
+            _mm256_permute2f128_pd::<0x20>(t0, t2),
+            _mm256_permute2f128_pd::<0x20>(t1, t3),
+            _mm256_permute2f128_pd::<0x31>(t0, t2),
+            _mm256_permute2f128_pd::<0x31>(t1, t3),
+        ]
+    };
+    let n = p.nrows();
+    assert!(p.ncols() == n && out.nrows() == n && out.ncols() == n, "downdate: shapes");
+    let n4 = n - n % 4;
+    let (ps, os) = (p.as_slice(), out.as_mut_slice());
+    let half = _mm256_set1_pd(0.5);
+    for jb in (0..n4).step_by(4) {
+        for ib in (jb + 4..n4).step_by(4) {
+            // SAFETY: jb + 4 <= ib + 4 <= n4 <= n: every load and store below reads or writes
+            // four entries (rows ib..ib + 4 of a column jb + q, or rows jb..jb + 4 of a column
+            // ib + q) of the n x n matrices, whose shapes are asserted above.
+            unsafe {
+                let lower = |base: *const f64, q: usize| _mm256_loadu_pd(base.add((jb + q) * n + ib));
+                let upper = |base: *const f64, q: usize| _mm256_loadu_pd(base.add((ib + q) * n + jb));
+                let d: [__m256d; 4] = std::array::from_fn(|q| lower(os.as_ptr(), q));
+                let p_lo: [__m256d; 4] = std::array::from_fn(|q| lower(ps.as_ptr(), q));
+                let p_up = transpose4(std::array::from_fn(|q| upper(ps.as_ptr(), q)));
+                let v: [__m256d; 4] = std::array::from_fn(|q| {
+                    // -d + x is x - d exactly (the negation is exact, addition commutes).
+                    let a = _mm256_sub_pd(p_lo[q], d[q]);
+                    let b = _mm256_sub_pd(p_up[q], d[q]);
+                    _mm256_mul_pd(half, _mm256_add_pd(a, b))
+                });
+                let vt = transpose4(v);
+                for q in 0..4 {
+                    _mm256_storeu_pd(os.as_mut_ptr().add((jb + q) * n + ib), v[q]);
+                    _mm256_storeu_pd(os.as_mut_ptr().add((ib + q) * n + jb), vt[q]);
+                }
+            }
+        }
+        // The diagonal block.
+        for j in jb..jb + 4 {
+            for i in j..jb + 4 {
+                downdate_entry(ps, os, n, i, j);
+            }
+        }
+    }
+    // The rows past n4, in every column.
+    for j in 0..n {
+        for i in n4.max(j)..n {
+            downdate_entry(ps, os, n, i, j);
+        }
+    }
+}
+
 /// `out = P - G`, symmetrised, from the lower triangle of the Gram matrix `G` in `out`: square
 /// tiles, so that both triangles are read and written a cache line at a time.
-fn downdate_from_lower_gram(p: &DMatrix<f64>, out: &mut DMatrix<f64>) {
+fn downdate_from_lower_gram_body(p: &DMatrix<f64>, out: &mut DMatrix<f64>) {
     const TILE: usize = 32;
     let n = p.nrows();
     let (ps, os) = (p.as_slice(), out.as_mut_slice());
@@ -166,18 +264,7 @@ fn downdate_from_lower_gram(p: &DMatrix<f64>, out: &mut DMatrix<f64>) {
         for i0 in (j0..n).step_by(TILE) {
             for j in j0..(j0 + TILE).min(n) {
                 for i in i0.max(j)..(i0 + TILE).min(n) {
-                    // (i, j) of the lower triangle is at j n + i, its mirror (j, i) at i n + j.
-                    let (lo, up) = (j * n + i, i * n + j);
-                    let d = os[lo];
-                    if i == j {
-                        // gemm_tr writes alpha * d + beta * p with alpha = -1, beta = 1.
-                        os[lo] = -d + ps[lo];
-                    } else {
-                        // ... and symmetrize averages the two triangles.
-                        let v = 0.5 * ((-d + ps[lo]) + (-d + ps[up]));
-                        os[lo] = v;
-                        os[up] = v;
-                    }
+                    downdate_entry(ps, os, n, i, j);
                 }
             }
         }
@@ -396,7 +483,7 @@ mod tests {
                 let got = symmetric_downdate(&p, &w);
                 let mut portable = DMatrix::zeros(n, n);
                 lower_gram_body(&w, &mut portable);
-                downdate_from_lower_gram(&p, &mut portable);
+                downdate_from_lower_gram_body(&p, &mut portable);
                 for (k, (a, b)) in want.iter().zip(got.iter()).enumerate() {
                     assert_eq!(a.to_bits(), b.to_bits(), "n {n}, m {m}, entry {k}: {a:e} vs {b:e}");
                 }
