@@ -198,6 +198,9 @@ pub struct ImuStream<'a> {
     gyro_noise: ChaCha8Rng,
     accel_walk: ChaCha8Rng,
     gyro_walk: ChaCha8Rng,
+    /// The perfect IMU's samples `k = 1..` of this trajectory at this period, when the caller
+    /// has them ([`ImuStream::over_truth`]); computed sample by sample otherwise.
+    truth: &'a [ImuSample],
 }
 
 impl<'a> ImuStream<'a> {
@@ -214,7 +217,15 @@ impl<'a> ImuStream<'a> {
             gyro_noise: stream_rng(seed, run, Stream::GyroNoise, &key),
             accel_walk: stream_rng(seed, run, Stream::AccelBiasWalk, &key),
             gyro_walk: stream_rng(seed, run, Stream::GyroBiasWalk, &key),
+            truth: &[],
         }
+    }
+
+    /// The same stream over the perfect IMU's samples computed beforehand: `truth[k]` must be
+    /// `traj.imu_mean` over `(k T, (k + 1) T]` for this trajectory and the model's period `T`
+    /// (the same numbers, not recomputed). Samples past its end are computed.
+    pub fn over_truth(self, truth: &'a [ImuSample]) -> Self {
+        ImuStream { truth, ..self }
     }
 
     /// The accelerometer and gyro biases now (they walk when a bias walk is configured).
@@ -235,7 +246,11 @@ impl Iterator for ImuStream<'_> {
         let t1 = self.peek_time()?;
         let t0 = TimeUs(t1.0 - self.model.imu_period_us);
         let m = &self.model;
-        let truth = self.traj.imu_mean(t0, t1);
+        let k = (t1.0 / m.imu_period_us - 1) as usize;
+        let truth = match self.truth.get(k) {
+            Some(s) => *s,
+            None => self.traj.imu_mean(t0, t1),
+        };
         let sample = ImuSample {
             t: t1,
             specific_force_frd_m_s2: truth.specific_force_frd_m_s2

@@ -1,5 +1,7 @@
 //! The world of one scenario: its trajectories and sensor models, and the inputs of a run.
 
+use std::sync::OnceLock;
+
 use nalgebra::{UnitQuaternion, Vector3};
 
 use super::scenario::{PlatformModel, Scenario, ScenarioError};
@@ -17,6 +19,10 @@ pub struct World {
     model: SensorModel,
     /// In increasing id order.
     trajectories: Vec<Trajectory>,
+    /// What a perfect IMU reports over each sample period of each trajectory (in trajectory
+    /// order), computed by the first [`World::run_inputs`]: every run draws its sensor errors over
+    /// the same truth, so a Monte Carlo study computes it once instead of once per run.
+    imu_truth: OnceLock<Vec<Vec<ImuSample>>>,
 }
 
 /// One platform's inputs for one run.
@@ -103,7 +109,13 @@ impl World {
         let earth = Earth::new(scenario.latitude_deg, scenario.gravity_m_s2);
         let mut trajectories: Vec<Trajectory> = scenario.platforms.iter().map(|p| Trajectory::new(p, earth)).collect();
         trajectories.sort_by_key(|t| t.id());
-        Ok(World { scenario: scenario.clone(), earth, model: SensorModel::from_scenario(scenario), trajectories })
+        Ok(World {
+            scenario: scenario.clone(),
+            earth,
+            model: SensorModel::from_scenario(scenario),
+            trajectories,
+            imu_truth: OnceLock::new(),
+        })
     }
 
     pub fn scenario(&self) -> &Scenario {
@@ -170,10 +182,20 @@ impl World {
 
     /// All inputs of one run except ranging.
     pub fn run_inputs(&self, seed: u64, run: u32) -> RunInputs {
+        let imu_truth = self.imu_truth.get_or_init(|| {
+            let period = self.model.imu_period_us;
+            let ends = (1..).map(|k| k * period).take_while(|&t| t <= self.model.end.0);
+            let of = |traj: &Trajectory| ends.clone().map(|t| traj.imu_mean(TimeUs(t - period), TimeUs(t))).collect();
+            self.trajectories
+                .iter()
+                .map(|traj| if self.platform_model(traj.id()) == PlatformModel::Planar { Vec::new() } else { of(traj) })
+                .collect()
+        });
         let platforms = self
             .trajectories
             .iter()
-            .map(|traj| {
+            .zip(imu_truth)
+            .map(|(traj, imu_truth)| {
                 let errors = sensors::draw_errors(&self.model, seed, run, traj.id());
                 let truth = self.truth_of(traj);
                 if self.platform_model(traj.id()) == PlatformModel::Planar {
@@ -181,7 +203,7 @@ impl World {
                     let (imu, odometer) = (Vec::new(), Vec::new());
                     return PlatformRun { id: traj.id(), errors, final_errors: errors, imu, odometer, wheel, truth };
                 }
-                let mut stream = ImuStream::new(traj, &self.model, seed, run);
+                let mut stream = ImuStream::new(traj, &self.model, seed, run).over_truth(imu_truth);
                 let imu: Vec<ImuSample> = stream.by_ref().collect();
                 let (accel_bias_m_s2, gyro_bias_rad_s) = stream.biases();
                 PlatformRun {
@@ -321,6 +343,22 @@ mod tests {
 
     fn small() -> World {
         World::new(&Scenario::from_toml_str(SMALL).unwrap()).unwrap()
+    }
+
+    /// The perfect IMU computed once for every run gives every run the samples a stream
+    /// computing it sample by sample gives, bit for bit, in the first run and in later ones.
+    #[test]
+    fn the_shared_imu_truth_changes_no_sample() {
+        let world = small();
+        for run in [0, 5] {
+            let inputs = world.run_inputs(9, run);
+            for (traj, p) in world.trajectories.iter().zip(&inputs.platforms) {
+                let own: Vec<ImuSample> = ImuStream::new(traj, &world.model, 9, run).collect();
+                assert!(!own.is_empty());
+                assert_eq!(p.imu, own, "platform {}, run {run}", p.id);
+            }
+        }
+        assert!(world.imu_truth.get().is_some_and(|t| t.iter().all(|v| !v.is_empty())));
     }
 
     #[test]

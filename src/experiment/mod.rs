@@ -193,6 +193,8 @@ pub fn run_filter(
     let drive = |p: &PlatformRun, k: usize| {
         if p.wheel.is_empty() { p.imu.get(k).copied().map(Drive::Imu) } else { p.wheel.get(k).copied().map(Drive::Wheel) }
     };
+    let drive_t =
+        |p: &PlatformRun, k: usize| if p.wheel.is_empty() { p.imu.get(k).map(|s| s.t) } else { p.wheel.get(k).map(|s| s.t) };
     let mut team = Team::new(method, members).map_err(|e| fail(0, TimeUs(0), e))?;
     let n = inputs.platforms.len();
     let mut outcomes: Vec<PlatformOutcome> = inputs
@@ -215,9 +217,11 @@ pub fn run_filter(
         // The next instant anything happens.
         let mut t = TimeUs(u64::MAX);
         for (i, p) in inputs.platforms.iter().enumerate() {
-            for next in [drive(p, imu[i]).map(|s| s.t()), p.odometer.get(odo[i]).map(|s| s.t), p.truth.get(truth[i]).map(|s| s.t)]
+            for next in [drive_t(p, imu[i]), p.odometer.get(odo[i]).map(|s| s.t), p.truth.get(truth[i]).map(|s| s.t)]
+                .into_iter()
+                .flatten()
             {
-                t = t.min(next.unwrap_or(TimeUs(u64::MAX)));
+                t = t.min(next);
             }
         }
         if let Some((te, _)) = ranges.get(epoch) {
