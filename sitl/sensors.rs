@@ -224,7 +224,7 @@ impl<'a> ImuStream<'a> {
     /// The same stream over the perfect IMU's samples computed beforehand: `truth[k]` must be
     /// `traj.imu_mean` over `(k T, (k + 1) T]` for this trajectory and the model's period `T`
     /// (the same numbers, not recomputed). Samples past its end are computed.
-    pub fn over_truth(self, truth: &'a [ImuSample]) -> Self {
+    pub(crate) fn over_truth(self, truth: &'a [ImuSample]) -> Self {
         ImuStream { truth, ..self }
     }
 

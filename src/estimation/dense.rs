@@ -311,14 +311,16 @@ pub(crate) fn has_avx2() -> bool {
     false
 }
 
-/// `P - W^T W`, symmetrised, for a symmetric-shaped `P` (`n x n`) and `W` (`m x n`): equal
-/// bit for bit to `p.clone().gemm_tr(-1.0, w, w, 1.0)` followed by
-/// [`super::kalman::symmetrize`], in about half the work.
-pub fn symmetric_downdate(p: &DMatrix<f64>, w: &DMatrix<f64>) -> DMatrix<f64> {
+/// `P - W^T W`, symmetrised, for a symmetric-shaped `P` (`n x n`) and `W` (`m x n`), given
+/// with its transpose `w_t` (the joint update has both): equal bit for bit to
+/// `p.clone().gemm_tr(-1.0, w, w, 1.0)` followed by [`super::kalman::symmetrize`], in about
+/// half the work.
+pub fn symmetric_downdate(p: &DMatrix<f64>, w: &DMatrix<f64>, w_t: &DMatrix<f64>) -> DMatrix<f64> {
     let n = p.nrows();
     assert!(p.ncols() == n && w.ncols() == n, "symmetric_downdate: P is {}x{}, W is {}x{}", n, p.ncols(), w.nrows(), w.ncols());
+    assert!(w_t.nrows() == n && w_t.ncols() == w.nrows(), "symmetric_downdate: W^T is {}x{}", w_t.nrows(), w_t.ncols());
     let mut out = DMatrix::zeros(n, n);
-    lower_gram(w, &mut out);
+    lower_gram(w, w_t, &mut out);
     downdate_from_lower_gram(p, &mut out);
     out
 }
@@ -328,13 +330,13 @@ pub fn symmetric_downdate(p: &DMatrix<f64>, w: &DMatrix<f64>) -> DMatrix<f64> {
 /// finish).
 const LANES_MAX_ROWS: usize = 16;
 
-fn lower_gram(w: &DMatrix<f64>, out: &mut DMatrix<f64>) {
+#[cfg_attr(not(target_arch = "x86_64"), allow(unused_variables))] // w_t feeds the AVX2 kernel only
+fn lower_gram(w: &DMatrix<f64>, w_t: &DMatrix<f64>, out: &mut DMatrix<f64>) {
     #[cfg(target_arch = "x86_64")]
     if has_avx2() {
         if w.nrows() <= LANES_MAX_ROWS {
-            let w_t = w.transpose();
             // SAFETY: the processor has AVX2 (checked just above).
-            unsafe { lower_gram_lanes_avx2(w, &w_t, out) };
+            unsafe { lower_gram_lanes_avx2(w, w_t, out) };
         } else {
             // SAFETY: the processor has AVX2 (checked just above).
             unsafe { lower_gram_avx2(w, out) };
@@ -489,7 +491,7 @@ mod tests {
                 });
                 let p = DMatrix::from_fn(n, n, |_, _| rng.random_range(-5.0..5.0));
                 let want = reference(&p, &w);
-                let got = symmetric_downdate(&p, &w);
+                let got = symmetric_downdate(&p, &w, &w.transpose());
                 let mut portable = DMatrix::zeros(n, n);
                 lower_gram_body(&w, &mut portable);
                 downdate_from_lower_gram_body(&p, &mut portable);

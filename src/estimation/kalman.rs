@@ -235,7 +235,7 @@ pub fn joint_update(
         .solve_lower_triangular(&meas.residual)
         .ok_or(EstimationError::NotPositiveDefinite { what: "innovation covariance factor" })?;
     // P - W^T W, symmetrised: each entry computed once for both triangles (super::dense).
-    let p_post = super::dense::symmetric_downdate(p, &w);
+    let p_post = super::dense::symmetric_downdate(p, &w, &w_t);
     let dx = w.tr_mul(&white_residual);
     let nis = white_residual.norm_squared();
     let passive = match passive {

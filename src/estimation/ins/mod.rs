@@ -532,9 +532,9 @@ fn times_phi_transpose(f: &FdtBlocks, m: &Columns, out: &mut Columns) {
 }
 
 /// False when an entry is NaN or infinite, by a branch-free sum (NaN and infinities propagate
-/// through it). Stricter than [`kalman::all_finite`], and half its work in the covariance step:
-/// a sum that overflows also reads as non-finite, so a covariance with entries near `f64::MAX`
-/// (diverged anyway) is refused too.
+/// through it). One add per value where [`kalman::all_finite`] takes a subtraction and an add,
+/// and stricter: a sum that overflows also reads as non-finite, so a covariance with entries
+/// near `f64::MAX` (diverged anyway) is refused too.
 #[inline(always)]
 fn sum_is_finite(m: &Columns) -> bool {
     let mut acc = [0.0; ERROR_DIM];
