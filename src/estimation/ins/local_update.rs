@@ -123,7 +123,7 @@ impl InsFilter {
                 *v = meas.h[(r, c)];
             }
         }
-        let hp = rows_times(&h, m, &self.p.transpose());
+        let hp = rows_times(&h, m, &self.p.get().transpose());
         let mut s = DMatrix::from_fn(m, m, |r, c| row_dot(&hp[r], &h[c]) + meas.r[(r, c)]);
         kalman::symmetrize(&mut s);
         let chol = nalgebra::Cholesky::new(s.clone())
@@ -144,29 +144,26 @@ impl InsFilter {
             row[0] = x;
         }
         let dx = Vector16::from(gram_column(&w, &white, 0, m));
-        let mut p_post = self.p;
-        for (j, c) in p_post.data.0.iter_mut().enumerate() {
-            for (v, g) in c.iter_mut().zip(gram_column(&w, &w, j, m)) {
-                *v -= g;
+        // P+ = P - W^T W and Psi^T+ = Psi^T - (L^-1 H Psi)^T W, into the spare slots.
+        let (p, p_post) = self.p.split();
+        for (j, (c, out)) in p.data.0.iter().zip(p_post.data.0.iter_mut()).enumerate() {
+            for ((o, v), g) in out.iter_mut().zip(c).zip(gram_column(&w, &w, j, m)) {
+                *o = v - g;
             }
         }
-        let psi_t = if self.track_psi {
-            // Psi^T+ = Psi^T - (L^-1 H Psi)^T W.
-            let mut z = rows_times(&h, m, &self.psi_t);
+        if self.track_psi {
+            let (psi_t, psi_post) = self.psi_t.split();
+            let mut z = rows_times(&h, m, psi_t);
             if !solve_rows(&l, &mut z, m) {
                 return Err(not_pd);
             }
-            let mut psi_t = self.psi_t;
-            for (j, c) in psi_t.data.0.iter_mut().enumerate() {
-                for (v, g) in c.iter_mut().zip(gram_column(&z, &w, j, m)) {
-                    *v -= g;
+            for (j, (c, out)) in psi_t.data.0.iter().zip(psi_post.data.0.iter_mut()).enumerate() {
+                for ((o, v), g) in out.iter_mut().zip(c).zip(gram_column(&z, &w, j, m)) {
+                    *o = v - g;
                 }
             }
-            Some(psi_t)
-        } else {
-            None
-        };
-        self.finish_local_update(&dx, &p_post, psi_t)?;
+        }
+        self.finish_local_update(&dx)?;
         let nis = gram_column(&white, &white, 0, m)[0];
         Ok(UpdateDiagnostics { innovation: meas.residual.clone(), innovation_cov: s, nis })
     }

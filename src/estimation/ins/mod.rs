@@ -655,6 +655,58 @@ fn times_phi_transpose_matrix(f: &FdtBlocks, m: &Matrix16) -> Matrix16 {
     out
 }
 
+/// A 16x16 matrix kept in two slots, one of them current: a step computes the next value into
+/// the spare slot and, once it is checked, makes that slot current. No temporary to zero and
+/// no copy back (the covariance and `Psi` steps run at 50 Hz per vehicle for every method of
+/// every Monte Carlo run), and on error the current value is untouched. Equality and `Debug`
+/// see the current value only: the spare slot is scratch.
+#[derive(Clone, Copy)]
+struct Slots {
+    m: [Matrix16; 2],
+    cur: usize,
+}
+
+impl Slots {
+    fn new(m: Matrix16) -> Self {
+        Self { m: [m, Matrix16::zeros()], cur: 0 }
+    }
+
+    fn get(&self) -> &Matrix16 {
+        &self.m[self.cur]
+    }
+
+    fn set(&mut self, m: Matrix16) {
+        self.m[self.cur] = m;
+    }
+
+    /// The current value and the spare slot.
+    fn split(&mut self) -> (&Matrix16, &mut Matrix16) {
+        let [a, b] = &mut self.m;
+        if self.cur == 0 { (a, b) } else { (b, a) }
+    }
+
+    fn spare_mut(&mut self) -> &mut Matrix16 {
+        &mut self.m[1 - self.cur]
+    }
+
+    /// Makes the spare slot current.
+    fn commit(&mut self) {
+        self.cur = 1 - self.cur;
+    }
+}
+
+impl PartialEq for Slots {
+    fn eq(&self, other: &Self) -> bool {
+        self.get() == other.get()
+    }
+}
+
+impl std::fmt::Debug for Slots {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        self.get().fmt(f)
+    }
+}
+
 /// The INS error-state EKF of one land vehicle. Plain values only (`Copy`): a node's
 /// checkpoint is one copy of it.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -666,10 +718,10 @@ pub struct InsFilter {
     q_psd: Vector16,
     t: TimeUs,
     x: InsState,
-    p: Matrix16,
+    p: Slots,
     /// `Psi` transposed: its time update `Psi^T <- Psi^T Phi^T` is then a sequence of
     /// contiguous column operations.
-    psi_t: Matrix16,
+    psi_t: Slots,
     track_psi: bool,
     /// Bias-corrected increments of the previous IMU interval (zero before the first).
     prev_dtheta: Vector3<f64>,
@@ -714,8 +766,8 @@ impl InsFilter {
             q_psd,
             t: t0,
             x,
-            p,
-            psi_t: Matrix16::identity(),
+            p: Slots::new(p),
+            psi_t: Slots::new(Matrix16::identity()),
             track_psi: true,
             prev_dtheta: Vector3::zeros(),
             prev_dv: Vector3::zeros(),
@@ -780,9 +832,9 @@ impl InsFilter {
     /// propagation applied (see [`InsConfig::covariance_decimation`]). Changes nothing.
     fn current(&self) -> (Matrix16, Matrix16) {
         match &self.pending {
-            None => (self.p, self.psi_t),
+            None => (*self.p.get(), *self.psi_t.get()),
             Some((fdt, sum_dt, _)) => {
-                let (mut p, mut psi_t) = (Matrix16::zeros(), self.psi_t);
+                let (mut p, mut psi_t) = (Matrix16::zeros(), *self.psi_t.get());
                 let _ = self.propagated_into(fdt, *sum_dt, &mut p, self.track_psi.then_some(&mut psi_t));
                 (p, psi_t)
             }
@@ -798,22 +850,21 @@ impl InsFilter {
         p: &mut Matrix16,
         psi_t: Option<&mut Matrix16>,
     ) -> Result<(), EstimationError> {
-        covariance_step_into(fdt, &self.p, &(self.q_psd * sum_dt), p, psi_t.map(|out| (&self.psi_t, out)))
+        covariance_step_into(fdt, self.p.get(), &(self.q_psd * sum_dt), p, psi_t.map(|out| (self.psi_t.get(), out)))
             .map_err(|what| EstimationError::NonFinite { what })
     }
 
-    /// Applies the pending propagation over `fdt` (computed into locals and checked before
-    /// anything is stored: on error nothing changes).
+    /// Applies the pending propagation over `fdt` (computed into the spare slots and checked
+    /// before they are made current: on error nothing changes).
     fn apply_propagation(&mut self, fdt: &FdtBlocks, sum_dt: f64) -> Result<(), EstimationError> {
-        let mut p = Matrix16::zeros();
+        let qd = self.q_psd * sum_dt;
+        let (p, p_next) = self.p.split();
+        let psi_t = if self.track_psi { Some(self.psi_t.split()) } else { None };
+        covariance_step_into(fdt, p, &qd, p_next, psi_t).map_err(|what| EstimationError::NonFinite { what })?;
+        self.p.commit();
         if self.track_psi {
-            let mut psi_t = Matrix16::zeros();
-            self.propagated_into(fdt, sum_dt, &mut p, Some(&mut psi_t))?;
-            self.psi_t = psi_t;
-        } else {
-            self.propagated_into(fdt, sum_dt, &mut p, None)?;
+            self.psi_t.commit();
         }
-        self.p = p;
         self.pending = None;
         Ok(())
     }
@@ -953,6 +1004,7 @@ fn to_vector16(v: &DVector<f64>) -> Vector16 {
     Vector16::from_column_slice(v.as_slice())
 }
 
+#[cfg(test)]
 fn to_matrix16(m: &DMatrix<f64>) -> Matrix16 {
     Matrix16::from_column_slice(m.as_slice())
 }
@@ -961,17 +1013,34 @@ fn to_dmatrix(m: &Matrix16) -> DMatrix<f64> {
     DMatrix::from_column_slice(ERROR_DIM, ERROR_DIM, m.as_slice())
 }
 
-/// `G P G^T`, symmetrised.
 /// `G P G^T` for a reset Jacobian from [`reset_jacobian`], which differs from the identity only in
-/// its attitude block: only the attitude rows and columns of `P` change.
+/// its attitude block: only the attitude rows and columns of `P` change (tests; the filter
+/// resets in place).
+#[cfg(test)]
 fn reset_covariance(g: &Matrix16, p: &Matrix16) -> Matrix16 {
-    let g_att = g.fixed_view::<3, 3>(ATT, ATT).into_owned();
     let mut out = *p;
+    reset_covariance_in_place(&g.fixed_view::<3, 3>(ATT, ATT).into_owned(), &mut out);
+    out
+}
+
+/// `P <- G P G^T`, symmetrised, in place, for the attitude block `g_att` of a reset Jacobian:
+/// the attitude rows times `g_att`, then the attitude columns times `g_att^T`, then
+/// `(P + P^T) / 2` entry by entry (each pair's sum computed once, in either order alike).
+#[allow(clippy::needless_range_loop)] // (i, j) and (j, i) pairs: indices read clearer than iterators
+fn reset_covariance_in_place(g_att: &Matrix3<f64>, p: &mut Matrix16) {
     let rows = g_att * p.fixed_rows::<3>(ATT);
-    out.fixed_rows_mut::<3>(ATT).copy_from(&rows);
-    let cols = out.fixed_columns::<3>(ATT) * g_att.transpose();
-    out.fixed_columns_mut::<3>(ATT).copy_from(&cols);
-    0.5 * (out + out.transpose())
+    p.fixed_rows_mut::<3>(ATT).copy_from(&rows);
+    let cols = p.fixed_columns::<3>(ATT) * g_att.transpose();
+    p.fixed_columns_mut::<3>(ATT).copy_from(&cols);
+    let m = &mut p.data.0;
+    for j in 0..ERROR_DIM {
+        m[j][j] = 0.5 * (m[j][j] + m[j][j]);
+        for i in (j + 1)..ERROR_DIM {
+            let v = 0.5 * (m[j][i] + m[i][j]);
+            m[j][i] = v;
+            m[i][j] = v;
+        }
+    }
 }
 
 impl InsFilter {
@@ -980,7 +1049,9 @@ impl InsFilter {
     fn update_local_general(&mut self, meas: &LinearizedMeasurement) -> Result<UpdateDiagnostics, EstimationError> {
         let m = meas.len();
         let h = Rows16::from_fn(m, |r, c| meas.h[(r, c)]);
-        let hp = &h * self.p;
+        let p = *self.p.get();
+        let psi_t = *self.psi_t.get();
+        let hp = &h * p;
         let mut s = DMatrix::from_fn(m, m, |r, c| hp.row(r).dot(&h.row(c))) + &meas.r;
         kalman::symmetrize(&mut s);
         let chol = nalgebra::Cholesky::new(s.clone())
@@ -990,41 +1061,37 @@ impl InsFilter {
         let w = l.solve_lower_triangular(&hp).ok_or(not_pd.clone())?;
         let white = l.solve_lower_triangular(&meas.residual).ok_or(not_pd.clone())?;
         let dx: Vector16 = w.tr_mul(&white);
-        let p_post = self.p - w.tr_mul(&w);
-        let psi_t = if self.track_psi {
+        *self.p.spare_mut() = p - w.tr_mul(&w);
+        if self.track_psi {
             // Psi is stored transposed: Psi^T+ = Psi^T - (L^-1 H Psi)^T W.
-            let z = l.solve_lower_triangular(&(&h * self.psi_t.transpose())).ok_or(not_pd)?;
-            Some(self.psi_t - z.tr_mul(&w))
-        } else {
-            None
-        };
-        self.finish_local_update(&dx, &p_post, psi_t)?;
+            let z = l.solve_lower_triangular(&(&h * psi_t.transpose())).ok_or(not_pd)?;
+            *self.psi_t.spare_mut() = psi_t - z.tr_mul(&w);
+        }
+        self.finish_local_update(&dx)?;
         let nis = white.norm_squared();
         Ok(UpdateDiagnostics { innovation: meas.residual.clone(), innovation_cov: s, nis })
     }
 
-    /// The end of both local-update paths: the error reset of the state, of `P+` and, when
-    /// tracked, of `Psi^T+` (its attitude columns times `G_att^T`), each checked; then all three
-    /// stored together (on error nothing changes).
-    fn finish_local_update(&mut self, dx: &Vector16, p_post: &Matrix16, psi_t: Option<Matrix16>) -> Result<(), EstimationError> {
+    /// The end of both local-update paths, which leave `P+` (and, when `Psi` is tracked,
+    /// `Psi^T+`) in the spare slots: the error reset of the state, of `P+` and of `Psi^T+` (its
+    /// attitude columns times `G_att^T`), each checked; then all three made current together (on
+    /// error nothing changes).
+    fn finish_local_update(&mut self, dx: &Vector16) -> Result<(), EstimationError> {
         let x = self.x.injected(dx)?;
-        let g = reset_jacobian(dx);
-        let p = reset_covariance(&g, p_post);
-        check_finite16(&p, "INS covariance after reset")?;
-        let psi_t = match psi_t {
-            Some(mut psi_t) => {
-                let g_att = g.fixed_view::<3, 3>(ATT, ATT).into_owned();
-                let cols = psi_t.fixed_columns::<3>(ATT) * g_att.transpose();
-                psi_t.fixed_columns_mut::<3>(ATT).copy_from(&cols);
-                check_finite16(&psi_t, "INS Psi after update")?;
-                Some(psi_t)
-            }
-            None => None,
-        };
+        let g_att = reset_jacobian(dx).fixed_view::<3, 3>(ATT, ATT).into_owned();
+        let p = self.p.spare_mut();
+        reset_covariance_in_place(&g_att, p);
+        check_finite16(p, "INS covariance after reset")?;
+        if self.track_psi {
+            let psi_t = self.psi_t.spare_mut();
+            let cols = psi_t.fixed_columns::<3>(ATT) * g_att.transpose();
+            psi_t.fixed_columns_mut::<3>(ATT).copy_from(&cols);
+            check_finite16(psi_t, "INS Psi after update")?;
+        }
         self.x = x;
-        self.p = p;
-        if let Some(psi_t) = psi_t {
-            self.psi_t = psi_t;
+        self.p.commit();
+        if self.track_psi {
+            self.psi_t.commit();
         }
         Ok(())
     }
@@ -1068,13 +1135,15 @@ impl PlatformFilter for InsFilter {
         let dx = to_vector16(dx);
         let x = self.x.injected(&dx)?;
         let g = reset_jacobian(&dx);
-        let p = reset_covariance(&g, &to_matrix16(p));
-        check_finite16(&p, "INS covariance after reset")?;
+        let spare = self.p.spare_mut();
+        spare.copy_from_slice(p.as_slice());
+        reset_covariance_in_place(&g.fixed_view::<3, 3>(ATT, ATT).into_owned(), spare);
+        check_finite16(spare, "INS covariance after reset")?;
         self.x = x;
-        self.p = p;
+        self.p.commit();
         // The joint update started from the covariance at the present (pending steps included).
         self.pending = None;
-        self.psi_t = if self.track_psi { g.transpose() } else { Matrix16::identity() };
+        self.psi_t.set(if self.track_psi { g.transpose() } else { Matrix16::identity() });
         Ok(())
     }
 
@@ -1082,7 +1151,7 @@ impl PlatformFilter for InsFilter {
     fn set_track_psi(&mut self, on: bool) {
         self.track_psi = on;
         if !on {
-            self.psi_t = Matrix16::identity();
+            self.psi_t.set(Matrix16::identity());
         }
     }
 }
