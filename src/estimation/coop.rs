@@ -347,6 +347,15 @@ impl CrossCovariances {
         if i < j { self.blocks.get(&(i, j)).cloned() } else { self.blocks.get(&(j, i)).map(|m| m.transpose()) }
     }
 
+    /// `C_ij` read in place: the stored block of the pair, transposed when `i > j`.
+    fn stored(&self, i: PlatformId, j: PlatformId) -> Option<dense::Strided<'_>> {
+        if i < j {
+            self.blocks.get(&(i, j)).map(dense::Strided::of)
+        } else {
+            self.blocks.get(&(j, i)).map(|m| dense::Strided::of(m).t())
+        }
+    }
+
     fn set(&mut self, i: PlatformId, j: PlatformId, c: DMatrix<f64>) {
         self.digest.take();
         if i < j {
@@ -755,28 +764,15 @@ pub fn cooperative_update_with(
     } else {
         kalman::joint_update(&p, &LinearizedMeasurement { h, residual, r }, passive.as_ref())?
     };
-    // Never hand back a participant's covariance that is not positive definite.
-    let mut own_blocks = Vec::with_capacity(snapshots.len());
-    for s in snapshots {
-        let (o, d) = offset[&s.id];
-        let block = dense::block(&up.p, (o, o), (d, d));
-        if !kalman::is_psd(&block, 1e-9) {
-            return Err(EstimationError::NotPositiveDefinite { what: "a participant's posterior covariance" });
-        }
-        own_blocks.push(block);
-    }
+    let layout: Vec<(usize, usize)> = snapshots.iter().map(|s| offset[&s.id]).collect();
+    let own_blocks = checked_own_blocks(&layout, &up.p)?;
 
     // Step 5: store the new cross blocks (only now that nothing can fail).
     if bound {
         cross.clear();
     }
     if mode == CrossMode::Propagate {
-        for (a, sa) in snapshots.iter().enumerate() {
-            for sb in &snapshots[a + 1..] {
-                let ((oa, da), (ob, db)) = (offset[&sa.id], offset[&sb.id]);
-                cross.set(sa.id, sb.id, dense::block(&up.p, (oa, ob), (da, db)));
-            }
-        }
+        store_pairs(cross, snapshots, &layout, &up.p);
         if let Some(x) = &up.passive {
             for (k, col, dk) in &passive_ids {
                 for s in snapshots {
@@ -786,15 +782,153 @@ pub fn cooperative_update_with(
             }
         }
     }
-    let corrections = snapshots
-        .iter()
-        .zip(own_blocks)
-        .map(|(s, p)| {
-            let (o, d) = offset[&s.id];
-            Correction { id: s.id, dx: up.dx.rows(o, d).into_owned(), p }
-        })
-        .collect();
+    let corrections = corrections(snapshots, &layout, &up.dx, own_blocks);
     Ok(EventOutcome { corrections, diagnostics: up.diagnostics, prior_covariance: p, gated, weights })
+}
+
+/// Each participant's own block of the joint posterior (`layout`: its offset and dimension in
+/// the joint state, in broadcast order), refused when one is not positive semi-definite: a
+/// participant's covariance that is not is never handed back.
+fn checked_own_blocks(layout: &[(usize, usize)], p: &DMatrix<f64>) -> Result<Vec<DMatrix<f64>>, EstimationError> {
+    let mut own_blocks = Vec::with_capacity(layout.len());
+    for &(o, d) in layout {
+        let block = dense::block(p, (o, o), (d, d));
+        if !kalman::is_psd(&block, 1e-9) {
+            return Err(EstimationError::NotPositiveDefinite { what: "a participant's posterior covariance" });
+        }
+        own_blocks.push(block);
+    }
+    Ok(own_blocks)
+}
+
+/// Paper Step 5: the posterior cross block of every pair of participants, stored.
+fn store_pairs(cross: &mut CrossCovariances, snapshots: &[Snapshot], layout: &[(usize, usize)], p: &DMatrix<f64>) {
+    for (a, sa) in snapshots.iter().enumerate() {
+        for (b, sb) in snapshots.iter().enumerate().skip(a + 1) {
+            let ((oa, da), (ob, db)) = (layout[a], layout[b]);
+            cross.set(sa.id, sb.id, dense::block(p, (oa, ob), (da, db)));
+        }
+    }
+}
+
+/// Each participant's correction: its rows of the joint correction and its own posterior block.
+fn corrections(snapshots: &[Snapshot], layout: &[(usize, usize)], dx: &DVector<f64>, own: Vec<DMatrix<f64>>) -> Vec<Correction> {
+    snapshots
+        .iter()
+        .zip(layout)
+        .zip(own)
+        .map(|((s, &(o, d)), p)| Correction { id: s.id, dx: dx.rows(o, d).into_owned(), p })
+        .collect()
+}
+
+/// The centralized EKF's update by one epoch's local measurements, each `(platform, H, r, R)`
+/// of that platform's own error state: [`cooperative_update`] with [`CrossMode::Propagate`] and
+/// each measurement as a [`CoopMeasurement::Linear`] of one block, the same results and errors
+/// bit for bit (a test holds the two together), without the general path's bookkeeping for a
+/// case it meets ten times a second per run: no maps of the layout, the Jacobian's rows
+/// written as their nonzeros, the stored cross blocks and the `Psi`s read in place and each
+/// `Psi_i C_ij Psi_j^T` (Eq. 10) written straight into the joint prior.
+///
+/// Hands over to the general path where that one does something else: a platform of the
+/// store that is not among the snapshots (its blocks are carried as passive columns), a
+/// stored block whose size is not the broadcast's, or a state of 5 or fewer (nalgebra
+/// multiplies those with its own loops, see [`dense::PRODUCT_KERNEL_ABOVE`]).
+pub fn centralized_local_update(
+    cross: &mut CrossCovariances,
+    snapshots: &[Snapshot],
+    batch: &[(PlatformId, &LinearizedMeasurement)],
+) -> Result<EventOutcome, EstimationError> {
+    let general = |cross: &mut CrossCovariances| {
+        let joint: Vec<CoopMeasurement> = batch
+            .iter()
+            .map(|(id, m)| CoopMeasurement::Linear {
+                blocks: vec![(*id, m.h.clone())],
+                residual: m.residual.clone(),
+                r: m.r.clone(),
+            })
+            .collect();
+        cooperative_update(cross, snapshots, &joint, CrossMode::Propagate)
+    };
+    let position = |id: PlatformId| snapshots.iter().position(|s| s.id == id);
+    let store_fits = cross.blocks.iter().all(|(&(a, b), c)| match (position(a), position(b)) {
+        (Some(ia), Some(ib)) => snapshots[ia].dim() == c.nrows() && snapshots[ib].dim() == c.ncols(),
+        _ => false,
+    });
+    if batch.is_empty() || !store_fits || snapshots.iter().any(|s| s.dim() <= dense::PRODUCT_KERNEL_ABOVE) {
+        return general(cross);
+    }
+    // Layout and checks, in the general path's order: the broadcasts, then each measurement.
+    let mut layout = Vec::with_capacity(snapshots.len());
+    let mut n = 0;
+    for (k, s) in snapshots.iter().enumerate() {
+        s.validate()?;
+        if snapshots[..k].iter().any(|o| o.id == s.id) {
+            return Err(EstimationError::DuplicatePlatform(s.id));
+        }
+        layout.push((n, s.dim()));
+        n += s.dim();
+    }
+    let mut at = Vec::with_capacity(batch.len());
+    for (id, meas) in batch {
+        if meas.residual.is_empty() {
+            return Err(EstimationError::NotApplicable("empty linear measurement"));
+        }
+        let k = position(*id).ok_or(EstimationError::UnknownPlatform(*id))?;
+        if meas.h.nrows() != meas.residual.len() || meas.h.ncols() != snapshots[k].dim() {
+            return Err(EstimationError::DimensionMismatch {
+                what: "linear measurement block",
+                expected: snapshots[k].dim(),
+                got: meas.h.ncols(),
+            });
+        }
+        meas.validate(snapshots[k].dim())?;
+        at.push(k);
+    }
+
+    // Joint prior (paper Step 4): own blocks, then Eq. 10 for every stored pair.
+    let mut p = DMatrix::zeros(n, n);
+    for (s, &(o, d)) in snapshots.iter().zip(&layout) {
+        p.view_mut((o, o), (d, d)).copy_from(&s.covariance);
+    }
+    let mut psi_c = DMatrix::zeros(0, 0);
+    for (a, sa) in snapshots.iter().enumerate() {
+        for (b, sb) in snapshots.iter().enumerate().skip(a + 1) {
+            let Some(c) = cross.stored(sa.id, sb.id) else { continue };
+            let ((oa, da), (ob, db)) = (layout[a], layout[b]);
+            if psi_c.shape() != (da, db) {
+                psi_c = DMatrix::zeros(da, db);
+            }
+            dense::product_into(dense::Strided::of(&sa.psi), c, &mut psi_c, (0, 0));
+            dense::product_into(dense::Strided::of(&psi_c), dense::Strided::of(&sb.psi).t(), &mut p, (oa, ob));
+            for j in 0..db {
+                for i in 0..da {
+                    p[(ob + j, oa + i)] = p[(oa + i, ob + j)];
+                }
+            }
+        }
+    }
+
+    // The stacked measurement: each row's nonzeros at its platform's columns, in column order.
+    let m: usize = batch.iter().map(|(_, meas)| meas.len()).sum();
+    let mut rows = Vec::with_capacity(m);
+    let mut residual = DVector::zeros(m);
+    let mut r = DMatrix::zeros(m, m);
+    let mut row = 0;
+    for ((_, meas), &k) in batch.iter().zip(&at) {
+        let (o, d) = layout[k];
+        let len = meas.len();
+        for i in 0..len {
+            rows.push((0..d).filter_map(|c| Some((o + c, meas.h[(i, c)])).filter(|(_, v)| *v != 0.0)).collect());
+        }
+        residual.rows_mut(row, len).copy_from(&meas.residual);
+        r.view_mut((row, row), (len, len)).copy_from(&meas.r);
+        row += len;
+    }
+    let up = kalman::joint_update_by_rows(&p, &rows, &residual, &r)?;
+    let own_blocks = checked_own_blocks(&layout, &up.p)?;
+    store_pairs(cross, snapshots, &layout, &up.p);
+    let corrections = corrections(snapshots, &layout, &up.dx, own_blocks);
+    Ok(EventOutcome { corrections, diagnostics: up.diagnostics, prior_covariance: p, gated: Vec::new(), weights: Vec::new() })
 }
 
 #[cfg(test)]
@@ -825,6 +959,96 @@ mod tests {
             })
             .collect();
         (p, snaps)
+    }
+
+    /// The centralized EKF's local path gives what the general path gives, bit for bit: the
+    /// outcome (corrections, diagnostics, prior) and the store, over random teams of 2 to 4
+    /// platforms broadcasting in any order of their ids, with random `Psi`, stored cross blocks
+    /// (some pairs missing, stored either way round) and 1 to 3 measurements of up to 3 rows
+    /// with zero entries; the same errors for bad input; and the cases it hands to the general
+    /// path (a 3-state platform, a platform of the store that does not broadcast) alike.
+    #[test]
+    fn the_centralized_local_path_is_the_general_path_bit_for_bit() {
+        let mut rng = ChaCha8Rng::seed_from_u64(77);
+        let (mut ok, mut refused) = (0, 0);
+        for trial in 0..300 {
+            let n = 2 + trial % 3;
+            let d = if trial % 10 == 9 { 3 } else { [16, 8, 6][trial % 3] };
+            let (p, mut snaps) = joint(&mut rng, n, d);
+            for s in &mut snaps {
+                s.psi = DMatrix::identity(d, d) + DMatrix::from_fn(d, d, |_, _| 0.1 * rng.random_range(-1.0..1.0));
+            }
+            // Cross blocks that make the joint prior `p` again: C_ij = Psi_i^-1 P_ij Psi_j^-T.
+            let mut cross = CrossCovariances::new();
+            for a in 0..n {
+                for b in a + 1..n {
+                    if rng.random_bool(0.15) {
+                        continue;
+                    }
+                    let inv = |k: usize| snaps[k].psi.clone().try_inverse().unwrap();
+                    let c = inv(a) * p.view((a * d, b * d), (d, d)) * inv(b).transpose();
+                    let (ia, ib) = (snaps[a].id, snaps[b].id);
+                    if rng.random_bool(0.5) { cross.set(ia, ib, c) } else { cross.set(ib, ia, c.transpose()) }
+                }
+            }
+            // Broadcast order is arrival order, not id order.
+            for k in (1..n).rev() {
+                snaps.swap(k, rng.random_range(0..=k));
+            }
+            if trial % 7 == 5 {
+                snaps.pop(); // its blocks stay in the store: passive columns
+            }
+            let mut batch = Vec::new();
+            for s in &snaps {
+                if rng.random_bool(0.3) && !batch.is_empty() {
+                    continue;
+                }
+                let m = rng.random_range(1..=3);
+                let a = DMatrix::from_fn(m, m, |_, _| rng.random_range(-1.0..1.0));
+                let h = DMatrix::from_fn(m, d, |_, _| if rng.random_bool(0.4) { 0.0 } else { rng.random_range(-1.0..1.0) });
+                let residual = DVector::from_fn(m, |_, _| rng.random_range(-1.0..1.0));
+                batch.push((s.id, LinearizedMeasurement { h, residual, r: &a * a.transpose() + DMatrix::identity(m, m) * 0.01 }));
+            }
+            // Now and then, bad input.
+            match trial % 23 {
+                3 => batch[0].0 = 99,
+                8 => batch[0].1.h = DMatrix::zeros(batch[0].1.len(), d + 1),
+                13 => batch[0].1.residual[0] = f64::NAN,
+                18 => {
+                    batch[0].1 =
+                        LinearizedMeasurement { h: DMatrix::zeros(0, d), residual: DVector::zeros(0), r: DMatrix::zeros(0, 0) }
+                }
+                _ => {}
+            }
+            let refs: Vec<(PlatformId, &LinearizedMeasurement)> = batch.iter().map(|(id, m)| (*id, m)).collect();
+            let linear: Vec<CoopMeasurement> = batch
+                .iter()
+                .map(|(id, m)| CoopMeasurement::Linear {
+                    blocks: vec![(*id, m.h.clone())],
+                    residual: m.residual.clone(),
+                    r: m.r.clone(),
+                })
+                .collect();
+            let (mut fast_store, mut general_store) = (cross.clone(), cross);
+            let fast = centralized_local_update(&mut fast_store, &snaps, &refs);
+            let general = cooperative_update(&mut general_store, &snaps, &linear, CrossMode::Propagate);
+            match (fast, general) {
+                (Ok(f), Ok(g)) => {
+                    assert_eq!(format!("{:?}", f.corrections), format!("{:?}", g.corrections), "trial {trial}");
+                    assert_eq!(format!("{:?}", f.diagnostics), format!("{:?}", g.diagnostics), "trial {trial}");
+                    assert_eq!(format!("{:?}", f.prior_covariance), format!("{:?}", g.prior_covariance), "trial {trial}");
+                    assert_eq!((f.gated, f.weights), (g.gated, g.weights));
+                    ok += 1;
+                }
+                (Err(f), Err(g)) => {
+                    assert_eq!(f, g, "trial {trial}");
+                    refused += 1;
+                }
+                (f, g) => panic!("trial {trial}: {:?} against {:?}", f.err(), g.err()),
+            }
+            assert_eq!(fast_store.digest(), general_store.digest(), "trial {trial}: the stores");
+        }
+        assert!(ok > 200 && refused >= 40, "{ok} updates, {refused} refusals");
     }
 
     /// The digest is kept between changes and recomputed after every one: each change moves it,

@@ -301,6 +301,86 @@ pub fn block(m: &DMatrix<f64>, start: (usize, usize), shape: (usize, usize)) -> 
     out
 }
 
+/// A matrix operand read in place: `rows x cols` entries, entry `(r, c)` at
+/// `data[r * rs + c * cs]`. [`Strided::t`] is the transpose, by swapping the strides (no copy).
+#[derive(Debug, Clone, Copy)]
+pub struct Strided<'a> {
+    data: &'a [f64],
+    rows: usize,
+    cols: usize,
+    rs: usize,
+    cs: usize,
+}
+
+impl<'a> Strided<'a> {
+    /// A column-major matrix as it is stored.
+    pub fn of(m: &'a DMatrix<f64>) -> Self {
+        Self { data: m.as_slice(), rows: m.nrows(), cols: m.ncols(), rs: 1, cs: m.nrows() }
+    }
+
+    /// The transpose.
+    pub fn t(self) -> Self {
+        Self { rows: self.cols, cols: self.rows, rs: self.cs, cs: self.rs, ..self }
+    }
+
+    fn fits(&self) -> bool {
+        self.rows == 0 || self.cols == 0 || (self.rows - 1) * self.rs + (self.cols - 1) * self.cs < self.data.len()
+    }
+}
+
+/// Above this size in every dimension nalgebra multiplies dynamic matrices with
+/// `matrixmultiply` (its `SMALL_DIM`); at or below it, with its own loops.
+pub const PRODUCT_KERNEL_ABOVE: usize = 5;
+
+/// `A B` written into the `A.rows x B.cols` block of `out` that starts at `at`, computed by
+/// `matrixmultiply` exactly as nalgebra's product of dynamic matrices computes it when every
+/// dimension exceeds [`PRODUCT_KERNEL_ABOVE`]: the same result bit for bit (`matrixmultiply`
+/// packs both operands before its kernel runs, so their strides change nothing; the result is
+/// written column-major, as nalgebra's is). Where nalgebra needs `&a * b.transpose()` and two
+/// copies, this reads `b` in place.
+///
+/// Panics when a dimension is [`PRODUCT_KERNEL_ABOVE`] or less (nalgebra would not use this
+/// kernel), when the inner dimensions differ or when an operand or the block does not fit.
+pub fn product_into(a: Strided, b: Strided, out: &mut DMatrix<f64>, at: (usize, usize)) {
+    let (m, k, n) = (a.rows, a.cols, b.cols);
+    assert!(k == b.rows, "product_into: {}x{} times {}x{}", a.rows, a.cols, b.rows, b.cols);
+    assert!(
+        m > PRODUCT_KERNEL_ABOVE && k > PRODUCT_KERNEL_ABOVE && n > PRODUCT_KERNEL_ABOVE,
+        "product_into: {m}x{k} times {k}x{n} is nalgebra's small product"
+    );
+    assert!(a.fits() && b.fits(), "product_into: an operand's strides run past its data");
+    let ld = out.nrows();
+    assert!(
+        at.0 + m <= ld && at.1 + n <= out.ncols(),
+        "product_into: a {m}x{n} block at {at:?} outside a {}x{} matrix",
+        ld,
+        out.ncols()
+    );
+    let c = &mut out.as_mut_slice()[at.0 + at.1 * ld..];
+    // SAFETY: every entry read is inside its operand's slice (`fits`, checked above), every
+    // entry written inside `c`: row `at.0 + i < ld` of column `at.1 + j < ncols`, at offset
+    // `i + j * ld` from the block's start, the last at `(m - 1) + (n - 1) * ld`, inside the
+    // slice from the start to the end of `out`. beta = 0: `c` is written, not read.
+    unsafe {
+        matrixmultiply::dgemm(
+            m,
+            k,
+            n,
+            1.0,
+            a.data.as_ptr(),
+            a.rs as isize,
+            a.cs as isize,
+            b.data.as_ptr(),
+            b.rs as isize,
+            b.cs as isize,
+            0.0,
+            c.as_mut_ptr(),
+            1,
+            ld as isize,
+        );
+    }
+}
+
 /// Whether this processor has AVX2: the estimation core's hand kernels are compiled twice
 /// (baseline x86-64 and AVX2) and pick one with this, at run time. The standard library caches
 /// the answer.
@@ -458,6 +538,38 @@ mod tests {
 
     use super::*;
     use crate::estimation::kalman::symmetrize;
+
+    /// The product read in place equals nalgebra's product of the copies, bit for bit, for
+    /// either operand transposed or not, written into a block of a larger matrix (the rest of
+    /// which it leaves alone), over shapes on both sides of the kernel's blocking.
+    #[test]
+    fn product_into_is_nalgebras_product_bit_for_bit() {
+        let mut rng = ChaCha8Rng::seed_from_u64(41);
+        for (m, k, n) in [(6, 6, 6), (16, 16, 16), (7, 13, 9), (48, 16, 33), (16, 70, 16), (9, 300, 6)] {
+            let scale = 10f64.powi(rng.random_range(-6..6));
+            let mut rand = |r: usize, c: usize| DMatrix::from_fn(r, c, |_, _| scale * (rng.random::<f64>() - 0.5));
+            let (a, at, b, bt) = (rand(m, k), rand(k, m), rand(k, n), rand(n, k));
+            for (lhs, rhs, want) in [
+                (Strided::of(&a), Strided::of(&b), &a * &b),
+                (Strided::of(&a), Strided::of(&bt).t(), &a * bt.transpose()),
+                (Strided::of(&at).t(), Strided::of(&b), at.transpose() * &b),
+                (Strided::of(&at).t(), Strided::of(&bt).t(), at.transpose() * bt.transpose()),
+            ] {
+                let mut out = DMatrix::from_element(m + 3, n + 2, 7.0);
+                product_into(lhs, rhs, &mut out, (2, 1));
+                assert_eq!(out.view((2, 1), (m, n)), want, "{m}x{k}x{n}");
+                let untouched = out.iter().filter(|&&v| v == 7.0).count();
+                assert_eq!(untouched, (m + 3) * (n + 2) - m * n, "{m}x{k}x{n}: outside the block");
+            }
+        }
+    }
+
+    #[test]
+    #[should_panic(expected = "small product")]
+    fn product_into_refuses_what_nalgebra_multiplies_itself() {
+        let a = DMatrix::from_element(5, 16, 1.0);
+        product_into(Strided::of(&a), Strided::of(&a).t(), &mut DMatrix::zeros(5, 5), (0, 0));
+    }
 
     /// Every block of a few shapes, empty ones and the whole included: what nalgebra's view
     /// copies.

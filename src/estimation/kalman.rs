@@ -216,11 +216,57 @@ pub fn joint_update(
         check_finite(x, "passive cross-covariance")?;
     }
     // Range Jacobians touch a handful of columns of a joint state of hundreds: multiply by the
-    // nonzeros only. P H^T is built column by column from columns of P (contiguous), and
-    // H P = (P H^T)^T because P is symmetric.
-    let nonzeros = row_nonzeros(&meas.h);
-    let ph_t = sparse_mul_transposed(p, &nonzeros);
-    let mut s = h_times_transposed(&ph_t, &nonzeros) + &meas.r;
+    // nonzeros only.
+    update_by_rows(p, &row_nonzeros(&meas.h), &meas.residual, &meas.r, passive)
+}
+
+/// [`joint_update`] (no passive block) for a Jacobian given by the nonzeros `(column, value)`
+/// of each row in column order, as a caller that stacks the rows of several measurements can
+/// write them without forming the Jacobian: the same results bit for bit. Checks what
+/// [`joint_update`] checks.
+pub fn joint_update_by_rows(
+    p: &DMatrix<f64>,
+    rows: &[Vec<(usize, f64)>],
+    residual: &DVector<f64>,
+    r: &DMatrix<f64>,
+) -> Result<JointUpdate, EstimationError> {
+    check_square(p, "joint covariance")?;
+    let (n, m) = (p.nrows(), rows.len());
+    if residual.len() != m {
+        return Err(EstimationError::DimensionMismatch { what: "measurement Jacobian rows", expected: m, got: residual.len() });
+    }
+    if r.nrows() != m || r.ncols() != m {
+        return Err(EstimationError::DimensionMismatch { what: "measurement noise covariance", expected: m, got: r.nrows() });
+    }
+    for row in rows {
+        for w in row.windows(2) {
+            if w[0].0 >= w[1].0 {
+                return Err(EstimationError::InvalidValue { what: "measurement Jacobian row order", value: w[1].0 as f64 });
+            }
+        }
+        if let Some(&(c, _)) = row.last().filter(|(c, _)| *c >= n) {
+            return Err(EstimationError::DimensionMismatch { what: "measurement Jacobian columns", expected: n, got: c + 1 });
+        }
+        if !row.iter().all(|(_, v)| v.is_finite()) {
+            return Err(EstimationError::NonFinite { what: "measurement Jacobian" });
+        }
+    }
+    check_finite(residual, "measurement residual")?;
+    check_finite(r, "measurement noise covariance")?;
+    update_by_rows(p, rows, residual, r, None)
+}
+
+/// The joint update on checked inputs. P H^T is built column by column from columns of P
+/// (contiguous), and H P = (P H^T)^T because P is symmetric.
+fn update_by_rows(
+    p: &DMatrix<f64>,
+    nonzeros: &[Vec<(usize, f64)>],
+    residual: &DVector<f64>,
+    r: &DMatrix<f64>,
+    passive: Option<&DMatrix<f64>>,
+) -> Result<JointUpdate, EstimationError> {
+    let ph_t = sparse_mul_transposed(p, nonzeros);
+    let mut s = h_times_transposed(&ph_t, nonzeros) + r;
     symmetrize(&mut s);
     let (chol, s) = innovation_factor(s)?;
     let l = chol.l();
@@ -232,7 +278,7 @@ pub fn joint_update(
     }
     let w = w_t.transpose();
     let white_residual = l
-        .solve_lower_triangular(&meas.residual)
+        .solve_lower_triangular(residual)
         .ok_or(EstimationError::NotPositiveDefinite { what: "innovation covariance factor" })?;
     // P - W^T W, symmetrised: each entry computed once for both triangles (super::dense).
     let p_post = super::dense::symmetric_downdate(p, &w, &w_t);
@@ -241,7 +287,7 @@ pub fn joint_update(
     let passive = match passive {
         Some(x) => {
             // (I - K H) X = X - W^T L^-1 (H X)
-            let hx = sparse_mul_transposed(&x.transpose(), &nonzeros).transpose();
+            let hx = sparse_mul_transposed(&x.transpose(), nonzeros).transpose();
             let z = l
                 .solve_lower_triangular(&hx)
                 .ok_or(EstimationError::NotPositiveDefinite { what: "innovation covariance factor" })?;
@@ -257,7 +303,7 @@ pub fn joint_update(
         dx,
         p: p_post,
         passive,
-        diagnostics: UpdateDiagnostics { innovation: meas.residual.clone(), innovation_cov: s, nis },
+        diagnostics: UpdateDiagnostics { innovation: residual.clone(), innovation_cov: s, nis },
     })
 }
 

@@ -13,8 +13,8 @@ use serde::{Deserialize, Serialize};
 use super::EstimationError;
 use super::ci::ci_update;
 use super::coop::{
-    CoopMeasurement, Correction, CrossCovariances, CrossMode, JointPrior, UpdateOptions, cooperative_update,
-    cooperative_update_with,
+    CoopMeasurement, Correction, CrossCovariances, CrossMode, JointPrior, UpdateOptions, centralized_local_update,
+    cooperative_update, cooperative_update_with,
 };
 use super::kalman::{self, LinearizedMeasurement, UpdateDiagnostics};
 use super::platform::{PlatformFilter, PlatformId, Snapshot};
@@ -145,10 +145,8 @@ impl<F: PlatformFilter> Team<F> {
             return self.filters[i].update_local(meas);
         }
         meas.validate(self.filters[i].dim())?;
-        let joint =
-            CoopMeasurement::Linear { blocks: vec![(id, meas.h.clone())], residual: meas.residual.clone(), r: meas.r.clone() };
         let snapshots = self.snapshots();
-        let outcome = cooperative_update(&mut self.cross, &snapshots, &[joint], CrossMode::Propagate)?;
+        let outcome = centralized_local_update(&mut self.cross, &snapshots, &[(id, meas)])?;
         self.write_back(&outcome.corrections)?;
         Ok(outcome.diagnostics)
     }
@@ -168,14 +166,10 @@ impl<F: PlatformFilter> Team<F> {
         let mut joint = Vec::with_capacity(batch.len());
         for (id, meas) in batch {
             meas.validate(self.filters[self.index(*id)?].dim())?;
-            joint.push(CoopMeasurement::Linear {
-                blocks: vec![(*id, meas.h.clone())],
-                residual: meas.residual.clone(),
-                r: meas.r.clone(),
-            });
+            joint.push((*id, meas));
         }
         let snapshots = self.snapshots();
-        let outcome = cooperative_update(&mut self.cross, &snapshots, &joint, CrossMode::Propagate)?;
+        let outcome = centralized_local_update(&mut self.cross, &snapshots, &joint)?;
         self.write_back(&outcome.corrections)?;
         Ok(vec![outcome.diagnostics])
     }
