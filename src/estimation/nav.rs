@@ -12,7 +12,8 @@ use nalgebra::{DMatrix, DVector, Matrix3, Matrix6, UnitQuaternion, Vector3};
 use super::ins::{InsConfig, InsFilter, InsInitialSigma, InsState};
 use super::planar::{PlanarConfig, PlanarFilter, PlanarSigma, PlanarState};
 use super::{
-    EstimationError, Geometry, ImuSample, LinearizedMeasurement, OdometerSample, PlatformFilter, UpdateDiagnostics, WheelSample,
+    EstimationError, Geometry, ImuSample, LinearizedMeasurement, OdometerSample, PlatformFilter, PlatformId, Snapshot,
+    UpdateDiagnostics, WheelSample,
 };
 use crate::time::TimeUs;
 
@@ -340,6 +341,12 @@ impl PlatformFilter for NavFilter {
         match self {
             NavFilter::Ins(f) => f.geometry(),
             NavFilter::Planar(f) => f.geometry(),
+        }
+    }
+    fn snapshot(&self, id: PlatformId) -> Snapshot {
+        match self {
+            NavFilter::Ins(f) => f.snapshot(id),
+            NavFilter::Planar(f) => f.snapshot(id),
         }
     }
     fn update_local(&mut self, meas: &LinearizedMeasurement) -> Result<UpdateDiagnostics, EstimationError> {

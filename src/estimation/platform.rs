@@ -125,6 +125,9 @@ impl<T: PlatformFilter + ?Sized> PlatformFilter for Box<T> {
     fn geometry(&self) -> Geometry {
         (**self).geometry()
     }
+    fn snapshot(&self, id: PlatformId) -> Snapshot {
+        (**self).snapshot(id)
+    }
     fn update_local(&mut self, meas: &LinearizedMeasurement) -> Result<UpdateDiagnostics, EstimationError> {
         (**self).update_local(meas)
     }

@@ -171,27 +171,40 @@ where
     Ok(())
 }
 
-/// Writes the figures; returns the paths written.
-pub fn write_plots(dir: &Path, summaries: &[ScheduleSummary], tracks: &Tracks) -> Result<Vec<PathBuf>, ReportError> {
-    register_font()?;
-    let mut written = Vec::new();
-    let mut emit = |stem: &str,
-                    size: (u32, u32),
-                    f: &dyn Fn(DrawingArea<BitMapBackend, Shift>) -> Drawn,
-                    g: &dyn Fn(DrawingArea<SVGBackend, Shift>) -> Drawn|
-     -> Result<(), ReportError> {
-        let png = dir.join(format!("{stem}.png"));
-        f(BitMapBackend::new(&png, size).into_drawing_area())?;
-        let svg = dir.join(format!("{stem}.svg"));
-        g(SVGBackend::new(&svg, size).into_drawing_area())?;
-        written.push(png);
-        written.push(svg);
-        Ok(())
-    };
-    if !tracks.truth.is_empty() {
-        emit("fig1_trajectories", (900, 900), &|a| draw_tracks(a, tracks), &|a| draw_tracks(a, tracks))?;
+/// One figure to draw: what, under which file stem, at which size.
+struct Figure<'a> {
+    stem: String,
+    size: (u32, u32),
+    what: Drawing<'a>,
+}
+
+enum Drawing<'a> {
+    Tracks(&'a Tracks),
+    Errors { summary: &'a ScheduleSummary, methods: Vec<Method>, title: String },
+}
+
+impl Drawing<'_> {
+    fn draw<DB: DrawingBackend>(&self, area: DrawingArea<DB, Shift>) -> Drawn
+    where
+        DB::ErrorType: 'static,
+    {
+        match self {
+            Drawing::Tracks(tracks) => draw_tracks(area, tracks),
+            Drawing::Errors { summary, methods, title } => draw_errors(area, summary, methods, title),
+        }
     }
-    let figures: [(&str, &str, &[Method], &str); 3] = [
+}
+
+/// Writes the figures, each as PNG and SVG, all files at once on the cores (rayon); returns
+/// the paths written, in figure order, PNG before SVG.
+pub fn write_plots(dir: &Path, summaries: &[ScheduleSummary], tracks: &Tracks) -> Result<Vec<PathBuf>, ReportError> {
+    use rayon::prelude::*;
+    register_font()?;
+    let mut figures = Vec::new();
+    if !tracks.truth.is_empty() {
+        figures.push(Figure { stem: "fig1_trajectories".into(), size: (900, 900), what: Drawing::Tracks(tracks) });
+    }
+    let paper: [(&str, &str, &[Method], &str); 3] = [
         (
             "fig2_dead_reckoning_vs_cooperative",
             "1hz",
@@ -211,17 +224,31 @@ pub fn write_plots(dir: &Path, summaries: &[ScheduleSummary], tracks: &Tracks) -
             "Covariance transfer vs none (ranging at 1, 100, 200, 300 s)",
         ),
     ];
-    for (stem, schedule, methods, title) in figures {
-        if let Some(s) = summaries.iter().find(|s| s.schedule == schedule) {
-            emit(stem, (1500, 800), &|a| draw_errors(a, s, methods, title), &|a| draw_errors(a, s, methods, title))?;
+    for (stem, schedule, methods, title) in paper {
+        if let Some(summary) = summaries.iter().find(|s| s.schedule == schedule) {
+            let what = Drawing::Errors { summary, methods: methods.to_vec(), title: title.into() };
+            figures.push(Figure { stem: stem.into(), size: (1500, 800), what });
         }
     }
-    for s in summaries {
-        let methods: Vec<Method> = s.methods.iter().map(|m| m.method).collect();
-        let title = format!("All methods, schedule {} ({} runs)", s.schedule, s.runs);
-        emit(&format!("errors_all_methods_{}", s.schedule), (1500, 800), &|a| draw_errors(a, s, &methods, &title), &|a| {
-            draw_errors(a, s, &methods, &title)
-        })?;
+    for summary in summaries {
+        let methods: Vec<Method> = summary.methods.iter().map(|m| m.method).collect();
+        let title = format!("All methods, schedule {} ({} runs)", summary.schedule, summary.runs);
+        let stem = format!("errors_all_methods_{}", summary.schedule);
+        figures.push(Figure { stem, size: (1500, 800), what: Drawing::Errors { summary, methods, title } });
     }
-    Ok(written)
+    let files: Vec<(&Figure, bool)> = figures.iter().flat_map(|f| [(f, false), (f, true)]).collect();
+    files
+        .par_iter()
+        .map(|&(figure, svg)| {
+            let path = dir.join(format!("{}.{}", figure.stem, if svg { "svg" } else { "png" }));
+            if svg {
+                figure.what.draw(SVGBackend::new(&path, figure.size).into_drawing_area())?;
+            } else {
+                figure.what.draw(BitMapBackend::new(&path, figure.size).into_drawing_area())?;
+            }
+            Ok(path)
+        })
+        .collect::<Vec<Result<PathBuf, ReportError>>>()
+        .into_iter()
+        .collect()
 }

@@ -299,7 +299,8 @@ pub enum ReportError {
     Plot(String),
 }
 
-/// Writes `summary.json`, `final_errors.csv`, `error_curves.csv` and the plots into `dir`.
+/// Writes `summary.json`, `final_errors.csv`, `error_curves.csv` and the plots into `dir`, the
+/// tables and the plots at once (rayon).
 pub fn write_all(
     dir: &Path,
     spec: &ExperimentSpec,
@@ -310,6 +311,23 @@ pub fn write_all(
     plots: bool,
 ) -> Result<Vec<std::path::PathBuf>, ReportError> {
     std::fs::create_dir_all(dir).map_err(|source| ReportError::Io { what: format!("creating {}", dir.display()), source })?;
+    let (tables, plots) = rayon::join(
+        || write_tables(dir, spec, scenario_name, results, summaries),
+        || if plots { super::plots::write_plots(dir, summaries, tracks) } else { Ok(Vec::new()) },
+    );
+    let mut written = tables?;
+    written.extend(plots?);
+    Ok(written)
+}
+
+/// `summary.json`, `final_errors.csv` and `error_curves.csv`.
+fn write_tables(
+    dir: &Path,
+    spec: &ExperimentSpec,
+    scenario_name: &str,
+    results: &[RunResult],
+    summaries: &[ScheduleSummary],
+) -> Result<Vec<std::path::PathBuf>, ReportError> {
     let mut written = Vec::new();
 
     #[derive(Serialize)]
@@ -380,10 +398,6 @@ pub fn write_all(
     }
     w.flush().map_err(|source| ReportError::Io { what: format!("writing {}", path.display()), source })?;
     written.push(path);
-
-    if plots {
-        written.extend(super::plots::write_plots(dir, summaries, tracks)?);
-    }
     Ok(written)
 }
 

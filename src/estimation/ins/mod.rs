@@ -88,7 +88,7 @@
 use nalgebra::{DMatrix, DVector, Matrix3, SMatrix, SVector, UnitQuaternion, Vector3};
 use serde::{Deserialize, Serialize};
 
-use super::platform::{Geometry, Heading, PlatformFilter, check_joint_writeback};
+use super::platform::{Geometry, Heading, PlatformFilter, PlatformId, Snapshot, check_joint_writeback};
 use super::{EstimationError, ImuSample, LinearizedMeasurement, OdometerSample, UpdateDiagnostics, kalman};
 use crate::time::TimeUs;
 
@@ -1108,6 +1108,25 @@ impl PlatformFilter for InsFilter {
 
     fn psi(&self) -> DMatrix<f64> {
         to_dmatrix(&self.current().1.transpose())
+    }
+
+    /// Covariance and `Psi` from one look at the current ones (the trait's default asks for
+    /// each, each applying any pending propagation): the centralized EKF takes a snapshot of
+    /// every platform ten times a second.
+    fn snapshot(&self, id: PlatformId) -> Snapshot {
+        let snapshot = |p: &Matrix16, psi_t: &Matrix16| Snapshot {
+            id,
+            geometry: self.geometry(),
+            covariance: to_dmatrix(p),
+            psi: DMatrix::from_fn(ERROR_DIM, ERROR_DIM, |r, c| psi_t[(c, r)]),
+        };
+        match self.pending {
+            None => snapshot(self.p.get(), self.psi_t.get()),
+            Some(_) => {
+                let (p, psi_t) = self.current();
+                snapshot(&p, &psi_t)
+            }
+        }
     }
 
     fn geometry(&self) -> Geometry {

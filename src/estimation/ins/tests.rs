@@ -848,3 +848,21 @@ fn a_refused_update_leaves_no_trace_in_the_spare_slots() {
     assert_eq!(a.covariance16(), b.covariance16());
     assert_eq!(a.psi16(), b.psi16());
 }
+
+/// The INS's own snapshot (one look at the covariance and `Psi`) is the trait's composition of
+/// `covariance`, `psi` and `geometry`, with and without pending propagation steps.
+#[test]
+fn the_snapshot_is_the_composition_of_its_parts() {
+    let mut rng = ChaCha8Rng::seed_from_u64(18);
+    let mut f = busy_filter(&mut rng);
+    f.config.covariance_decimation = 4;
+    let mut pending_seen = 0;
+    for k in 1..=6u64 {
+        f.propagate(&imu(1_000_000 + 5_000 * k, Vector3::new(0.3, -0.2, -9.8), Vector3::new(0.01, 0.02, -0.1))).unwrap();
+        let s = f.snapshot(7);
+        let want = Snapshot { id: 7, geometry: f.geometry(), covariance: f.covariance(), psi: f.psi() };
+        assert_eq!(format!("{s:?}"), format!("{want:?}"), "after {k} steps (pending: {})", f.pending.is_some());
+        pending_seen += f.pending.is_some() as usize;
+    }
+    assert_eq!(pending_seen, 5, "every step but the fourth leaves propagation pending");
+}
