@@ -15,11 +15,14 @@
 //! - the dot product of two 16-long rows (one product per column, each after four empty
 //!   partial sums);
 //! - forward substitution by a lower-triangular `L` as `solve_lower_triangular` does it.
+//!
+//! Compiled twice, like the covariance step: for the baseline x86-64 (SSE2) and for AVX2,
+//! chosen at run time; separate multiplies and adds either way, so both round alike.
 
 use nalgebra::DMatrix;
 
 use super::{ERROR_DIM, InsFilter, Matrix16, Vector16};
-use crate::estimation::{EstimationError, LinearizedMeasurement, UpdateDiagnostics, kalman};
+use crate::estimation::{EstimationError, LinearizedMeasurement, UpdateDiagnostics, dense, kalman};
 
 /// The most rows the fixed-size path takes: from 6 rows on, nalgebra hands `H P` to
 /// `matrixmultiply`, which sums in blocks (the odometer's update has 3).
@@ -30,6 +33,7 @@ type Rows = [[f64; ERROR_DIM]; MAX_ROWS];
 
 /// `H B` (`m` rows), given `B^T`: row `r` of the product is `sum_k H[r, k] B^T[:, k]` along
 /// contiguous columns of `B^T` (each entry summed in nalgebra's order).
+#[inline(always)]
 fn rows_times(h: &Rows, m: usize, b_t: &Matrix16) -> Rows {
     let mut out = [[0.0; ERROR_DIM]; MAX_ROWS];
     let cols = &b_t.data.0;
@@ -73,6 +77,7 @@ fn row_dot(a: &[f64; ERROR_DIM], b: &[f64; ERROR_DIM]) -> f64 {
 }
 
 /// `L^-1 v` in place for one column `v` of `m`; false when a diagonal entry is zero.
+#[inline(always)]
 fn solve_column(l: &DMatrix<f64>, v: &mut [f64], m: usize) -> bool {
     for i in 0..m {
         let diag = l[(i, i)];
@@ -89,6 +94,7 @@ fn solve_column(l: &DMatrix<f64>, v: &mut [f64], m: usize) -> bool {
 }
 
 /// `L^-1 B` in place for the 16 columns of `B` (`m` rows), all columns at once along the rows.
+#[inline(always)]
 fn solve_rows(l: &DMatrix<f64>, b: &mut Rows, m: usize) -> bool {
     for i in 0..m {
         let diag = l[(i, i)];
@@ -115,6 +121,24 @@ impl InsFilter {
     /// fixed-size arrays: the same results bit for bit. The caller has validated `meas` and
     /// flushed any pending propagation.
     pub(super) fn update_local_small(&mut self, meas: &LinearizedMeasurement) -> Result<UpdateDiagnostics, EstimationError> {
+        #[cfg(target_arch = "x86_64")]
+        if dense::has_avx2() {
+            // SAFETY: the processor has AVX2 (checked just above).
+            return unsafe { self.update_local_small_avx2(meas) };
+        }
+        self.update_local_small_body(meas)
+    }
+
+    /// The same body compiled for AVX2 (four lanes where SSE2 has two; separate multiplies and
+    /// adds either way, so the results are the same bit for bit), as the covariance step is.
+    #[cfg(target_arch = "x86_64")]
+    #[target_feature(enable = "avx2")]
+    fn update_local_small_avx2(&mut self, meas: &LinearizedMeasurement) -> Result<UpdateDiagnostics, EstimationError> {
+        self.update_local_small_body(meas)
+    }
+
+    #[inline(always)]
+    fn update_local_small_body(&mut self, meas: &LinearizedMeasurement) -> Result<UpdateDiagnostics, EstimationError> {
         let m = meas.len();
         debug_assert!(m <= MAX_ROWS && meas.h.ncols() == ERROR_DIM);
         let mut h = [[0.0; ERROR_DIM]; MAX_ROWS];
