@@ -436,6 +436,38 @@ mod tests {
         (p, m)
     }
 
+    /// The update by row nonzeros is the update by the Jacobian, bit for bit, and refuses rows
+    /// out of order, columns past the state, non-finite values and sizes that do not match.
+    #[test]
+    fn the_update_by_rows_is_the_update_by_the_jacobian() {
+        let a = DMatrix::from_fn(9, 11, |r, c| ((r * 5 + c * 3) % 7) as f64 * 0.3 - 0.8);
+        let p = &a * a.transpose() + DMatrix::identity(9, 9) * 0.1;
+        let h = DMatrix::from_fn(4, 9, |r, c| if (r + 2 * c) % 3 == 0 { 0.4 * r as f64 - 0.13 * c as f64 + 0.05 } else { 0.0 });
+        let meas = LinearizedMeasurement {
+            h: h.clone(),
+            residual: DVector::from_vec(vec![0.3, -0.1, 0.25, 0.02]),
+            r: DMatrix::from_diagonal(&DVector::from_vec(vec![0.1, 0.2, 0.05, 0.3])),
+        };
+        let rows = row_nonzeros(&h);
+        let want = joint_update(&p, &meas, None).unwrap();
+        let got = joint_update_by_rows(&p, &rows, &meas.residual, &meas.r).unwrap();
+        assert_eq!(format!("{:?}", (&got.dx, &got.p, &got.diagnostics)), format!("{:?}", (&want.dx, &want.p, &want.diagnostics)));
+        let refused = |rows: &[Vec<(usize, f64)>], residual: &DVector<f64>, r: &DMatrix<f64>| {
+            joint_update_by_rows(&p, rows, residual, r).expect_err("bad input goes through")
+        };
+        let mut swapped = rows.clone();
+        swapped[0].reverse();
+        assert!(matches!(refused(&swapped, &meas.residual, &meas.r), EstimationError::InvalidValue { .. }));
+        let mut outside = rows.clone();
+        outside[1].push((9, 1.0));
+        assert!(matches!(refused(&outside, &meas.residual, &meas.r), EstimationError::DimensionMismatch { got: 10, .. }));
+        let mut nan = rows.clone();
+        nan[2][0].1 = f64::NAN;
+        assert_eq!(refused(&nan, &meas.residual, &meas.r), EstimationError::NonFinite { what: "measurement Jacobian" });
+        assert!(matches!(refused(&rows[..3], &meas.residual, &meas.r), EstimationError::DimensionMismatch { .. }));
+        assert!(matches!(refused(&rows, &meas.residual, &DMatrix::identity(3, 3)), EstimationError::DimensionMismatch { .. }));
+    }
+
     /// H (P H^T) read straight from P H^T equals, bit for bit, the product through its transpose.
     #[test]
     fn the_innovation_product_skips_the_transpose_exactly() {
