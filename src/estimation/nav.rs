@@ -139,11 +139,11 @@ impl Clone for NavFilter {
         }
     }
 
-    /// In place: an INS over an INS is one copy of its values (a node's checkpoint at every
-    /// instant is written this way into a recycled slot).
+    /// In place: an INS over an INS is one copy of its values, its scratch left out (a node's
+    /// checkpoint at every instant is written this way into a recycled slot).
     fn clone_from(&mut self, source: &Self) {
         match (self, source) {
-            (NavFilter::Ins(to), NavFilter::Ins(from)) => *to = *from,
+            (NavFilter::Ins(to), NavFilter::Ins(from)) => to.copy_from(from),
             (NavFilter::Planar(to), NavFilter::Planar(from)) => to.clone_from(from),
             (to, from) => *to = from.clone(),
         }
