@@ -104,6 +104,11 @@ impl From<&RangeSample> for CoopMeasurement {
 }
 
 impl CoopMeasurement {
+    /// A measurement of platform `id`'s own error state as a joint one (one block).
+    pub fn local(id: PlatformId, m: &LinearizedMeasurement) -> Self {
+        CoopMeasurement::Linear { blocks: vec![(id, m.h.clone())], residual: m.residual.clone(), r: m.r.clone() }
+    }
+
     /// The platforms this measurement involves.
     pub fn platforms(&self) -> Vec<PlatformId> {
         match self {
@@ -839,14 +844,7 @@ pub fn centralized_local_update(
     batch: &[(PlatformId, &LinearizedMeasurement)],
 ) -> Result<EventOutcome, EstimationError> {
     let general = |cross: &mut CrossCovariances| {
-        let joint: Vec<CoopMeasurement> = batch
-            .iter()
-            .map(|(id, m)| CoopMeasurement::Linear {
-                blocks: vec![(*id, m.h.clone())],
-                residual: m.residual.clone(),
-                r: m.r.clone(),
-            })
-            .collect();
+        let joint: Vec<CoopMeasurement> = batch.iter().map(|(id, m)| CoopMeasurement::local(*id, m)).collect();
         cooperative_update(cross, snapshots, &joint, CrossMode::Propagate)
     };
     let position = |id: PlatformId| snapshots.iter().position(|s| s.id == id);
@@ -1021,14 +1019,7 @@ mod tests {
                 _ => {}
             }
             let refs: Vec<(PlatformId, &LinearizedMeasurement)> = batch.iter().map(|(id, m)| (*id, m)).collect();
-            let linear: Vec<CoopMeasurement> = batch
-                .iter()
-                .map(|(id, m)| CoopMeasurement::Linear {
-                    blocks: vec![(*id, m.h.clone())],
-                    residual: m.residual.clone(),
-                    r: m.r.clone(),
-                })
-                .collect();
+            let linear: Vec<CoopMeasurement> = batch.iter().map(|(id, m)| CoopMeasurement::local(*id, m)).collect();
             let (mut fast_store, mut general_store) = (cross.clone(), cross);
             let fast = centralized_local_update(&mut fast_store, &snaps, &refs);
             let general = cooperative_update(&mut general_store, &snaps, &linear, CrossMode::Propagate);
