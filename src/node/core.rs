@@ -5,8 +5,10 @@
 //! # Time
 //!
 //! Time is the vehicle's: the timestamps of its samples. The core keeps every vehicle input
-//! (IMU and odometer samples, in time order) since its oldest checkpoint, and a checkpoint of its
-//! filter at the end of every *instant* for the last `history_us`. An instant ends at an IMU
+//! (IMU and odometer samples, in time order) since its oldest checkpoint, and checkpoints of its
+//! filter at the ends of *instants* for the last `history_us` (every epoch's instant and every
+//! few in between; an instant between checkpoints is rebuilt by replaying from the one before
+//! it, to the same bits). An instant ends at an IMU
 //! sample's time, at an odometer sample's time and at every ranging epoch's time: an IMU
 //! interval `(t_prev, t]` that contains such a time is split there (its rates held over both
 //! pieces), so measurements are applied at their own instants whatever the IMU rate. A sample
@@ -111,7 +113,7 @@ pub struct NodeConfig {
     pub epoch_timeout_us: u64,
     /// Wall time between COOPLOC_EPOCH messages while waiting (retransmission requests), us.
     pub retry_us: u64,
-    /// How much history (checkpoints of every instant) the node keeps, vehicle time, us.
+    /// How much history (checkpoints and the inputs after them) the node keeps, vehicle time, us.
     pub history_us: u64,
     /// An epoch still open this long (vehicle time) after its instant is run with what is
     /// there, so that memory stays bounded whatever the network does, us.
@@ -429,9 +431,15 @@ struct WantStore {
 /// Store snapshots kept for teammates that ask (the last epochs we took part in).
 const SNAPSHOTS_KEPT: usize = 4;
 
-/// How many freed checkpoint slots a node keeps for the next checkpoints (about a second of
-/// 200 Hz instants; a slot is one filter, under 5 kB for the INS).
+/// How many freed checkpoint slots a node keeps for the next checkpoints (a slot is one
+/// filter, under 9 kB for the INS).
 const MAX_SPARE_CHECKPOINTS: usize = 256;
+
+/// A checkpoint is kept at every mark (epoch time) and at every `CHECKPOINT_EVERY`-th instant in
+/// between (every 40 ms of a 200 Hz IMU): copying the filter at every instant cost more than
+/// the occasional longer replay from the checkpoint before a late input. A replay from an older
+/// checkpoint over the same inputs computes the same values bit for bit.
+const CHECKPOINT_EVERY: u32 = 8;
 
 /// The records that share a store valid for every participant of an epoch (see
 /// [`choose_store`]).
@@ -489,9 +497,12 @@ fn choose_store(records: &[StateRecord]) -> Option<StoreChoice> {
 pub struct NodeCore {
     cfg: NodeConfig,
     filter: NavFilter,
-    /// Checkpoints at the end of instants, oldest first (boxed: moved as pointers, and their
-    /// slots recycled through `spare`).
+    /// Checkpoints at the end of instants, oldest first: every mark's and every
+    /// [`CHECKPOINT_EVERY`]-th in between (boxed: moved as pointers, and their slots recycled
+    /// through `spare`).
     history: VecDeque<(TimeUs, Box<NavFilter>)>,
+    /// Instants closed since the newest checkpoint without one of their own.
+    unsaved: u32,
     /// Slots of checkpoints that left the history, written over in place by the next ones (one
     /// copy of the filter per instant, no allocation).
     spare: Vec<Box<NavFilter>>,
@@ -582,6 +593,7 @@ impl NodeCore {
             cfg,
             filter,
             history,
+            unsaved: 0,
             spare: Vec::new(),
             inputs: VecDeque::new(),
             marks: BTreeSet::new(),
@@ -709,6 +721,7 @@ impl NodeCore {
                 // A start long before the vehicle's clock: the initial state is for "now".
                 self.filter.restart_clock(s.t());
                 self.history = VecDeque::from([(s.t(), Box::new(self.filter.clone()))]);
+                self.unsaved = 0;
                 self.inputs.clear();
                 self.marks.clear();
                 self.stats.clock_restarts += 1;
@@ -799,7 +812,7 @@ impl NodeCore {
     /// were (the filter is copied only when the interval is cut: one propagation that fails
     /// changes nothing by itself).
     fn integrate(&mut self, s: &Drive, live: bool) -> Result<(), EstimationError> {
-        let (history_len, open) = (self.history.len(), self.open_instant);
+        let (history_len, open, unsaved) = (self.history.len(), self.open_instant, self.unsaved);
         let cut = self.integrate_pieces(s, live);
         let Err((e, before)) = cut else { return Ok(()) };
         if let Some(f) = before {
@@ -807,6 +820,7 @@ impl NodeCore {
         }
         self.history.truncate(history_len);
         self.open_instant = open;
+        self.unsaved = unsaved;
         Err(e)
     }
 
@@ -853,9 +867,15 @@ impl NodeCore {
         Ok(())
     }
 
-    /// Closes the open instant: its checkpoint.
+    /// Closes the open instant: its checkpoint when it is a mark, the end of the stream or the
+    /// [`CHECKPOINT_EVERY`]-th since the last one.
     fn checkpoint_open(&mut self) {
         if let Some(t) = self.open_instant.take() {
+            self.unsaved += 1;
+            if self.unsaved < CHECKPOINT_EVERY && !self.ended && !self.marks.contains(&t) {
+                return;
+            }
+            self.unsaved = 0;
             let slot = match self.spare.pop() {
                 Some(mut slot) => {
                     (*slot).clone_from(&self.filter);
@@ -908,9 +928,10 @@ impl NodeCore {
         // open instant.
         let saved_filter = std::mem::replace(&mut self.filter, (*f).clone());
         let saved_tail = self.history.split_off(pos);
-        let saved_open = self.open_instant;
+        let (saved_open, saved_unsaved) = (self.open_instant, self.unsaved);
         self.history.push_back((tc, f));
         self.open_instant = None;
+        self.unsaved = 0;
         let replay: Vec<Drive> = self
             .inputs
             .iter()
@@ -925,6 +946,7 @@ impl NodeCore {
                 self.history.truncate(pos);
                 self.history.extend(saved_tail);
                 self.open_instant = saved_open;
+                self.unsaved = saved_unsaved;
                 return Err(e);
             }
             self.stats.replayed_inputs += 1;
