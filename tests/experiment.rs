@@ -166,3 +166,34 @@ fn experiment_outputs_are_unchanged_bit_for_bit() {
     assert_eq!(want.split_whitespace().next(), Some(digest.as_str()), "error_curves.csv differs from the golden digest");
     let _ = std::fs::remove_dir_all(&out);
 }
+
+/// A Monte Carlo keeps the estimated tracks of its first run only (the one plotted); every
+/// other part of every run is what `run_once` returns for it.
+#[test]
+fn the_monte_carlo_keeps_the_tracks_of_the_plotted_run_only() {
+    use cooploc::estimation::Method;
+    use cooploc::experiment::{ExperimentSpec, InputSource, run_experiment, run_once};
+    let world = World::new(&Scenario::from_toml_str(PAPER_TOML).unwrap()).unwrap();
+    let spec = ExperimentSpec {
+        runs: 3,
+        seed: 7,
+        methods: vec![Method::DeadReckoning, Method::Decentralized],
+        schedules: vec!["four-events".into()],
+        source: InputSource::World,
+    };
+    let results = run_experiment(&world, &spec, &|| {}).unwrap();
+    assert_eq!(results.iter().map(|r| r.run).collect::<Vec<_>>(), [0, 1, 2]);
+    for r in &results {
+        let mut alone = run_once(&world, &spec, r.run).unwrap();
+        for (_, runs) in &r.schedules {
+            for p in runs.iter().flat_map(|fr| &fr.platforms) {
+                assert_eq!(p.track_ne_m.len(), if r.run == 0 { p.trace.len() } else { 0 }, "run {}", r.run);
+                assert_eq!(p.trace.len(), 3801);
+            }
+        }
+        if r.run > 0 {
+            alone.drop_tracks();
+        }
+        assert_eq!(r, &alone, "run {}", r.run);
+    }
+}

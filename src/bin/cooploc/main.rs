@@ -19,7 +19,9 @@ use std::process::ExitCode;
 /// mimalloc instead of the system allocator: the filters' small matrices (a measurement, a
 /// snapshot, an update's diagnostics) are allocated and freed at every update, and glibc's
 /// malloc and free were 5-6 % of the experiment and of replay. Numbers do not depend on it.
-/// Transparent huge pages are turned off for the process in `main` (see there).
+/// Built without its transparent huge pages (feature `no_thp`): with them, each time it gave
+/// memory back and took it again the kernel zeroed 2 MiB pages, a second of system time in a
+/// 50-run experiment where glibc's malloc took a quarter of that.
 #[global_allocator]
 static ALLOCATOR: mimalloc::MiMalloc = mimalloc::MiMalloc;
 
@@ -70,14 +72,6 @@ fn main() -> ExitCode {
     // SAFETY: restoring the default action of SIGPIPE before any thread starts.
     unsafe {
         libc::signal(libc::SIGPIPE, libc::SIG_DFL);
-    }
-    // mimalloc asks for transparent huge pages for its segments; each time it gives memory back
-    // and takes it again the kernel zeroes 2 MiB pages (a second of system time in a 50-run
-    // experiment, where glibc's malloc took a quarter of that). Small pages, as with glibc.
-    #[cfg(target_os = "linux")]
-    // SAFETY: a process attribute; no memory is touched.
-    unsafe {
-        libc::prctl(libc::PR_SET_THP_DISABLE, 1, 0, 0, 0);
     }
     // Negative numbers are values wherever a number is taken (`--init-ned -150,20,0`,
     // `--origin-lon-deg -79.5`), in every subcommand.
