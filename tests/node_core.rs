@@ -58,26 +58,11 @@ fn send(queue: &mut VecDeque<Item>, i: usize, outputs: Vec<NodeOutput>) {
 
 /// Runs one node core per platform over the world's events, every message through real frames
 /// and `net`. The wall clock runs at `speed` times real time and every core is polled at every
-/// event. Node `dead.0` stops (no input, no output) from vehicle time `dead.1` on.
+/// event. Node `dead.0` stops (no input, no output) from vehicle time `dead.1` on. Each odometer
+/// sample and each node's own ranges reach their node up to `late` events after their time (0:
+/// in order; the delays vary, so they also reorder).
 #[allow(clippy::too_many_arguments)]
 fn run_network_with(
-    world: &World,
-    method: Method,
-    schedule: &str,
-    seed: u64,
-    run: u32,
-    speed: u64,
-    dead: Option<(usize, TimeUs)>,
-    net: &mut Network<'_>,
-    encoding: Encoding,
-) -> (Vec<NodeCore>, Vec<(TimeUs, Vec<RangeSample>)>) {
-    run_network_late(world, method, schedule, seed, run, speed, dead, net, encoding, 0)
-}
-
-/// [`run_network_with`], where each odometer sample and each node's own ranges reach their node
-/// up to `late` events after their time (0: in order; the delays vary, so they also reorder).
-#[allow(clippy::too_many_arguments)]
-fn run_network_late(
     world: &World,
     method: Method,
     schedule: &str,
@@ -165,7 +150,7 @@ fn run_network(
     seed: u64,
     run: u32,
 ) -> (Vec<NodeCore>, Vec<(TimeUs, Vec<RangeSample>)>) {
-    run_network_with(world, method, schedule, seed, run, 20, None, &mut |_, _, _, _| true, Encoding::F64)
+    run_network_with(world, method, schedule, seed, run, 20, None, &mut |_, _, _, _| true, Encoding::F64, 0)
 }
 
 #[test]
@@ -249,7 +234,7 @@ fn late_and_reordered_vehicle_inputs_are_replayed_to_the_same_bits() {
     let world = World::new(&Scenario::from_toml_str(ASYNC_TOML).unwrap()).unwrap();
     let inputs = world.run_inputs(2, 0);
     let (nodes, sent_ranges) =
-        run_network_late(&world, Method::Decentralized, "jitter", 2, 0, 20, None, &mut |_, _, _, _| true, Encoding::F64, 24);
+        run_network_with(&world, Method::Decentralized, "jitter", 2, 0, 20, None, &mut |_, _, _, _| true, Encoding::F64, 24);
     let reference = run_filter(&world, &inputs, &sent_ranges, Method::Decentralized).unwrap();
     for (node, (p, outcome)) in nodes.iter().zip(inputs.platforms.iter().zip(&reference.platforms)) {
         let st = &node.stats;
@@ -272,7 +257,7 @@ fn lost_fragments_are_resent_and_the_result_is_unchanged() {
         MavMessage::COOPLOC_STATE_FRAGMENT(f) if from == 1 && to == 0 && f.frag_index == 3 => !dropped.insert(f.epoch),
         _ => true,
     };
-    let (nodes, sent_ranges) = run_network_with(&world, Method::Decentralized, "1hz", 1, 0, 20, None, &mut net, Encoding::F64);
+    let (nodes, sent_ranges) = run_network_with(&world, Method::Decentralized, "1hz", 1, 0, 20, None, &mut net, Encoding::F64, 0);
     let inputs = world.run_inputs(1, 0);
     let reference = run_filter(&world, &inputs, &sent_ranges, Method::Decentralized).unwrap();
     assert!(nodes[1].stats.records_resent >= 380, "{:?}", nodes[1].stats);
@@ -299,6 +284,7 @@ fn a_dead_node_costs_one_timeout_and_the_others_stay_in_agreement() {
         Some((2, TimeUs(100_500_000))),
         &mut |_, _, _, _| true,
         Encoding::F64,
+        0,
     );
     let inputs = world.run_inputs(1, 0);
     let dr = run_filter(&world, &inputs, &[], Method::DeadReckoning).unwrap();
@@ -536,7 +522,7 @@ fn the_compact_encoding_keeps_the_team_where_f64_puts_it() {
     let world = World::new(&Scenario::from_toml_str(PAPER_TOML).unwrap()).unwrap();
     for run in 0..3 {
         let go = |encoding| {
-            run_network_with(&world, Method::Decentralized, "1hz", 1, run, 20, None, &mut |_, _, _, _| true, encoding).0
+            run_network_with(&world, Method::Decentralized, "1hz", 1, run, 20, None, &mut |_, _, _, _| true, encoding, 0).0
         };
         let (exact, compact) = (go(Encoding::F64), go(Encoding::Compact));
         for (a, b) in exact.iter().zip(&compact) {

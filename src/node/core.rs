@@ -504,7 +504,7 @@ pub struct NodeCore {
     /// Instants closed since the newest checkpoint without one of their own.
     unsaved: u32,
     /// Slots of checkpoints that left the history, written over in place by the next ones (one
-    /// copy of the filter per instant, no allocation).
+    /// copy of the filter per checkpoint, no allocation).
     spare: Vec<Box<NavFilter>>,
     /// Vehicle inputs after the oldest checkpoint, in time order (odometer samples ahead of the
     /// filter included: they wait for the IMU sample that covers them).
