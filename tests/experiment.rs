@@ -167,33 +167,42 @@ fn experiment_outputs_are_unchanged_bit_for_bit() {
     let _ = std::fs::remove_dir_all(&out);
 }
 
-/// A Monte Carlo keeps the estimated tracks of its first run only (the one plotted); every
-/// other part of every run is what `run_once` returns for it.
+/// A Monte Carlo keeps its first run whole (the one plotted) and of every other run its final
+/// samples; its curves are the sums of every run in run order, whatever order the parallel runs
+/// finish in: the summary equals the one made from every run whole.
 #[test]
-fn the_monte_carlo_keeps_the_tracks_of_the_plotted_run_only() {
+fn the_monte_carlo_keeps_the_plotted_run_whole_and_sums_the_others_in_order() {
     use cooploc::estimation::Method;
+    use cooploc::experiment::report::{CurveSums, summarize};
     use cooploc::experiment::{ExperimentSpec, InputSource, run_experiment, run_once};
     let world = World::new(&Scenario::from_toml_str(PAPER_TOML).unwrap()).unwrap();
     let spec = ExperimentSpec {
-        runs: 3,
+        runs: 6,
         seed: 7,
         methods: vec![Method::DeadReckoning, Method::Decentralized],
         schedules: vec!["four-events".into()],
         source: InputSource::World,
     };
-    let results = run_experiment(&world, &spec, &|| {}).unwrap();
-    assert_eq!(results.iter().map(|r| r.run).collect::<Vec<_>>(), [0, 1, 2]);
-    for r in &results {
-        let mut alone = run_once(&world, &spec, r.run).unwrap();
-        for (_, runs) in &r.schedules {
-            for p in runs.iter().flat_map(|fr| &fr.platforms) {
-                assert_eq!(p.track_ne_m.len(), if r.run == 0 { p.trace.len() } else { 0 }, "run {}", r.run);
-                assert_eq!(p.trace.len(), 3801);
-            }
+    let mc = run_experiment(&world, &spec, &|| {}).unwrap();
+    assert_eq!(mc.runs.iter().map(|r| r.run).collect::<Vec<_>>(), [0, 1, 2, 3, 4, 5]);
+    let whole: Vec<_> = (0..spec.runs).map(|run| run_once(&world, &spec, run).unwrap()).collect();
+    let mut sums = CurveSums::default();
+    for (r, alone) in mc.runs.iter().zip(&whole) {
+        sums.add(alone);
+        for p in r.schedules.iter().flat_map(|(_, runs)| runs).flat_map(|fr| &fr.platforms) {
+            let expected = if r.run == 0 { (3801, 3801) } else { (1, 0) };
+            assert_eq!((p.trace.len(), p.track_ne_m.len()), expected, "run {}", r.run);
         }
+        let mut trimmed = alone.clone();
         if r.run > 0 {
-            alone.drop_tracks();
+            trimmed.keep_final_only();
         }
-        assert_eq!(r, &alone, "run {}", r.run);
+        assert_eq!(r, &trimmed, "run {}", r.run);
     }
+    assert_eq!(mc.curves, sums);
+    assert_eq!(summarize(&spec, &mc.runs, &mc.curves), summarize(&spec, &whole, &sums));
+    // The curves come from the sums: the first run's alone give another summary.
+    let mut one = CurveSums::default();
+    one.add(&whole[0]);
+    assert_ne!(summarize(&spec, &whole[..1], &one), summarize(&spec, &whole, &sums));
 }

@@ -348,23 +348,34 @@ pub fn run_once(world: &World, spec: &ExperimentSpec, run: u32) -> Result<RunRes
 }
 
 impl RunResult {
-    /// Frees the estimated tracks (`track_ne_m`) of every filter run: what a large Monte Carlo
-    /// keeps of the runs it does not plot.
-    pub fn drop_tracks(&mut self) {
+    /// Keeps of every filter run only its final sample (the trace's last, what the tables and
+    /// `final_errors.csv` read) and frees its estimated track: what a Monte Carlo keeps of the
+    /// runs it does not plot, once their curves are summed ([`report::CurveSums`]).
+    pub fn keep_final_only(&mut self) {
         for p in self.schedules.iter_mut().flat_map(|(_, runs)| runs).flat_map(|r| &mut r.platforms) {
+            let last = p.trace.last().copied();
+            p.trace = last.into_iter().collect();
             p.track_ne_m = Vec::new();
         }
     }
 }
 
+/// A Monte Carlo's results: every run in run order, the first whole (the one plotted), the others
+/// with their final samples only ([`RunResult::keep_final_only`]), and the per-instant sums of
+/// every run's squared errors that the RMS curves are made of.
+#[derive(Debug, Clone)]
+pub struct MonteCarlo {
+    pub runs: Vec<RunResult>,
+    pub curves: report::CurveSums,
+}
+
 /// Runs the whole Monte Carlo in parallel (rayon, all cores); `progress` is called after each run.
-/// Only the first run (the one plotted) keeps its estimated tracks: each run's are 1.8 MB of the
-/// paper scenario, 1.8 GB held by a 1,000-run study for nothing.
-pub fn run_experiment(
-    world: &World,
-    spec: &ExperimentSpec,
-    progress: &(dyn Fn() + Sync),
-) -> Result<Vec<RunResult>, ExperimentError> {
+/// Runs finish in any order; each is summed into the curves in run order (the same sums in the
+/// same order as over the whole results, so the same bits) as soon as the runs before it are,
+/// then trimmed to its final samples. A 1,000-run study of the paper scenario held 6 GB of
+/// traces and tracks to the end before; now only the runs waiting for an earlier one (about
+/// one per thread).
+pub fn run_experiment(world: &World, spec: &ExperimentSpec, progress: &(dyn Fn() + Sync)) -> Result<MonteCarlo, ExperimentError> {
     use rayon::prelude::*;
     if spec.runs == 0 {
         return Err(ExperimentError::Settings("at least one run is needed".into()));
@@ -375,17 +386,36 @@ pub fn run_experiment(
     for name in &spec.schedules {
         world.scenario().schedule(name)?;
     }
-    (0..spec.runs)
-        .into_par_iter()
-        .map(|run| {
-            let mut r = run_once(world, spec, run);
-            if run > 0
-                && let Ok(r) = &mut r
-            {
-                r.drop_tracks();
+    struct InOrder {
+        waiting: std::collections::BTreeMap<u32, RunResult>,
+        done: Vec<RunResult>,
+        curves: report::CurveSums,
+    }
+    let state = std::sync::Mutex::new(InOrder {
+        waiting: std::collections::BTreeMap::new(),
+        done: Vec::with_capacity(spec.runs as usize),
+        curves: report::CurveSums::default(),
+    });
+    // Runs are taken in order by whichever thread is free (`par_bridge`, not a split range, whose
+    // upper half would finish while the lower is still running and wait in full).
+    (0..spec.runs).par_bridge().try_for_each(|run| {
+        let r = run_once(world, spec, run)?;
+        {
+            let mut st = state.lock().unwrap_or_else(|e| e.into_inner());
+            st.waiting.insert(run, r);
+            loop {
+                let next = st.done.len() as u32;
+                let Some(mut r) = st.waiting.remove(&next) else { break };
+                st.curves.add(&r);
+                if next > 0 {
+                    r.keep_final_only();
+                }
+                st.done.push(r);
             }
-            progress();
-            r
-        })
-        .collect()
+        }
+        progress();
+        Ok::<(), ExperimentError>(())
+    })?;
+    let st = state.into_inner().unwrap_or_else(|e| e.into_inner());
+    Ok(MonteCarlo { runs: st.done, curves: st.curves })
 }

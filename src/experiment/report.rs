@@ -106,29 +106,62 @@ fn mean(v: impl Iterator<Item = f64> + Clone) -> f64 {
     v.sum::<f64>() / n
 }
 
-/// The RMS over runs at each of the first `len` instants of the traces, of the position error
-/// and of the heading error: [`rms`] of each instant's values, summed in run order as `rms` sums
-/// them (the same bits), but reading each run's trace once, in order, instead of one value of
-/// every run per instant (1,000 runs' traces are gigabytes). Panics, as indexing did, when a
-/// trace is shorter than `len`.
-fn rms_curves<'a>(traces: impl Iterator<Item = &'a [super::ErrorSample]>, len: usize) -> (Vec<f64>, Vec<f64>) {
-    let zero = std::iter::empty::<f64>().sum::<f64>(); // what `Sum` starts from
-    let (mut pos, mut heading) = (vec![zero; len], vec![zero; len]);
-    let mut n = 0usize;
-    for trace in traces {
-        n += 1;
-        for ((p, h), e) in pos.iter_mut().zip(heading.iter_mut()).zip(&trace[..len]) {
-            *p += e.pos_err_m * e.pos_err_m;
-            *h += e.heading_err_deg * e.heading_err_deg;
-        }
-    }
-    let n = n as f64;
-    let finish = |v: Vec<f64>| v.into_iter().map(|s| (s / n).sqrt()).collect();
-    (finish(pos), finish(heading))
+/// One platform's sums per instant: (position, heading).
+type InstantSums = (Vec<f64>, Vec<f64>);
+
+/// The per-instant sums over runs of each filter run's squared position and heading errors, by
+/// schedule, method and platform, added one run at a time in run order: [`rms`]'s sums of each
+/// instant's values in its order (the same bits), so that a Monte Carlo need not keep every
+/// run's trace (1,000 runs' traces are gigabytes). The first run added sets the instants; a
+/// later run whose trace is shorter panics, as indexing did.
+#[derive(Debug, Clone, Default, PartialEq)]
+pub struct CurveSums {
+    /// `[schedule][method][platform]`.
+    sums: Vec<Vec<Vec<InstantSums>>>,
+    runs: usize,
 }
 
-/// Summarises every schedule of an experiment.
-pub fn summarize(spec: &ExperimentSpec, results: &[RunResult]) -> Vec<ScheduleSummary> {
+impl CurveSums {
+    /// Adds one run's traces (call in run order).
+    pub fn add(&mut self, r: &RunResult) {
+        let zero = std::iter::empty::<f64>().sum::<f64>(); // what `Sum` starts from
+        if self.runs == 0 {
+            self.sums = r
+                .schedules
+                .iter()
+                .map(|(_, runs)| {
+                    runs.iter()
+                        .map(|fr| fr.platforms.iter().map(|p| (vec![zero; p.trace.len()], vec![zero; p.trace.len()])).collect())
+                        .collect()
+                })
+                .collect();
+        }
+        self.runs += 1;
+        for ((_, runs), by_method) in r.schedules.iter().zip(&mut self.sums) {
+            for (fr, by_platform) in runs.iter().zip(by_method.iter_mut()) {
+                for (p, (pos, heading)) in fr.platforms.iter().zip(by_platform.iter_mut()) {
+                    let len = pos.len();
+                    for ((ps, hs), e) in pos.iter_mut().zip(heading.iter_mut()).zip(&p.trace[..len]) {
+                        *ps += e.pos_err_m * e.pos_err_m;
+                        *hs += e.heading_err_deg * e.heading_err_deg;
+                    }
+                }
+            }
+        }
+    }
+
+    /// The RMS curves of position and heading error of schedule `si`, method `mi`, platform `pi`.
+    fn curve(&self, si: usize, mi: usize, pi: usize) -> (Vec<f64>, Vec<f64>) {
+        let n = self.runs as f64;
+        let finish = |v: &Vec<f64>| v.iter().map(|s| (s / n).sqrt()).collect();
+        let (pos, heading) = &self.sums[si][mi][pi];
+        (finish(pos), finish(heading))
+    }
+}
+
+/// Summarises every schedule of an experiment: its runs in run order (the first whole, for the
+/// curves' instants) and the sums of all of them.
+pub fn summarize(spec: &ExperimentSpec, results: &[RunResult], sums: &CurveSums) -> Vec<ScheduleSummary> {
     let runs = results.len();
     spec.schedules
         .iter()
@@ -151,8 +184,7 @@ pub fn summarize(spec: &ExperimentSpec, results: &[RunResult]) -> Vec<ScheduleSu
                         final_nees_mean: mean(by_method(mi).map(|r| r.platforms[pi].final_nees)),
                         nees_states: p.nees_states,
                     });
-                    let (pos_rms_m, heading_rms_deg) =
-                        rms_curves(by_method(mi).map(|r| &r.platforms[pi].trace[..]), p.trace.len());
+                    let (pos_rms_m, heading_rms_deg) = sums.curve(si, mi, pi);
                     curves.push(Curve {
                         method,
                         platform: p.id,

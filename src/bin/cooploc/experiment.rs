@@ -102,11 +102,12 @@ pub fn run(args: Args) -> anyhow::Result<()> {
             .progress_chars("=> "),
     );
     let started = Instant::now();
-    let results = run_experiment(&world, &spec, &|| bar.inc(1))?;
+    let monte_carlo = run_experiment(&world, &spec, &|| bar.inc(1))?;
     bar.finish_and_clear();
     let elapsed = started.elapsed();
+    let results = &monte_carlo.runs;
 
-    let summaries = report::summarize(&spec, &results);
+    let summaries = report::summarize(&spec, results, &monte_carlo.curves);
     println!(
         "cooploc experiment: scenario {} ({}), {} runs, seed {}, {} threads, {:.1} s",
         scenario.name,
@@ -134,9 +135,9 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         }
     }
     let written = if args.no_plots {
-        report::write_all(&args.out, &spec, &scenario.name, &results, &summaries, &Tracks::default(), false)?
+        report::write_all(&args.out, &spec, &scenario.name, results, &summaries, &Tracks::default(), false)?
     } else {
-        report::write_all(&args.out, &spec, &scenario.name, &results, &summaries, &tracks, true)?
+        report::write_all(&args.out, &spec, &scenario.name, results, &summaries, &tracks, true)?
     };
     println!("wrote:");
     for p in written {
