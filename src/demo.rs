@@ -151,6 +151,7 @@ pub async fn run_demo(cfg: DemoConfig, ready: impl FnOnce(&DemoAddresses)) -> Re
         autopilot: Default::default(),
         origin: None,
         stream_rates: Vec::new(),
+        gnss_time: false,
     };
     let sim = Simulator::bind(world.clone(), sitl).await.step("starting the simulator")?;
     let vehicles: Vec<(PlatformId, SocketAddr)> = sim
@@ -171,7 +172,7 @@ pub async fn run_demo(cfg: DemoConfig, ready: impl FnOnce(&DemoAddresses)) -> Re
         // an INS vehicle or a wheeled robot, as the scenario says
         let model = crate::experiment::nav_model(&world, id);
         let node_cfg = NodeConfig::for_model(id, cfg.method, model, Encoding::F64, ids.clone());
-        let mut meta = node_metadata(&node_cfg, Some((t0, &state)));
+        let mut meta = node_metadata(&node_cfg, Some((Some(t0), &state)));
         meta.insert("origin_lat_deg".into(), origin.lat_deg.to_string());
         meta.insert("origin_lon_deg".into(), origin.lon_deg.to_string());
         {

@@ -32,7 +32,7 @@ pub const RUN_METADATA_NAME: &str = "cooploc.run";
 /// Why a log cannot be replayed.
 #[derive(Debug, thiserror::Error)]
 pub enum ReplayError {
-    #[error("the log has no scenario attachment (scenario.toml)")]
+    #[error("the log has no scenario attachment (scenario.toml) and no vehicle profile for a node")]
     NoScenario,
     #[error("the log's scenario: {0}")]
     Scenario(String),
@@ -58,13 +58,14 @@ pub fn world_of(log: &Log) -> Result<World, ReplayError> {
 
 /// Node `id`'s vehicle profile: the one attached to the log (`vehicle.<id>.toml`), or the
 /// vehicle part of the scenario (logs of nodes that ran without `--vehicle-config`, or older).
-pub fn profile_of(log: &Log, world: &World, id: PlatformId) -> Result<VehicleProfile, ReplayError> {
-    match log.attachments.iter().find(|a| a.name == vehicle_attachment_name(id)) {
-        Some(a) => {
+pub fn profile_of(log: &Log, world: Option<&World>, id: PlatformId) -> Result<VehicleProfile, ReplayError> {
+    match (log.attachments.iter().find(|a| a.name == vehicle_attachment_name(id)), world) {
+        (Some(a), _) => {
             let text = std::str::from_utf8(&a.data).map_err(|e| ReplayError::Node(id, format!("vehicle profile: {e}")))?;
             VehicleProfile::from_toml_str(text).map_err(|e| ReplayError::Node(id, e.to_string()))
         }
-        None => Ok(VehicleProfile::from_scenario_platform(world.scenario(), id)),
+        (None, Some(world)) => Ok(VehicleProfile::from_scenario_platform(world.scenario(), id)),
+        (None, None) => Err(ReplayError::NoScenario),
     }
 }
 
@@ -121,13 +122,18 @@ pub fn replay_nodes(log: &Log) -> Result<Vec<NodeReplay>, ReplayError> {
     if ids.is_empty() {
         return Err(ReplayError::NoNode);
     }
-    let world = world_of(log)?;
+    // A node on a real vehicle ran without a scenario: its profile is attached.
+    let world = match world_of(log) {
+        Ok(w) => Some(w),
+        Err(ReplayError::NoScenario) => None,
+        Err(e) => return Err(e),
+    };
     // Nodes are independent of one another: one per core.
     use rayon::prelude::*;
-    ids.into_par_iter().map(|id| replay_node(log, &world, id)).collect()
+    ids.into_par_iter().map(|id| replay_node(log, world.as_ref(), id)).collect()
 }
 
-fn replay_node(log: &Log, world: &World, id: PlatformId) -> Result<NodeReplay, ReplayError> {
+fn replay_node(log: &Log, world: Option<&World>, id: PlatformId) -> Result<NodeReplay, ReplayError> {
     let record = format!("cooploc.node.{id}");
     let m = &log.metadata_named(&record).expect("listed").entries;
     let method_name: String = field(&record, m, "method")?;
@@ -169,17 +175,19 @@ fn replay_node(log: &Log, world: &World, id: PlatformId) -> Result<NodeReplay, R
         let alt_m = if m.contains_key("origin_alt_m") { field(&record, m, "origin_alt_m")? } else { 0.0 };
         Some(GeoOrigin { lat_deg: field(&record, m, "origin_lat_deg")?, lon_deg: field(&record, m, "origin_lon_deg")?, alt_m })
     };
-    let initial_state: Option<(u64, crate::estimation::ins::InsState)> = match field::<String>(&record, m, "init")?.as_str() {
-        "state" => {
-            let t0: u64 = field(&record, m, "t0_us")?;
-            let state =
-                serde_json::from_str(&field::<String>(&record, m, "initial_state")?).map_err(|e| node_err(e.to_string()))?;
-            Some((t0, state))
-        }
-        _ => None,
-    };
+    let initial_state: Option<(Option<u64>, crate::estimation::ins::InsState)> =
+        match field::<String>(&record, m, "init")?.as_str() {
+            "state" => {
+                // no t0_us: taken at the first sample (the Init event says when)
+                let t0: Option<u64> = if m.contains_key("t0_us") { Some(field(&record, m, "t0_us")?) } else { None };
+                let state =
+                    serde_json::from_str(&field::<String>(&record, m, "initial_state")?).map_err(|e| node_err(e.to_string()))?;
+                Some((t0, state))
+            }
+            _ => None,
+        };
     let mut core = match (&initial_state, origin) {
-        (Some((t0, state)), Some(_)) => {
+        (Some((Some(t0), state)), Some(_)) => {
             let state = NavState::for_model(&cfg.model, *state);
             Some(NodeCore::new(cfg.clone(), TimeUs(*t0), state).map_err(|e| node_err(e.to_string()))?)
         }
@@ -235,6 +243,10 @@ fn replay_node(log: &Log, world: &World, id: PlatformId) -> Result<NodeReplay, R
         } else if topic == events {
             let event: NodeEvent = msg.json().map_err(|e| node_err(format!("event: {e}")))?;
             match (event, core.as_mut()) {
+                (NodeEvent::Clock { offset_us, .. }, _) => {
+                    decoder.set_companion_offset(offset_us);
+                    continue;
+                }
                 (NodeEvent::Init { t0_us, origin: from_vehicle }, None) => {
                     let mut cfg = cfg.clone();
                     let origin = match (from_vehicle, origin) {
@@ -289,7 +301,7 @@ pub fn compare_methods(log: &Log, methods: &[Method]) -> Result<Vec<FilterRun>, 
     for p in &mut inputs.platforms {
         let topic = topics::frames(Link::Vehicle(p.id as u8), Direction::Rx);
         let (mut imu, mut odometer, mut wheel) = (Vec::new(), Vec::new(), Vec::new());
-        let mut decoder = profile_of(log, &world, p.id)?.decoder();
+        let mut decoder = profile_of(log, Some(&world), p.id)?.decoder();
         for msg in log.topic(&topic) {
             let Ok((header, m)) = wire::from_any_frame(&msg.data) else { continue };
             if header.system_id != u32::from(p.id) {

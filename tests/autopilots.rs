@@ -314,21 +314,32 @@ fn team_of(
     use cooploc::sitl::scenario::PlatformModel;
     use cooploc::sitl::{Scenario, World};
     let root = env!("CARGO_MANIFEST_DIR");
-    let mut text = std::fs::read_to_string(format!("{root}/sitl/vehicles/{profile}.toml")).unwrap();
-    for (from, to) in edits {
-        assert!(text.contains(from), "{from}");
-        text = text.replacen(from, to, 1);
-    }
+    // 20x real time has no companion clock to map (the personality answers TIMESYNC at real
+    // time only): the autopilots keep Unix time from a GNSS fix (`--gnss-time`) and the nodes
+    // take it from SYSTEM_TIME
+    let unix_clock = [("clock = \"auto\"", "clock = \"unix\"")];
+    let edited = |name: &str, edits: &[(&str, &str)]| {
+        let mut text = std::fs::read_to_string(format!("{root}/sitl/vehicles/{name}.toml")).unwrap();
+        for (from, to) in unix_clock.iter().chain(edits) {
+            assert!(text.contains(from), "{from}");
+            text = text.replacen(from, to, 1);
+        }
+        text
+    };
     let dir = std::env::temp_dir().join(format!("cooploc-team-{autopilot}-{}-{}", loss.is_some(), std::process::id()));
     std::fs::create_dir_all(&dir).unwrap();
     let profile_path = dir.join("vehicle.toml").display().to_string();
-    std::fs::write(&profile_path, text).unwrap();
+    std::fs::write(&profile_path, edited(profile, edits)).unwrap();
     let vehicle = VehicleProfile::from_path(&profile_path).unwrap();
     let scenario_path = format!("sitl/scenarios/{scenario_name}.toml");
     let mut scenario = Scenario::from_path(format!("{root}/{scenario_path}")).unwrap();
     vehicle.apply_to(&mut scenario).unwrap();
     let world = World::new(&scenario).unwrap();
-    let robot_path = robot_profile.map(|name| format!("{root}/sitl/vehicles/{name}.toml"));
+    let robot_path = robot_profile.map(|name| {
+        let path = dir.join(format!("{name}.toml")).display().to_string();
+        std::fs::write(&path, edited(name, &[])).unwrap();
+        path
+    });
     if let Some(path) = &robot_path {
         // the robots' nodes are told the wheels the simulator gives them
         let robot = VehicleProfile::from_path(path).unwrap();
@@ -341,7 +352,7 @@ fn team_of(
 
     let mut sitl = Command::new(env!("CARGO_BIN_EXE_cooploc"));
     sitl.args(["sitl", &scenario_path, "--seed", "1", "--run", "0", "--schedule", schedule, "--speed", "20"]);
-    sitl.args(["--base-port", "0", "--wait-for-peers", "--sim-state-hz", "1", "--autopilot", autopilot]);
+    sitl.args(["--base-port", "0", "--wait-for-peers", "--sim-state-hz", "1", "--autopilot", autopilot, "--gnss-time"]);
     sitl.args(["--vehicle-config", &profile_path]);
     for r in rates {
         sitl.args(["--stream-rate", r]);

@@ -137,7 +137,20 @@ fn a_node_killed_with_sigkill_leaves_a_log_that_replays() {
     };
     let mut node = Command::new(bin)
         .current_dir(root)
-        .args(["node", "--id", "1", "--vehicle", &format!("udpout:{vehicle}"), "--method", "dr", "--team", "1", "--log"])
+        .args([
+            "node",
+            "--scenario",
+            "sitl/scenarios/paper.toml",
+            "--id",
+            "1",
+            "--vehicle",
+            &format!("udpout:{vehicle}"),
+            "--method",
+            "dr",
+            "--team",
+            "1",
+            "--log",
+        ])
         .arg(&log_path)
         .stdout(Stdio::null())
         .stderr(Stdio::null())

@@ -101,6 +101,7 @@ fn config(world: &World, speed: Speed) -> SitlConfig {
         autopilot: Default::default(),
         origin: None,
         stream_rates: Vec::new(),
+        gnss_time: false,
     }
 }
 

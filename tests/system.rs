@@ -146,7 +146,15 @@ fn three_nodes_against_the_experiment(signed: bool) {
         let (t0, state) = initial_state(&world, seed, run, id).unwrap();
         let (r, p, y) = state.att_frd_to_ned.euler_angles();
         let mut node = bin();
-        node.args(["node", "--id", &id.to_string(), "--vehicle", &format!("udpout:{}", vehicle_addr[&id])]);
+        node.args([
+            "node",
+            "--scenario",
+            "sitl/scenarios/paper.toml",
+            "--id",
+            &id.to_string(),
+            "--vehicle",
+            &format!("udpout:{}", vehicle_addr[&id]),
+        ]);
         node.args(["--method", "dcl", "--idle-exit-s", "1.5", "--init-time-us", &t0.0.to_string()]);
         if signed {
             node.arg("--team-key").arg(&key_path);
@@ -349,7 +357,19 @@ fn a_node_on_a_serial_line_initialises_from_sim_state() {
     sitl.args(["sitl", "sitl/scenarios/paper.toml", "--seed", "1", "--run", "0", "--speed", "20", "--base-port", "0"]);
     sitl.args(["--serial", &format!("1={vehicle_end}:921600"), "--sim-state-hz", "5"]);
     let mut node = bin();
-    node.args(["node", "--id", "1", "--vehicle", &format!("serial:{node_end}:921600"), "--method", "dr", "--team", "1"]);
+    node.args([
+        "node",
+        "--scenario",
+        "sitl/scenarios/paper.toml",
+        "--id",
+        "1",
+        "--vehicle",
+        &format!("serial:{node_end}:921600"),
+        "--method",
+        "dr",
+        "--team",
+        "1",
+    ]);
     node.args(["--idle-exit-s", "1.5"]);
     // The node first: it must be listening when the vehicle's first SIM_STATE goes out.
     let (node_child, node_out) = spawn_lines(node);
@@ -400,7 +420,17 @@ fn mavproxy_sees_the_vehicle_and_the_node_and_gets_its_command_acknowledged() {
         }
     }
     let mut node = bin();
-    node.args(["node", "--id", "2", "--vehicle", &format!("udpout:{vehicle}"), "--init-from-run", "1:0"]);
+    node.args([
+        "node",
+        "--scenario",
+        "sitl/scenarios/paper.toml",
+        "--id",
+        "2",
+        "--vehicle",
+        &format!("udpout:{vehicle}"),
+        "--init-from-run",
+        "1:0",
+    ]);
     let (node_child, node_out) = spawn_lines(node);
     children.0.push(node_child);
     let node_line = wait_line(&node_out, "node 2 coop udp ", Duration::from_secs(30));
@@ -498,7 +528,15 @@ fn lossy_links_and_a_restarted_node_do_not_break_the_team() {
     let net = LossyNet::new(ids.len(), 0.10, 7);
     let node_cmd = |k: usize, id: u16| {
         let mut node = bin();
-        node.args(["node", "--id", &id.to_string(), "--vehicle", &format!("udpout:{}", vehicle_addr[&id])]);
+        node.args([
+            "node",
+            "--scenario",
+            "sitl/scenarios/paper.toml",
+            "--id",
+            &id.to_string(),
+            "--vehicle",
+            &format!("udpout:{}", vehicle_addr[&id]),
+        ]);
         // The protocol's clocks scaled with the simulation (20x): 200 ms retries and a 4 s
         // timeout in vehicle time.
         node.args(["--method", "dcl", "--idle-exit-s", "1.5", "--retry-ms", "10", "--epoch-timeout-ms", "200"]);
@@ -582,7 +620,15 @@ fn a_frozen_node_wakes_up_and_catches_up() {
     let mut outs = Vec::new();
     for (k, &id) in ids.iter().enumerate() {
         let mut node = bin();
-        node.args(["node", "--id", &id.to_string(), "--vehicle", &format!("udpout:{}", vehicle_addr[&id])]);
+        node.args([
+            "node",
+            "--scenario",
+            "sitl/scenarios/paper.toml",
+            "--id",
+            &id.to_string(),
+            "--vehicle",
+            &format!("udpout:{}", vehicle_addr[&id]),
+        ]);
         node.args(["--method", "dcl", "--idle-exit-s", "1.0", "--retry-ms", "10", "--epoch-timeout-ms", "200"]);
         for j in (0..ids.len()).filter(|&j| j != k) {
             node.args(["--peer", &net.proxy(j)]);
@@ -642,7 +688,18 @@ fn a_node_keeps_its_signing_timestamp_across_restarts() {
     let state = dir.join("signing.state");
     let node = |state: &std::path::Path| {
         let mut node = bin();
-        node.args(["node", "--id", "2", "--vehicle", "udpout:127.0.0.1:9", "--init-from-run", "1:0", "--team-key"]);
+        node.args([
+            "node",
+            "--scenario",
+            "sitl/scenarios/paper.toml",
+            "--id",
+            "2",
+            "--vehicle",
+            "udpout:127.0.0.1:9",
+            "--init-from-run",
+            "1:0",
+            "--team-key",
+        ]);
         node.arg(&key).arg("--signing-state").arg(state);
         node
     };

@@ -28,7 +28,7 @@ GCS=$(grep "gcs coop udp " "$D/gcs.out" | awk '{print $NF}')
 PEERS=(--peer "$GCS")
 start_node() { # id, extra args...
   local i=$1; shift
-  "$BIN" node --id "$i" --vehicle "udpout:$(addr "$i")" --encoding compact "$@" "${PEERS[@]}" > "$D/node$i.out" 2> "$D/node$i.err" &
+  "$BIN" node --scenario sitl/scenarios/paper.toml --id "$i" --vehicle "udpout:$(addr "$i")" --encoding compact "$@" "${PEERS[@]}" > "$D/node$i.out" 2> "$D/node$i.err" &
   echo $! > "$D/node$i.pid"
   wait_for "$D/node$i.out" "coop udp"
 }

@@ -6,6 +6,14 @@
 //!   resent after [`ACK_TIMEOUT_US`] of wall time without an answer, given up after
 //!   [`MAX_TRIES`]. Each request ends accepted, refused (with the autopilot's MAV_RESULT) or
 //!   unanswered; the node navigates on whatever arrives in every case, and says which.
+//!   A message the autopilot refuses to pace by SET_MESSAGE_INTERVAL (ArduPilot answers DENIED
+//!   for WHEEL_DISTANCE: it has no message-interval entry for it) is asked for again the old
+//!   way, by REQUEST_DATA_STREAM for the stream group that carries it on ArduPilot
+//!   ([`ardupilot_stream_group`]); that request has no answer, so it is sent
+//!   [`MAX_TRIES`] times, and it paces every message of the group (said in the summary).
+//! - [`TimeSync`]: MAVLink TIMESYNC exchanges with the autopilot, which map its boot clock to the
+//!   companion's own clock (Unix time, kept by NTP or PTP): the team clock of a vehicle without
+//!   GNSS (see [`super::inputs`]).
 //! - [`OdometryOutput`]: ODOMETRY every `1 / odometry_rate_hz` of vehicle time (between epochs
 //!   too), stamped in the vehicle's clock; its `reset_counter` steps when the estimate jumps by
 //!   more than its motion and uncertainty explain (a large cooperative correction), so that the
@@ -15,7 +23,11 @@ use nalgebra::Vector3;
 
 use super::profile::{OdometerMessage, VehicleProfile};
 use crate::protocol::MavMessage;
-use crate::protocol::dialect::cooploc::{COMMAND_ACK_DATA, COMMAND_LONG_DATA, MavCmd, MavResult};
+// REQUEST_DATA_STREAM is deprecated in common.xml, and still the only way ArduPilot paces
+// some of its messages (WHEEL_DISTANCE).
+use crate::protocol::dialect::cooploc::{COMMAND_ACK_DATA, COMMAND_LONG_DATA, MavCmd, MavResult, TIMESYNC_DATA};
+#[allow(deprecated)]
+use crate::protocol::dialect::cooploc::{MavDataStream, REQUEST_DATA_STREAM_DATA};
 use crate::protocol::wire::{self, Navigation};
 use crate::time::TimeUs;
 
@@ -45,8 +57,23 @@ pub struct RateRequest {
     pub message_id: u32,
     pub rate_hz: f64,
     pub outcome: Option<RateOutcome>,
+    /// After a refusal: the ArduPilot stream group asked for by REQUEST_DATA_STREAM instead
+    /// (its name and MAV_DATA_STREAM id), and how many times it was sent.
+    pub stream_group: Option<(&'static str, u8, u32)>,
     tries: u32,
     sent_wall_us: Option<u64>,
+}
+
+/// The ArduPilot stream group (REQUEST_DATA_STREAM's MAV_DATA_STREAM id) that carries a
+/// message, for the messages a node reads (ArduPilot's GCS_Common.cpp stream tables:
+/// RAW_SENSORS holds RAW_IMU and SCALED_IMU2/3, EXTRA1 WHEEL_DISTANCE, EXTRA3 SYSTEM_TIME).
+pub fn ardupilot_stream_group(message_id: u32) -> Option<(&'static str, u8)> {
+    match message_id {
+        27 | 116 | 129 => Some(("RAW_SENSORS", 1)),
+        WHEEL_DISTANCE_ID => Some(("EXTRA1", 10)),
+        2 => Some(("EXTRA3", 12)),
+        _ => None,
+    }
 }
 
 /// The rate requests of a profile, one in flight at a time.
@@ -91,10 +118,14 @@ impl RateRequests {
         self.requests.iter_mut().find(|r| r.outcome.is_none())
     }
 
-    /// The command to send now, if any (the first unanswered request, when it is due).
+    /// The command to send now, if any (the first unanswered request, when it is due; then
+    /// the stream-group requests of the refused ones, [`MAX_TRIES`] times each,
+    /// [`ACK_TIMEOUT_US`] apart).
     pub fn poll(&mut self, wall_us: u64) -> Option<MavMessage> {
         let target_system = self.target_system;
-        let r = self.current()?;
+        let Some(r) = self.current() else {
+            return self.poll_stream_groups(wall_us);
+        };
         if let Some(sent) = r.sent_wall_us {
             if wall_us < sent + ACK_TIMEOUT_US {
                 return None;
@@ -122,6 +153,26 @@ impl RateRequests {
         }))
     }
 
+    /// REQUEST_DATA_STREAM for the next refused request with a stream group, when due.
+    #[allow(deprecated)]
+    fn poll_stream_groups(&mut self, wall_us: u64) -> Option<MavMessage> {
+        let target_system = self.target_system;
+        let r = self.requests.iter_mut().find(|r| r.stream_group.is_some_and(|(_, _, sent)| sent < MAX_TRIES))?;
+        if r.sent_wall_us.is_some_and(|sent| wall_us < sent + ACK_TIMEOUT_US) {
+            return None;
+        }
+        let (name, id, sent) = r.stream_group?;
+        r.stream_group = Some((name, id, sent + 1));
+        r.sent_wall_us = Some(wall_us);
+        Some(MavMessage::REQUEST_DATA_STREAM(REQUEST_DATA_STREAM_DATA {
+            req_message_rate: r.rate_hz.round().clamp(1.0, 50.0) as u16,
+            target_system,
+            target_component: 1,
+            req_stream_id: num_traits::FromPrimitive::from_u8(id).unwrap_or(MavDataStream::MAV_DATA_STREAM_ALL),
+            start_stop: 1,
+        }))
+    }
+
     /// Takes a COMMAND_ACK; returns the request it settled.
     pub fn on_ack(&mut self, ack: &COMMAND_ACK_DATA) -> Option<RateRequest> {
         if ack.command != MavCmd::MAV_CMD_SET_MESSAGE_INTERVAL {
@@ -132,7 +183,11 @@ impl RateRequests {
         match ack.result {
             MavResult::MAV_RESULT_IN_PROGRESS => return None,
             MavResult::MAV_RESULT_ACCEPTED => r.outcome = Some(RateOutcome::Accepted),
-            other => r.outcome = Some(RateOutcome::Refused(other)),
+            other => {
+                r.outcome = Some(RateOutcome::Refused(other));
+                r.stream_group = ardupilot_stream_group(r.message_id).map(|(name, id)| (name, id, 0));
+                r.sent_wall_us = None;
+            }
         }
         Some(r.clone())
     }
@@ -145,8 +200,111 @@ impl RateRequests {
 
 impl RateRequest {
     fn new(message: &'static str, message_id: u32, rate_hz: f64) -> Self {
-        RateRequest { message, message_id, rate_hz, outcome: None, tries: 0, sent_wall_us: None }
+        RateRequest { message, message_id, rate_hz, outcome: None, stream_group: None, tries: 0, sent_wall_us: None }
     }
+}
+
+/// TIMESYNC requests sent while no mapping is known, apart (wall time), us.
+pub const TIMESYNC_FAST_US: u64 = 200_000;
+/// TIMESYNC requests sent once a mapping is known, apart, us.
+pub const TIMESYNC_SLOW_US: u64 = 1_000_000;
+/// Answers kept: the mapping is the one of the answer with the shortest round trip among them.
+const TIMESYNC_WINDOW: usize = 16;
+/// An answer slower than this (round trip) is not used, us.
+pub const TIMESYNC_MAX_RTT_US: i64 = 500_000;
+/// Requests remembered (an answer must echo one of them).
+const TIMESYNC_SENT_KEPT: usize = 32;
+
+/// The companion's clock against the autopilot's boot clock by MAVLink TIMESYNC (sans-io: the
+/// caller passes its clock's Unix time, ns).
+///
+/// A request carries `ts1` = the companion's time of sending, `tc1` = 0; ArduPilot and PX4
+/// answer with `tc1` = their boot time (ns) when the request arrived and `ts1` echoed. If the
+/// answer comes back at companion time `t4`, the autopilot's instant `tc1` is taken as the
+/// middle of the round trip: offset = (ts1 + t4) / 2 - tc1 (companion time minus boot time),
+/// wrong by at most half the round trip (by half the difference of the two ways' delays). Of
+/// the last [`TIMESYNC_WINDOW`] answers the one with the shortest round trip gives the
+/// mapping (the least delayed by queues); the window follows the two clocks' drift.
+#[derive(Debug, Clone, Default)]
+pub struct TimeSync {
+    next_due_wall_us: u64,
+    sent: std::collections::VecDeque<i64>,
+    /// (round trip, offset), ns, newest last.
+    answers: std::collections::VecDeque<(i64, i64)>,
+    /// Answers that echo no request of ours, or are too slow or implausible.
+    pub refused: u64,
+    pub requests: u64,
+}
+
+impl TimeSync {
+    /// A request to send now, if due (`wall_us`: the node's monotonic clock, `unix_ns`: the
+    /// companion's clock).
+    pub fn poll(&mut self, wall_us: u64, unix_ns: i64, target_system: u8) -> Option<MavMessage> {
+        if wall_us < self.next_due_wall_us {
+            return None;
+        }
+        let interval = if self.answers.is_empty() { TIMESYNC_FAST_US } else { TIMESYNC_SLOW_US };
+        self.next_due_wall_us = wall_us + interval;
+        self.sent.push_back(unix_ns);
+        if self.sent.len() > TIMESYNC_SENT_KEPT {
+            self.sent.pop_front();
+        }
+        self.requests += 1;
+        Some(MavMessage::TIMESYNC(TIMESYNC_DATA { tc1: 0, ts1: unix_ns, target_system, target_component: 1 }))
+    }
+
+    /// Takes a TIMESYNC from the autopilot, received at companion time `unix_ns`: an answer to
+    /// one of our requests gives a sample; a request of the autopilot's (`tc1` 0) gets the
+    /// answer returned (our time now, its `ts1` echoed).
+    pub fn on_message(&mut self, m: &TIMESYNC_DATA, unix_ns: i64, source: (u8, u8)) -> TimesyncReply {
+        if m.tc1 == 0 {
+            return TimesyncReply::Answer(TIMESYNC_DATA {
+                tc1: unix_ns,
+                ts1: m.ts1,
+                target_system: source.0,
+                target_component: source.1,
+            });
+        }
+        let Some(at) = self.sent.iter().position(|&ts| ts == m.ts1) else {
+            self.refused += 1;
+            return TimesyncReply::Nothing;
+        };
+        self.sent.remove(at);
+        let rtt = unix_ns - m.ts1;
+        if !(0..=TIMESYNC_MAX_RTT_US * 1000).contains(&rtt) || m.tc1 < 0 {
+            self.refused += 1;
+            return TimesyncReply::Nothing;
+        }
+        let offset = m.ts1 + rtt / 2 - m.tc1;
+        self.answers.push_back((rtt, offset));
+        if self.answers.len() > TIMESYNC_WINDOW {
+            self.answers.pop_front();
+        }
+        TimesyncReply::Sample
+    }
+
+    /// The mapping (companion time minus boot time, us) and its round trip (us): the answer of
+    /// the shortest round trip in the window.
+    pub fn offset_us(&self) -> Option<(i64, i64)> {
+        self.answers.iter().min_by_key(|(rtt, _)| *rtt).map(|&(rtt, offset)| (offset.div_euclid(1000), rtt / 1000))
+    }
+
+    /// Forgets every answer (the autopilot rebooted: its boot clock started again).
+    pub fn reset(&mut self) {
+        self.answers.clear();
+        self.sent.clear();
+        self.next_due_wall_us = 0;
+    }
+}
+
+/// What a TIMESYNC from the autopilot asks of the node.
+#[derive(Debug, Clone, PartialEq)]
+pub enum TimesyncReply {
+    /// A new sample of the mapping ([`TimeSync::offset_us`]).
+    Sample,
+    /// The autopilot's own request: send this answer (as a TIMESYNC).
+    Answer(TIMESYNC_DATA),
+    Nothing,
 }
 
 /// ODOMETRY to the autopilot at a steady vehicle-time rate (see the module documentation).
@@ -277,6 +435,90 @@ mod tests {
         }
         assert_eq!(sent, 2 * MAX_TRIES, "three tries for each of the two");
         assert!(r.requests.iter().all(|q| q.outcome == Some(RateOutcome::Unanswered)));
+    }
+
+    /// ArduPilot refuses SET_MESSAGE_INTERVAL for WHEEL_DISTANCE (DENIED, as its SITL does): the
+    /// node asks for the stream group that carries it (EXTRA1), three times a second apart, as
+    /// REQUEST_DATA_STREAM has no answer.
+    #[test]
+    #[allow(deprecated)]
+    fn a_refused_wheel_distance_is_asked_for_by_its_stream_group() {
+        let mut p = VehicleProfile::from_toml_str(
+            &std::fs::read_to_string(concat!(env!("CARGO_MANIFEST_DIR"), "/sitl/vehicles/ardupilot-rover.toml")).unwrap(),
+        )
+        .unwrap();
+        p.inputs.request_rates = true;
+        let mut r = RateRequests::new(&p, 2);
+        let Some(MavMessage::COMMAND_LONG(c)) = r.poll(0) else { panic!() };
+        assert_eq!(c.param1, 27.0);
+        r.on_ack(&ack(MavResult::MAV_RESULT_ACCEPTED));
+        let Some(MavMessage::COMMAND_LONG(c)) = r.poll(10) else { panic!() };
+        assert_eq!(c.param1, 9000.0);
+        let settled = r.on_ack(&ack(MavResult::MAV_RESULT_DENIED)).unwrap();
+        assert_eq!(settled.stream_group, Some(("EXTRA1", 10, 0)));
+        let mut sent = Vec::new();
+        for k in 0..50u64 {
+            if let Some(m) = r.poll(20 + k * 100_000) {
+                sent.push((k, m));
+            }
+        }
+        assert_eq!(sent.len() as u32, MAX_TRIES, "{sent:?}");
+        assert_eq!(sent.iter().map(|(k, _)| *k).collect::<Vec<_>>(), [0, 10, 20]);
+        let MavMessage::REQUEST_DATA_STREAM(q) = &sent[0].1 else { panic!("{:?}", sent[0]) };
+        assert_eq!(
+            (q.req_stream_id as u8, q.req_message_rate, q.start_stop, q.target_system, q.target_component),
+            (10, 20, 1, 2, 1)
+        );
+        assert_eq!(r.requests[1].stream_group, Some(("EXTRA1", 10, MAX_TRIES)));
+        // a message without a stream group (PX4's HIGHRES_IMU) is only refused
+        assert_eq!(ardupilot_stream_group(105), None);
+        assert_eq!(ardupilot_stream_group(27), Some(("RAW_SENSORS", 1)));
+    }
+
+    fn timesync_answer(ts1: i64, tc1: i64) -> TIMESYNC_DATA {
+        TIMESYNC_DATA { tc1, ts1, target_system: 1, target_component: 191 }
+    }
+
+    /// The mapping is the middle of the round trip of the quickest answer in the window; foreign,
+    /// late and negative answers are refused; the autopilot's own requests are answered.
+    #[test]
+    fn timesync_maps_the_boot_clock_by_the_quickest_answer() {
+        let mut ts = TimeSync::default();
+        let unix = 1_795_000_000_000_000_000i64; // ns
+        let boot_at = |u: i64| u - unix + 42_000_000_000; // the autopilot booted 42 s before `unix`
+        // first request at once, the next 200 ms later while nothing is known
+        let Some(MavMessage::TIMESYNC(q)) = ts.poll(0, unix, 1) else { panic!() };
+        assert_eq!((q.tc1, q.ts1, q.target_system, q.target_component), (0, unix, 1, 1));
+        assert_eq!(ts.poll(100_000, unix + 100_000_000, 1), None);
+        // an answer after 2 ms whose way out took 1.5 ms: the autopilot stamped it at unix + 1.5 ms
+        assert_eq!(
+            ts.on_message(&timesync_answer(unix, boot_at(unix + 1_500_000)), unix + 2_000_000, (1, 1)),
+            TimesyncReply::Sample
+        );
+        let (offset, rtt) = ts.offset_us().unwrap();
+        assert_eq!(rtt, 2_000);
+        // wrong by half the difference of the two ways (0.5 ms)
+        assert_eq!(offset, (unix - 42_000_000_000) / 1000 - 500);
+        // a quicker one (0.2 ms, symmetric) wins; a slower one later does not
+        let Some(MavMessage::TIMESYNC(q)) = ts.poll(200_000, unix + 200_000_000, 1) else { panic!() };
+        ts.on_message(&timesync_answer(q.ts1, boot_at(q.ts1 + 100_000)), q.ts1 + 200_000, (1, 1));
+        let Some(MavMessage::TIMESYNC(q)) = ts.poll(1_200_000, unix + 1_200_000_000, 1) else { panic!() };
+        ts.on_message(&timesync_answer(q.ts1, boot_at(q.ts1 + 4_000_000)), q.ts1 + 9_000_000, (1, 1));
+        assert_eq!(ts.offset_us().unwrap(), ((unix - 42_000_000_000) / 1000, 200));
+        // not ours, answered twice, too slow, negative: refused
+        assert_eq!(ts.on_message(&timesync_answer(unix + 5, 77), unix + 10, (1, 1)), TimesyncReply::Nothing);
+        assert_eq!(ts.on_message(&timesync_answer(q.ts1, 1), q.ts1 + 10, (1, 1)), TimesyncReply::Nothing);
+        let Some(MavMessage::TIMESYNC(q)) = ts.poll(2_200_000, unix + 2_200_000_000, 1) else { panic!() };
+        assert_eq!(ts.on_message(&timesync_answer(q.ts1, 5), q.ts1 + 900_000_000, (1, 1)), TimesyncReply::Nothing);
+        let Some(MavMessage::TIMESYNC(q)) = ts.poll(3_200_000, unix + 3_200_000_000, 1) else { panic!() };
+        assert_eq!(ts.on_message(&timesync_answer(q.ts1, -5), q.ts1 + 1000, (1, 1)), TimesyncReply::Nothing);
+        assert_eq!(ts.refused, 4);
+        // the autopilot's own request gets our time, its ts1 echoed, addressed to it
+        let TimesyncReply::Answer(a) = ts.on_message(&timesync_answer(99, 0), unix + 7, (1, 1)) else { panic!() };
+        assert_eq!((a.tc1, a.ts1, a.target_system, a.target_component), (unix + 7, 99, 1, 1));
+        // a reboot forgets every answer
+        ts.reset();
+        assert_eq!(ts.offset_us(), None);
     }
 
     fn nav(t: u64, n: f64) -> Navigation {

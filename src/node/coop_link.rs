@@ -110,9 +110,11 @@ impl StreamFramer {
             let Some(len) = crate::protocol::framing::frame_len(&self.buf[at..]) else {
                 break; // not all there yet
             };
-            let frame = &self.buf[at..at + len];
-            if crate::protocol::wire::from_any_frame(frame).is_ok() {
-                out.extend_from_slice(frame);
+            // A frame of the dialect that decodes, or one of another dialect taken by its
+            // length (an autopilot's own messages: see `protocol::framing`).
+            let whole = crate::protocol::framing::frame_at_start(&self.buf[at..]).is_some_and(|f| !f.known || f.message.is_ok());
+            if whole {
+                out.extend_from_slice(&self.buf[at..at + len]);
                 at += len;
             } else {
                 self.skipped += 1;

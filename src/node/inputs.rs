@@ -24,11 +24,18 @@
 //!   [`MAX_GYRO_WAIT_US`] of wheel time for the gyro samples that cover it, then takes the
 //!   wheels' own; an autopilot reboot drops what was waiting).
 //! - **Time**: `time_boot_ms` (u32 milliseconds, wrapping after 49.7 days: unwrapped),
-//!   `time_usec` since boot, and `time_usec` in Unix time (from 2001 on) alike. With
-//!   `clock = "unix"`, stamps since boot are mapped to Unix time by the vehicle's SYSTEM_TIME
-//!   (until the first one, inputs are held, up to 10 s of them); a boot clock that goes back more
-//!   than a second (three stamps in a row) is an autopilot reboot, and the mapping is taken again from the next
-//!   SYSTEM_TIME. [`VehicleInputs::to_vehicle_time`] maps back, for what the node sends.
+//!   `time_usec` since boot, and `time_usec` in Unix time (from 2001 on) alike. With a mapped
+//!   team clock, stamps since boot are mapped to the team's Unix time: by the vehicle's
+//!   SYSTEM_TIME (`clock = "unix"`; an autopilot without GNSS sends `time_unix_usec` 0 and gives
+//!   no mapping), by the companion's clock through TIMESYNC ([`VehicleInputs::set_companion_offset`],
+//!   measured by the runner, `clock = "companion"`), or by the first of the two that the
+//!   autopilot supports (`clock = "auto"`: TIMESYNC, else SYSTEM_TIME after
+//!   [`AUTO_CLOCK_WAIT_US`]). Until a mapping is known inputs are held, up to 10 s of them; a
+//!   boot clock that goes back more than a second (three stamps in a row) is an autopilot
+//!   reboot, and the mapping is taken again. With `epoch_grid_ms`, the vehicle's ranges are put
+//!   on the nearest grid instant of the team's clock (two nodes' mappings differ a little; the
+//!   grid makes them name an epoch by the same instant). [`VehicleInputs::to_vehicle_time`]
+//!   maps back, for what the node sends.
 //! - **Origin**: GPS_GLOBAL_ORIGIN, else HOME_POSITION, when the profile gives none.
 
 use nalgebra::Vector3;
@@ -51,8 +58,23 @@ pub const MAX_TRAPEZOID_GAP_US: u64 = 100_000;
 /// reboot (less: a late or reordered frame).
 const REBOOT_BACKSTEP_US: u64 = 1_000_000;
 const REBOOT_CONFIRMATIONS: u32 = 3;
-/// Inputs stamped since boot are held this long (vehicle time) for a SYSTEM_TIME to map them.
+/// Inputs stamped since boot are held this long (vehicle time) for a mapping to the team clock.
 pub const MAX_HELD_US: u64 = 10_000_000;
+/// With `clock = "auto"`, held inputs spanning this long (vehicle time) without a TIMESYNC
+/// answer take SYSTEM_TIME's Unix time, when the autopilot has it.
+pub const AUTO_CLOCK_WAIT_US: u64 = 3_000_000;
+/// Two mappings of the boot clock further apart than this disagree (counted).
+const CLOCK_DISAGREEMENT_US: i64 = 50_000;
+
+/// Where the mapping from the vehicle's boot clock to the team's clock came from.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum ClockSource {
+    /// The autopilot's SYSTEM_TIME (its Unix time, from GNSS).
+    SystemTime,
+    /// The companion's clock, through TIMESYNC.
+    Timesync,
+}
 /// Fastest a land vehicle's wheel turns, m/s (a faster change of a wheel's distance is a reset).
 const MAX_WHEEL_SPEED_M_S: f64 = 60.0;
 /// WHEEL_DISTANCE messages further apart than this give no speed (the interval restarts).
@@ -101,11 +123,19 @@ pub struct InputCounters {
     pub reboots: u64,
     /// Stamps more than a second behind the boot clock, not (yet) a reboot: dropped.
     pub stale_stamps: u64,
-    /// Inputs dropped because no SYSTEM_TIME gave the team clock within [`MAX_HELD_US`] (they
-    /// are held until then).
+    /// Inputs dropped because no mapping gave the team clock within [`MAX_HELD_US`] (they are
+    /// held until then).
     pub waiting_for_clock: u64,
-    /// SYSTEM_TIME messages whose mapping disagrees with the one in use by more than 50 ms.
+    /// SYSTEM_TIME messages whose mapping disagrees with the one in use by more than 50 ms
+    /// (with the companion's clock in use: the companion's clock and the autopilot's GNSS
+    /// time disagree; is the companion's clock synchronised?).
     pub clock_disagreements: u64,
+    /// SYSTEM_TIME messages without Unix time (`time_unix_usec` 0: an autopilot that never had
+    /// GNSS).
+    pub system_time_without_unix: u64,
+    /// Range stamps moved to the epoch grid by more than a quarter of it (mappings that do
+    /// not agree well enough for the grid).
+    pub ranges_off_grid: u64,
     /// A planar robot's wheel intervals the yaw-rate gyro did not cover within
     /// [`MAX_GYRO_WAIT_US`]: the wheels' own yaw rate taken (two wheels), or the sample dropped.
     pub gyro_missing: u64,
@@ -132,8 +162,12 @@ pub struct VehicleInputs {
     backsteps: u32,
     /// Inputs stamped since boot waiting for the team clock (vehicle time, in order).
     held: Vec<VehicleEvent>,
-    /// Unix time minus boot time, us, from SYSTEM_TIME.
+    /// Team time minus boot time, us: the mapping in use.
     unix_offset_us: Option<i64>,
+    /// Where the mapping in use came from.
+    clock_source: Option<ClockSource>,
+    /// The mapping SYSTEM_TIME gives (Unix time minus boot time, us), when it has Unix time.
+    system_time_offset_us: Option<i64>,
     /// The previous IMU sample (instantaneous reading), team time.
     prev_imu: Option<(TimeUs, Vector3<f64>, Vector3<f64>)>,
     /// Established IMU interval (us) and the intervals since it last changed.
@@ -167,6 +201,8 @@ impl VehicleInputs {
             backsteps: 0,
             held: Vec::new(),
             unix_offset_us: None,
+            clock_source: None,
+            system_time_offset_us: None,
             prev_imu: None,
             imu_interval: None,
             recent_intervals: Vec::new(),
@@ -204,20 +240,39 @@ impl VehicleInputs {
         for event in events {
             match event {
                 VehicleEvent::Nothing => {}
-                e if self.cfg.clock == TeamClock::Unix && event_time(&e).is_some_and(|t| t.0 < UNIX_TIME_FROM_US) => {
+                e if self.cfg.clock != TeamClock::Vehicle && event_time(&e).is_some_and(|t| t.0 < UNIX_TIME_FROM_US) => {
                     match self.unix_offset_us {
                         Some(o) => out.extend(map_event(e, o)),
-                        None => self.hold(e),
+                        None => {
+                            self.hold(e);
+                            if let Some(o) = self.unix_offset_us {
+                                // the wait for TIMESYNC is over: SYSTEM_TIME maps what was held
+                                out.extend(self.held.drain(..).filter_map(|e| map_event(e, o)));
+                            }
+                        }
                     }
                 }
                 e => out.push(e),
             }
         }
+        if self.cfg.epoch_grid_ms > 0 {
+            let grid = u64::from(self.cfg.epoch_grid_ms) * 1000;
+            for e in &mut out {
+                if let VehicleEvent::Input(NodeInput::OwnRange { range, .. }) = e {
+                    let snapped = (range.t.0 + grid / 2) / grid * grid;
+                    if snapped.abs_diff(range.t.0) > grid / 4 {
+                        self.counters.ranges_off_grid += 1;
+                    }
+                    range.t = TimeUs(snapped);
+                }
+            }
+        }
         out
     }
 
-    /// Holds an input stamped since boot until SYSTEM_TIME says what Unix time that is (at
-    /// most [`MAX_HELD_US`] of them: older ones are dropped and counted).
+    /// Holds an input stamped since boot until a mapping says what team time that is (at most
+    /// [`MAX_HELD_US`] of them: older ones are dropped and counted). With `clock = "auto"`, a
+    /// wait of [`AUTO_CLOCK_WAIT_US`] without TIMESYNC takes SYSTEM_TIME's mapping, if any.
     fn hold(&mut self, e: VehicleEvent) {
         let newest = event_time(&e).map_or(0, |t| t.0);
         self.held.push(e);
@@ -225,6 +280,39 @@ impl VehicleInputs {
             self.held.remove(0);
             self.counters.waiting_for_clock += 1;
         }
+        let waited = self.held.first().and_then(event_time).is_some_and(|t| t.0 + AUTO_CLOCK_WAIT_US <= newest);
+        if self.cfg.clock == TeamClock::Auto
+            && waited
+            && let Some(o) = self.system_time_offset_us
+        {
+            self.unix_offset_us = Some(o);
+            self.clock_source = Some(ClockSource::SystemTime);
+        }
+    }
+
+    /// The companion's clock minus the vehicle's boot clock, us, as TIMESYNC measured it (the
+    /// runner's [`super::autopilot::TimeSync`]): the mapping with `clock = "companion"` or
+    /// `"auto"` (ignored with the other clocks). A later call replaces it (the two crystals
+    /// drift apart by tens of microseconds a second); inputs held for a mapping go out with the
+    /// next message.
+    pub fn set_companion_offset(&mut self, offset_us: i64) {
+        if !matches!(self.cfg.clock, TeamClock::Companion | TeamClock::Auto) || self.clock_source == Some(ClockSource::SystemTime)
+        {
+            return;
+        }
+        self.unix_offset_us = Some(offset_us);
+        self.clock_source = Some(ClockSource::Timesync);
+    }
+
+    /// Where the mapping to the team's clock in use came from (None: none yet, or the team
+    /// clock is the vehicles' own).
+    pub fn clock_source(&self) -> Option<ClockSource> {
+        self.clock_source
+    }
+
+    /// Team time minus the vehicle's boot time, us, in use.
+    pub fn clock_offset_us(&self) -> Option<i64> {
+        self.unix_offset_us
     }
 
     /// [`Self::decode`] in the vehicle's own clock.
@@ -515,17 +603,22 @@ impl VehicleInputs {
 
     fn system_time(&mut self, unix_us: u64, boot_ms: u32) {
         if unix_us < UNIX_TIME_FROM_US {
-            return; // the autopilot has no Unix time yet
+            self.counters.system_time_without_unix += 1;
+            return; // the autopilot has no Unix time (no GNSS fix yet, or never)
         }
         let boot_us = self.unwrap_boot_ms(boot_ms);
         if !self.note_boot(boot_us) {
             return;
         }
         let offset = unix_us as i64 - boot_us as i64;
+        self.system_time_offset_us = Some(offset);
         match self.unix_offset_us {
-            None => self.unix_offset_us = Some(offset),
-            Some(o) if (o - offset).abs() > 50_000 => self.counters.clock_disagreements += 1,
-            Some(_) => {}
+            None if self.cfg.clock == TeamClock::Unix => {
+                self.unix_offset_us = Some(offset);
+                self.clock_source = Some(ClockSource::SystemTime);
+            }
+            Some(o) if (o - offset).abs() > CLOCK_DISAGREEMENT_US => self.counters.clock_disagreements += 1,
+            _ => {}
         }
     }
 
@@ -582,6 +675,8 @@ impl VehicleInputs {
             self.backsteps = 0;
             self.counters.reboots += 1;
             self.unix_offset_us = None;
+            self.clock_source = None;
+            self.system_time_offset_us = None;
             // held inputs of the boot before never get a Unix time
             self.counters.waiting_for_clock += self.held.len() as u64;
             self.held.clear();
@@ -609,8 +704,8 @@ impl VehicleInputs {
     /// clock is Unix time and the mapping is known), for what the node sends to the autopilot.
     pub fn to_vehicle_time(&self, t: TimeUs) -> u64 {
         match (self.cfg.clock, self.unix_offset_us) {
-            (TeamClock::Unix, Some(o)) => u64::try_from(t.0 as i64 - o).unwrap_or(0),
-            _ => t.0,
+            (TeamClock::Vehicle, _) | (_, None) => t.0,
+            (_, Some(o)) => u64::try_from(t.0 as i64 - o).unwrap_or(0),
         }
     }
 }

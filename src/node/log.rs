@@ -45,6 +45,13 @@ pub enum NodeEvent {
         #[serde(default, skip_serializing_if = "Option::is_none")]
         origin: Option<[f64; 3]>,
     },
+    /// TIMESYNC gave a new mapping of the vehicle's boot clock to the companion's clock
+    /// (companion time minus boot time, us, and the round trip of the answer it came from):
+    /// the decoder took it from here on.
+    Clock {
+        offset_us: i64,
+        rtt_us: i64,
+    },
 }
 
 /// Name of the attachment holding node `id`'s vehicle profile in a log.
@@ -59,7 +66,7 @@ pub fn metadata_name(id: PlatformId) -> String {
 
 /// What a log must hold to rebuild node `cfg`'s core (`cooploc replay`): the configuration and
 /// how it started (the INS settings come from the scenario, attached to the log).
-pub fn node_metadata(cfg: &NodeConfig, init: Option<(TimeUs, &InsState)>) -> std::collections::BTreeMap<String, String> {
+pub fn node_metadata(cfg: &NodeConfig, init: Option<(Option<TimeUs>, &InsState)>) -> std::collections::BTreeMap<String, String> {
     let mut m = std::collections::BTreeMap::new();
     m.insert("id".into(), cfg.id.to_string());
     m.insert("method".into(), cfg.method.short_name().into());
@@ -78,7 +85,10 @@ pub fn node_metadata(cfg: &NodeConfig, init: Option<(TimeUs, &InsState)>) -> std
     match init {
         Some((t0, state)) => {
             m.insert("init".into(), "state".into());
-            m.insert("t0_us".into(), t0.0.to_string());
+            // without a time, the state is taken at the first IMU or wheel sample (the Init event's)
+            if let Some(t0) = t0 {
+                m.insert("t0_us".into(), t0.0.to_string());
+            }
             m.insert("initial_state".into(), serde_json::to_string(state).unwrap_or_default());
         }
         None => {

@@ -26,7 +26,10 @@
 //!   `wheel_distance` for cumulative wheel distances with `wheels` and `wheel_track_m`, or
 //!   `none`), the team clock (`clock`: `vehicle` when the vehicles' time stamps already share a
 //!   clock, `unix` when they count from each autopilot's boot and SYSTEM_TIME maps them to Unix
-//!   time), and whether to ask for the rates (`request_rates`).
+//!   time, `companion` for the companion computer's clock mapped to the autopilot's boot clock
+//!   by TIMESYNC, `auto` for the companion's clock when the autopilot answers TIMESYNC and
+//!   SYSTEM_TIME's otherwise), the grid of the ranging epochs' instants (`epoch_grid_ms`), and
+//!   whether to ask for the rates (`request_rates`).
 //! - `[output]`: what the node sends back to the autopilot: ODOMETRY at `odometry_rate_hz`
 //!   (0: none), LOCAL_POSITION_NED after every cooperative update (`local_position_ned`), and
 //!   GPS_INPUT at `gps_input_rate_hz` (0, the default: none; ArduPilot's path for an absolute
@@ -208,8 +211,17 @@ pub enum TeamClock {
     Vehicle,
     /// Each autopilot counts from its own boot; the node maps its stamps to Unix time with the
     /// vehicle's SYSTEM_TIME (time_unix_usec against time_boot_ms). Stamps already in Unix time
-    /// are used as they are.
+    /// are used as they are. An autopilot has Unix time only from a GNSS fix (or a ground
+    /// station that set it): ArduPilot without GNSS sends `time_unix_usec` 0 for ever.
     Unix,
+    /// The companion computer's own clock (Unix time, kept by NTP or PTP; see the README on
+    /// time without GNSS), mapped to the autopilot's boot clock with MAVLink TIMESYNC
+    /// exchanges (ArduPilot and PX4 answer them with their boot time in ns): needs no GNSS.
+    Companion,
+    /// The companion's clock when the autopilot answers TIMESYNC, else SYSTEM_TIME's Unix time
+    /// once [`crate::node::inputs::AUTO_CLOCK_WAIT_US`] of vehicle time has passed without an
+    /// answer; the choice is said in the log.
+    Auto,
 }
 
 /// Where the node's inputs come from.
@@ -236,6 +248,14 @@ pub struct Inputs {
     pub wheel_track_m: Option<f64>,
     #[serde(default = "default_clock")]
     pub clock: TeamClock,
+    /// Grid of the ranging epochs' instants in the team's clock, ms (0: none). With a clock
+    /// mapped from another one (`unix`, `companion`, `auto`) two nodes map the same instant a
+    /// little apart (a TIMESYNC mapping is good to a fraction of the link's round trip); the
+    /// ranges the vehicle reports are put on the nearest grid instant, so that every node
+    /// names an epoch by the same instant as long as the mappings agree to half the grid. The
+    /// team's ranging schedule must be on the grid (a 1 Hz schedule on whole seconds is).
+    #[serde(default)]
+    pub epoch_grid_ms: u32,
     /// Ask the autopilot for the IMU and odometer rates of `[sensors]` (SET_MESSAGE_INTERVAL).
     #[serde(default = "yes")]
     pub request_rates: bool,
@@ -291,6 +311,7 @@ impl Default for Inputs {
             wheels: default_wheels(),
             wheel_track_m: None,
             clock: default_clock(),
+            epoch_grid_ms: 0,
             request_rates: true,
             yaw_rate: YawRateSource::Wheels,
         }
@@ -623,6 +644,15 @@ impl VehicleProfile {
             if i.wheels.len() == 2 && i.wheels[0] == i.wheels[1] {
                 return Err(invalid("inputs.wheels", "the left and the right wheel must differ"));
             }
+        }
+        if i.epoch_grid_ms > 10_000 {
+            return Err(invalid("inputs.epoch_grid_ms", format!("0 (none) up to 10000 ms, got {}", i.epoch_grid_ms)));
+        }
+        if i.epoch_grid_ms > 0 && i.clock == TeamClock::Vehicle {
+            return Err(invalid(
+                "inputs.epoch_grid_ms",
+                "only with a mapped team clock (unix, companion, auto): vehicle time stamps are shared as they are",
+            ));
         }
         if let Some(track) = i.wheel_track_m {
             positive("inputs.wheel_track_m", track)?;

@@ -25,11 +25,12 @@ use std::net::SocketAddr;
 use std::sync::Arc;
 use std::time::Duration;
 
-use super::autopilot::{GpsInputOutput, OdometryOutput, RateOutcome, RateRequest, RateRequests};
+use super::autopilot::{GpsInputOutput, OdometryOutput, RateOutcome, RateRequest, RateRequests, TimeSync, TimesyncReply};
 use super::coop_link::{CoopLink, CoopSpec, Source};
 use super::core::{NodeConfig, NodeCore, NodeInput, NodeOutput, NodeStats};
-use super::inputs::{InputCounters, VehicleEvent, VehicleInputs};
+use super::inputs::{ClockSource, InputCounters, VehicleEvent, VehicleInputs};
 use super::peers::{Heard, PeerCounters, PeerTable};
+use super::profile::TeamClock;
 use super::profile::VehicleProfile;
 use super::vehicle_link::{Received, VehicleLink};
 use crate::estimation::PlatformId;
@@ -76,8 +77,10 @@ pub enum NodeInit {
     /// HOME_POSITION) gives it, and its latitude goes into the INS configuration. `state` None:
     /// the first SIM_STATE the vehicle sends after the origin is known (simulated vehicles): its
     /// position about the origin, NED velocity and attitude, at the time of the last IMU sample
-    /// before it.
-    Pending { config: Box<NodeConfig>, origin: Option<wire::GeoOrigin>, state: Option<(TimeUs, InsState)> },
+    /// before it, once the team clock maps the vehicle's stamps. A state without a time is
+    /// taken at the last IMU (or wheel) sample before the origin and the team clock are known
+    /// (a real vehicle started where its configuration says).
+    Pending { config: Box<NodeConfig>, origin: Option<wire::GeoOrigin>, state: Option<(Option<TimeUs>, InsState)> },
 }
 
 /// Where the node connects.
@@ -139,7 +142,11 @@ pub struct NodeSummary {
     /// Time and position of the initialisation from SIM_STATE, when it happened.
     pub sim_state_init: Option<(TimeUs, nalgebra::Vector3<f64>)>,
     pub vehicle_frames: u64,
+    /// Vehicle frames from another system id (another vehicle, a ground station), not used.
     pub vehicle_rejected: u64,
+    /// Vehicle frames of messages outside the dialect (the autopilot's own dialect), skipped by
+    /// their length.
+    pub vehicle_other_dialect: u64,
     /// Vehicle frames lost on the link, from gaps in the vehicle's MAVLink sequence numbers.
     pub vehicle_lost: u64,
     pub coop_frames: u64,
@@ -169,7 +176,21 @@ pub struct NodeSummary {
     pub gps_input_sent: u64,
     /// The origin the vehicle gave, when the profile had none.
     pub origin_from_vehicle: Option<wire::GeoOrigin>,
+    /// Where the team clock's mapping came from, the mapping (team time minus the vehicle's
+    /// boot time, us) and, through TIMESYNC, the round trip of the answer it came from (us).
+    pub clock: Option<(ClockSource, i64, Option<i64>)>,
+    /// TIMESYNC requests sent and answers refused (not ours, too slow).
+    pub timesync_requests: u64,
+    pub timesync_refused: u64,
 }
+
+/// The companion's clock, Unix time in ns (the team clock of `clock = "companion"`).
+fn unix_now_ns() -> i64 {
+    std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).map_or(0, |d| d.as_nanos() as i64)
+}
+
+/// A new TIMESYNC mapping replaces the one in use when they differ by more than this, us.
+const CLOCK_UPDATE_US: i64 = 200;
 
 /// What the node put on the cooperative network.
 #[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
@@ -335,6 +356,7 @@ pub async fn run(
     let mut before_init = 0u64;
     let mut sim_state_init = None;
     let (mut last_vehicle_seq, mut vehicle_lost): (Option<u8>, u64) = (None, 0);
+    let mut vehicle_other_dialect = 0u64;
     let clock = std::time::Instant::now();
     let wall_us = move || clock.elapsed().as_micros() as u64;
     let mut vehicle = VehicleLink::open(&links.vehicle).await?;
@@ -356,6 +378,12 @@ pub async fn run(
     let mut gps_input = GpsInputOutput::new(links.profile.output.gps_input_rate_hz, links.profile.geo_origin());
     let profile_origin = links.profile.geo_origin();
     let mut vehicle_origin_checked = false;
+    // The team clock through TIMESYNC (clock = "companion" or "auto").
+    let timesync_wanted = matches!(links.profile.inputs.clock, TeamClock::Companion | TeamClock::Auto);
+    let mut timesync = TimeSync::default();
+    let mut clock_said: Option<ClockSource> = None;
+    let mut clock_rtt_us: Option<i64> = None;
+    let mut reboots_seen = 0u64;
 
     // The vehicle link is read on its own task (a serial or TCP read has no timeout).
     let (vtx, mut vrx) = tokio::sync::mpsc::channel::<Received>(4096);
@@ -434,6 +462,9 @@ pub async fn run(
                 if heard_vehicle && let Some(cmd) = rates.poll(wall_us()) {
                     to_vehicle(&vehicle, &mut seqs, &recorder, sysid, &cmd).await;
                 }
+                if heard_vehicle && timesync_wanted && let Some(req) = timesync.poll(wall_us(), unix_now_ns(), sysid) {
+                    to_vehicle(&vehicle, &mut seqs, &recorder, sysid, &req).await;
+                }
                 if let Some(core) = core.as_mut() {
                     let now = wall_us();
                     record_event(&recorder, id, &NodeEvent::Poll { wall_us: now });
@@ -485,13 +516,37 @@ pub async fn run(
                         Some(_) => vehicle_lost = vehicle_lost.saturating_sub(1),
                     }
                 }
+                // A message of the autopilot's own dialect: its sequence number counted above,
+                // nothing for the node in it.
+                let Some(msg) = msg else {
+                    vehicle_other_dialect += 1;
+                    continue;
+                };
+                if let MavMessage::TIMESYNC(m) = &msg {
+                    match timesync.on_message(m, unix_now_ns(), (header.system_id as u8, header.component_id)) {
+                        TimesyncReply::Answer(answer) => to_vehicle(&vehicle, &mut seqs, &recorder, sysid, &MavMessage::TIMESYNC(answer)).await,
+                        TimesyncReply::Sample if timesync_wanted => {
+                            if let Some((offset_us, rtt_us)) = timesync.offset_us()
+                                && decoder.clock_offset_us().is_none_or(|o| (o - offset_us).abs() > CLOCK_UPDATE_US)
+                                && decoder.clock_source() != Some(ClockSource::SystemTime)
+                            {
+                                record_event(&recorder, id, &NodeEvent::Clock { offset_us, rtt_us });
+                                decoder.set_companion_offset(offset_us);
+                                clock_rtt_us = Some(rtt_us);
+                            }
+                        }
+                        _ => {}
+                    }
+                    continue;
+                }
                 if let MavMessage::SIM_STATE(m) = &msg
                     && let Some((_, Some(origin), state @ None)) = &mut pending_init
+                    && let Some(t0) = last_imu_t
                 {
+                    // (before the team clock maps the IMU's stamps there is no time to start at)
                     match wire::ins_state_from_sim_state(m, origin) {
                         Ok(s) => {
-                            let t0 = last_imu_t.unwrap_or(TimeUs(0));
-                            *state = Some((t0, s));
+                            *state = Some((Some(t0), s));
                             sim_state_init = Some((t0, s.pos_ned_m));
                         }
                         Err(e) => {
@@ -500,7 +555,10 @@ pub async fn run(
                         }
                     }
                 }
-                if let Some((config, Some(origin), Some((t0, state)))) = &pending_init {
+                if let Some((config, Some(origin), Some((t0, state)))) = &pending_init
+                    && let Some(t0) = t0.or(last_imu_t)
+                {
+                    let t0 = &t0;
                     let made = NodeCore::new(config.clone(), *t0, NavState::for_model(&config.model, *state))?;
                     tracing::info!(platform = id, t0 = %t0, pos = ?made.filter().position_ned_m(), lat_deg = origin.lat_deg, "initialised");
                     let o = origin_from_vehicle.map(|o| [o.lat_deg, o.lon_deg, o.alt_m]);
@@ -512,7 +570,23 @@ pub async fn run(
                     continue;
                 }
                 let mut inputs = Vec::new();
-                for event in decoder.decode(&msg) {
+                let events = decoder.decode(&msg);
+                if decoder.counters.reboots != reboots_seen {
+                    // the autopilot's boot clock started again: the TIMESYNC answers are of the boot before
+                    reboots_seen = decoder.counters.reboots;
+                    timesync.reset();
+                    clock_said = None;
+                    tracing::warn!(platform = id, "the autopilot rebooted: mapping its clock again");
+                }
+                if decoder.clock_source() != clock_said {
+                    clock_said = decoder.clock_source();
+                    match clock_said {
+                        Some(ClockSource::Timesync) => tracing::info!(platform = id, offset_us = decoder.clock_offset_us(), rtt_us = clock_rtt_us, "team clock: the companion's clock, mapped to the autopilot's boot clock by TIMESYNC"),
+                        Some(ClockSource::SystemTime) => tracing::info!(platform = id, offset_us = decoder.clock_offset_us(), "team clock: the autopilot's Unix time (SYSTEM_TIME, from GNSS)"),
+                        None => {}
+                    }
+                }
+                for event in events {
                     match event {
                         VehicleEvent::Input(input) => {
                             if core.is_none() {
@@ -580,9 +654,9 @@ pub async fn run(
                     // taken: the log and the core see the same frames.
                     None => super::vehicle_link::split_frames(&buf[..n])
                         .into_iter()
-                        .map(|(header, msg, bytes)| {
+                        .filter_map(|(header, msg, bytes)| {
                             record_frame(&recorder, Link::Coop(sysid), Direction::Rx, &bytes);
-                            (header, msg)
+                            Some((header, msg?))
                         })
                         .collect(),
                 };
@@ -657,6 +731,7 @@ pub async fn run(
         sim_state_init,
         vehicle_frames: summary_counts.0,
         vehicle_rejected: summary_counts.1,
+        vehicle_other_dialect,
         vehicle_lost,
         coop_frames: summary_counts.2,
         coop_rejected: summary_counts.3,
@@ -674,5 +749,11 @@ pub async fn run(
         odometry_resets: odometry.as_ref().map_or(0, |o| o.reset_counter),
         gps_input_sent: gps_input.as_ref().map_or(0, |g| g.sent),
         origin_from_vehicle,
+        clock: decoder
+            .clock_source()
+            .zip(decoder.clock_offset_us())
+            .map(|(source, offset)| (source, offset, if source == ClockSource::Timesync { clock_rtt_us } else { None })),
+        timesync_requests: timesync.requests,
+        timesync_refused: timesync.refused,
     })
 }

@@ -2,8 +2,12 @@
 //! with a large receive buffer: an autopilot streams IMU samples at up to a few hundred hertz,
 //! and a node busy with a joint update or a rebuild must not lose them to a full kernel buffer
 //! (the mavlink crate's UDP connection keeps the system default, about 200 KiB, which a loaded
-//! machine overflowed in the field). Other URLs (`tcpin:`, `tcpout:`, `serial:`, `udpbcast:`) go
-//! through the mavlink crate, whose stream transports are not subject to datagram loss.
+//! machine overflowed in the field). Stream links (`tcpout:`, `tcpin:`, `serial:PATH:BAUD`) are
+//! the node's own too, cut into frames by the one stream framer
+//! ([`super::coop_link::StreamFramer`]) and [`split_frames`], so that frames of the
+//! autopilot's own dialect are skipped by their length instead of costing the frames behind
+//! them (the mavlink crate resynchronises byte by byte through a frame whose CRC it cannot
+//! check). `udpbcast:` goes through the mavlink crate.
 //!
 //! Frames lost all the same are seen as gaps in the vehicle's MAVLink sequence numbers (the
 //! runner counts them) and bridged by the core.
@@ -19,7 +23,10 @@ use std::net::SocketAddr;
 use std::sync::Mutex;
 
 use mavlink_core::{AsyncMavConnection, MavHeader};
+use tokio::io::{AsyncRead, AsyncReadExt as _, AsyncWrite, AsyncWriteExt as _};
 use tokio::net::UdpSocket;
+
+use super::coop_link::StreamFramer;
 
 use crate::protocol::MavMessage;
 use crate::protocol::signing::{Signer, SigningCounters, TeamKey, Verifier};
@@ -29,15 +36,23 @@ use crate::protocol::wire;
 /// node warns when it got less than it asked).
 pub const VEHICLE_RECV_BUFFER: usize = 4 << 20;
 
-/// One received MAVLink frame: its header, the message and the frame's bytes (for the log).
-pub type Received = (MavHeader, MavMessage, Vec<u8>);
+/// One received MAVLink frame: its header, the message (None: a message of another dialect,
+/// whose header still counts for the link's sequence numbers) and the frame's bytes (for the
+/// log).
+pub type Received = (MavHeader, Option<MavMessage>, Vec<u8>);
 
 /// A connection to the vehicle.
 pub enum VehicleLink {
     /// Our own UDP socket. `udpin`: bound to the address, replies go to whoever sent last.
     /// `udpout`: bound to an ephemeral port, sends to the address.
     Udp { socket: UdpSocket, peer: Mutex<Option<SocketAddr>>, learn_peer: bool, signing: Option<Box<Mutex<(Signer, Verifier)>>> },
-    /// Anything else, through the mavlink crate.
+    /// A byte stream (TCP, serial): the reading half with its framer, the writing half.
+    Stream {
+        reader: tokio::sync::Mutex<(Box<dyn AsyncRead + Send + Unpin>, StreamFramer)>,
+        writer: tokio::sync::Mutex<Box<dyn AsyncWrite + Send + Unpin>>,
+        signing: Option<Box<Mutex<(Signer, Verifier)>>>,
+    },
+    /// Anything else (`udpbcast:`), through the mavlink crate.
     Crate(Box<mavlink_core::AsyncConnection<MavMessage>>),
 }
 
@@ -92,15 +107,53 @@ impl VehicleLink {
             let socket = bind_udp(local, VEHICLE_RECV_BUFFER).map_err(NodeError::io("binding the vehicle socket"))?;
             return Ok(Self::Udp { socket, peer: Mutex::new(Some(addr)), learn_peer: false, signing: None });
         }
+        if let Some(rest) = url.strip_prefix("tcpout:") {
+            let addr = resolve(url, rest).await?;
+            let stream =
+                tokio::net::TcpStream::connect(addr).await.map_err(NodeError::io(format!("vehicle URL {url:?}: connecting")))?;
+            let _ = stream.set_nodelay(true);
+            let (r, w) = stream.into_split();
+            return Ok(Self::stream(Box::new(r), Box::new(w)));
+        }
+        if let Some(rest) = url.strip_prefix("tcpin:") {
+            let addr = resolve(url, rest).await?;
+            let listener =
+                tokio::net::TcpListener::bind(addr).await.map_err(NodeError::io(format!("vehicle URL {url:?}: listening")))?;
+            let (stream, from) = listener.accept().await.map_err(NodeError::io(format!("vehicle URL {url:?}: accepting")))?;
+            tracing::info!(%from, "vehicle connected");
+            let _ = stream.set_nodelay(true);
+            let (r, w) = stream.into_split();
+            return Ok(Self::stream(Box::new(r), Box::new(w)));
+        }
+        if let Some(rest) = url.strip_prefix("serial:") {
+            use tokio_serial::SerialPortBuilderExt as _;
+            let (path, baud) = rest
+                .rsplit_once(':')
+                .and_then(|(p, b)| Some((p, b.parse::<u32>().ok()?)))
+                .ok_or_else(|| NodeError::Invalid(format!("vehicle URL {url:?}: expected serial:PATH:BAUD")))?;
+            let port = tokio_serial::new(path, baud)
+                .open_native_async()
+                .map_err(|e| NodeError::Invalid(format!("vehicle URL {url:?}: opening {path} at {baud} baud: {e}")))?;
+            let (r, w) = tokio::io::split(port);
+            return Ok(Self::stream(Box::new(r), Box::new(w)));
+        }
         let conn = mavlink_core::connect_async::<MavMessage>(url).await.map_err(NodeError::io(format!("vehicle URL {url:?}")))?;
         Ok(Self::Crate(Box::new(conn)))
+    }
+
+    fn stream(reader: Box<dyn AsyncRead + Send + Unpin>, writer: Box<dyn AsyncWrite + Send + Unpin>) -> Self {
+        Self::Stream {
+            reader: tokio::sync::Mutex::new((reader, StreamFramer::default())),
+            writer: tokio::sync::Mutex::new(writer),
+            signing: None,
+        }
     }
 
     /// Signs the link with `key` on link id `link_id`: every frame sent is signed, only signed
     /// frames are taken.
     pub fn sign(&mut self, key: &TeamKey, link_id: u8) {
         match self {
-            Self::Udp { signing, .. } => {
+            Self::Udp { signing, .. } | Self::Stream { signing, .. } => {
                 *signing = Some(Box::new(Mutex::new((Signer::new(key.clone(), link_id, 0), Verifier::new(key.clone())))));
             }
             Self::Crate(conn) => {
@@ -114,7 +167,9 @@ impl VehicleLink {
     /// refusals the mavlink crate does not count).
     pub fn signing_counters(&self) -> Option<SigningCounters> {
         match self {
-            Self::Udp { signing: Some(s), .. } => Some(s.lock().unwrap_or_else(|e| e.into_inner()).1.counters.clone()),
+            Self::Udp { signing: Some(s), .. } | Self::Stream { signing: Some(s), .. } => {
+                Some(s.lock().unwrap_or_else(|e| e.into_inner()).1.counters.clone())
+            }
             _ => None,
         }
     }
@@ -123,7 +178,7 @@ impl VehicleLink {
     pub fn recv_buffer(&self) -> Option<usize> {
         match self {
             Self::Udp { socket, .. } => recv_buffer_size(socket).ok(),
-            Self::Crate(_) => None,
+            Self::Stream { .. } | Self::Crate(_) => None,
         }
     }
 
@@ -140,6 +195,15 @@ impl VehicleLink {
                     let _ = socket.send_to(&frame, to).await;
                 }
             }
+            Self::Stream { writer, signing, .. } => {
+                let frame = match signing {
+                    Some(s) => s.lock().unwrap_or_else(|e| e.into_inner()).0.frame(*header, msg, unix_now_us()),
+                    None => wire::to_frame(*header, msg),
+                };
+                if let Err(e) = writer.lock().await.write_all(&frame).await {
+                    tracing::debug!(error = %e, "vehicle link write error");
+                }
+            }
             Self::Crate(conn) => {
                 let _ = conn.send(header, msg).await;
             }
@@ -152,18 +216,22 @@ impl VehicleLink {
         match self {
             Self::Udp { socket, peer, learn_peer, signing } => {
                 let (n, from) = socket.recv_from(buf).await?;
-                let frames = match signing {
-                    Some(s) => {
-                        let got = s.lock().unwrap_or_else(|e| e.into_inner()).1.datagram(&buf[..n], unix_now_us());
-                        got.frames.into_iter().zip(got.spans).map(|((h, m), span)| (h, m, buf[span].to_vec())).collect()
-                    }
-                    None => split_frames(&buf[..n]),
-                };
+                let frames = frames_of(&buf[..n], signing.as_deref());
                 // An unsigned link answers whoever sent last; a signed one only a signed sender.
                 if *learn_peer && (signing.is_none() || !frames.is_empty()) {
                     *peer.lock().unwrap_or_else(|e| e.into_inner()) = Some(from);
                 }
                 Ok(frames)
+            }
+            Self::Stream { reader, signing, .. } => {
+                let mut guard = reader.lock().await;
+                let (stream, framer) = &mut *guard;
+                let n = stream.read(buf).await?;
+                if n == 0 {
+                    return Err(std::io::Error::new(std::io::ErrorKind::UnexpectedEof, "the vehicle closed the link"));
+                }
+                let run = framer.push(&buf[..n]);
+                Ok(frames_of(&run, signing.as_deref()))
             }
             Self::Crate(conn) => match conn.recv_raw().await {
                 Ok(raw) => {
@@ -171,7 +239,7 @@ impl VehicleLink {
                         mavlink_core::MAVLinkMessageRaw::V1(r) => r.raw_bytes().to_vec(),
                         mavlink_core::MAVLinkMessageRaw::V2(r) => r.raw_bytes().to_vec(),
                     };
-                    Ok(wire::from_any_frame(&bytes).map(|(h, m)| vec![(h, m, bytes)]).unwrap_or_default())
+                    Ok(wire::from_any_frame(&bytes).map(|(h, m)| vec![(h, Some(m), bytes)]).unwrap_or_default())
                 }
                 Err(mavlink_core::error::MessageReadError::Io(e)) if e.kind() != std::io::ErrorKind::WouldBlock => Err(e),
                 Err(_) => Ok(Vec::new()),
@@ -180,21 +248,39 @@ impl VehicleLink {
     }
 }
 
+/// The frames of a datagram or of a stream's run of whole frames: all of them on an unsigned
+/// link ([`split_frames`]), the ones signed with the key on a signed one.
+fn frames_of(bytes: &[u8], signing: Option<&Mutex<(Signer, Verifier)>>) -> Vec<Received> {
+    match signing {
+        Some(s) => {
+            let got = s.lock().unwrap_or_else(|e| e.into_inner()).1.datagram(bytes, unix_now_us());
+            got.frames.into_iter().zip(got.spans).map(|((h, m), span)| (h, Some(m), bytes[span].to_vec())).collect()
+        }
+        None => split_frames(bytes),
+    }
+}
+
 /// Unix time, us (signing timestamps).
 fn unix_now_us() -> u64 {
     std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).map_or(0, |d| d.as_micros() as u64)
 }
 
-/// The MAVLink v1 and v2 frames of one datagram, in order; reading stops at the first bytes that
-/// are not a complete frame of the dialect (CRC, unknown message, truncation).
+/// The MAVLink v1 and v2 frames of one datagram, in order, frames of messages outside the
+/// dialect included (message None: skipped by their length, see [`crate::protocol::framing`]);
+/// reading stops at the first bytes that are not a frame (CRC, truncation, a payload that does
+/// not decode).
 pub fn split_frames(bytes: &[u8]) -> Vec<Received> {
     let mut out = Vec::new();
     let mut next = 0;
     for f in crate::protocol::framing::frames(bytes) {
-        let Ok(msg) = f.message else { break };
         if f.offset != next {
             break; // bytes that were not a frame came first
         }
+        let msg = match f.message {
+            Ok(m) => Some(m),
+            Err(_) if !f.known => None,
+            Err(_) => break,
+        };
         next = f.offset + f.bytes.len();
         out.push((f.header, msg, f.bytes.to_vec()));
     }
@@ -221,6 +307,56 @@ mod tests {
         assert!(split_frames(&hb(1)[..10]).is_empty());
         assert!(split_frames(&[]).is_empty());
         assert!(split_frames(b"hello world").is_empty());
+    }
+
+    /// A datagram mixing frames of the autopilot's own dialect with the node's inputs: every
+    /// frame comes out, in order, the foreign ones without a message (their sequence numbers
+    /// still count); the same bytes cut anywhere in a stream give the same frames.
+    #[test]
+    fn frames_of_another_dialect_never_stop_a_datagram_or_a_stream() {
+        use crate::protocol::framing::foreign_frame;
+        let d = [hb(1), foreign_frame(2, 50_123), foreign_frame(3, 12_345), hb(4), foreign_frame(5, 50_123)].concat();
+        let got = split_frames(&d);
+        let summary: Vec<(u8, bool)> = got.iter().map(|f| (f.0.sequence, f.1.is_some())).collect();
+        assert_eq!(summary, [(1, true), (2, false), (3, false), (4, true), (5, false)]);
+        assert_eq!(got.iter().map(|f| f.2.len()).sum::<usize>(), d.len());
+        for cut in 1..d.len() {
+            let mut framer = StreamFramer::default();
+            let run = [framer.push(&d[..cut]), framer.push(&d[cut..])].concat();
+            assert_eq!(run, d, "cut at {cut}");
+            assert_eq!(framer.skipped, 0);
+        }
+    }
+
+    /// A node on a TCP link (ArduPilot SITL's): frames cut anywhere by the stream, foreign ones
+    /// among them, all arrive; what it sends reaches the other end whole.
+    #[tokio::test]
+    async fn a_tcp_link_cuts_the_stream_into_frames() {
+        use crate::protocol::framing::foreign_frame;
+        let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await.unwrap();
+        let addr = listener.local_addr().unwrap();
+        let link = VehicleLink::open(&format!("tcpout:{addr}")).await.unwrap();
+        let (mut vehicle, _) = listener.accept().await.unwrap();
+        let d = [hb(1), foreign_frame(2, 50_123), hb(3)].concat();
+        for chunk in d.chunks(7) {
+            vehicle.write_all(chunk).await.unwrap();
+            vehicle.flush().await.unwrap();
+        }
+        let mut got = Vec::new();
+        let mut buf = [0u8; 2048];
+        while got.len() < 3 {
+            got.extend(tokio::time::timeout(std::time::Duration::from_secs(5), link.recv(&mut buf)).await.unwrap().unwrap());
+        }
+        assert_eq!(got.iter().map(|f| (f.0.sequence, f.1.is_some())).collect::<Vec<_>>(), [(1, true), (2, false), (3, true)]);
+        let msg = wire::heartbeat(MavType::MAV_TYPE_ONBOARD_CONTROLLER, MavAutopilot::MAV_AUTOPILOT_INVALID);
+        link.send(&MavHeader { system_id: 7, component_id: 191, sequence: 9 }, &msg).await;
+        let mut back = vec![0u8; 64];
+        let n = tokio::time::timeout(std::time::Duration::from_secs(5), vehicle.read(&mut back)).await.unwrap().unwrap();
+        assert_eq!(wire::from_frame(&back[..n]).unwrap().0.sequence, 9);
+        // the vehicle hangs up: the link says so
+        drop(vehicle);
+        let end = tokio::time::timeout(std::time::Duration::from_secs(5), link.recv(&mut buf)).await.unwrap();
+        assert!(end.is_err());
     }
 
     #[tokio::test]

@@ -8,6 +8,15 @@
 //! set), whole, with a valid CRC for a message id of the cooploc dialect. Bytes that are not the
 //! start of such a frame are skipped one at a time (as MAVLink parsers resynchronise) and
 //! counted in [`Frames::skipped`].
+//!
+//! A frame of a message the dialect does not know (an autopilot's own dialect: ArduPilot's
+//! EKF_STATUS_REPORT, AHRS, ...) cannot have its CRC checked (its CRC_EXTRA is unknown): it is
+//! taken by the length its header declares, as mavlink-router does, when that length is all
+//! there and is followed by the end of the bytes or by another start marker. It comes out as a
+//! [`Frame`] with [`Frame::known`] false and an `Err` message: readers skip it, but its header
+//! (sequence number, component) is seen, so it is never counted as loss and never stops the
+//! frames behind it. A real autopilot sends such frames all the time; bytes that fail both
+//! rules are still garbage.
 
 use mavlink_core::{MavHeader, MavlinkVersion, Message};
 
@@ -56,7 +65,10 @@ pub struct Frame<'a> {
     pub message_id: u32,
     /// A MAVLink 2 frame with a signature (unverified here; see [`super::signing`]).
     pub signed: bool,
-    /// The decoded message, or why its payload did not decode.
+    /// The message id is in the dialect and the CRC checked; false: a frame of another
+    /// dialect, taken by its length (see the module documentation).
+    pub known: bool,
+    /// The decoded message, or why its payload did not decode (or why it was not decoded).
     pub message: Result<MavMessage, String>,
 }
 
@@ -104,7 +116,18 @@ impl<'a> Iterator for Frames<'a> {
     }
 }
 
-/// The frame starting exactly at `rest[0]`, if whole and CRC-valid.
+/// Whether `id` is a message of the cooploc dialect.
+pub fn known_message(id: u32) -> bool {
+    MavMessage::default_message_from_id(id).is_some()
+}
+
+/// The frame starting exactly at `bytes[0]`, if it is whole and CRC-valid, or whole, of a
+/// message the dialect does not know, and followed by the end of `bytes` or a start marker.
+pub fn frame_at_start(bytes: &[u8]) -> Option<Frame<'_>> {
+    frame_at(bytes, 0)
+}
+
+/// The frame starting exactly at `rest[0]` (see [`frame_at_start`]).
 fn frame_at(rest: &[u8], offset: usize) -> Option<Frame<'_>> {
     let len = frame_len(rest)?;
     let bytes = &rest[..len];
@@ -136,10 +159,16 @@ fn frame_at(rest: &[u8], offset: usize) -> Option<Frame<'_>> {
     let crc_at = header_len + payload_len;
     let expected = u16::from_le_bytes([bytes[crc_at], bytes[crc_at + 1]]);
     if x25_crc(&bytes[1..crc_at], MavMessage::extra_crc(message_id)) != expected {
-        return None;
+        // Another dialect's message, taken by its length only where the next byte agrees.
+        let next_agrees = rest.get(len).is_none_or(|&b| b == STX_V1 || b == STX_V2);
+        if known_message(message_id) || !next_agrees {
+            return None;
+        }
+        let message = Err(format!("message id {message_id} is not in the cooploc dialect (skipped by its length)"));
+        return Some(Frame { offset, bytes, header, version, message_id, signed, known: false, message });
     }
     let message = MavMessage::parse(version, message_id, &bytes[header_len..crc_at]).map_err(|e| e.to_string());
-    Some(Frame { offset, bytes, header, version, message_id, signed, message })
+    Some(Frame { offset, bytes, header, version, message_id, signed, known: true, message })
 }
 
 /// One byte of MAVLink's checksum (CRC-16/MCRF4XX, "X.25"), as the MAVLink C library
@@ -187,6 +216,21 @@ fn x25_crc(data: &[u8], extra: u8) -> u16 {
     x25_byte(crc, extra)
 }
 
+/// A MAVLink 2 frame (system 1, component 1, sequence `seq`) of message `id`, which the cooploc
+/// dialect does not know, with a 9-byte payload and the checksum its own dialect would give
+/// (CRC_EXTRA 0x5A): what an autopilot of another dialect sends. For tests.
+#[cfg(test)]
+pub(crate) fn foreign_frame(seq: u8, id: u32) -> Vec<u8> {
+    assert!(!known_message(id), "{id} is in the dialect");
+    let payload = [1u8, 2, 3, 4, 5, 6, 7, 8, 9];
+    let mut f = vec![STX_V2, payload.len() as u8, 0, 0, seq, 1, 1];
+    f.extend_from_slice(&id.to_le_bytes()[..3]);
+    f.extend_from_slice(&payload);
+    let crc = x25_crc(&f[1..], 0x5A);
+    f.extend_from_slice(&crc.to_le_bytes());
+    f
+}
+
 /// A vehicle's HEARTBEAT frame (system 1, component 1) with sequence `seq`, for tests.
 #[cfg(test)]
 pub(crate) fn heartbeat_frame(seq: u8) -> Vec<u8> {
@@ -199,6 +243,38 @@ pub(crate) fn heartbeat_frame(seq: u8) -> Vec<u8> {
 mod tests {
     use super::heartbeat_frame as hb;
     use super::*;
+
+    /// A frame of another dialect is taken by its length, header and all, not decoded; the
+    /// frames around it are whole. Followed by bytes that start no frame, it is garbage.
+    #[test]
+    fn a_frame_of_another_dialect_is_skipped_by_its_length() {
+        let foreign = foreign_frame(2, 50_123);
+        let run = [hb(1), foreign.clone(), hb(3)].concat();
+        let mut it = frames(&run);
+        let got: Vec<Frame<'_>> = it.by_ref().collect();
+        assert_eq!(it.skipped(), 0);
+        assert_eq!(
+            got.iter().map(|f| (f.header.sequence, f.known, f.message.is_ok())).collect::<Vec<_>>(),
+            [(1, true, true), (2, false, false), (3, true, true)]
+        );
+        assert_eq!((got[1].message_id, got[1].bytes), (50_123, &foreign[..]));
+        assert!(got[1].message.as_ref().unwrap_err().contains("not in the cooploc dialect"));
+        // at the end of the run, too
+        assert_eq!(frames(&foreign).count(), 1);
+        // followed by bytes that start no frame: not a frame (its length may be noise)
+        let noisy = [foreign.clone(), b"xyz".to_vec(), hb(3)].concat();
+        let got: Vec<u8> = frames(&noisy).map(|f| f.header.sequence).collect();
+        assert_eq!(got, [3]);
+        // a frame of the dialect with a bad checksum is still refused, never taken by length
+        let mut bad = hb(5);
+        let last = bad.len() - 1;
+        bad[last] ^= 0x55;
+        assert_eq!(frames(&[bad, hb(6)].concat()).map(|f| f.header.sequence).collect::<Vec<_>>(), [6]);
+        // ArduPilot's own messages are in the dialect now
+        for (id, name) in [(193, "EKF_STATUS_REPORT"), (164, "SIMSTATE"), (163, "AHRS"), (9000, "WHEEL_DISTANCE")] {
+            assert!(known_message(id), "{name}");
+        }
+    }
     use crate::protocol::dialect::cooploc::{MavAutopilot, MavType};
     use crate::protocol::wire;
 

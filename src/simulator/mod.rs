@@ -145,6 +145,9 @@ pub struct SitlConfig {
     /// Stream rates set at boot, `(message id, Hz)`, for every vehicle (see
     /// [`VehicleCore::preset_rate`]).
     pub stream_rates: Vec<(u32, f64)>,
+    /// The autopilots had a GNSS fix before GNSS was lost: ArduPilot's SYSTEM_TIME carries Unix
+    /// time (without it, 0, as on the real firmware without GNSS; PX4's always does).
+    pub gnss_time: bool,
 }
 
 /// What can stop a simulator.
@@ -234,6 +237,8 @@ pub fn vehicle_config(
             crate::sitl::scenario::PlatformModel::Planar => scenario.wheels.map(|w| w.track_m),
             crate::sitl::scenario::PlatformModel::Ins => None,
         },
+        // ArduPilot has Unix time only from a GNSS fix ([`SitlConfig::gnss_time`])
+        unix_time: autopilot != Autopilot::ArduPilot,
     }
 }
 
@@ -399,6 +404,8 @@ pub struct Simulator {
     tasks: Vec<JoinHandle<()>>,
     /// Serial writer tasks (drained at the end).
     writers: Vec<JoinHandle<()>>,
+    /// When the paced clock started, and its speed.
+    paced_start: Option<(Instant, f64)>,
 }
 
 impl Simulator {
@@ -429,8 +436,9 @@ impl Simulator {
         let mut tasks = Vec::new();
         let mut writers = Vec::new();
         for (index, &id) in ids.iter().enumerate() {
-            let core = VehicleCore::new(vehicle_config(&world, id, &config.schedule, config.streams, origin, config.autopilot))
-                .map_err(|e| SimError::Config(e.to_string()))?;
+            let mut vehicle = vehicle_config(&world, id, &config.schedule, config.streams, origin, config.autopilot);
+            vehicle.unix_time |= config.gnss_time;
+            let core = VehicleCore::new(vehicle).map_err(|e| SimError::Config(e.to_string()))?;
             let mut core = core;
             for &(message_id, hz) in &config.stream_rates {
                 core.preset_rate(message_id, hz).map_err(|e| SimError::Config(format!("--stream-rate: {e}")))?;
@@ -449,7 +457,7 @@ impl Simulator {
             });
             io.push(VehicleIo { platform: id, endpoint: bound, link, counters: LinkCounters::default(), loss });
         }
-        Ok(Simulator { world, config, cores, io, inbound, tasks, writers })
+        Ok(Simulator { world, config, cores, io, inbound, tasks, writers, paced_start: None })
     }
 
     /// Every vehicle's link, in platform id order.
@@ -468,6 +476,7 @@ impl Simulator {
 
         // Start gate.
         if self.config.wait_for_peers {
+            self.cores.iter_mut().for_each(|c| c.set_answers_timesync(false));
             tracing::info!("waiting for a peer on every vehicle");
             while !self.io.iter().all(|v| v.connected()) {
                 tokio::select! {
@@ -480,8 +489,29 @@ impl Simulator {
                 }
             }
         }
+        if let Speed::Factor(_) = self.config.speed {
+            // Simulated time zero at a whole second of Unix time: a ranging schedule on whole
+            // seconds of simulated time is then on whole seconds of the companions' clocks, as
+            // a real team's schedule is (the nodes' `epoch_grid_ms`).
+            let into_second = std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).map_or(0, |d| d.subsec_nanos());
+            let deadline = Instant::now() + Duration::from_nanos(u64::from(1_000_000_000 - into_second));
+            loop {
+                tokio::select! {
+                    biased;
+                    _ = &mut shutdown => return Ok(self.finish(StopReason::Shutdown, sim_now).await),
+                    _ = tokio::time::sleep_until(deadline) => break,
+                    Some(msg) = self.inbound.recv() => self.handle_inbound(msg, sim_now, &trajectories, &mut out).await,
+                }
+            }
+        }
+        let real_time = self.config.speed == Speed::Factor(1.0);
+        self.cores.iter_mut().for_each(|c| c.set_answers_timesync(real_time));
         tracing::info!(schedule = %self.config.schedule, seed = self.config.seed, run = self.config.run, speed = ?self.config.speed, "simulation started");
         let wall_start = Instant::now();
+        self.paced_start = match self.config.speed {
+            Speed::Factor(speed) => Some((wall_start, speed)),
+            Speed::Max => None,
+        };
         let events = world.events(&self.config.schedule, self.config.seed, self.config.run)?;
         let ids: Vec<PlatformId> = self.cores.iter().map(|c| c.platform()).collect();
         let index_of = |id: PlatformId| ids.iter().position(|&p| p == id);
@@ -567,6 +597,12 @@ impl Simulator {
         trajectories: &[crate::sitl::Trajectory],
         out: &mut Vec<Outgoing>,
     ) {
+        // Paced, the vehicles' clocks read the wall clock's simulated time (a TIMESYNC answer
+        // says when the request arrived), not the last event's.
+        let now = match self.paced_start {
+            Some((start, speed)) => now.max(TimeUs::from_secs_f64(start.elapsed().as_secs_f64() * speed)),
+            None => now,
+        };
         match msg {
             Inbound::Datagram { vehicle, from, bytes } => {
                 self.io[vehicle].counters.datagrams_received += 1;

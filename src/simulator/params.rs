@@ -122,6 +122,7 @@ mod tests {
             range_period_us: Some(1_000_000),
             autopilot,
             wheel_track_m: None,
+            unix_time: true,
         }
     }
 

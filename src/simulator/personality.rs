@@ -7,7 +7,9 @@
 //! | IMU | HIGHRES_IMU, the interval mean, every sample | RAW_IMU (int16 mG, mrad/s): the latest sample, `time_usec` at *send* time ([`ARDUPILOT_SEND_LATENCY_US`] later); 1 Hz until asked, at most 40 Hz (0.8 x Rover's 50 Hz loop) | HIGHRES_IMU averaged over its send interval (float, `fields_updated` 0x1fff); 50 Hz until asked, at most 200 Hz (IMU_INTEG_RATE) |
 //! | odometer | ODOMETRY (BODY_FRD `vx`) | WHEEL_DISTANCE: two wheels' cumulative distance; 1 Hz until asked, at most 40 Hz | none from PX4: a wheel-odometry peripheral (compid [`WHEEL_ODOMETRY_COMPID`], its own sequence) sends ODOMETRY (estimator NAIVE) at every sample; PX4's own ODOMETRY is its EKF output (estimator AUTOPILOT, 10 Hz, from the truth) and that is what a rate request for ODOMETRY changes |
 //! | time stamps | simulated time | since boot (each vehicle booted at its own time, [`boot_offset_us`]) | since boot |
-//! | SYSTEM_TIME | none | 1 Hz: Unix time ([`SIM_UNIX_EPOCH_US`] + simulated time) against `time_boot_ms` | 1 Hz |
+//! | SYSTEM_TIME | none | 1 Hz: `time_unix_usec` 0 (no GNSS, as the real firmware measured), or with `--gnss-time` Unix time ([`SIM_UNIX_EPOCH_US`] + simulated time: a fix before GNSS was lost) against `time_boot_ms` | 1 Hz, Unix time (PX4 has it without GNSS) |
+//! | rates | | SET_MESSAGE_INTERVAL for RAW_IMU and SYSTEM_TIME; DENIED for WHEEL_DISTANCE (ArduPilot has no interval entry for it), which only REQUEST_DATA_STREAM EXTRA1 (or `--stream-rate`, its MAVn_EXTRA1 parameter) paces; REQUEST_DATA_STREAM RAW_SENSORS, EXTRA1, EXTRA3 | SET_MESSAGE_INTERVAL; REQUEST_DATA_STREAM ignored |
+//! | TIMESYNC | answered (boot clock in ns) | answered | answered |
 //! | HEARTBEAT | autopilot GENERIC | ARDUPILOTMEGA | PX4 |
 //!
 //! Ranges (COOPLOC_RANGE) are stamped in the vehicle's clock too. What the node sends back is
@@ -138,11 +140,14 @@ pub struct Personality {
     wheels_m: [f64; 2],
     wheel_t: TimeUs,
     odometer_period_s: f64,
+    /// SYSTEM_TIME carries Unix time (see [`super::VehicleConfig::unix_time`]).
+    unix_time: bool,
 }
 
 impl Personality {
-    pub fn new(autopilot: Autopilot, platform: u16, odometer_period_us: u64) -> Self {
+    pub fn new(autopilot: Autopilot, platform: u16, odometer_period_us: u64, unix_time: bool) -> Self {
         Personality {
+            unix_time,
             autopilot,
             boot_offset_us: if autopilot.boot_clock() { boot_offset_us(platform) } else { 0 },
             imu_sum: (Vector3::zeros(), Vector3::zeros(), 0),
@@ -235,10 +240,11 @@ impl Personality {
         wire::range_to_message(&RangeSample { t: TimeUs(self.clock_us(r.t)), ..*r }, epoch)
     }
 
-    /// SYSTEM_TIME at simulated time `t`.
+    /// SYSTEM_TIME at simulated time `t`: without Unix time (ArduPilot that never had GNSS)
+    /// `time_unix_usec` is 0.
     pub fn system_time(&self, t: TimeUs) -> MavMessage {
         MavMessage::SYSTEM_TIME(SYSTEM_TIME_DATA {
-            time_unix_usec: SIM_UNIX_EPOCH_US + t.0,
+            time_unix_usec: if self.unix_time { SIM_UNIX_EPOCH_US + t.0 } else { 0 },
             time_boot_ms: ((self.clock_us(t) / 1000) % (1 << 32)) as u32,
         })
     }
@@ -366,7 +372,8 @@ pub type Epochs = Vec<(TimeUs, Vec<RangeSample>)>;
 /// What a node decodes from the vehicles of run (`seed`, `run`) on `schedule`: the world's
 /// samples sent as `autopilot` sends them with its streams at `rates` from boot (no rate
 /// changed during the run), through the node's decoder for profile `inputs`, back in simulated
-/// time (`clock = "unix"` stamps less [`SIM_UNIX_EPOCH_US`]). The offline experiment of the same
+/// time (stamps mapped to Unix time less [`SIM_UNIX_EPOCH_US`]; offline there is no companion
+/// clock, so the autopilots keep Unix time as after a GNSS fix, and `clock = "auto"` takes it). The offline experiment of the same
 /// inputs a team of nodes sees over MAVLink, loss-free; truth as in the world's run.
 pub fn decoded_run(
     world: &crate::sitl::World,
@@ -386,7 +393,9 @@ pub fn decoded_run(
     let origin = wire::GeoOrigin { lat_deg: world.scenario().latitude_deg, lon_deg: 0.0, alt_m: 0.0 };
     let mut cores = Vec::new();
     for &id in &ids {
-        let cfg = super::vehicle_config(world, id, schedule, super::StreamDefaults::default(), origin, autopilot);
+        let mut cfg = super::vehicle_config(world, id, schedule, super::StreamDefaults::default(), origin, autopilot);
+        // offline there is no companion clock: the autopilots keep Unix time (a GNSS fix before)
+        cfg.unix_time = true;
         let mut core = super::VehicleCore::new(cfg).map_err(|e| e.to_string())?;
         for &(m, hz) in rates {
             core.preset_rate(m, hz)?;
@@ -405,7 +414,7 @@ pub fn decoded_run(
             _ => VehicleInputs::new(inputs.clone()),
         })
         .collect();
-    let shift = if inputs.clock == TeamClock::Unix && autopilot.boot_clock() { SIM_UNIX_EPOCH_US } else { 0 };
+    let shift = if inputs.clock != TeamClock::Vehicle && autopilot.boot_clock() { SIM_UNIX_EPOCH_US } else { 0 };
     let at = |t: TimeUs| TimeUs(t.0.saturating_sub(shift));
     let (mut imu, mut odo): (Vec<Vec<ImuSample>>, Vec<Vec<OdometerSample>>) =
         (vec![Vec::new(); ids.len()], vec![Vec::new(); ids.len()]);
@@ -527,13 +536,13 @@ mod tests {
             specific_force_frd_m_s2: Vector3::new(ax, 0.0, -9.8),
             angular_rate_frd_rad_s: Vector3::zeros(),
         };
-        let mut px4 = Personality::new(Autopilot::Px4, 2, 50_000);
+        let mut px4 = Personality::new(Autopilot::Px4, 2, 50_000, true);
         for (k, ax) in [1.0, 2.0, 3.0, 6.0].into_iter().enumerate() {
             px4.take_imu(&s(5_000 * (k as u64 + 1), ax));
         }
         let MavMessage::HIGHRES_IMU(m) = px4.imu_message(&s(20_000, 6.0)) else { panic!() };
         assert_eq!((m.xacc, m.time_usec), (3.0, 20_000 + boot_offset_us(2)));
-        let mut ap = Personality::new(Autopilot::ArduPilot, 1, 50_000);
+        let mut ap = Personality::new(Autopilot::ArduPilot, 1, 50_000, true);
         ap.take_imu(&s(25_000, 1.0));
         ap.take_imu(&s(50_000, 2.0));
         let MavMessage::RAW_IMU(m) = ap.imu_message(&s(50_000, 2.0)) else { panic!() };
@@ -546,7 +555,7 @@ mod tests {
 
     #[test]
     fn wheel_distance_accumulates_the_odometer() {
-        let mut ap = Personality::new(Autopilot::ArduPilot, 1, 50_000);
+        let mut ap = Personality::new(Autopilot::ArduPilot, 1, 50_000, true);
         for k in 1..=20 {
             ap.take_odometer(&OdometerSample { t: TimeUs(50_000 * k), speed_m_s: 2.0 });
         }

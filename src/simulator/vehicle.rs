@@ -13,7 +13,7 @@ use super::personality::{Autopilot, Checker, Personality, WHEEL_ODOMETRY_COMPID}
 use crate::estimation::{ImuSample, OdometerSample, PlatformId, RangeSample, WheelSample};
 use crate::protocol::MavMessage;
 use crate::protocol::dialect::cooploc::{
-    AUTOPILOT_VERSION_DATA, COMMAND_ACK_DATA, MESSAGE_INTERVAL_DATA, MavCmd, MavProtocolCapability, MavResult,
+    AUTOPILOT_VERSION_DATA, COMMAND_ACK_DATA, MESSAGE_INTERVAL_DATA, MavCmd, MavProtocolCapability, MavResult, TIMESYNC_DATA,
 };
 use crate::protocol::wire::{self, GeoOrigin};
 use crate::sitl::Trajectory;
@@ -21,6 +21,9 @@ use crate::time::TimeUs;
 
 /// Component id of every simulated vehicle (MAV_COMP_ID_AUTOPILOT1).
 pub const COMPONENT_ID: u8 = 1;
+
+/// WHEEL_DISTANCE's message id.
+const WHEEL_DISTANCE_ID: u32 = 9000;
 
 /// The streams sent on the simulated clock (the others at sensor samples).
 const CLOCK_STREAMS: [Stream; 4] = [Stream::Heartbeat, Stream::SimState, Stream::SystemTime, Stream::AutopilotOdometry];
@@ -134,6 +137,10 @@ pub struct VehicleConfig {
     /// A wheeled robot without IMU (a planar platform): the distance between its two wheels, m.
     /// Its odometer stream is WHEEL_DISTANCE whatever the autopilot, and it sends no IMU.
     pub wheel_track_m: Option<f64>,
+    /// The autopilot has Unix time (a GNSS fix before it was lost, or PX4, whose SYSTEM_TIME
+    /// carries it without GNSS): SYSTEM_TIME's `time_unix_usec`. Without it, 0 (ArduPilot
+    /// without GNSS, as measured on its SITL).
+    pub unix_time: bool,
 }
 
 /// Where an outgoing message goes.
@@ -217,6 +224,10 @@ pub struct VehicleCore {
     /// Sequence of the wheel-odometry peripheral (its own component).
     peripheral_sequence: u8,
     params: ParamTable,
+    /// The vehicle answers TIMESYNC: its clock runs at real time (a simulator holding its
+    /// clock at zero for its peers, or running faster or slower than real time, says no: an
+    /// answer would map its clock to the companion's wrongly).
+    answers_timesync: bool,
 }
 
 /// A platform that cannot be a MAVLink system.
@@ -247,12 +258,13 @@ impl VehicleCore {
         streams[Stream::Range.index()] = state(d.range);
         streams[Stream::SystemTime.index()] = state(system_time);
         streams[Stream::AutopilotOdometry.index()] = state(autopilot_odometry);
-        let personality = Personality::new(config.autopilot, config.platform, config.odometer_period_us);
+        let personality = Personality::new(config.autopilot, config.platform, config.odometer_period_us, config.unix_time);
         Ok(VehicleCore {
             params: ParamTable::for_vehicle(&config, sysid),
             personality,
             checker: Checker::default(),
             peripheral_sequence: 0,
+            answers_timesync: true,
             config,
             sysid,
             sequence: 0,
@@ -293,6 +305,11 @@ impl VehicleCore {
             return Err(format!("rate {rate_hz} Hz: must be positive"));
         }
         self.set_interval(TimeUs(0), stream, (1e6 / rate_hz) as f32).map_err(|()| format!("rate {rate_hz} Hz refused"))
+    }
+
+    /// Whether the vehicle answers TIMESYNC (see the field).
+    pub fn set_answers_timesync(&mut self, answers: bool) {
+        self.answers_timesync = answers;
     }
 
     /// The stream a message id stands for, under this vehicle's personality.
@@ -556,6 +573,34 @@ impl VehicleCore {
                 }
                 return;
             }
+            MavMessage::TIMESYNC(m) => {
+                // A request (tc1 0) is answered with the vehicle's boot clock in ns, as
+                // ArduPilot and PX4 do; their answers to requests of their own are not ours.
+                if m.tc1 == 0 && self.answers_timesync {
+                    let tc1 = (self.personality.clock_us(now) as i64).saturating_mul(1000);
+                    let answer = MavMessage::TIMESYNC(TIMESYNC_DATA {
+                        tc1,
+                        ts1: m.ts1,
+                        target_system: u8::try_from(header.system_id).unwrap_or(0),
+                        target_component: header.component_id,
+                    });
+                    self.emit(Destination::Requester, answer, out);
+                } else {
+                    self.counters.ignored += 1;
+                }
+                return;
+            }
+            #[allow(deprecated)] // ArduPilot's stream groups
+            MavMessage::REQUEST_DATA_STREAM(m) => {
+                let for_us = (m.target_system == 0 || m.target_system == self.sysid)
+                    && (m.target_component == 0 || m.target_component == COMPONENT_ID);
+                if self.config.autopilot != Autopilot::ArduPilot || !for_us {
+                    self.counters.ignored += 1; // PX4 does not support it
+                    return;
+                }
+                self.stream_group(now, m.req_stream_id as u8, m.req_message_rate, m.start_stop);
+                return;
+            }
             MavMessage::COMMAND_LONG(c) => (
                 c.command,
                 [c.param1, c.param2, c.param3, c.param4, c.param5, c.param6, c.param7],
@@ -627,6 +672,10 @@ impl VehicleCore {
         use MavResult::*;
         match command {
             MavCmd::MAV_CMD_SET_MESSAGE_INTERVAL => {
+                if self.config.autopilot == Autopilot::ArduPilot && message_id_param(p[0]) == Some(WHEEL_DISTANCE_ID) {
+                    // "No ap_message for mavlink id (9000)": only its stream group paces it
+                    return (MAV_RESULT_DENIED, vec![]);
+                }
                 let Some(stream) = message_id_param(p[0]).and_then(|id| self.stream_of(id)) else {
                     return (MAV_RESULT_DENIED, vec![]);
                 };
@@ -648,6 +697,31 @@ impl VehicleCore {
             }
             _ => (MAV_RESULT_UNSUPPORTED, vec![]),
         }
+    }
+
+    /// ArduPilot's REQUEST_DATA_STREAM: every stream of the group at `rate_hz` (0 or `start_stop`
+    /// 0: off), capped as SET_MESSAGE_INTERVAL caps; no answer. RAW_SENSORS carries the IMU
+    /// (RAW_IMU), EXTRA1 WHEEL_DISTANCE, EXTRA3 SYSTEM_TIME, ALL every one of them.
+    fn stream_group(&mut self, now: TimeUs, group: u8, rate_hz: u16, start_stop: u8) {
+        const ALL: u8 = 0;
+        const RAW_SENSORS: u8 = 1;
+        const EXTRA1: u8 = 10;
+        const EXTRA3: u8 = 12;
+        let streams: &[Stream] = match group {
+            ALL => &[Stream::HighresImu, Stream::Odometry, Stream::SystemTime],
+            RAW_SENSORS => &[Stream::HighresImu],
+            EXTRA1 => &[Stream::Odometry],
+            EXTRA3 => &[Stream::SystemTime],
+            _ => {
+                self.counters.ignored += 1;
+                return;
+            }
+        };
+        let interval_us = if start_stop == 0 || rate_hz == 0 { -1.0 } else { 1e6 / f32::from(rate_hz) };
+        for &stream in streams {
+            let _ = self.set_interval(now, stream, interval_us);
+        }
+        self.counters.commands_accepted += 1;
     }
 
     /// MAV_CMD_SET_MESSAGE_INTERVAL's param2: interval in us, -1 disables, 0 restores the
@@ -788,6 +862,7 @@ mod tests {
             range_period_us: Some(1_000_000),
             autopilot: Autopilot::Cooploc,
             wheel_track_m: None,
+            unix_time: true,
         })
         .unwrap()
     }
@@ -861,6 +936,69 @@ mod tests {
         let mut c = core(1);
         c = VehicleCore::new(VehicleConfig { autopilot, ..c.config.clone() }).unwrap();
         c
+    }
+
+    /// What the real ArduPilot Rover SITL did (GNSS off): SYSTEM_TIME without Unix time,
+    /// SET_MESSAGE_INTERVAL DENIED for WHEEL_DISTANCE (only its stream group paces it),
+    /// TIMESYNC answered with the boot clock in ns.
+    #[test]
+    #[allow(deprecated)]
+    fn the_ardupilot_personality_behaves_as_the_real_firmware_without_gnss() {
+        use crate::protocol::dialect::cooploc::{MavDataStream, REQUEST_DATA_STREAM_DATA};
+        let w = world();
+        let truth = w.trajectory(1).unwrap();
+        let mut ap =
+            VehicleCore::new(VehicleConfig { autopilot: Autopilot::ArduPilot, unix_time: false, ..core(1).config }).unwrap();
+        let mut out = Vec::new();
+        ap.advance_to(TimeUs(1_000_000), truth, &mut out);
+        let st =
+            out.iter().find_map(|o| if let MavMessage::SYSTEM_TIME(m) = &o.message { Some(m.clone()) } else { None }).unwrap();
+        assert_eq!(st.time_unix_usec, 0, "no GNSS, no Unix time");
+        assert!(st.time_boot_ms > 0);
+        assert_eq!(
+            ask(&mut ap, &w, long(1, MavCmd::MAV_CMD_SET_MESSAGE_INTERVAL, 9000.0, 50_000.0)).unwrap().0,
+            MavResult::MAV_RESULT_DENIED
+        );
+        assert_eq!(ap.interval(Stream::Odometry), Interval::Every(1_000_000), "still the 1 Hz default");
+        // REQUEST_DATA_STREAM EXTRA1 at 20 Hz paces it; no answer
+        let req = |id: MavDataStream, rate: u16, start_stop: u8| {
+            MavMessage::REQUEST_DATA_STREAM(REQUEST_DATA_STREAM_DATA {
+                req_message_rate: rate,
+                target_system: 1,
+                target_component: 1,
+                req_stream_id: id,
+                start_stop,
+            })
+        };
+        let mut out = Vec::new();
+        ap.on_message(TimeUs(0), GCS, &req(MavDataStream::MAV_DATA_STREAM_EXTRA1, 20, 1), truth, &mut out);
+        assert!(out.is_empty());
+        assert_eq!(ap.interval(Stream::Odometry), Interval::Every(50_000));
+        // RAW_SENSORS at 100 Hz: capped at 40 Hz as ArduPilot caps
+        ap.on_message(TimeUs(0), GCS, &req(MavDataStream::MAV_DATA_STREAM_RAW_SENSORS, 100, 1), truth, &mut out);
+        assert_eq!(ap.interval(Stream::HighresImu), Interval::Every(25_000));
+        ap.on_message(TimeUs(0), GCS, &req(MavDataStream::MAV_DATA_STREAM_EXTRA1, 20, 0), truth, &mut out);
+        assert_eq!(ap.interval(Stream::Odometry), Interval::Disabled);
+        // PX4 ignores REQUEST_DATA_STREAM
+        let mut px4 = personality_core(Autopilot::Px4);
+        let before = px4.interval(Stream::HighresImu);
+        px4.on_message(TimeUs(0), GCS, &req(MavDataStream::MAV_DATA_STREAM_RAW_SENSORS, 10, 1), truth, &mut out);
+        assert_eq!(px4.interval(Stream::HighresImu), before);
+        // TIMESYNC: the boot clock in ns at the request, ts1 echoed, to the requester
+        let sync = MavMessage::TIMESYNC(TIMESYNC_DATA { tc1: 0, ts1: 123_456, target_system: 1, target_component: 1 });
+        let mut out = Vec::new();
+        ap.on_message(TimeUs(2_000_000), GCS, &sync, truth, &mut out);
+        let [o] = out.as_slice() else { panic!("{out:?}") };
+        let MavMessage::TIMESYNC(a) = &o.message else { panic!() };
+        assert_eq!(o.destination, Destination::Requester);
+        let boot_ns = (2_000_000 + super::super::personality::boot_offset_us(1)) as i64 * 1000;
+        assert_eq!((a.tc1, a.ts1, a.target_system, a.target_component), (boot_ns, 123_456, 255, 190));
+        // an answer (tc1 set) is not a request; a vehicle whose clock is held answers nothing
+        let mut out = Vec::new();
+        ap.on_message(TimeUs(0), GCS, &MavMessage::TIMESYNC(TIMESYNC_DATA { tc1: 5, ..Default::default() }), truth, &mut out);
+        ap.set_answers_timesync(false);
+        ap.on_message(TimeUs(0), GCS, &sync, truth, &mut out);
+        assert!(out.is_empty());
     }
 
     #[test]

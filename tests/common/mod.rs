@@ -43,14 +43,18 @@ pub fn chromium(what: &str) -> Option<std::path::PathBuf> {
 
 /// Spawns `cmd` in the repository root, forwarding its stdout lines to a channel (stderr is
 /// dropped).
-pub fn spawn_lines(mut cmd: std::process::Command) -> (std::process::Child, std::sync::mpsc::Receiver<String>) {
+pub fn spawn_lines(cmd: std::process::Command) -> (std::process::Child, std::sync::mpsc::Receiver<String>) {
+    spawn_lines_in(cmd, std::path::Path::new(env!("CARGO_MANIFEST_DIR")))
+}
+
+/// [`spawn_lines`] in folder `dir`.
+pub fn spawn_lines_in(
+    mut cmd: std::process::Command,
+    dir: &std::path::Path,
+) -> (std::process::Child, std::sync::mpsc::Receiver<String>) {
     use std::io::BufRead;
-    let mut child = cmd
-        .current_dir(env!("CARGO_MANIFEST_DIR"))
-        .stdout(std::process::Stdio::piped())
-        .stderr(std::process::Stdio::null())
-        .spawn()
-        .unwrap();
+    let mut child =
+        cmd.current_dir(dir).stdout(std::process::Stdio::piped()).stderr(std::process::Stdio::null()).spawn().unwrap();
     let out = child.stdout.take().unwrap();
     let (tx, rx) = std::sync::mpsc::channel();
     std::thread::spawn(move || {

@@ -846,7 +846,7 @@ def live_run(binary, cl, tmp, mdef, dialect):
         nodes = {}
         node_procs = []
         for vid in sorted(vehicles):
-            cmd = [binary, "node", "--id", str(vid), "--vehicle", "udpout:" + vehicles[vid], "--init-from-run", "1:0",
+            cmd = [binary, "node", "--scenario", "sitl/scenarios/paper.toml", "--id", str(vid), "--vehicle", "udpout:" + vehicles[vid], "--init-from-run", "1:0",
                    "--log", os.path.join(tmp, "node-%d.mcap" % vid)]
             for other in nodes.values():
                 cmd += ["--peer", other]

@@ -11,7 +11,7 @@ for i in 1 2 3; do for k in $(seq 100); do grep -q "^vehicle $i " $D/sitl.out 2>
 PEERS=(); PIDS=()
 for i in 1 2 3; do
   A=$(grep "^vehicle $i " $D/sitl.out | awk '{print $NF}')
-  $BIN node --id $i --vehicle udpout:$A --init-from-run 1:0 "${PEERS[@]}" > $D/node$i.out 2>$D/node$i.err &
+  $BIN node --scenario sitl/scenarios/paper.toml --id $i --vehicle udpout:$A --init-from-run 1:0 "${PEERS[@]}" > $D/node$i.out 2>$D/node$i.err &
   PIDS+=($!)
   for k in $(seq 100); do grep -q "coop udp" $D/node$i.out 2>/dev/null && break; sleep 0.1; done
   PEERS+=(--peer $(grep "coop udp" $D/node$i.out | awk '{print $NF}'))

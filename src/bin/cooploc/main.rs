@@ -3,6 +3,7 @@
 
 mod args;
 mod budget;
+mod config_file;
 mod dataset;
 mod demo;
 mod experiment;
@@ -76,7 +77,15 @@ fn main() -> ExitCode {
     // Negative numbers are values wherever a number is taken (`--init-ned -150,20,0`,
     // `--origin-lon-deg -79.5`), in every subcommand.
     let command = Cli::command().allow_negative_numbers(true).mut_subcommands(|s| s.allow_negative_numbers(true));
-    let cli = match Cli::from_arg_matches(&command.get_matches()) {
+    // `cooploc node --config FILE`: the file's options, then the command line's.
+    let argv = match config_file::expand(std::env::args_os().collect(), "node", &command) {
+        Ok(argv) => argv,
+        Err(e) => {
+            eprintln!("error: {e:#}");
+            return ExitCode::FAILURE;
+        }
+    };
+    let cli = match Cli::from_arg_matches(&command.get_matches_from(argv)) {
         Ok(cli) => cli,
         Err(e) => e.exit(),
     };

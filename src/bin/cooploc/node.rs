@@ -23,6 +23,12 @@ const MAX_UDP_PAYLOAD: usize = 65_507;
 
 #[derive(clap::Args)]
 pub struct Args {
+    /// Every option below in one TOML file (`id = 1`, `vehicle = "tcpout:127.0.0.1:5760"`,
+    /// `vehicle_config = "rover.toml"`, `team = [1, 2, 3]`, `peer = ["10.0.0.2:14600"]`, ...;
+    /// paths relative to the file): a vehicle computer's service runs `cooploc node --config
+    /// FILE`. An option also given on the command line takes the command line's value.
+    #[arg(long, value_name = "FILE")]
+    config: Option<PathBuf>,
     /// Platform id: the vehicle's MAVLink system id.
     #[arg(long)]
     id: u16,
@@ -84,15 +90,17 @@ pub struct Args {
     /// unsigned frames. Every frame to the vehicle is signed, only signed frames are taken.
     #[arg(long, value_name = "FILE")]
     vehicle_key: Option<PathBuf>,
-    /// Scenario of a simulated run: the vehicle part without --vehicle-config, the team and
-    /// --init-from-run.
-    #[arg(long, default_value = "sitl/scenarios/paper.toml")]
-    scenario: PathBuf,
+    /// Scenario of a simulated run (`cooploc sitl`'s): the vehicle part without
+    /// --vehicle-config, the team without --team, and --init-from-run. A node on a real vehicle
+    /// names none: --vehicle-config and --team say all it needs.
+    #[arg(long)]
+    scenario: Option<PathBuf>,
     /// Number format of the broadcast matrices (compact: 16-bit correlation form, under a third
     /// of f64's bytes, for radios; see `cooploc budget`).
     #[arg(long, value_enum, default_value = "f64")]
     encoding: crate::args::EncodingArg,
-    /// Platform ids of the team (every epoch waits for their records); default: the scenario's.
+    /// Platform ids of the team (every epoch waits for their records), this one included;
+    /// default: the --scenario's platforms.
     #[arg(long, value_delimiter = ',')]
     team: Vec<u16>,
     /// How long (wall time) an epoch waits for missing records before it runs without them, ms.
@@ -118,9 +126,9 @@ pub struct Args {
     /// the node initialises from the vehicle's first SIM_STATE (simulated vehicles).
     #[arg(long, value_delimiter = ',', allow_hyphen_values = true, conflicts_with = "init_from_run")]
     init_ned: Vec<f64>,
-    /// Start as `cooploc experiment` does for SEED:RUN of the scenario (truth plus the initial
+    /// Start as `cooploc experiment` does for SEED:RUN of the --scenario (truth plus the initial
     /// errors it draws), at time zero.
-    #[arg(long, value_name = "SEED:RUN")]
+    #[arg(long, value_name = "SEED:RUN", requires = "scenario")]
     init_from_run: Option<String>,
     /// Initial velocity N,E,D (m/s).
     #[arg(long, value_delimiter = ',', allow_hyphen_values = true, default_values_t = [0.0, 0.0, 0.0])]
@@ -128,9 +136,11 @@ pub struct Args {
     /// Initial roll, pitch, yaw (deg).
     #[arg(long, value_delimiter = ',', allow_hyphen_values = true, default_values_t = [0.0, 0.0, 0.0])]
     init_rpy_deg: Vec<f64>,
-    /// Vehicle time of the initial state (us); the first IMU sample must come after it.
-    #[arg(long, default_value_t = 0)]
-    init_time_us: u64,
+    /// Time of the initial state in the team's clock (us); the first IMU sample must come after
+    /// it. Default: the first IMU (or wheel) sample's time, once the team clock is known (a
+    /// vehicle started where the --init-* flags say).
+    #[arg(long)]
+    init_time_us: Option<u64>,
     /// Longitude of the local NED origin, deg, to read SIM_STATE positions (its latitude is the
     /// scenario's); the same as `cooploc sitl --origin-lon-deg`.
     #[arg(long, default_value_t = 0.0, allow_negative_numbers = true)]
@@ -176,24 +186,32 @@ pub fn run_cmd(args: Args) -> anyhow::Result<()> {
         Some(path) => Some(cooploc::protocol::signing::TeamKey::from_file(path).context("--vehicle-key")?),
         None => None,
     };
-    // The profile first: a bad one is refused before any socket opens.
-    let profile = match &args.vehicle_config {
-        Some(path) => VehicleProfile::from_path(path)?,
-        None => VehicleProfile::from_scenario_platform(&Scenario::from_path(&args.scenario)?, args.id),
+    // The scenario of a simulated run, if any; the profile: a bad one is refused before any
+    // socket opens.
+    let world = match &args.scenario {
+        Some(path) => Some(World::new(&Scenario::from_path(path)?)?),
+        None => None,
     };
-    let scenario = Scenario::from_path(&args.scenario)?;
-    let world = World::new(&scenario)?;
+    let profile = match (&args.vehicle_config, &world) {
+        (Some(path), _) => VehicleProfile::from_path(path)?,
+        (None, Some(world)) => VehicleProfile::from_scenario_platform(world.scenario(), args.id),
+        (None, None) => bail!(
+            "no vehicle profile: give --vehicle-config FILE (vehicle_config in --config; examples in sitl/vehicles/), or the --scenario of a simulated run"
+        ),
+    };
     // Without a latitude in the profile, the node takes the vehicle's origin (GPS_GLOBAL_ORIGIN
     // or HOME_POSITION) before it starts; the INS gets that latitude.
     let latitude = profile.latitude();
     let model = profile.nav_model(latitude.unwrap_or(0.0));
-    let initial = match from_run {
-        Some((seed, run)) => Some(
-            cooploc::experiment::initial_state(&world, seed, run, args.id)
+    let initial = match (from_run, &world) {
+        (Some((seed, run)), Some(world)) => Some(
+            cooploc::experiment::initial_state(world, seed, run, args.id)
+                .map(|(t0, s)| (Some(t0), s))
                 .with_context(|| format!("--init-from-run: platform {} is not in the scenario", args.id))?,
         ),
-        None if !from_cli => None,
-        None => {
+        (Some(_), None) => bail!("--init-from-run needs the --scenario of the run"),
+        (None, _) if !from_cli => None,
+        (None, _) => {
             let rpy = &args.init_rpy_deg;
             let state = InsState {
                 pos_ned_m: Vector3::from_column_slice(&args.init_ned),
@@ -203,10 +221,17 @@ pub fn run_cmd(args: Args) -> anyhow::Result<()> {
                 gyro_bias_frd_rad_s: Vector3::zeros(),
                 odometer_scale_error: 0.0,
             };
-            Some((TimeUs(args.init_time_us), state))
+            Some((args.init_time_us.map(TimeUs), state))
         }
     };
-    let team = if args.team.is_empty() { world.platform_ids() } else { args.team.clone() };
+    let team = match (&world, args.team.is_empty()) {
+        (_, false) => args.team.clone(),
+        (Some(world), true) => world.platform_ids(),
+        (None, true) => bail!("name the team: --team 1,2,3 (team = [1, 2, 3] in --config), this node's id among them"),
+    };
+    if !team.contains(&args.id) {
+        bail!("--team {team:?} does not hold this node's --id {}", args.id);
+    }
     if args.retry_ms == 0 || args.retry_ms >= args.epoch_timeout_ms {
         bail!("--retry-ms {} must be positive and below --epoch-timeout-ms {}", args.retry_ms, args.epoch_timeout_ms);
     }
@@ -237,8 +262,10 @@ pub fn run_cmd(args: Args) -> anyhow::Result<()> {
                 }
             }
             rec.metadata(&metadata_name(args.id), meta)?;
-            let toml = std::fs::read(&args.scenario).with_context(|| format!("reading {}", args.scenario.display()))?;
-            rec.attachment("scenario.toml", "application/toml", &toml)?;
+            if let Some(path) = &args.scenario {
+                let toml = std::fs::read(path).with_context(|| format!("reading {}", path.display()))?;
+                rec.attachment("scenario.toml", "application/toml", &toml)?;
+            }
             rec.attachment(&vehicle_attachment_name(args.id), "application/toml", profile.to_toml().as_bytes())?;
             rec.declare_link(Link::Vehicle(args.id as u8), args.vehicle.clone());
             Some(std::sync::Arc::new(std::sync::Mutex::new(rec)))
@@ -246,7 +273,7 @@ pub fn run_cmd(args: Args) -> anyhow::Result<()> {
         None => None,
     };
     let init = match (initial, origin) {
-        (Some((t0, state)), Some(_)) => {
+        (Some((Some(t0), state)), Some(_)) => {
             let state = NavState::for_model(&cfg.model, state);
             NodeInit::Ready(Box::new(NodeCore::new(cfg, t0, state).context("node configuration")?))
         }
@@ -341,7 +368,7 @@ pub fn run_cmd(args: Args) -> anyhow::Result<()> {
     }
     let st = &summary.stats;
     println!(
-        "node {} done: t {} pos_ned_m [{:.4}, {:.4}, {:.4}] yaw_deg {:.5} epochs_applied {} epochs_partial {} epochs_skipped {} dropped_inputs {} vehicle_frames {} vehicle_lost {} vehicle_rejected {} coop_frames {} coop_rejected {} peers {}",
+        "node {} done: t {} pos_ned_m [{:.4}, {:.4}, {:.4}] yaw_deg {:.5} epochs_applied {} epochs_partial {} epochs_skipped {} dropped_inputs {} vehicle_frames {} vehicle_lost {} vehicle_rejected {} vehicle_other_dialect {} coop_frames {} coop_rejected {} peers {}",
         e.platform,
         e.t.0,
         e.position_ned_m[0],
@@ -355,6 +382,7 @@ pub fn run_cmd(args: Args) -> anyhow::Result<()> {
         summary.vehicle_frames,
         summary.vehicle_lost,
         summary.vehicle_rejected,
+        summary.vehicle_other_dialect,
         summary.coop_frames,
         summary.coop_rejected,
         summary.peers.len()
@@ -424,7 +452,36 @@ pub fn run_cmd(args: Args) -> anyhow::Result<()> {
         summary.inputs
     );
     for r in &summary.rate_requests {
-        println!("node {} rate request {} at {} Hz: {:?}", e.platform, r.message, r.rate_hz, r.outcome);
+        match r.stream_group {
+            Some((group, stream_id, sent)) => println!(
+                "node {} rate request {} at {} Hz: {:?}; asked instead for ArduPilot's stream group {group} (REQUEST_DATA_STREAM {stream_id}, sent {sent} times), which paces all its messages",
+                e.platform, r.message, r.rate_hz, r.outcome
+            ),
+            None => println!("node {} rate request {} at {} Hz: {:?}", e.platform, r.message, r.rate_hz, r.outcome),
+        }
+    }
+    match summary.clock {
+        Some((source, offset_us, rtt_us)) => println!(
+            "node {} clock {} offset_us {offset_us} rtt_us {} timesync_requests {} timesync_refused {}",
+            e.platform,
+            match source {
+                cooploc::node::inputs::ClockSource::Timesync => "companion (TIMESYNC)",
+                cooploc::node::inputs::ClockSource::SystemTime => "autopilot (SYSTEM_TIME)",
+            },
+            rtt_us.map_or("-".into(), |r| r.to_string()),
+            summary.timesync_requests,
+            summary.timesync_refused
+        ),
+        None => println!(
+            "node {} clock {} timesync_requests {} timesync_refused {}",
+            e.platform,
+            match profile.inputs.clock {
+                cooploc::node::profile::TeamClock::Vehicle => "vehicle (shared stamps)",
+                _ => "none mapped",
+            },
+            summary.timesync_requests,
+            summary.timesync_refused
+        ),
     }
     Ok(())
 }

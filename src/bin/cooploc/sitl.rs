@@ -65,6 +65,11 @@ pub struct Args {
     /// without it ArduPilot streams its sensors at 1 Hz and PX4 HIGHRES_IMU at 50 Hz until asked.
     #[arg(long = "stream-rate", value_name = "MESSAGE=HZ", value_parser = parse_stream_rate)]
     stream_rates: Vec<(u32, f64)>,
+    /// The autopilots had a GNSS fix before GNSS was lost, and keep its Unix time: ArduPilot's
+    /// SYSTEM_TIME then carries it. Without it ArduPilot's SYSTEM_TIME says 0, as the real
+    /// firmware without GNSS does (PX4's carries Unix time either way).
+    #[arg(long)]
+    gnss_time: bool,
 }
 
 pub(crate) fn parse_stream_rate(s: &str) -> Result<(u32, f64), String> {
@@ -214,6 +219,7 @@ fn validate(args: Args) -> anyhow::Result<Validated> {
         autopilot: args.autopilot,
         origin: profile.as_ref().and_then(VehicleProfile::geo_origin),
         stream_rates: args.stream_rates.clone(),
+        gnss_time: args.gnss_time,
     };
     Ok(Validated { world, config })
 }

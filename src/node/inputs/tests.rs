@@ -368,3 +368,115 @@ fn inputs_wait_at_most_ten_seconds_for_the_team_clock() {
     assert_eq!(released.len(), 401);
     assert_eq!(d.counters.waiting_for_clock, 79);
 }
+
+fn own_range(time_usec: u64) -> MavMessage {
+    crate::protocol::wire::range_to_message(
+        &crate::estimation::RangeSample { t: TimeUs(time_usec), from: 1, to: 2, range_m: 10.0, sigma_m: 0.1 },
+        7,
+    )
+}
+
+fn times(events: Vec<VehicleEvent>) -> Vec<TimeUs> {
+    events
+        .into_iter()
+        .map(|e| match e {
+            VehicleEvent::Input(NodeInput::Imu(s)) => s.t,
+            VehicleEvent::Input(NodeInput::OwnRange { range, .. }) => range.t,
+            other => panic!("{other:?}"),
+        })
+        .collect()
+}
+
+/// An autopilot without GNSS (SYSTEM_TIME says 0, as ArduPilot's SITL measured): the unix
+/// clock never maps, every input waits and is dropped; the companion's clock through TIMESYNC
+/// maps them, to the team's Unix time and back.
+#[test]
+fn without_gnss_only_the_companions_clock_maps_boot_stamps() {
+    let unix0 = 1_795_000_000_000_000i64;
+    let mut unix = inputs(|c| {
+        c.imu = ImuMessage::RawImu;
+        c.clock = TeamClock::Unix;
+    });
+    let mut companion = inputs(|c| {
+        c.imu = ImuMessage::RawImu;
+        c.clock = TeamClock::Companion;
+    });
+    for d in [&mut unix, &mut companion] {
+        assert!(d.decode(&raw(5_000_000, [0, 0, -1000], [0; 3])).is_empty());
+        assert!(d.decode(&system_time(0, 5_010)).is_empty());
+        assert_eq!(d.counters.system_time_without_unix, 1);
+        // a TIMESYNC mapping means nothing to a unix clock
+        d.set_companion_offset(unix0 - 4_000_000);
+    }
+    assert!(unix.decode(&raw(5_020_000, [0, 0, -1000], [0; 3])).is_empty());
+    assert_eq!(unix.clock_source(), None);
+    let got = times(companion.decode(&raw(5_020_000, [0, 0, -1000], [0; 3])));
+    assert_eq!(got, [TimeUs(unix0 as u64 + 1_000_000), TimeUs(unix0 as u64 + 1_020_000)]);
+    assert_eq!(companion.clock_source(), Some(ClockSource::Timesync));
+    assert_eq!(companion.to_vehicle_time(TimeUs(unix0 as u64 + 1_020_000)), 5_020_000);
+    // a later mapping (the crystals drift) replaces it
+    companion.set_companion_offset(unix0 - 4_000_300);
+    assert_eq!(imu(companion.decode(&raw(5_045_000, [0, 0, -1000], [0; 3]))).t, TimeUs(unix0 as u64 + 1_044_700));
+    // a GNSS time that disagrees with the companion's clock is counted (is NTP running?)
+    companion.decode(&system_time(unix0 as u64 + 2_000_000, 5_050));
+    assert_eq!(companion.counters.clock_disagreements, 1);
+    assert_eq!(companion.clock_source(), Some(ClockSource::Timesync));
+}
+
+/// `clock = "auto"`: TIMESYNC when the autopilot answers; otherwise, after
+/// [`AUTO_CLOCK_WAIT_US`] of inputs held, SYSTEM_TIME's Unix time, and what was held goes out
+/// in order. A reboot forgets the mapping.
+#[test]
+fn an_auto_clock_takes_system_time_when_timesync_goes_unanswered() {
+    let unix0 = 1_795_000_000_000_000u64;
+    let mut d = inputs(|c| {
+        c.imu = ImuMessage::RawImu;
+        c.clock = TeamClock::Auto;
+    });
+    assert!(d.decode(&system_time(unix0, 5_000)).is_empty());
+    let mut released = Vec::new();
+    for k in 0..=120u64 {
+        released.extend(times(d.decode(&raw(5_000_000 + k * 25_000, [0, 0, -1000], [0; 3]))));
+        if k < 120 {
+            assert!(released.is_empty(), "held until 3 s have waited, at sample {k}");
+        }
+    }
+    assert_eq!(released.len(), 121);
+    assert_eq!(released[0], TimeUs(unix0));
+    assert_eq!(d.clock_source(), Some(ClockSource::SystemTime));
+    // chosen: a TIMESYNC answer now does not move the team clock
+    d.set_companion_offset(12_345);
+    assert_eq!(d.clock_source(), Some(ClockSource::SystemTime));
+    // a reboot forgets it; TIMESYNC answers first this time
+    for k in 0..3u64 {
+        d.decode(&raw(1_000_000 + k * 25_000, [0, 0, -1000], [0; 3]));
+    }
+    assert_eq!(d.counters.reboots, 1);
+    assert_eq!(d.clock_source(), None);
+    d.set_companion_offset(unix0 as i64 + 7_000_000);
+    // the sample that confirmed the reboot was held; both go out now
+    assert_eq!(times(d.decode(&raw(1_100_000, [0, 0, -1000], [0; 3]))), [TimeUs(unix0 + 8_050_000), TimeUs(unix0 + 8_100_000)]);
+    assert_eq!(d.clock_source(), Some(ClockSource::Timesync));
+}
+
+/// With an epoch grid, the vehicle's ranges go to the nearest grid instant of the team's clock
+/// (two nodes' mappings differ by a little), and one far off the grid is counted.
+#[test]
+fn ranges_are_put_on_the_epoch_grid() {
+    let unix0 = 1_795_000_000_000_000i64;
+    let mut d = inputs(|c| {
+        c.clock = TeamClock::Companion;
+        c.epoch_grid_ms = 100;
+    });
+    // this node's mapping is 3.2 ms off another node's: its range of the epoch at unix0 + 1 s
+    d.set_companion_offset(unix0 - 10_000_000 + 3_200);
+    assert_eq!(times(d.decode(&own_range(11_000_000))), [TimeUs(unix0 as u64 + 1_000_000)]);
+    assert_eq!(times(d.decode(&own_range(11_996_000))), [TimeUs(unix0 as u64 + 2_000_000)]);
+    assert_eq!(d.counters.ranges_off_grid, 0);
+    assert_eq!(times(d.decode(&own_range(12_030_000))), [TimeUs(unix0 as u64 + 2_000_000)]);
+    assert_eq!(d.counters.ranges_off_grid, 1);
+    // without a grid a range keeps its mapped time
+    let mut plain = inputs(|c| c.clock = TeamClock::Companion);
+    plain.set_companion_offset(unix0 - 10_000_000 + 3_200);
+    assert_eq!(times(plain.decode(&own_range(11_000_000))), [TimeUs(unix0 as u64 + 1_003_200)]);
+}

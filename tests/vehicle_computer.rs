@@ -1,0 +1,180 @@
+//! A node on a bare vehicle computer against the ArduPilot personality as the real firmware
+//! behaved without GNSS (SYSTEM_TIME without Unix time, WHEEL_DISTANCE refused by
+//! SET_MESSAGE_INTERVAL, 1 Hz default streams, TIMESYNC answered): three folders holding only a
+//! copy of the binary, a profile and a `node.toml`, nothing of the repository, the simulator at
+//! real time (the companions' clocks are real). Beside them, a node with the profile the
+//! product shipped before (`clock = "unix"`) shows the failure measured on the real firmware:
+//! it never gets a team clock and sends nothing to its autopilot.
+
+mod common;
+
+use common::{Kill, spawn_lines, spawn_lines_in, wait_line};
+
+use std::path::{Path, PathBuf};
+use std::process::Command;
+use std::time::Duration;
+
+/// `name value` on a node's output line.
+fn field<'a>(line: &'a str, name: &str) -> &'a str {
+    line.split(&format!(" {name} ")).nth(1).unwrap_or_else(|| panic!("no {name} in {line}")).split_whitespace().next().unwrap()
+}
+
+/// `name: N` of a Debug-printed struct.
+fn count(line: &str, name: &str) -> u64 {
+    line.split(&format!(" {name}: ")).nth(1).unwrap().split(|c: char| !c.is_ascii_digit()).next().unwrap().parse().unwrap()
+}
+
+/// A folder holding only the binary (a hard link, or a copy) and the given files.
+fn vehicle_computer(root: &Path, name: &str, files: &[(&str, String)]) -> PathBuf {
+    let dir = root.join(name);
+    std::fs::create_dir_all(&dir).unwrap();
+    let bin = dir.join("cooploc");
+    if std::fs::hard_link(env!("CARGO_BIN_EXE_cooploc"), &bin).is_err() {
+        std::fs::copy(env!("CARGO_BIN_EXE_cooploc"), &bin).unwrap();
+    }
+    for (file, text) in files {
+        std::fs::write(dir.join(file), text).unwrap();
+    }
+    dir
+}
+
+#[test]
+fn nodes_on_bare_vehicle_computers_navigate_the_ardupilot_personality_without_gnss() {
+    let repo = Path::new(env!("CARGO_MANIFEST_DIR"));
+    let root = std::env::temp_dir().join(format!("cooploc-vehicle-computer-{}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&root);
+    std::fs::create_dir_all(&root).unwrap();
+    // the paper's team, 25 s of it, at real time
+    let scenario = std::fs::read_to_string(repo.join("sitl/scenarios/paper.toml"))
+        .unwrap()
+        .replacen("duration_s = 380.0", "duration_s = 25.0", 1)
+        .replacen("at_s = [1.0, 100.0, 200.0, 300.0]", "at_s = [1.0, 10.0, 20.0]", 1);
+    let scenario_path = root.join("short.toml");
+    std::fs::write(&scenario_path, scenario).unwrap();
+    let profile = std::fs::read_to_string(repo.join("sitl/vehicles/ardupilot-rover.toml")).unwrap();
+    let mut sitl = Command::new(env!("CARGO_BIN_EXE_cooploc"));
+    sitl.arg("sitl").arg(&scenario_path).args(["--seed", "1", "--run", "0", "--schedule", "1hz", "--speed", "1"]);
+    sitl.args(["--base-port", "0", "--wait-for-peers", "--sim-state-hz", "1", "--autopilot", "ardupilot", "--vehicle-config"]);
+    sitl.arg(repo.join("sitl/vehicles/ardupilot-rover.toml"));
+    let (sitl_child, sitl_out) = spawn_lines(sitl);
+    let mut kill = Kill(vec![sitl_child]);
+    let mut vehicle_addr = std::collections::BTreeMap::new();
+    for _ in 0..3 {
+        let line = wait_line(&sitl_out, "vehicle ", Duration::from_secs(30));
+        let words: Vec<&str> = line.split_whitespace().collect();
+        vehicle_addr.insert(words[1].parse::<u16>().unwrap(), words.last().unwrap().to_string());
+    }
+    let mut outs = Vec::new();
+    let mut peers: Vec<String> = Vec::new();
+    for id in [1u16, 2, 3] {
+        let peer_list: Vec<String> = peers.iter().map(|p| format!("\"{p}\"")).collect();
+        let config = format!(
+            "id = {id}\nvehicle = \"udpout:{}\"\nvehicle_config = \"rover.toml\"\nteam = [1, 2, 3]\nmethod = \"dcl\"\n\
+             idle_exit_s = 2.0\nlog = \"node.mcap\"\npeer = [{}]\n",
+            vehicle_addr[&id],
+            peer_list.join(", ")
+        );
+        let dir = vehicle_computer(&root, &format!("vehicle{id}"), &[("rover.toml", profile.clone()), ("node.toml", config)]);
+        let mut node = Command::new(dir.join("cooploc"));
+        node.args(["node", "--config", "node.toml"]);
+        let (child, out) = spawn_lines_in(node, &dir);
+        kill.0.push(child);
+        let line = wait_line(&out, &format!("node {id} coop udp "), Duration::from_secs(30));
+        peers.push(line.split_whitespace().last().unwrap().to_string());
+        outs.push((id, dir, out));
+    }
+    // the profile shipped before (the unix clock), against a vehicle of a second simulator
+    let mut sitl2 = Command::new(env!("CARGO_BIN_EXE_cooploc"));
+    sitl2.arg("sitl").arg(&scenario_path).args(["--seed", "1", "--run", "0", "--schedule", "1hz", "--speed", "1"]);
+    sitl2.args(["--base-port", "0", "--sim-state-hz", "1", "--autopilot", "ardupilot", "--vehicle-config"]);
+    sitl2.arg(repo.join("sitl/vehicles/ardupilot-rover.toml"));
+    let (sitl2_child, sitl2_out) = spawn_lines(sitl2);
+    kill.0.push(sitl2_child);
+    let old_vehicle = wait_line(&sitl2_out, "vehicle 1 ", Duration::from_secs(30));
+    let old_profile = profile.replacen("clock = \"auto\"", "clock = \"unix\"", 1);
+    let old_config = format!(
+        "id = 1\nvehicle = \"udpout:{}\"\nvehicle_config = \"rover.toml\"\nteam = [1]\nmethod = \"dr\"\nidle_exit_s = 2.0\n",
+        old_vehicle.split_whitespace().last().unwrap()
+    );
+    let old_dir = vehicle_computer(&root, "unix-clock", &[("rover.toml", old_profile), ("node.toml", old_config)]);
+    let mut old = Command::new(old_dir.join("cooploc"));
+    old.args(["node", "--config", "node.toml"]);
+    let (child, old_out) = spawn_lines_in(old, &old_dir);
+    kill.0.push(child);
+
+    let world = cooploc::sitl::World::new(&cooploc::sitl::Scenario::from_path(&scenario_path).unwrap()).unwrap();
+    let end = world.end();
+    for (id, dir, out) in &outs {
+        let done = wait_line(out, &format!("node {id} done:"), Duration::from_secs(120));
+        let stats = wait_line(out, &format!("node {id} stats"), Duration::from_secs(5));
+        let vehicle = wait_line(out, &format!("node {id} vehicle "), Duration::from_secs(5));
+        let mut requests = Vec::new();
+        let clock = loop {
+            let line = wait_line(out, &format!("node {id} "), Duration::from_secs(5));
+            if line.contains(" rate request ") {
+                requests.push(line);
+            } else if line.starts_with(&format!("node {id} clock ")) {
+                break line;
+            }
+        };
+        eprintln!("{done}\n{stats}\n{vehicle}\n{requests:?}\n{clock}");
+        assert!(clock.contains("companion (TIMESYNC)"), "the team clock is the companions': {clock}");
+        let rtt: u64 = field(&clock, "rtt_us").parse().unwrap();
+        assert!(rtt < 20_000, "a loopback round trip: {clock}");
+        // epochs: one a second once initialised (a SIM_STATE after the clock is known)
+        let applied: u64 = field(&done, "epochs_applied").parse().unwrap();
+        assert!(applied >= 15, "{done}");
+        assert_eq!(field(&done, "epochs_skipped"), "0", "{done}");
+        assert_eq!(count(&stats, "epoch_disagreements"), 0, "{stats}");
+        assert_eq!(count(&stats, "epochs_implausible"), 0, "every node names every epoch alike: {stats}");
+        assert_eq!(count(&vehicle, "ranges_off_grid"), 0, "{vehicle}");
+        assert!(count(&vehicle, "system_time_without_unix") >= 10, "no GNSS, no Unix time: {vehicle}");
+        assert!(field(&vehicle, "odometry_sent").parse::<u64>().unwrap() > 200, "{vehicle}");
+        assert_eq!(field(&done, "vehicle_lost"), "0", "{done}");
+        // WHEEL_DISTANCE refused by SET_MESSAGE_INTERVAL, then asked for by its stream group
+        assert!(
+            requests.iter().any(|l| l.contains("WHEEL_DISTANCE") && l.contains("DENIED") && l.contains("EXTRA1")),
+            "{requests:?}"
+        );
+        assert!(requests.iter().any(|l| l.contains("RAW_IMU") && l.contains("Accepted")), "{requests:?}");
+        assert!(count(&vehicle, "odometer") > 200, "WHEEL_DISTANCE at 20 Hz: {vehicle}");
+        // near the truth at the end
+        let pos: Vec<f64> = done
+            .split("pos_ned_m [")
+            .nth(1)
+            .unwrap()
+            .split(']')
+            .next()
+            .unwrap()
+            .split(',')
+            .map(|v| v.trim().parse().unwrap())
+            .collect();
+        let truth = world.trajectory(*id).unwrap().truth_at(end).pos_ned_m;
+        let err = ((pos[0] - truth[0]).powi(2) + (pos[1] - truth[1]).powi(2)).sqrt();
+        eprintln!("node {id}: final error {err:.3} m");
+        assert!(err < 2.0, "node {id} {err:.2} m from the truth: {done}");
+        // its log replays without a scenario (the profile is in it)
+        let replay = Command::new(dir.join("cooploc")).current_dir(dir).args(["replay", "node.mcap"]).output().unwrap();
+        let text = String::from_utf8_lossy(&replay.stdout);
+        assert!(replay.status.success() && text.contains("bit for bit"), "{text}{}", String::from_utf8_lossy(&replay.stderr));
+        // nothing of the repository was needed
+        let mut names: Vec<String> =
+            std::fs::read_dir(dir).unwrap().map(|e| e.unwrap().file_name().into_string().unwrap()).collect();
+        names.sort();
+        assert_eq!(names, ["cooploc", "node.mcap", "node.toml", "rover.toml"]);
+    }
+    // the old profile: no Unix time ever, nothing navigated, nothing sent to the autopilot
+    let done = wait_line(&old_out, "node 1 done", Duration::from_secs(30));
+    assert!(done.contains("never initialised"), "{done}");
+    for id in [1u16, 2, 3] {
+        let line = wait_line(&sitl_out, &format!("vehicle {id} odometry_check"), Duration::from_secs(30));
+        eprintln!("{line}");
+        let words: Vec<&str> = line.split_whitespace().collect();
+        let f = |name: &str| words[words.iter().position(|w| *w == name).unwrap() + 1];
+        assert!(f("accepted").parse::<u64>().unwrap() > 200, "{line}");
+        assert_eq!(f("ignored"), "0", "{line}");
+        assert_eq!(f("off_clock"), "0", "ODOMETRY in the autopilot's own clock: {line}");
+    }
+    drop(kill);
+    let _ = std::fs::remove_dir_all(&root);
+}
