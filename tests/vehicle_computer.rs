@@ -104,6 +104,7 @@ fn nodes_on_bare_vehicle_computers_navigate_the_ardupilot_personality_without_gn
 
     let world = cooploc::sitl::World::new(&cooploc::sitl::Scenario::from_path(&scenario_path).unwrap()).unwrap();
     let end = world.end();
+    let mut zeros = Vec::new();
     for (id, dir, out) in &outs {
         let done = wait_line(out, &format!("node {id} done:"), Duration::from_secs(120));
         let stats = wait_line(out, &format!("node {id} stats"), Duration::from_secs(5));
@@ -119,6 +120,9 @@ fn nodes_on_bare_vehicle_computers_navigate_the_ardupilot_personality_without_gn
         };
         eprintln!("{done}\n{stats}\n{vehicle}\n{requests:?}\n{clock}");
         assert!(clock.contains("companion (TIMESYNC)"), "the team clock is the companions': {clock}");
+        // the mapping's instant of simulated time zero (each vehicle booted at its own time)
+        let offset: i64 = field(&clock, "offset_us").parse().unwrap();
+        zeros.push(offset + cooploc::simulator::personality::boot_offset_us(*id) as i64);
         let rtt: u64 = field(&clock, "rtt_us").parse().unwrap();
         assert!(rtt < 20_000, "a loopback round trip: {clock}");
         // epochs: one a second once initialised (a SIM_STATE after the clock is known)
@@ -163,6 +167,11 @@ fn nodes_on_bare_vehicle_computers_navigate_the_ardupilot_personality_without_gn
         names.sort();
         assert_eq!(names, ["cooploc", "node.mcap", "node.toml", "rover.toml"]);
     }
+    // how far apart the nodes' team clocks are: each maps the simulator's time zero to an
+    // instant of its companion's clock (one clock here, so any spread is the mapping's)
+    let spread = zeros.iter().max().unwrap() - zeros.iter().min().unwrap();
+    eprintln!("team clocks: the nodes' mappings of simulated time zero span {spread} us");
+    assert!(spread < 5_000, "mappings {zeros:?} span {spread} us: more than a tenth of the epoch grid");
     // the old profile: no Unix time ever, nothing navigated, nothing sent to the autopilot
     let done = wait_line(&old_out, "node 1 done", Duration::from_secs(30));
     assert!(done.contains("never initialised"), "{done}");

@@ -175,4 +175,18 @@ mod tests {
         let e = format!("{:#}", run("[inputs]\nid = 1\n", &[]).unwrap_err());
         assert!(e.contains("unknown key `inputs`"), "{e}");
     }
+
+    /// The example shipped for vehicle computers stands for options the node takes.
+    #[test]
+    fn the_shipped_example_is_a_valid_node_command() {
+        use clap::CommandFactory;
+        let example = concat!(env!("CARGO_MANIFEST_DIR"), "/docs/vehicle-computer/node.toml");
+        let argv: Vec<OsString> = ["cooploc", "node", "--config", example].iter().map(OsString::from).collect();
+        let command = crate::Cli::command();
+        let expanded = expand(argv, "node", &command).unwrap();
+        let m = command.try_get_matches_from(&expanded).unwrap_or_else(|e| panic!("{e}: {expanded:?}"));
+        let (_, node) = m.subcommand().unwrap();
+        assert_eq!(node.get_one::<u16>("id"), Some(&1));
+        assert!(node.get_one::<PathBuf>("vehicle_config").unwrap().ends_with("docs/vehicle-computer/rover.toml"));
+    }
 }
