@@ -679,6 +679,14 @@ impl VehicleCore {
                 let Some(stream) = message_id_param(p[0]).and_then(|id| self.stream_of(id)) else {
                     return (MAV_RESULT_DENIED, vec![]);
                 };
+                if self.config.autopilot == Autopilot::ArduPilot
+                    && p[1] > 0.0
+                    && f64::from(p[1]) < self.config.autopilot.min_sensor_interval_us() as f64
+                {
+                    // "Requested rate for message ID 27 too fast. Increase SCHED_LOOP_RATE": the
+                    // old rate stays (REQUEST_DATA_STREAM caps instead)
+                    return (MAV_RESULT_DENIED, vec![]);
+                }
                 match self.set_interval(now, stream, p[1]) {
                     Ok(()) => (MAV_RESULT_ACCEPTED, vec![]),
                     Err(()) => (MAV_RESULT_DENIED, vec![]),
@@ -1005,10 +1013,16 @@ mod tests {
     fn personalities_map_message_ids_to_their_streams_and_cap_the_rates() {
         let w = world();
         let mut ap = personality_core(Autopilot::ArduPilot);
-        // ArduPilot streams its IMU at 1 Hz until asked; 200 Hz is accepted and capped at 40 Hz
+        // ArduPilot streams its IMU at 1 Hz until asked; 200 Hz is denied (its real firmware:
+        // "Increase SCHED_LOOP_RATE"), 40 Hz (0.8 x its 50 Hz loop) accepted
         assert_eq!(ap.interval(Stream::HighresImu), Interval::Every(1_000_000));
         assert_eq!(
             ask(&mut ap, &w, long(1, MavCmd::MAV_CMD_SET_MESSAGE_INTERVAL, 27.0, 5_000.0)).unwrap().0,
+            MavResult::MAV_RESULT_DENIED
+        );
+        assert_eq!(ap.interval(Stream::HighresImu), Interval::Every(1_000_000));
+        assert_eq!(
+            ask(&mut ap, &w, long(1, MavCmd::MAV_CMD_SET_MESSAGE_INTERVAL, 27.0, 25_000.0)).unwrap().0,
             MavResult::MAV_RESULT_ACCEPTED
         );
         assert_eq!(ap.interval(Stream::HighresImu), Interval::Every(25_000));
