@@ -192,6 +192,7 @@ pub async fn run_demo(cfg: DemoConfig, ready: impl FnOnce(&DemoAddresses)) -> Re
             team_key: None,
             signing_state: None,
             vehicle_key: None,
+            ranges: None,
         };
         let (bound_tx, bound_rx) = tokio::sync::oneshot::channel();
         let mut stop = stop_rx.clone();

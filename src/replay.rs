@@ -247,6 +247,7 @@ fn replay_node(log: &Log, world: Option<&World>, id: PlatformId) -> Result<NodeR
                     decoder.set_companion_offset(offset_us);
                     continue;
                 }
+                (NodeEvent::Range { epoch, range }, Some(c)) => c.handle(NodeInput::OwnRange { epoch, range }),
                 (NodeEvent::Init { t0_us, origin: from_vehicle }, None) => {
                     let mut cfg = cfg.clone();
                     let origin = match (from_vehicle, origin) {

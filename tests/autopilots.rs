@@ -287,7 +287,72 @@ fn a_bad_profile_is_refused_before_any_socket_opens_naming_its_field() {
 /// With `loss`, the vehicles lose that share of the frames they send (a lossy radio or serial
 /// line): the nodes must then bridge, resend and stay near the loss-free offline run.
 fn team_against(autopilot: &str, profile: &str, rates: &[&str], edits: &[(&str, &str)], loss: Option<f64>) {
-    team_of("paper", autopilot, profile, None, rates, edits, loss)
+    team_of("paper", autopilot, profile, None, rates, edits, TeamLinks { loss, ranging_device: false })
+}
+
+/// How a team's vehicles reach their nodes: `loss`, the share of the vehicles' frames lost;
+/// `ranging_device`, ranges from a device on each companion ([`uwb_relay`]) instead of the
+/// vehicle link.
+struct TeamLinks {
+    loss: Option<f64>,
+    ranging_device: bool,
+}
+
+/// A UWB module on each companion, emulated: a relay between a vehicle and its node that takes
+/// the ranges off the vehicle link (COOPLOC_RANGE, which a real autopilot never sends) and hands
+/// them to the node's ranging input as the device's lines, stamped in the team's clock (Unix time,
+/// as the companion's clock keeps it); every other frame goes on, numbered again as the autopilot
+/// would have numbered it without the ranges. Returns the address the node's vehicle URL names
+/// and where to say the node's ranging input is.
+fn uwb_relay(
+    vehicle: std::net::SocketAddr,
+    id: u16,
+) -> (std::net::SocketAddr, std::sync::Arc<std::sync::Mutex<Option<std::net::SocketAddr>>>) {
+    use cooploc::protocol::MavMessage;
+    use cooploc::simulator::personality::{SIM_UNIX_EPOCH_US, boot_offset_us};
+    use std::net::UdpSocket;
+    use std::sync::{Arc, Mutex};
+    let to_node = UdpSocket::bind("127.0.0.1:0").unwrap();
+    let to_vehicle = UdpSocket::bind("127.0.0.1:0").unwrap();
+    let device = UdpSocket::bind("127.0.0.1:0").unwrap();
+    let node_addr: Arc<Mutex<Option<std::net::SocketAddr>>> = Arc::new(Mutex::new(None));
+    let ranges_addr: Arc<Mutex<Option<std::net::SocketAddr>>> = Arc::new(Mutex::new(None));
+    let local = to_node.local_addr().unwrap();
+    let (a, b) = (to_node.try_clone().unwrap(), to_vehicle.try_clone().unwrap());
+    let node_seen = node_addr.clone();
+    std::thread::spawn(move || {
+        let mut buf = vec![0u8; 65_536];
+        while let Ok((n, from)) = a.recv_from(&mut buf) {
+            *node_seen.lock().unwrap() = Some(from);
+            let _ = b.send_to(&buf[..n], vehicle);
+        }
+    });
+    let ranges_to = ranges_addr.clone();
+    std::thread::spawn(move || {
+        let mut buf = vec![0u8; 65_536];
+        let mut seq = 0u8;
+        while let Ok((n, _)) = to_vehicle.recv_from(&mut buf) {
+            let mut out = Vec::new();
+            for f in cooploc::protocol::framing::frames(&buf[..n]) {
+                let Some((mut header, msg)) = f.decoded() else { continue };
+                if let MavMessage::COOPLOC_RANGE(m) = &msg {
+                    let (epoch, mut r) = cooploc::protocol::wire::range_from_message(m).unwrap();
+                    r.t = cooploc::time::TimeUs(SIM_UNIX_EPOCH_US + r.t.0 - boot_offset_us(id));
+                    if let Some(to) = *ranges_to.lock().unwrap() {
+                        let _ = device.send_to(cooploc::node::ranging::range_line(epoch, &r).as_bytes(), to);
+                    }
+                    continue;
+                }
+                header.sequence = seq;
+                seq = seq.wrapping_add(1);
+                out.extend(cooploc::protocol::wire::to_frame(header, &msg));
+            }
+            if let (false, Some(node)) = (out.is_empty(), *node_addr.lock().unwrap()) {
+                let _ = to_node.send_to(&out, node);
+            }
+        }
+    });
+    (local, ranges_addr)
 }
 
 static TEAMS: std::sync::Mutex<()> = std::sync::Mutex::new(());
@@ -301,8 +366,9 @@ fn team_of(
     robot_profile: Option<&str>,
     rates: &[&str],
     edits: &[(&str, &str)],
-    loss: Option<f64>,
+    links: TeamLinks,
 ) {
+    let TeamLinks { loss, ranging_device } = links;
     // One team at a time: each is three or four nodes and a simulator at 20x real time, and
     // two teams at once on two cores starve the nodes of CPU (their estimates then lag the
     // vehicles' clocks, which the checker counts).
@@ -375,7 +441,18 @@ fn team_of(
         let (r, p, y) = state.att_frd_to_ned.euler_angles();
         let v3 = |v: nalgebra::Vector3<f64>| format!("{:.17e},{:.17e},{:.17e}", v[0], v[1], v[2]);
         let mut node = Command::new(env!("CARGO_BIN_EXE_cooploc"));
-        node.args(["node", "--id", &id.to_string(), "--vehicle", &format!("udpout:{}", vehicle_addr[&id])]);
+        let relay = ranging_device.then(|| uwb_relay(vehicle_addr[&id].parse().unwrap(), id));
+        let vehicle_url = match &relay {
+            Some((local, _)) => format!("udpout:{local}"),
+            None => format!("udpout:{}", vehicle_addr[&id]),
+        };
+        node.args(["node", "--id", &id.to_string(), "--vehicle", &vehicle_url]);
+        if relay.is_some() {
+            // the device's stream is not the IMU's: its ranges may come after the vehicle's
+            // samples have passed the epoch (here by the relay's hops, at 20x real time), so the
+            // node waits for them longer than for ranges on the vehicle link
+            node.args(["--ranges", "udpin:127.0.0.1:0", "--range-grace-ms", "1000"]);
+        }
         let planar = world.platform_model(id) == PlatformModel::Planar;
         let node_profile =
             if planar { robot_path.as_deref().expect("a robot profile for the planar platforms") } else { &profile_path };
@@ -395,15 +472,32 @@ fn team_of(
         }
         let (child, out) = spawn_lines(node);
         kill.0.push(child);
+        if let Some((_, ranges_to)) = &relay {
+            let line = wait_line(&out, &format!("node {id} ranges udp "), Duration::from_secs(30));
+            *ranges_to.lock().unwrap() = Some(line.split_whitespace().last().unwrap().parse().unwrap());
+        }
         let line = wait_line(&out, &format!("node {id} coop udp "), Duration::from_secs(30));
         coop.push(line.split_whitespace().last().unwrap().to_string());
         outs.push((id, out));
     }
     let mut finals = Vec::new();
+    let mut device_ranges = 0;
     for (id, out) in &outs {
         let done = wait_line(out, &format!("node {id} done:"), Duration::from_secs(240));
+        let stats = wait_line(out, &format!("node {id} stats"), Duration::from_secs(5));
         let vehicle_line = wait_line(out, &format!("node {id} vehicle"), Duration::from_secs(5));
         eprintln!("{done}\n{vehicle_line}");
+        if ranging_device {
+            assert_eq!(count(&stats, "ranges_late"), 0, "{stats}");
+            let line = wait_line(out, &format!("node {id} range_input"), Duration::from_secs(5));
+            eprintln!("{line}");
+            let n = |name: &str| -> u64 {
+                line.split(&format!(" {name} ")).nth(1).unwrap().split_whitespace().next().unwrap().parse().unwrap()
+            };
+            device_ranges += n("ranges");
+            assert_eq!(n("malformed") + n("bad_peer") + n("off_grid"), 0, "{line}");
+            assert_eq!(count(&vehicle_line, "ranges"), 0, "no range on the vehicle link: {vehicle_line}");
+        }
         if loss.is_none() {
             assert!(done.contains("epochs_partial 0 "), "{done}");
             assert!(done.contains("vehicle_lost 0 "), "{done}");
@@ -419,6 +513,10 @@ fn team_of(
             assert!(count(&vehicle_line, "odometry_from_autopilot") > 3000, "PX4's EKF output refused: {vehicle_line}");
         }
         finals.push((*id, position(&done)));
+    }
+    if ranging_device {
+        // every pair ranged at every epoch, each range by one of the pair's devices
+        assert_eq!(device_ranges, 3 * duration_s as u64, "the devices' ranges taken");
     }
     // what the autopilots made of the nodes' ODOMETRY (and GPS_INPUT, when sent)
     for id in world.platform_ids() {
@@ -497,6 +595,22 @@ fn three_nodes_against_the_ardupilot_personality_match_the_offline_run() {
     );
 }
 
+/// The same team, its ranges from a UWB module on each companion (emulated: a relay takes them
+/// off the vehicle link and hands them to the node's `--ranges` input as the module's lines):
+/// the same estimates as the ranges on the vehicle link, equal to the offline run.
+#[test]
+fn ranges_from_a_device_on_the_companion_give_the_same_estimates() {
+    team_of(
+        "paper",
+        "ardupilot",
+        "ardupilot-rover",
+        None,
+        &["RAW_IMU=40", "WHEEL_DISTANCE=20"],
+        &[],
+        TeamLinks { loss: None, ranging_device: true },
+    );
+}
+
 #[test]
 fn three_nodes_against_the_px4_personality_match_the_offline_run() {
     team_against("px4", "px4-rover", &["HIGHRES_IMU=200"], &[], None);
@@ -514,5 +628,13 @@ fn three_nodes_against_the_ardupilot_personality_over_a_link_losing_5_percent() 
 /// ODOMETRY is accepted at 20 Hz.
 #[test]
 fn a_mixed_team_of_rovers_and_wheeled_robots_matches_the_offline_run() {
-    team_of("mixed", "ardupilot", "ardupilot-rover", Some("wheeled-robot"), &["RAW_IMU=40", "WHEEL_DISTANCE=20"], &[], None);
+    team_of(
+        "mixed",
+        "ardupilot",
+        "ardupilot-rover",
+        Some("wheeled-robot"),
+        &["RAW_IMU=40", "WHEEL_DISTANCE=20"],
+        &[],
+        TeamLinks { loss: None, ranging_device: false },
+    );
 }

@@ -255,16 +255,12 @@ impl VehicleInputs {
                 e => out.push(e),
             }
         }
-        if self.cfg.epoch_grid_ms > 0 {
-            let grid = u64::from(self.cfg.epoch_grid_ms) * 1000;
-            for e in &mut out {
-                if let VehicleEvent::Input(NodeInput::OwnRange { range, .. }) = e {
-                    let snapped = (range.t.0 + grid / 2) / grid * grid;
-                    if snapped.abs_diff(range.t.0) > grid / 4 {
-                        self.counters.ranges_off_grid += 1;
-                    }
-                    range.t = TimeUs(snapped);
-                }
+        let grid_us = u64::from(self.cfg.epoch_grid_ms) * 1000;
+        for e in &mut out {
+            if let VehicleEvent::Input(NodeInput::OwnRange { range, .. }) = e {
+                let (t, off) = snap_to_grid(range.t, grid_us);
+                range.t = t;
+                self.counters.ranges_off_grid += u64::from(off);
             }
         }
         out
@@ -708,6 +704,16 @@ impl VehicleInputs {
             (_, Some(o)) => u64::try_from(t.0 as i64 - o).unwrap_or(0),
         }
     }
+}
+
+/// `t` on the nearest instant of a grid of `grid_us` (0: no grid), and whether it moved by more
+/// than a quarter of the grid (mappings that disagree more than the grid allows).
+pub fn snap_to_grid(t: TimeUs, grid_us: u64) -> (TimeUs, bool) {
+    if grid_us == 0 {
+        return (t, false);
+    }
+    let snapped = t.0.saturating_add(grid_us / 2) / grid_us * grid_us;
+    (TimeUs(snapped), snapped.abs_diff(t.0) > grid_us / 4)
 }
 
 /// The time stamp of an input event.

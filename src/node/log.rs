@@ -52,6 +52,12 @@ pub enum NodeEvent {
         offset_us: i64,
         rtt_us: i64,
     },
+    /// A range from the ranging device beside the vehicle link (`cooploc node --ranges`), as the
+    /// core took it.
+    Range {
+        epoch: u32,
+        range: crate::estimation::RangeSample,
+    },
 }
 
 /// Name of the attachment holding node `id`'s vehicle profile in a log.

@@ -11,6 +11,7 @@
 //! | [`runner`] | the tokio runner that owns the sockets and the clock |
 //! | [`error`] | what can stop a node (`NodeError`): links that do not open, settings, a vehicle that goes away |
 //! | [`vehicle_link`] | the MAVLink connection to the vehicle (UDP, TCP, serial) |
+//! | [`ranging`] | a ranging device on the companion (a UWB module): its line stream, as the core's own ranges |
 pub mod autopilot;
 pub mod coop_link;
 pub mod core;
@@ -19,5 +20,6 @@ pub mod inputs;
 pub mod log;
 pub mod peers;
 pub mod profile;
+pub mod ranging;
 pub mod runner;
 pub mod vehicle_link;

@@ -109,6 +109,72 @@ pub struct Links {
     pub signing_state: Option<std::path::PathBuf>,
     /// The vehicle link's signing key (the autopilot's), when its port is signed.
     pub vehicle_key: Option<TeamKey>,
+    /// A ranging device on the companion ([`super::ranging`]), besides the vehicle link.
+    pub ranges: Option<RangeSource>,
+}
+
+/// Where a ranging device's stream comes from.
+#[derive(Debug, Clone)]
+pub enum RangeSource {
+    /// Datagrams to this socket (bound by the caller, so that it can say where).
+    Udp(Arc<std::net::UdpSocket>),
+    /// A serial line.
+    Serial { path: String, baud: u32 },
+}
+
+/// Reads a ranging device on its own task: each read with the companion's Unix time (us) it
+/// arrived at.
+fn spawn_range_reader(source: RangeSource) -> Result<tokio::sync::mpsc::Receiver<(Vec<u8>, u64)>, NodeError> {
+    use tokio::io::AsyncReadExt as _;
+    let (tx, rx) = tokio::sync::mpsc::channel::<(Vec<u8>, u64)>(1024);
+    let now_us = || (unix_now_ns() / 1000) as u64;
+    match source {
+        RangeSource::Udp(socket) => {
+            let std_socket = socket.try_clone().map_err(NodeError::io("the ranging socket"))?;
+            std_socket.set_nonblocking(true).map_err(NodeError::io("the ranging socket"))?;
+            let socket = tokio::net::UdpSocket::from_std(std_socket).map_err(NodeError::io("the ranging socket"))?;
+            tokio::spawn(async move {
+                let mut buf = vec![0u8; 65_536];
+                loop {
+                    match socket.recv_from(&mut buf).await {
+                        Ok((n, _)) => {
+                            if tx.send((buf[..n].to_vec(), now_us())).await.is_err() {
+                                return;
+                            }
+                        }
+                        Err(e) => {
+                            tracing::warn!(error = %e, "ranging socket read error");
+                            tokio::time::sleep(Duration::from_millis(100)).await;
+                        }
+                    }
+                }
+            });
+        }
+        RangeSource::Serial { path, baud } => {
+            use tokio_serial::SerialPortBuilderExt as _;
+            let mut port = tokio_serial::new(&path, baud)
+                .open_native_async()
+                .map_err(|e| NodeError::Invalid(format!("opening the ranging device {path} at {baud} baud: {e}")))?;
+            tokio::spawn(async move {
+                let mut buf = vec![0u8; 4096];
+                loop {
+                    match port.read(&mut buf).await {
+                        Ok(0) => tokio::time::sleep(Duration::from_millis(10)).await,
+                        Ok(n) => {
+                            if tx.send((buf[..n].to_vec(), now_us())).await.is_err() {
+                                return;
+                            }
+                        }
+                        Err(e) => {
+                            tracing::warn!(error = %e, "ranging device read error");
+                            tokio::time::sleep(Duration::from_millis(100)).await;
+                        }
+                    }
+                }
+            });
+        }
+    }
+    Ok(rx)
 }
 
 /// How often the signing state file is written (heartbeats).
@@ -182,6 +248,8 @@ pub struct NodeSummary {
     /// TIMESYNC requests sent and answers refused (not ours, too slow).
     pub timesync_requests: u64,
     pub timesync_refused: u64,
+    /// What the ranging device's stream held (None: no device).
+    pub range_input: Option<super::ranging::RangeInputCounters>,
 }
 
 /// The companion's clock, Unix time in ns (the team clock of `clock = "companion"`).
@@ -382,6 +450,12 @@ pub async fn run(
     let timesync_wanted = matches!(links.profile.inputs.clock, TeamClock::Companion | TeamClock::Auto);
     let mut timesync = TimeSync::default();
     let mut clock_said: Option<ClockSource> = None;
+    // A ranging device beside the vehicle link.
+    let mut range_lines = links.ranges.as_ref().map(|_| super::ranging::RangeLines::new(id, links.profile.inputs.epoch_grid_ms));
+    let mut range_rx = match links.ranges.clone() {
+        Some(source) => Some(spawn_range_reader(source)?),
+        None => None,
+    };
     let mut clock_rtt_us: Option<i64> = None;
     let mut reboots_seen = 0u64;
 
@@ -628,6 +702,23 @@ pub async fn run(
                 }
                 inputs
             }
+            Some((bytes, arrival_us)) = async { range_rx.as_mut()?.recv().await }, if range_rx.is_some() => {
+                let Some(lines) = range_lines.as_mut() else { continue };
+                let mut inputs = Vec::new();
+                for (epoch, range) in lines.push(&bytes, arrival_us) {
+                    // recorded before it is taken: replay takes the same
+                    record_event(&recorder, id, &NodeEvent::Range { epoch, range });
+                    if core.is_some() {
+                        inputs.push(NodeInput::OwnRange { epoch, range });
+                    } else {
+                        before_init += 1;
+                    }
+                }
+                if inputs.is_empty() {
+                    continue;
+                }
+                inputs
+            }
             r = coop.recv(&mut buf) => {
                 let (n, from) = match r {
                     Ok(got) => got,
@@ -755,5 +846,6 @@ pub async fn run(
             .map(|(source, offset)| (source, offset, if source == ClockSource::Timesync { clock_rtt_us } else { None })),
         timesync_requests: timesync.requests,
         timesync_refused: timesync.refused,
+        range_input: range_lines.map(|l| l.counters),
     })
 }

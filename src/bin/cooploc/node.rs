@@ -10,7 +10,7 @@ use cooploc::estimation::nav::NavState;
 use cooploc::node::coop_link::{CoopSpec, Multicast};
 use cooploc::node::core::{NodeConfig, NodeCore};
 use cooploc::node::profile::VehicleProfile;
-use cooploc::node::runner::{Links, NodeInit, metadata_name, node_metadata, run, vehicle_attachment_name};
+use cooploc::node::runner::{Links, NodeInit, RangeSource, metadata_name, node_metadata, run, vehicle_attachment_name};
 use cooploc::protocol::wire::GeoOrigin;
 use cooploc::recording::{Link, Recorder, RecorderOptions};
 use cooploc::sitl::scenario::Scenario;
@@ -145,6 +145,12 @@ pub struct Args {
     /// scenario's); the same as `cooploc sitl --origin-lon-deg`.
     #[arg(long, default_value_t = 0.0, allow_negative_numbers = true)]
     origin_lon_deg: f64,
+    /// A ranging device on the companion (a UWB module), besides the vehicle link:
+    /// `udpin:HOST:PORT` (datagrams to this address; port 0: any, printed) or
+    /// `serial:PATH:BAUD`. One line per range, `RANGE,<epoch>,<to>,<range_m>,<sigma_m>,<t_us>`
+    /// (`t_us` in the team's clock, 0: on arrival; see src/node/ranging.rs).
+    #[arg(long, value_name = "URL")]
+    ranges: Option<String>,
     /// Record every frame in and out, the estimates and the node's events to this MCAP file.
     #[arg(long)]
     log: Option<PathBuf>,
@@ -314,6 +320,23 @@ pub fn run_cmd(args: Args) -> anyhow::Result<()> {
     if args.multicast_ttl == 0 || args.multicast_ttl > 255 {
         bail!("--multicast-ttl {}: 1..=255", args.multicast_ttl);
     }
+    let ranges = match &args.ranges {
+        None => None,
+        Some(url) => Some(if let Some(rest) = url.strip_prefix("udpin:") {
+            let addr: SocketAddr = rest.parse().with_context(|| format!("--ranges {url}: expected udpin:HOST:PORT"))?;
+            let socket = std::net::UdpSocket::bind(addr).with_context(|| format!("--ranges {url}: binding"))?;
+            println!("node {} ranges udp {}", args.id, socket.local_addr()?);
+            RangeSource::Udp(std::sync::Arc::new(socket))
+        } else if let Some(rest) = url.strip_prefix("serial:") {
+            let (path, baud) = rest
+                .rsplit_once(':')
+                .and_then(|(p, b)| Some((p.to_string(), b.parse::<u32>().ok()?)))
+                .with_context(|| format!("--ranges {url}: expected serial:PATH:BAUD"))?;
+            RangeSource::Serial { path, baud }
+        } else {
+            bail!("--ranges {url}: expected udpin:HOST:PORT or serial:PATH:BAUD");
+        }),
+    };
     let links = Links {
         vehicle: args.vehicle.clone(),
         coop,
@@ -324,6 +347,7 @@ pub fn run_cmd(args: Args) -> anyhow::Result<()> {
         team_key,
         signing_state: args.signing_state.clone(),
         vehicle_key,
+        ranges,
     };
     let rt = tokio::runtime::Builder::new_multi_thread().worker_threads(2).enable_all().build()?;
     let runner_recorder = recorder.clone();
@@ -459,6 +483,12 @@ pub fn run_cmd(args: Args) -> anyhow::Result<()> {
             ),
             None => println!("node {} rate request {} at {} Hz: {:?}", e.platform, r.message, r.rate_hz, r.outcome),
         }
+    }
+    if let Some(c) = &summary.range_input {
+        println!(
+            "node {} range_input ranges {} other_lines {} malformed {} bad_peer {} too_long {} off_grid {}",
+            e.platform, c.ranges, c.other_lines, c.malformed, c.bad_peer, c.too_long, c.off_grid
+        );
     }
     match summary.clock {
         Some((source, offset_us, rtt_us)) => println!(
