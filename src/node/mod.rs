@@ -11,6 +11,7 @@
 //! | [`runner`] | the tokio runner that owns the sockets and the clock |
 //! | [`error`] | what can stop a node (`NodeError`): links that do not open, settings, a vehicle that goes away |
 //! | [`vehicle_link`] | the MAVLink connection to the vehicle (UDP, TCP, serial) |
+//! | [`survey`] | `cooploc check`: what an autopilot sends against what a profile needs, and the parameters to set |
 //! | [`ranging`] | a ranging device on the companion (a UWB module): its line stream, as the core's own ranges |
 pub mod autopilot;
 pub mod coop_link;
@@ -22,4 +23,5 @@ pub mod peers;
 pub mod profile;
 pub mod ranging;
 pub mod runner;
+pub mod survey;
 pub mod vehicle_link;

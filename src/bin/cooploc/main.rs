@@ -3,6 +3,7 @@
 
 mod args;
 mod budget;
+mod check;
 mod config_file;
 mod dataset;
 mod demo;
@@ -41,6 +42,10 @@ enum Command {
     /// size, state size, epoch rate, encoding and signing, and the highest epoch rate a SiK
     /// radio, Wi-Fi or an IP mesh carries.
     Budget(budget::Args),
+    /// Connects to an autopilot as its companion would and says what arrives (messages, rates in
+    /// the vehicle's time, components, clocks, signing) against what a vehicle profile needs,
+    /// and the autopilot parameters to set.
+    Check(check::Args),
     /// Real data sets: imports a UTIAS MRCLAM folder into a cooploc log, estimates its noise
     /// against the ground truth, and runs every method on it in three regimes.
     Dataset(dataset::Args),
@@ -95,6 +100,7 @@ fn main() -> ExitCode {
         .init();
     let result = match cli.command {
         Command::Budget(args) => budget::run(args),
+        Command::Check(args) => check::run(args),
         Command::Dataset(args) => dataset::run_cmd(args),
         Command::Demo(args) => demo::run(args),
         Command::Experiment(args) => experiment::run(args),
