@@ -45,7 +45,11 @@ fn range_bearing(a: &CommandedFilter, b: &CommandedFilter, ia: u16, ib: u16, ran
         range - (dn * dn + de * de).sqrt(),
         cooploc::estimation::unicycle::wrap_angle(bearing - (de.atan2(dn) - a.yaw_rad())),
     ]);
-    CoopMeasurement::Linear { blocks: vec![(ia, ha), (ib, hb)], residual, r: DMatrix::from_diagonal(&DVector::from_vec(vec![0.01, 1e-4])) }
+    CoopMeasurement::Linear {
+        blocks: vec![(ia, ha), (ib, hb)],
+        residual,
+        r: DMatrix::from_diagonal(&DVector::from_vec(vec![0.01, 1e-4])),
+    }
 }
 
 /// Brute force: copies of the robots for the nominal states, one stacked covariance.
@@ -140,7 +144,14 @@ fn run_random_team(seed: u64, n: usize, steps: usize, first_estimates: bool) -> 
                     continue;
                 }
                 let (range, bearing) = (rng.random_range(1.0..8.0), rng.random_range(-1.0..1.0));
-                meas.push(range_bearing(team.filter(ids[a]).unwrap(), team.filter(ids[b]).unwrap(), ids[a], ids[b], range, bearing));
+                meas.push(range_bearing(
+                    team.filter(ids[a]).unwrap(),
+                    team.filter(ids[b]).unwrap(),
+                    ids[a],
+                    ids[b],
+                    range,
+                    bearing,
+                ));
             }
             team.cooperative_event(&meas).unwrap();
             central.cooperative_event(&meas).unwrap();

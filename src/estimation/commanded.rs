@@ -33,7 +33,10 @@
 //! unobservable, so that without landmarks the filter gains no spurious information about the
 //! absolute heading: the first-estimates EKF of Huang, Mourikis and Roumeliotis
 //! (ISER 2008; Autonomous Robots 2011) for cooperative localization. The nominal state still
-//! moves with every update; only the Jacobians use the first estimates.
+//! moves with every update; only the Jacobians use the first estimates. A measurement of the
+//! absolute pose (a landmark) removes those directions: the caller may then re-anchor the first
+//! estimate on the corrected position ([`CommandedFilter::reanchor_first_estimate`]; the data-set
+//! runs re-anchor every robot after every update once the team has seen a landmark).
 //!
 //! The filter implements [`PlatformFilter`] like every platform model, so every cooperative
 //! method runs it unchanged, and its recursive coefficient matrix is the product of these
@@ -218,6 +221,14 @@ impl CommandedFilter {
         }
     }
 
+    /// Takes the current position as the first estimate at this instant. For a measurement that
+    /// makes the absolute pose observable (a landmark of known position): the unobservable
+    /// directions the first estimates protect are gone, and a first estimate far from the
+    /// corrected one would only add linearization error to the next steps.
+    pub fn reanchor_first_estimate(&mut self) {
+        self.first_pos = Vector2::new(self.x[0], self.x[1]);
+    }
+
     /// Covariance of `[dN, dE, dyaw]`.
     pub fn pose_covariance(&self) -> nalgebra::Matrix3<f64> {
         self.p.fixed_view::<3, 3>(0, 0).into_owned()
@@ -269,7 +280,8 @@ impl CommandedFilter {
         let r = w + m * self.x[YAW_RATE_BIAS];
         let (sn, cs) = (self.x[2] + 0.5 * r * dt).sin_cos();
         let new_pos = Vector2::new(self.x[0] + u * cs * dt, self.x[1] + u * sn * dt);
-        let lever = if self.config.first_estimates { new_pos - self.first_pos } else { new_pos - Vector2::new(self.x[0], self.x[1]) };
+        let lever =
+            if self.config.first_estimates { new_pos - self.first_pos } else { new_pos - Vector2::new(self.x[0], self.x[1]) };
         let half_dt2 = 0.5 * dt * dt;
         let mut phi = Mat5::identity();
         phi[(0, 2)] = -lever[1];
@@ -281,18 +293,8 @@ impl CommandedFilter {
         phi[(2, YAW_RATE_BIAS)] = m * dt;
         let mut qd = Mat5::zeros();
         if m > 0.0 {
-            let g = SMatrix::<f64, DIM, 2>::new(
-                cs * dt,
-                -u * sn * half_dt2,
-                sn * dt,
-                u * cs * half_dt2,
-                0.0,
-                dt,
-                0.0,
-                0.0,
-                0.0,
-                0.0,
-            );
+            let g =
+                SMatrix::<f64, DIM, 2>::new(cs * dt, -u * sn * half_dt2, sn * dt, u * cs * half_dt2, 0.0, dt, 0.0, 0.0, 0.0, 0.0);
             let q = nalgebra::Matrix2::new(
                 self.config.speed_noise_m_s_per_sqrt_hz.powi(2) / dt,
                 0.0,
@@ -440,7 +442,8 @@ mod tests {
             if k % 5 == 0 {
                 // An update moves the nominal position; the first estimate stays.
                 let h = DMatrix::from_row_slice(1, DIM, &[1.0, 0.0, 0.0, 0.0, 0.0]);
-                let m = LinearizedMeasurement { h, residual: DVector::from_element(1, 0.05), r: DMatrix::from_element(1, 1, 1e-4) };
+                let m =
+                    LinearizedMeasurement { h, residual: DVector::from_element(1, 0.05), r: DMatrix::from_element(1, 1, 1e-4) };
                 let lin = f.linearization_position_ned_m();
                 f.update_local(&m).unwrap();
                 f.psi = Mat5::identity();

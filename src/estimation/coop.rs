@@ -1223,7 +1223,8 @@ mod tests {
             CoopMeasurement::Range { from: 1, to: 2, range_m: d12 + 0.01, sigma_m: 0.5 },
             CoopMeasurement::Range { from: 1, to: 3, range_m: d13 + 14.0, sigma_m: 0.5 },
         ];
-        let plain = UpdateOptions { gate_chi2: UpdateOptions::gate_for_probability(1e-12), ..UpdateOptions::new(CrossMode::Propagate) };
+        let plain =
+            UpdateOptions { gate_chi2: UpdateOptions::gate_for_probability(1e-12), ..UpdateOptions::new(CrossMode::Propagate) };
         let robust = UpdateOptions { huber_nis: Some(5.99), ..plain.clone() };
         let a = cooperative_update_with(&mut CrossCovariances::new(), &snaps, &ranges, &plain).unwrap();
         let b = cooperative_update_with(&mut CrossCovariances::new(), &snaps, &ranges, &robust).unwrap();

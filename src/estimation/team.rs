@@ -342,7 +342,9 @@ fn huber_weight(huber_nis: Option<f64>, v: f64, m: usize) -> f64 {
 fn scale_noise(m: &CoopMeasurement, factor: f64) -> CoopMeasurement {
     let k = factor.sqrt();
     match m.clone() {
-        CoopMeasurement::Range { from, to, range_m, sigma_m } => CoopMeasurement::Range { from, to, range_m, sigma_m: sigma_m * k },
+        CoopMeasurement::Range { from, to, range_m, sigma_m } => {
+            CoopMeasurement::Range { from, to, range_m, sigma_m: sigma_m * k }
+        }
         CoopMeasurement::PlanarRange { from, to, range_m, sigma_m } => {
             CoopMeasurement::PlanarRange { from, to, range_m, sigma_m: sigma_m * k }
         }
