@@ -241,8 +241,8 @@ mod tests {
         for k in 0..FIGURES.len() {
             set(&mut m, k, 1.0 + k as f64);
         }
-        for k in 0..FIGURES.len() {
-            assert_eq!(get(&m, k), 1.0 + k as f64, "{}", FIGURES[k]);
+        for (k, name) in FIGURES.iter().enumerate() {
+            assert_eq!(get(&m, k), 1.0 + k as f64, "{name}");
         }
         let s = start(&m);
         assert_eq!((s.gate_probability, s.first_estimates), (m.gate_probability, m.first_estimates));

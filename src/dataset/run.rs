@@ -264,7 +264,7 @@ pub fn drive_samples(commands: &[super::Command], t0: TimeUs, t_end: TimeUs, sta
 /// lag's state carried across; a lagged value under 1e-6 is zero (the robot has stopped). A
 /// zero lag returns the samples unchanged.
 pub fn lagged(samples: &[WheelSample], t0: TimeUs, lag_s: f64) -> Vec<WheelSample> {
-    if !(lag_s > 0.0) {
+    if lag_s.is_nan() || lag_s <= 0.0 {
         return samples.to_vec();
     }
     const PIECE_US: u64 = 100_000;
