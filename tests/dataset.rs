@@ -4,6 +4,9 @@
 //! (a missing file, a truncated line, time going backwards, an unknown barcode, bytes that are
 //! not text) through the binary: an error naming file and line, or counted, never a panic.
 //!
+//! The noise identification (from the innovations, no ground truth) on the excerpt: it lowers
+//! its cost and reads no truth beyond the start poses.
+//!
 //! Regenerate the golden summary after a deliberate change of the model or the noise figures:
 //! `COOPLOC_BLESS=1 cargo test --release --test dataset golden`.
 
@@ -39,17 +42,20 @@ fn excerpt(tag: &str) -> PathBuf {
 
 fn summary_line(o: &cooploc::dataset::run::Outcome) -> String {
     format!(
-        "{} {}: pos {:.4} m, hdg {:.3} deg, nees {:.3}, in95 {:.4}, landmarks {}/{}, teammates {}/{}, epochs {}, scored {}, masked {}",
+        "{} {}: pos {:.4} m, hdg {:.3} deg, nees {:.3} (hdg {:.3}), in95 {:.4}, landmarks {}/{} w<.5 {}, teammates {}/{} w<.5 {}, epochs {}, scored {}, masked {}",
         o.regime.name(),
         o.method.short_name(),
         o.pos_rmse_m,
         o.heading_rmse_deg,
         o.avg_nees,
+        o.avg_nees_heading,
         o.in_bound_share,
         o.landmark_updates,
         o.landmark_gated,
+        o.landmark_weight_below_half,
         o.robot_updates,
         o.robot_gated,
+        o.robot_weight_below_half,
         o.epochs,
         o.samples,
         o.masked
@@ -134,6 +140,31 @@ fn golden_summary_of_every_method_on_the_excerpt_after_a_log_round_trip() {
     }
     let expected = std::fs::read_to_string(&golden).expect("tests/golden/mrclam_excerpt.txt (COOPLOC_BLESS=1 to write it)");
     assert_eq!(text, expected, "the summary differs from tests/golden/mrclam_excerpt.txt");
+    std::fs::remove_dir_all(&dir).unwrap();
+}
+
+/// The noise identification reads no ground truth beyond each robot's start pose: the same
+/// figures with every later truth pose moved 100 m, and a lower innovation cost than its start.
+#[test]
+fn identification_lowers_the_innovation_cost_and_reads_no_ground_truth() {
+    use cooploc::dataset::identify::{Options, identify, start};
+    let dir = excerpt("identify");
+    let ds = mrclam::read_folder(&dir).unwrap().excerpt(60.0);
+    let mut moved = ds.clone();
+    for r in &mut moved.robots {
+        for p in r.truth.iter_mut().skip(1) {
+            p.n_m += 100.0;
+            p.e_m -= 100.0;
+        }
+    }
+    let base = cooploc::dataset::noise::NoiseModel::mrclam();
+    let opts = Options { max_iterations: 2, ..Options::default() };
+    let a = identify(&ds, &start(&base), &opts).unwrap();
+    let b = identify(&moved, &start(&base), &opts).unwrap();
+    assert_eq!(a.best.model, b.best.model);
+    assert_eq!(a.best.cost, b.best.cost);
+    assert!(a.best.cost < a.start.cost - 1.0, "{} vs {}", a.best.cost, a.start.cost);
+    assert_eq!(a.evaluations, 1 + 2 * 19);
     std::fs::remove_dir_all(&dir).unwrap();
 }
 

@@ -9,6 +9,8 @@
 //!   computation.
 //! - [`noise`]: the noise model (the figures in `mrclam_noise.toml` next to the reader) and how
 //!   they are estimated from a data set against its ground truth.
+//! - [`identify`]: the noise model identified from the data's own innovations (maximum
+//!   likelihood), without the ground truth.
 //! - [`log`]: a data set as a cooploc MCAP log (the same MAVLink frames and channels a node
 //!   logs) and back.
 //!
@@ -16,6 +18,7 @@
 //! works in NED with yaw clockwise from north. The reader maps `N = x`, `E = -y`, `yaw = -theta`,
 //! and likewise bearings and yaw rates change sign: a right-handed z-up frame seen as NED.
 
+pub mod identify;
 pub mod log;
 pub mod mrclam;
 pub mod noise;
@@ -130,6 +133,33 @@ impl Dataset {
 
     /// The part of the data set in `[t0, t0 + seconds]` (a test excerpt): every record in it,
     /// the landmarks, the counts of the whole.
+    /// The stretch from `from_s` to `to_s` seconds after the first ground-truth time: its
+    /// commands (the one in force at the start moved to the start), observations and ground
+    /// truth, `t0` at the start.
+    pub fn window(&self, from_s: f64, to_s: f64) -> Dataset {
+        let start = TimeUs(self.t0.0.saturating_add((from_s.max(0.0) * 1e6) as u64));
+        let end = TimeUs(self.t0.0.saturating_add((to_s.max(0.0) * 1e6) as u64)).min(self.t_end);
+        let robots = self
+            .robots
+            .iter()
+            .map(|r| {
+                let k = r.commands.partition_point(|c| c.t <= start);
+                let mut commands: Vec<Command> =
+                    r.commands[k.saturating_sub(1)..].iter().filter(|c| c.t <= end).copied().collect();
+                if let Some(c) = commands.first_mut() {
+                    c.t = c.t.max(start);
+                }
+                Robot {
+                    id: r.id,
+                    commands,
+                    observations: r.observations.iter().filter(|o| o.t >= start && o.t <= end).copied().collect(),
+                    truth: r.truth.iter().filter(|p| p.t >= start && p.t <= end).copied().collect(),
+                }
+            })
+            .collect();
+        Dataset { t0: start, t_end: end.max(start), robots, ..self.clone() }
+    }
+
     pub fn excerpt(&self, seconds: f64) -> Dataset {
         let end = TimeUs(self.t0.0.saturating_add((seconds * 1e6) as u64));
         let robots = self

@@ -1,10 +1,15 @@
-//! The noise model of a data set run, and how its figures are estimated from the data against
+//! The noise model of a data set run, and how figures can be estimated from the data against
 //! the ground truth ([`estimate`]).
 //!
 //! The MRCLAM figures live in `mrclam_noise.toml` next to this file ([`NoiseModel::mrclam`]);
-//! `cooploc dataset mrclam DIR --estimate-noise` prints what [`estimate`] finds on a folder,
-//! which is where those figures come from (data set 6). The same figures serve every method and
-//! every regime: nothing is tuned per method.
+//! they are identified from data set 6's own innovations, **without its ground truth**
+//! ([`super::identify`], `cooploc dataset mrclam DIR --identify`), or chosen a priori; the file
+//! says which for each. The same figures serve every method and every regime: nothing is tuned
+//! per method.
+//!
+//! [`estimate`] (`cooploc dataset mrclam DIR --estimate-noise`) measures the errors against the
+//! ground truth instead: a diagnostic to compare the identified figures with, not a source of
+//! figures (the truth is what the methods are scored on).
 //!
 //! How:
 //! - **Observations**: each observation's residual against the ground truth (the observer's
@@ -50,12 +55,44 @@ pub struct NoiseModel {
     pub initial_yaw_sigma_rad: f64,
     /// False-rejection probability of the chi-square gate on every observation.
     pub gate_probability: f64,
+    /// Random-walk density of each robot's speed scale, 1/sqrt(s) (see
+    /// [`crate::estimation::commanded`]); 0 with a zero initial sigma: no scale is learnt (a
+    /// noise file without the field).
+    #[serde(default)]
+    pub speed_scale_walk_per_sqrt_s: f64,
+    /// Random-walk density of each robot's yaw-rate bias, rad/s/sqrt(s).
+    #[serde(default)]
+    pub yaw_rate_bias_walk_rad_s_per_sqrt_s: f64,
+    /// Prior sigma of each robot's speed scale (0.1: 10%).
+    #[serde(default)]
+    pub initial_speed_scale_sigma: f64,
+    /// Prior sigma of each robot's yaw-rate bias, rad/s.
+    #[serde(default)]
+    pub initial_yaw_rate_bias_sigma_rad_s: f64,
+    /// First-estimate Jacobians for the motion and the teammate observations (see
+    /// [`crate::estimation::commanded`]).
+    #[serde(default)]
+    pub first_estimates: bool,
+    /// Huber weighting of the observations that pass the gate: the NIS (of a range and
+    /// bearing) above which an observation's noise is inflated (its weight `sqrt(c / NIS)`; see
+    /// [`crate::estimation::UpdateOptions::huber_nis`]); 0: none.
+    #[serde(default)]
+    pub huber_nis: f64,
+    /// Time constant of the first-order lag with which the robots execute their commands, s
+    /// (see [`super::run::lagged`]); 0: none.
+    #[serde(default)]
+    pub command_lag_s: f64,
 }
 
 /// The MRCLAM figures, as committed.
 pub const MRCLAM_NOISE_TOML: &str = include_str!("mrclam_noise.toml");
 
 impl NoiseModel {
+    /// The Huber threshold, `None` when off.
+    pub fn huber(&self) -> Option<f64> {
+        (self.huber_nis > 0.0).then_some(self.huber_nis)
+    }
+
     /// The committed MRCLAM figures.
     pub fn mrclam() -> NoiseModel {
         NoiseModel::from_toml_str(MRCLAM_NOISE_TOML).expect("the committed mrclam_noise.toml is valid")
@@ -89,6 +126,18 @@ impl NoiseModel {
         {
             if !(v.is_finite() && v.abs() < 10.0) {
                 return Err(format!("{name} = {v}: must be a finite bias under 10 m"));
+            }
+        }
+        for (name, v) in [
+            ("speed_scale_walk_per_sqrt_s", self.speed_scale_walk_per_sqrt_s),
+            ("yaw_rate_bias_walk_rad_s_per_sqrt_s", self.yaw_rate_bias_walk_rad_s_per_sqrt_s),
+            ("initial_speed_scale_sigma", self.initial_speed_scale_sigma),
+            ("initial_yaw_rate_bias_sigma_rad_s", self.initial_yaw_rate_bias_sigma_rad_s),
+            ("huber_nis", self.huber_nis),
+            ("command_lag_s", self.command_lag_s),
+        ] {
+            if !(v.is_finite() && v >= 0.0) {
+                return Err(format!("{name} = {v}: must be a number >= 0"));
             }
         }
         if !(self.gate_probability > 0.0 && self.gate_probability < 1.0) {

@@ -2,23 +2,28 @@
 //!
 //! # The model
 //!
-//! - **Motion**: each robot is the planar filter of [`crate::estimation::planar`] driven by its
-//!   commands: a command holds until the next one, and one older than
-//!   [`NoiseModel::stale_command_s`] means the robot stopped (MRCLAM's robots log commands at
-//!   about 67 Hz; the longest silence is about 1 s). [`drive_samples`] turns the commands into
-//!   wheel samples (none longer than 0.5 s), zero speed before the first command.
+//! - **Motion**: each robot is the command-driven filter of [`crate::estimation::commanded`]
+//!   (pose, speed scale, yaw-rate bias; first-estimate Jacobians with
+//!   [`NoiseModel::first_estimates`]) driven by its commands: a command holds until the next
+//!   one, and one older than [`NoiseModel::stale_command_s`] means the robot stopped (MRCLAM's
+//!   robots log commands at about 67 Hz; the longest silence is about 1 s). [`drive_samples`]
+//!   turns the commands into wheel samples (none longer than 0.5 s), zero speed before the first
+//!   command, and [`lagged`] passes them through the first-order lag of
+//!   [`NoiseModel::command_lag_s`] with which the robots execute them.
 //! - **Landmarks**: a range and bearing to a landmark of known position is a local update of the
 //!   observer ([`landmark_measurement`]); the surveyed position's uncertainty adds to the noise.
 //! - **Teammates**: a range and bearing to a teammate is a cooperative measurement
-//!   ([`CoopMeasurement::RangeBearing`]). Each camera image that holds a teammate (one observer,
+//!   ([`robot_measurement`]: its Jacobian at the first estimates). Each camera image that holds a teammate (one observer,
 //!   one time stamp) is one **ranging epoch**: the paper's rule, every platform broadcasts its
 //!   state, covariance and recursive coefficient matrix at each epoch, maps onto asynchronous
 //!   observations as "every robot broadcasts whenever any robot sees a teammate". The whole team
 //!   takes the joint update (dcl, centralized; the naive filter and covariance intersection
 //!   update the two robots involved). [`broadcast_bytes`] is what that costs.
-//! - **Gating**: every measurement passes a chi-square gate at [`NoiseModel::gate_probability`]
-//!   against the prior the method itself holds ([`Team::gated_local_update`],
-//!   [`Team::gated_cooperative_event`]): the same rule for every method, none tuned.
+//! - **Gating and robust weights**: every measurement passes a chi-square gate at
+//!   [`NoiseModel::gate_probability`] against the prior the method itself holds, and one that
+//!   passes it with a NIS above [`NoiseModel::huber_nis`] gets a Huber weight
+//!   ([`Team::robust_local_update`], [`Team::robust_cooperative_event`]): the same rule for
+//!   every method, counted per kind ([`Outcome::landmark_gated`], ...).
 //! - **Start**: every robot starts at its first ground-truth pose at the data set's first
 //!   ground-truth time, with the initial sigmas of the noise model.
 //!
@@ -42,8 +47,8 @@ use nalgebra::{DMatrix, DVector, Vector3};
 
 use super::noise::NoiseModel;
 use super::{Dataset, Landmark, MAX_TRUTH_GAP_US, Observation, Target, truth_at};
+use crate::estimation::commanded::{self, CommandedConfig, CommandedFilter, CommandedSigma};
 use crate::estimation::consistency::nees;
-use crate::estimation::planar::{PlanarConfig, PlanarFilter, PlanarSigma, PlanarState};
 use crate::estimation::unicycle::wrap_angle;
 use crate::estimation::{
     CoopMeasurement, EstimationError, LinearizedMeasurement, Method, PlatformFilter, PlatformId, Team, UpdateOptions, WheelSample,
@@ -140,12 +145,76 @@ pub struct Outcome {
     /// Teammate observations applied and left out by the gate.
     pub robot_updates: usize,
     pub robot_gated: usize,
+    /// Observations applied with a Huber weight below 1, and below 0.5 (landmarks, teammates).
+    pub landmark_weighted: usize,
+    pub landmark_weight_below_half: usize,
+    pub robot_weighted: usize,
+    pub robot_weight_below_half: usize,
     /// Ranging epochs (camera images holding a teammate) the method ran.
     pub epochs: usize,
     /// Updates refused as numerically unusable (left out, counted).
     pub refused: usize,
+    /// The innovations of the landmark updates and of the teammate (joint) updates the method
+    /// applied: what [`super::identify`] fits the noise to, with no ground truth.
+    pub landmark_innovations: InnovationStats,
+    pub robot_innovations: InnovationStats,
     /// Per robot, its estimate at every scoring instant (with [`Settings::keep_track`]).
     pub track: Vec<(PlatformId, Vec<TrackPoint>)>,
+}
+
+/// Sums over the updates of one kind of observation, each update a range and bearing (or a
+/// stack of them: one joint update per image).
+#[derive(Debug, Clone, Copy, PartialEq, Default)]
+pub struct InnovationStats {
+    /// Updates applied.
+    pub updates: usize,
+    /// Scalars in them (2 per observation).
+    pub scalars: usize,
+    /// Sum of the normalised innovations squared `r^T S^-1 r`.
+    pub nis_sum: f64,
+    /// Sum of their Huber-robustified values ([`huber_nis`]).
+    pub nis_huber_sum: f64,
+    /// Sum of `ln det S`.
+    pub ln_det_s_sum: f64,
+    /// Sum of the range innovations and of the range and bearing innovations squared over their
+    /// predicted variances (`r_i^2 / S_ii`), with their count.
+    pub range_sum_m: f64,
+    pub range_z2_sum: f64,
+    pub bearing_z2_sum: f64,
+    pub observations: usize,
+}
+
+impl InnovationStats {
+    fn add(&mut self, d: &crate::estimation::UpdateDiagnostics) {
+        let m = d.innovation.len();
+        self.updates += 1;
+        self.scalars += m;
+        self.nis_sum += d.nis;
+        self.nis_huber_sum += huber_nis(d.nis, m);
+        // S is positive definite (the update factorised it).
+        self.ln_det_s_sum += d.innovation_cov.clone().cholesky().map_or(f64::NAN, |c| 2.0 * c.l().diagonal().map(f64::ln).sum());
+        for k in (0..m).step_by(2) {
+            self.range_sum_m += d.innovation[k];
+            self.range_z2_sum += d.innovation[k].powi(2) / d.innovation_cov[(k, k)];
+            if k + 1 < m {
+                self.bearing_z2_sum += d.innovation[k + 1].powi(2) / d.innovation_cov[(k + 1, k + 1)];
+            }
+            self.observations += 1;
+        }
+    }
+
+    /// Mean NIS per scalar (1 for a consistent filter).
+    pub fn nis_per_scalar(&self) -> f64 {
+        self.nis_sum / self.scalars.max(1) as f64
+    }
+}
+
+/// The Huber loss of a NIS of `m` scalars: the NIS up to `c = 4.6 m` (the 99% quantile of a
+/// chi-square of 2 degrees of freedom, per pair of scalars), `2 sqrt(c NIS) - c` above it, so
+/// that a gross outlier weighs like a distance, not like its square.
+pub fn huber_nis(nis: f64, m: usize) -> f64 {
+    let c = 4.605 * m as f64;
+    if nis <= c { nis } else { 2.0 * (c * nis).sqrt() - c }
 }
 
 /// Why a run stopped.
@@ -189,11 +258,67 @@ pub fn drive_samples(commands: &[super::Command], t0: TimeUs, t_end: TimeUs, sta
     out
 }
 
+/// `samples` (from [`drive_samples`], starting at `t0` at rest) as the robot executes them when
+/// it follows its commands with a first-order lag of time constant `lag_s`: each interval (cut
+/// in pieces of at most 0.1 s) carries the mean of the lagged speed and yaw rate over it, the
+/// lag's state carried across; a lagged value under 1e-6 is zero (the robot has stopped). A
+/// zero lag returns the samples unchanged.
+pub fn lagged(samples: &[WheelSample], t0: TimeUs, lag_s: f64) -> Vec<WheelSample> {
+    if lag_s.is_nan() || lag_s <= 0.0 {
+        return samples.to_vec();
+    }
+    const PIECE_US: u64 = 100_000;
+    let mut out = Vec::with_capacity(samples.len() + 16);
+    let (mut y_v, mut y_w) = (0.0f64, 0.0f64);
+    let mut prev = t0.0;
+    let snap = |x: f64| if x.abs() < 1e-6 { 0.0 } else { x };
+    for s in samples {
+        let mut a = prev;
+        while a < s.t.0 {
+            let b = (a + PIECE_US).min(s.t.0);
+            let dt = (b - a) as f64 * 1e-6;
+            let e = (-dt / lag_s).exp();
+            let k = lag_s / dt * (1.0 - e);
+            let (mean_v, mean_w) = (s.speed_m_s + (y_v - s.speed_m_s) * k, s.yaw_rate_rad_s + (y_w - s.yaw_rate_rad_s) * k);
+            y_v = s.speed_m_s + (y_v - s.speed_m_s) * e;
+            y_w = s.yaw_rate_rad_s + (y_w - s.yaw_rate_rad_s) * e;
+            out.push(WheelSample { t: TimeUs(b), speed_m_s: snap(mean_v), yaw_rate_rad_s: snap(mean_w) });
+            a = b;
+        }
+        prev = prev.max(s.t.0);
+    }
+    out
+}
+
+/// The filter configuration of a run (the same for every robot, method and regime).
+pub fn commanded_config(noise: &NoiseModel) -> CommandedConfig {
+    CommandedConfig {
+        speed_noise_m_s_per_sqrt_hz: noise.speed_noise_m_s_per_sqrt_hz,
+        yaw_rate_noise_rad_s_per_sqrt_hz: noise.yaw_rate_noise_rad_s_per_sqrt_hz,
+        speed_scale_walk_per_sqrt_s: noise.speed_scale_walk_per_sqrt_s,
+        yaw_rate_bias_walk_rad_s_per_sqrt_s: noise.yaw_rate_bias_walk_rad_s_per_sqrt_s,
+        max_gap_s: 1.0,
+        first_estimates: noise.first_estimates,
+    }
+}
+
+/// The initial sigmas of a run.
+pub fn commanded_sigma(noise: &NoiseModel) -> CommandedSigma {
+    CommandedSigma {
+        pos_m: noise.initial_position_sigma_m,
+        yaw_rad: noise.initial_yaw_sigma_rad,
+        speed_scale: noise.initial_speed_scale_sigma,
+        yaw_rate_bias_rad_s: noise.initial_yaw_rate_bias_sigma_rad_s,
+    }
+}
+
 /// The range and bearing of landmark `lm` as a local measurement of the observer at `f`
-/// (residual `[range - bias - predicted, wrapped bearing residual]`, Jacobian in
-/// `[dN, dE, dyaw]`); `None` when the estimate sits on the landmark.
+/// (residual `[range - bias - predicted, wrapped bearing residual]`, Jacobian in the filter's
+/// error state, zero on the speed scale and the bias); `None` when the estimate sits on the
+/// landmark. The map is known, so the absolute pose is observable: the Jacobian is taken at the
+/// current estimate.
 pub fn landmark_measurement(
-    f: &PlanarFilter,
+    f: &CommandedFilter,
     lm: &Landmark,
     obs: &Observation,
     noise: &NoiseModel,
@@ -206,7 +331,8 @@ pub fn landmark_measurement(
         return None;
     }
     let predicted_bearing = de.atan2(dn) - f.yaw_rad();
-    let h = DMatrix::from_row_slice(2, 3, &[-dn / rho, -de / rho, 0.0, de / rho2, -dn / rho2, -1.0]);
+    let mut h = DMatrix::zeros(2, commanded::DIM);
+    h.view_mut((0, 0), (2, 3)).copy_from_slice(&[-dn / rho, de / rho2, -de / rho, -dn / rho2, 0.0, -1.0]);
     let residual =
         DVector::from_vec(vec![obs.range_m - noise.landmark_range_bias_m - rho, wrap_angle(obs.bearing_rad - predicted_bearing)]);
     let lm_var = 0.5 * (lm.sigma_n_m.powi(2) + lm.sigma_e_m.powi(2));
@@ -217,16 +343,47 @@ pub fn landmark_measurement(
     Some(LinearizedMeasurement { h, residual, r })
 }
 
-/// A teammate observation as a cooperative measurement (the range's bias removed).
-pub fn robot_measurement(observer: PlatformId, to: PlatformId, obs: &Observation, noise: &NoiseModel) -> CoopMeasurement {
-    CoopMeasurement::RangeBearing {
-        from: observer,
-        to,
-        range_m: obs.range_m - noise.robot_range_bias_m,
-        bearing_rad: obs.bearing_rad,
-        sigma_range_m: noise.robot_range_sigma_m,
-        sigma_bearing_rad: noise.robot_bearing_sigma_rad,
+/// A teammate observation (`observer` at `from` sees `to` at `target`) as a cooperative
+/// measurement, the range's bias removed: the residual at the current estimates, the Jacobian at
+/// the filters' linearization points (their first estimates with
+/// [`NoiseModel::first_estimates`], see [`crate::estimation::commanded`]). `None` when the two
+/// estimates coincide.
+pub fn robot_measurement(
+    from: &CommandedFilter,
+    target: &CommandedFilter,
+    observer: PlatformId,
+    to: PlatformId,
+    obs: &Observation,
+    noise: &NoiseModel,
+) -> Option<CoopMeasurement> {
+    let (a, b) = (from.position_ned_m(), target.position_ned_m());
+    let (dn, de) = (b[0] - a[0], b[1] - a[1]);
+    let rho = (dn * dn + de * de).sqrt();
+    let (la, lb) = (from.linearization_position_ned_m(), target.linearization_position_ned_m());
+    let (ln, le) = (lb[0] - la[0], lb[1] - la[1]);
+    let lrho2 = ln * ln + le * le;
+    let lrho = lrho2.sqrt();
+    if rho < 1e-6 || lrho < 1e-6 {
+        return None;
     }
+    let residual = DVector::from_vec(vec![
+        obs.range_m - noise.robot_range_bias_m - rho,
+        wrap_angle(obs.bearing_rad - (de.atan2(dn) - from.yaw_rad())),
+    ]);
+    let rows = [[ln / lrho, le / lrho], [-le / lrho2, ln / lrho2]];
+    let (mut h_from, mut h_to) = (DMatrix::zeros(2, commanded::DIM), DMatrix::zeros(2, commanded::DIM));
+    for row in 0..2 {
+        for axis in 0..2 {
+            h_from[(row, axis)] = -rows[row][axis];
+            h_to[(row, axis)] = rows[row][axis];
+        }
+    }
+    h_from[(1, 2)] = -1.0;
+    let r = DMatrix::from_diagonal(&DVector::from_vec(vec![
+        noise.robot_range_sigma_m.powi(2),
+        noise.robot_bearing_sigma_rad.powi(2),
+    ]));
+    Some(CoopMeasurement::Linear { blocks: vec![(observer, h_from), (to, h_to)], residual, r })
 }
 
 /// One camera image: an observer's observations at one time stamp.
@@ -263,21 +420,17 @@ pub fn run(ds: &Dataset, settings: &Settings, regime: Regime, method: Method) ->
         return Err(RunError::Settings("the scoring period must be positive".into()));
     }
     let fail = |robot, t, source| RunError::Filter { regime: regime.name(), method, robot, t, source };
-    let config = PlanarConfig {
-        speed_noise_m_s_per_sqrt_hz: noise.speed_noise_m_s_per_sqrt_hz,
-        yaw_rate_noise_rad_s_per_sqrt_hz: noise.yaw_rate_noise_rad_s_per_sqrt_hz,
-        max_gap_s: 1.0,
-    };
-    let sigma = PlanarSigma { pos_m: noise.initial_position_sigma_m, yaw_rad: noise.initial_yaw_sigma_rad };
+    let config = commanded_config(noise);
+    let sigma = commanded_sigma(noise);
     let stale_us = (noise.stale_command_s * 1e6) as u64;
     let mut members = Vec::new();
     let mut drives = Vec::new();
     for r in &ds.robots {
         let first = r.truth.first().ok_or_else(|| RunError::Settings(format!("robot {} has no ground truth", r.id)))?;
         // Every robot starts at t0: one still before its own first truth sample.
-        let init = PlanarState { pos_ned_m: Vector3::new(first.n_m, first.e_m, 0.0), yaw_rad: first.yaw_rad };
-        members.push((r.id, PlanarFilter::new(config, ds.t0, init, sigma).map_err(|e| fail(r.id, ds.t0, e))?));
-        drives.push(drive_samples(&r.commands, ds.t0, ds.t_end, stale_us));
+        let pos = Vector3::new(first.n_m, first.e_m, 0.0);
+        members.push((r.id, CommandedFilter::new(config, ds.t0, pos, first.yaw_rad, sigma).map_err(|e| fail(r.id, ds.t0, e))?));
+        drives.push(lagged(&drive_samples(&r.commands, ds.t0, ds.t_end, stale_us), ds.t0, noise.command_lag_s));
     }
     let ids: Vec<PlatformId> = ds.robots.iter().map(|r| r.id).collect();
     let mut team = Team::new(method, members).map_err(|e| fail(0, ds.t0, e))?;
@@ -285,7 +438,7 @@ pub fn run(ds: &Dataset, settings: &Settings, regime: Regime, method: Method) ->
         .ok_or_else(|| RunError::Settings(format!("gate probability {} is not in (0, 1)", noise.gate_probability)))?;
     let mut next = vec![0usize; ids.len()];
     // Brings robot `i`'s filter to `t`: its samples up to `t`, then the next one cut at `t`.
-    let mut advance = |team: &mut Team<PlanarFilter>, i: usize, t: TimeUs| -> Result<(), RunError> {
+    let mut advance = |team: &mut Team<CommandedFilter>, i: usize, t: TimeUs| -> Result<(), RunError> {
         let f = team.filter_mut(ids[i]).expect("member");
         while let Some(s) = drives[i].get(next[i]).filter(|s| s.t <= t) {
             f.propagate(s).map_err(|e| fail(ids[i], s.t, e))?;
@@ -314,8 +467,14 @@ pub fn run(ds: &Dataset, settings: &Settings, regime: Regime, method: Method) ->
         landmark_gated: 0,
         robot_updates: 0,
         robot_gated: 0,
+        landmark_weighted: 0,
+        landmark_weight_below_half: 0,
+        robot_weighted: 0,
+        robot_weight_below_half: 0,
         epochs: 0,
         refused: 0,
+        landmark_innovations: InnovationStats::default(),
+        robot_innovations: InnovationStats::default(),
         track: ids.iter().map(|&id| (id, Vec::new())).collect(),
     };
     // Per robot: sum of squared position errors, of squared heading errors (deg), samples,
@@ -326,6 +485,7 @@ pub fn run(ds: &Dataset, settings: &Settings, regime: Regime, method: Method) ->
     let bound = crate::estimation::consistency::chi2_95(3);
     let images = if method == Method::DeadReckoning { Vec::new() } else { images(ds) };
     let mut k_image = 0;
+    let mut absolute_seen = false;
     let mut t_score = ds.t0;
     while t_score <= ds.t_end || k_image < images.len() {
         let t_image = images.get(k_image).map(|im| im.t);
@@ -347,32 +507,62 @@ pub fn run(ds: &Dataset, settings: &Settings, regime: Regime, method: Method) ->
                         out.refused += 1;
                         continue;
                     };
-                    match team.gated_local_update(observer, &meas, gate) {
-                        Ok(Some(_)) => out.landmark_updates += 1,
+                    match team.robust_local_update(observer, &meas, gate, noise.huber()) {
+                        Ok(Some((d, w))) => {
+                            absolute_seen = true;
+                            out.landmark_updates += 1;
+                            out.landmark_weighted += usize::from(w < 1.0);
+                            out.landmark_weight_below_half += usize::from(w < 0.5);
+                            out.landmark_innovations.add(&d);
+                        }
                         Ok(None) => out.landmark_gated += 1,
                         Err(_) => out.refused += 1,
                     }
                 }
+                if absolute_seen {
+                    for &id in &ids {
+                        team.filter_mut(id).expect("member").reanchor_first_estimate();
+                    }
+                }
             }
-            let meas: Vec<CoopMeasurement> = im
-                .observations
-                .iter()
-                .filter_map(|o| match o.target {
-                    Target::Robot(to) if ids.contains(&to) => Some(robot_measurement(observer, to, o, noise)),
-                    _ => None,
-                })
-                .collect();
-            if !meas.is_empty() {
+            if im.observations.iter().any(|o| matches!(o.target, Target::Robot(to) if ids.contains(&to))) {
                 for i in 0..ids.len() {
                     advance(&mut team, i, t)?;
                 }
+                let mut meas = Vec::new();
+                for o in im.observations {
+                    let Target::Robot(to) = o.target else { continue };
+                    let Some(target) = team.filter(to) else { continue };
+                    match robot_measurement(team.filter(observer).expect("member"), target, observer, to, o, noise) {
+                        Some(m) => meas.push(m),
+                        None => out.refused += 1,
+                    }
+                }
+                if meas.is_empty() {
+                    continue;
+                }
                 out.epochs += 1;
-                match team.gated_cooperative_event(&meas, gate) {
-                    Ok((_, gated)) => {
+                match team.robust_cooperative_event(&meas, gate, noise.huber()) {
+                    Ok((d, weights)) => {
+                        let gated = weights.iter().filter(|&&w| w == 0.0).count();
+                        out.robot_weighted += weights.iter().filter(|&&w| w > 0.0 && w < 1.0).count();
+                        out.robot_weight_below_half += weights.iter().filter(|&&w| w > 0.0 && w < 0.5).count();
+                        if let Some(d) = d.filter(|d| !d.innovation.is_empty()) {
+                            out.robot_innovations.add(&d);
+                        }
                         out.robot_updates += meas.len() - gated;
                         out.robot_gated += gated;
                     }
                     Err(_) => out.refused += meas.len(),
+                }
+            }
+            // Once the team has observed a landmark its absolute pose is observable: no null
+            // space is left for the first estimates to protect, and a first estimate far from the
+            // corrected one would only add linearization error. Every robot is re-anchored after
+            // every update from then on (without landmarks, never).
+            if absolute_seen {
+                for &id in &ids {
+                    team.filter_mut(id).expect("member").reanchor_first_estimate();
                 }
             }
             continue;
@@ -385,7 +575,7 @@ pub fn run(ds: &Dataset, settings: &Settings, regime: Regime, method: Method) ->
             if settings.keep_track {
                 let f = team.filter(r.id).expect("member");
                 let p = f.position_ned_m();
-                let cov = nalgebra::Matrix3::from_fn(|a, b| f.covariance()[(a, b)]);
+                let cov = f.pose_covariance();
                 out.track[i].1.push(TrackPoint { t: t_score, n_m: p[0], e_m: p[1], yaw_rad: f.yaw_rad(), cov });
             }
             let Some(truth) = truth_at(&r.truth, t_score, MAX_TRUTH_GAP_US) else {
@@ -395,7 +585,7 @@ pub fn run(ds: &Dataset, settings: &Settings, regime: Regime, method: Method) ->
             let f = team.filter(r.id).expect("member");
             let p = f.position_ned_m();
             let e = DVector::from_vec(vec![truth.n_m - p[0], truth.e_m - p[1], wrap_angle(truth.yaw_rad - f.yaw_rad())]);
-            let cov = f.covariance();
+            let cov = f.covariance().view((0, 0), (3, 3)).into_owned();
             let v = nees(&e, &cov).map_err(|err| fail(r.id, t_score, err))?;
             nees_pos_sum += nees(&e.rows(0, 2).into_owned(), &cov.view((0, 0), (2, 2)).into_owned())
                 .map_err(|err| fail(r.id, t_score, err))?;
@@ -441,14 +631,15 @@ pub fn nees_band(robots: usize) -> (f64, f64) {
 }
 
 /// Bytes the decentralized method would have sent over the data set: at each of `epochs` every
-/// one of `team` robots broadcasts its record (3 error states, compact encoding, unsigned) with
+/// one of `team` robots broadcasts its record (the 5 error states of the command-driven robot,
+/// compact encoding, unsigned) with
 /// its epoch report and estimate (as `cooploc budget` measures them), and the observer sends
 /// each of its `observations` of teammates once as a COOPLOC_RANGE_BEARING.
 pub fn broadcast_bytes(team: usize, epochs: usize, observations: usize) -> Result<u64, String> {
     use crate::protocol::budget::{TeamShape, epoch_frames};
     let shape = TeamShape {
         team,
-        state_dim: 3,
+        state_dim: commanded::DIM,
         ranges_per_node: 0,
         epoch_hz: 1.0,
         encoding: crate::protocol::record::Encoding::Compact,
@@ -498,10 +689,41 @@ mod tests {
         assert_eq!(s[5].speed_m_s, 0.0, "stopped once the command is stale");
     }
 
-    fn filter(n: f64, e: f64, yaw: f64) -> PlanarFilter {
-        let config = PlanarConfig { speed_noise_m_s_per_sqrt_hz: 0.01, yaw_rate_noise_rad_s_per_sqrt_hz: 0.01, max_gap_s: 1.0 };
-        let state = PlanarState { pos_ned_m: Vector3::new(n, e, 0.0), yaw_rad: yaw };
-        PlanarFilter::new(config, TimeUs(0), state, PlanarSigma { pos_m: 0.5, yaw_rad: 0.1 }).unwrap()
+    #[test]
+    fn a_lag_delays_the_command_and_keeps_the_distance() {
+        let c = |t: f64, v: f64| Command { t: secs(t), speed_m_s: v, yaw_rate_rad_s: 0.0 };
+        let s = drive_samples(&[c(1.0, 1.0), c(3.0, 0.0)], secs(0.0), secs(6.0), 5_000_000);
+        assert_eq!(lagged(&s, secs(0.0), 0.0), s, "no lag: unchanged");
+        let l = lagged(&s, secs(0.0), 0.2);
+        let dist = |v: &[WheelSample]| {
+            let mut prev = 0.0;
+            v.iter()
+                .map(|x| {
+                    let d = x.speed_m_s * (x.t.as_secs_f64() - prev);
+                    prev = x.t.as_secs_f64();
+                    d
+                })
+                .sum::<f64>()
+        };
+        // 2 s at 1 m/s either way: the lag moves distance later, it does not lose it.
+        assert!((dist(&s) - 2.0).abs() < 1e-9 && (dist(&l) - 2.0).abs() < 1e-6, "{} {}", dist(&s), dist(&l));
+        // 0.1 s after the start the lagged speed averages 1 - 0.2 (1 - e^-0.5) / 0.1 = 0.213.
+        let first = l.iter().find(|x| x.t == secs(1.1)).unwrap();
+        assert!((first.speed_m_s - (1.0 - 2.0 * (1.0 - (-0.5f64).exp()))).abs() < 1e-9, "{first:?}");
+        assert_eq!(l.last().unwrap().speed_m_s, 0.0, "stopped long after the last command");
+    }
+
+    fn filter(n: f64, e: f64, yaw: f64) -> CommandedFilter {
+        let config = CommandedConfig {
+            speed_noise_m_s_per_sqrt_hz: 0.01,
+            yaw_rate_noise_rad_s_per_sqrt_hz: 0.01,
+            speed_scale_walk_per_sqrt_s: 0.0,
+            yaw_rate_bias_walk_rad_s_per_sqrt_s: 0.0,
+            max_gap_s: 1.0,
+            first_estimates: false,
+        };
+        let sigma = CommandedSigma { pos_m: 0.5, yaw_rad: 0.1, speed_scale: 0.05, yaw_rate_bias_rad_s: 0.01 };
+        CommandedFilter::new(config, TimeUs(0), Vector3::new(n, e, 0.0), yaw, sigma).unwrap()
     }
 
     #[test]
@@ -545,7 +767,8 @@ mod tests {
             assert!(team.gated_local_update(1, &m, gate).unwrap().is_some(), "{method}");
             // A teammate 7.07 m away reported at 1 m: gated for every cooperative method.
             let far = Observation { t: TimeUs(0), target: Target::Robot(2), range_m: 1.0, bearing_rad: 0.785 };
-            let (_, gated) = team.gated_cooperative_event(&[robot_measurement(1, 2, &far, &noise)], gate).unwrap();
+            let m = robot_measurement(team.filter(1).unwrap(), team.filter(2).unwrap(), 1, 2, &far, &noise).unwrap();
+            let (_, gated) = team.gated_cooperative_event(&[m], gate).unwrap();
             assert_eq!(gated, usize::from(method != Method::DeadReckoning), "{method}");
         }
     }

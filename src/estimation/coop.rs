@@ -520,11 +520,16 @@ pub struct UpdateOptions {
     /// Chi-square quantile per degree of freedom count (index 1 for one scalar, 2 for two) a
     /// measurement's own innovation must stay under; `None`: no gate.
     pub gate_chi2: Option<[f64; 3]>,
+    /// Huber weighting of each measurement that passes the gate: with `Some(c)`, a
+    /// measurement of `m` scalars whose own NIS exceeds `c m / 2` has its noise covariance
+    /// divided by the weight `w = sqrt(c m / (2 NIS))` (the Huber weight of its Mahalanobis
+    /// distance), so that it pulls like a distance, not like its square. `None`: no weighting.
+    pub huber_nis: Option<f64>,
 }
 
 impl UpdateOptions {
     pub fn new(mode: CrossMode) -> Self {
-        Self { mode, prior: JointPrior::Exact, gate_chi2: None }
+        Self { mode, prior: JointPrior::Exact, gate_chi2: None, huber_nis: None }
     }
 
     /// The gate for a false-rejection probability `p` of a consistent filter, per measurement.
@@ -562,6 +567,9 @@ pub struct EventOutcome {
     /// The weights of the bound prior, per participant in broadcast order (1 for those not
     /// inflated); empty for the exact prior.
     pub weights: Vec<f64>,
+    /// The Huber weight of each measurement ([`UpdateOptions::huber_nis`]): 1 unweighted, 0
+    /// gated; empty without weighting.
+    pub robust_weights: Vec<f64>,
 }
 
 /// The paper's joint update at a ranging epoch, as every node runs it.
@@ -710,7 +718,9 @@ pub fn cooperative_update_with(
 
     // The gate: each measurement's own innovation against its predicted covariance.
     let mut gated = Vec::new();
-    if let Some(q) = opts.gate_chi2 {
+    let mut robust_weights = Vec::new();
+    if opts.gate_chi2.is_some() || opts.huber_nis.is_some() {
+        let q = opts.gate_chi2.unwrap_or([f64::INFINITY; 3]);
         for (index, parts) in linearized.iter().enumerate() {
             let first = &parts[0].1;
             let k = first.len();
@@ -733,20 +743,32 @@ pub fn cooperative_update_with(
             let limit = q.get(k).copied().unwrap_or(f64::INFINITY);
             if nis.is_none_or(|v| v.is_nan() || v > limit) {
                 gated.push(index);
+                robust_weights.push(0.0);
+            } else {
+                let c = opts.huber_nis.map_or(f64::INFINITY, |c| c * k as f64 / 2.0);
+                let v = nis.unwrap_or(0.0);
+                robust_weights.push(if v > c { (c / v).sqrt() } else { 1.0 });
             }
         }
     }
-    let kept: Vec<&Vec<(PlatformId, LinearizedMeasurement)>> =
-        linearized.iter().enumerate().filter(|(i, _)| !gated.contains(i)).map(|(_, l)| l).collect();
+    let kept: Vec<(f64, &Vec<(PlatformId, LinearizedMeasurement)>)> = linearized
+        .iter()
+        .enumerate()
+        .filter(|(i, _)| !gated.contains(i))
+        .map(|(i, l)| (robust_weights.get(i).copied().unwrap_or(1.0), l))
+        .collect();
+    if opts.huber_nis.is_none() {
+        robust_weights.clear();
+    }
     // With every measurement gated out the update still runs, as an update by nothing: the
     // joint prior becomes the posterior and the store is re-anchored on it (Psi back to the
     // reset), which every node does alike.
-    let m: usize = kept.iter().map(|parts| parts[0].1.len()).sum();
+    let m: usize = kept.iter().map(|(_, parts)| parts[0].1.len()).sum();
     let mut h = DMatrix::zeros(m, n);
     let mut residual = DVector::zeros(m);
     let mut r = DMatrix::zeros(m, m);
     let mut row = 0;
-    for parts in kept {
+    for (w, parts) in kept {
         let k = parts[0].1.len();
         for (id, lin) in parts {
             let (off, dim) = offset[id];
@@ -754,7 +776,11 @@ pub fn cooperative_update_with(
         }
         let first = &parts[0].1;
         residual.rows_mut(row, k).copy_from(&first.residual);
-        r.view_mut((row, row), (k, k)).copy_from(&first.r);
+        if w < 1.0 {
+            r.view_mut((row, row), (k, k)).copy_from(&(&first.r / w));
+        } else {
+            r.view_mut((row, row), (k, k)).copy_from(&first.r);
+        }
         row += k;
     }
 
@@ -788,7 +814,7 @@ pub fn cooperative_update_with(
         }
     }
     let corrections = corrections(snapshots, &layout, &up.dx, own_blocks);
-    Ok(EventOutcome { corrections, diagnostics: up.diagnostics, prior_covariance: p, gated, weights })
+    Ok(EventOutcome { corrections, diagnostics: up.diagnostics, prior_covariance: p, gated, weights, robust_weights })
 }
 
 /// Each participant's own block of the joint posterior (`layout`: its offset and dimension in
@@ -926,7 +952,14 @@ pub fn centralized_local_update(
     let own_blocks = checked_own_blocks(&layout, &up.p)?;
     store_pairs(cross, snapshots, &layout, &up.p);
     let corrections = corrections(snapshots, &layout, &up.dx, own_blocks);
-    Ok(EventOutcome { corrections, diagnostics: up.diagnostics, prior_covariance: p, gated: Vec::new(), weights: Vec::new() })
+    Ok(EventOutcome {
+        corrections,
+        diagnostics: up.diagnostics,
+        prior_covariance: p,
+        gated: Vec::new(),
+        weights: Vec::new(),
+        robust_weights: Vec::new(),
+    })
 }
 
 #[cfg(test)]
@@ -1176,6 +1209,31 @@ mod tests {
         // Without the gate the forged range pulls platform 1 by metres.
         let ungated = cooperative_update(&mut CrossCovariances::new(), &snaps, &ranges, CrossMode::Propagate).unwrap();
         assert!(ungated.corrections[0].dx.rows(0, 3).norm() > 10.0 * a.corrections[0].dx.rows(0, 3).norm());
+    }
+
+    /// A moderate outlier passes the gate but is Huber-weighted: its weight is
+    /// `sqrt(c / NIS)`, it pulls less than unweighted, and a consistent range keeps weight 1.
+    #[test]
+    fn huber_weights_soften_a_moderate_outlier() {
+        let mut rng = ChaCha8Rng::seed_from_u64(3);
+        let (_, snaps) = joint(&mut rng, 3, 6);
+        let d12 = (snaps[0].geometry.position_ned_m - snaps[1].geometry.position_ned_m).norm();
+        let d13 = (snaps[0].geometry.position_ned_m - snaps[2].geometry.position_ned_m).norm();
+        let ranges = [
+            CoopMeasurement::Range { from: 1, to: 2, range_m: d12 + 0.01, sigma_m: 0.5 },
+            CoopMeasurement::Range { from: 1, to: 3, range_m: d13 + 14.0, sigma_m: 0.5 },
+        ];
+        let plain =
+            UpdateOptions { gate_chi2: UpdateOptions::gate_for_probability(1e-12), ..UpdateOptions::new(CrossMode::Propagate) };
+        let robust = UpdateOptions { huber_nis: Some(5.99), ..plain.clone() };
+        let a = cooperative_update_with(&mut CrossCovariances::new(), &snaps, &ranges, &plain).unwrap();
+        let b = cooperative_update_with(&mut CrossCovariances::new(), &snaps, &ranges, &robust).unwrap();
+        assert!(a.gated.is_empty() && a.robust_weights.is_empty());
+        assert_eq!(b.robust_weights.len(), 2);
+        assert_eq!(b.robust_weights[0], 1.0, "a consistent range is not weighted");
+        assert!(b.robust_weights[1] > 0.0 && b.robust_weights[1] < 0.5, "{:?}", b.robust_weights);
+        // The outlier's target is pulled less.
+        assert!(b.corrections[2].dx.norm() < a.corrections[2].dx.norm());
     }
 
     /// A broadcast of another size than the store holds for its platform (a forged record) is a

@@ -7,6 +7,7 @@
 //! | [`ins`] | strapdown INS error-state EKF for land vehicles (odometer + non-holonomic constraints) |
 //! | [`unicycle`] | planar unicycle robot |
 //! | [`planar`] | a wheeled robot on the team's clock, driven by wheel odometry (what a node runs without an IMU) |
+//! | [`commanded`] | a robot driven by its commands: the planar pose plus its speed scale and yaw-rate bias, first-estimate Jacobians |
 //! | [`nav`] | the navigation filter a node runs: the INS or the planar robot, one type |
 //! | [`linear`] | generic linear-Gaussian platform |
 //! | [`coop`] | the paper's cooperative joint update and the cross-covariance store (Eq. 10) |
@@ -19,6 +20,7 @@
 //! FRD (forward, right, down). Yaw is from north, clockwise seen from above. Time is [`TimeUs`](crate::time::TimeUs).
 
 pub mod ci;
+pub mod commanded;
 pub mod consistency;
 pub mod coop;
 pub mod dense;

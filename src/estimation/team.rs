@@ -185,13 +185,33 @@ impl<F: PlatformFilter> Team<F> {
         meas: &LinearizedMeasurement,
         gate: [f64; 3],
     ) -> Result<Option<UpdateDiagnostics>, EstimationError> {
+        Ok(self.robust_local_update(id, meas, gate, None)?.map(|(d, _)| d))
+    }
+
+    /// [`Team::gated_local_update`] with Huber weighting (see [`UpdateOptions::huber_nis`]): a
+    /// measurement that passes the gate but whose NIS exceeds `huber_nis * m / 2` is applied
+    /// with its noise covariance divided by its weight. Returns the diagnostics and the weight
+    /// (1 when unweighted), or `None` when gated.
+    pub fn robust_local_update(
+        &mut self,
+        id: PlatformId,
+        meas: &LinearizedMeasurement,
+        gate: [f64; 3],
+        huber_nis: Option<f64>,
+    ) -> Result<Option<(UpdateDiagnostics, f64)>, EstimationError> {
         let i = self.index(id)?;
         let p = self.filters[i].covariance();
         meas.validate(p.nrows())?;
-        if nis(&meas.h, &p, meas) > gate_for(gate, meas.len()) {
+        let v = nis(&meas.h, &p, meas);
+        if v > gate_for(gate, meas.len()) {
             return Ok(None);
         }
-        self.local_update(id, meas).map(Some)
+        let w = huber_weight(huber_nis, v, meas.len());
+        if w < 1.0 {
+            let weighted = LinearizedMeasurement { r: &meas.r / w, ..meas.clone() };
+            return self.local_update(id, &weighted).map(|d| Some((d, w)));
+        }
+        self.local_update(id, meas).map(|d| Some((d, 1.0)))
     }
 
     /// [`Team::cooperative_event`] behind a chi-square gate (see [`Team::gated_local_update`]):
@@ -206,15 +226,37 @@ impl<F: PlatformFilter> Team<F> {
         measurements: &[CoopMeasurement],
         gate: [f64; 3],
     ) -> Result<(Option<UpdateDiagnostics>, usize), EstimationError> {
+        let (d, weights) = self.robust_cooperative_event(measurements, gate, None)?;
+        Ok((d, weights.iter().filter(|&&w| w == 0.0).count()))
+    }
+
+    /// [`Team::gated_cooperative_event`] with Huber weighting of each measurement that passes
+    /// the gate (see [`UpdateOptions::huber_nis`]), against the same prior. Returns the
+    /// diagnostics and each measurement's weight: 0 gated, 1 unweighted (empty for dead
+    /// reckoning and for no measurement).
+    pub fn robust_cooperative_event(
+        &mut self,
+        measurements: &[CoopMeasurement],
+        gate: [f64; 3],
+        huber_nis: Option<f64>,
+    ) -> Result<(Option<UpdateDiagnostics>, Vec<f64>), EstimationError> {
         if measurements.is_empty() || self.method == Method::DeadReckoning {
-            return Ok((None, 0));
+            return Ok((None, Vec::new()));
         }
-        let opts = |mode| UpdateOptions { mode, prior: JointPrior::Exact, gate_chi2: Some(gate) };
+        let opts = |mode| UpdateOptions { mode, prior: JointPrior::Exact, gate_chi2: Some(gate), huber_nis };
         let snapshots = self.snapshots();
-        let (corrections, diagnostics, gated) = match self.method {
+        let weights_of = |out: &super::coop::EventOutcome| {
+            if out.robust_weights.len() == measurements.len() {
+                out.robust_weights.clone()
+            } else {
+                (0..measurements.len()).map(|i| if out.gated.contains(&i) { 0.0 } else { 1.0 }).collect()
+            }
+        };
+        let (corrections, diagnostics, weights) = match self.method {
             Method::DeadReckoning => unreachable!("returned above"),
             Method::CovarianceIntersection => {
                 let mut kept = Vec::with_capacity(measurements.len());
+                let mut weights = Vec::with_capacity(measurements.len());
                 for m in measurements {
                     let parts = m.linearize(|id| snapshots.iter().find(|s| s.id == id))?;
                     let mut s = parts[0].1.r.clone();
@@ -222,28 +264,34 @@ impl<F: PlatformFilter> Team<F> {
                         let p = &snapshots[self.index(*id)?].covariance;
                         s += &lin.h * p * lin.h.transpose();
                     }
-                    if innovation_nis(&s, &parts[0].1.residual)? <= gate_for(gate, m.len()) {
-                        kept.push(m.clone());
+                    let v = innovation_nis(&s, &parts[0].1.residual)?;
+                    if v <= gate_for(gate, m.len()) {
+                        let w = huber_weight(huber_nis, v, m.len());
+                        kept.push(if w < 1.0 { scale_noise(m, 1.0 / w) } else { m.clone() });
+                        weights.push(w);
+                    } else {
+                        weights.push(0.0);
                     }
                 }
-                let gated = measurements.len() - kept.len();
                 if kept.is_empty() {
-                    return Ok((None, gated));
+                    return Ok((None, weights));
                 }
-                (ci_update(&snapshots, &kept)?, None, gated)
+                (ci_update(&snapshots, &kept)?, None, weights)
             }
             Method::NoPropagation => {
                 let out =
                     cooperative_update_with(&mut CrossCovariances::new(), &snapshots, measurements, &opts(CrossMode::Ignore))?;
-                (out.corrections, Some(out.diagnostics), out.gated.len())
+                let w = weights_of(&out);
+                (out.corrections, Some(out.diagnostics), w)
             }
             Method::Decentralized | Method::Centralized => {
                 let out = cooperative_update_with(&mut self.cross, &snapshots, measurements, &opts(CrossMode::Propagate))?;
-                (out.corrections, Some(out.diagnostics), out.gated.len())
+                let w = weights_of(&out);
+                (out.corrections, Some(out.diagnostics), w)
             }
         };
         self.write_back(&corrections)?;
-        Ok((diagnostics, gated))
+        Ok((diagnostics, weights))
     }
 
     /// A ranging epoch: every platform broadcasts and all take the joint update of `measurements`.
@@ -278,6 +326,39 @@ fn gate_for(gate: [f64; 3], m: usize) -> f64 {
         0 | 1 => gate[1],
         2 => gate[2],
         _ => gate[2] * m as f64 / 2.0,
+    }
+}
+
+/// The Huber weight of a measurement of `m` scalars with NIS `v` (see
+/// [`UpdateOptions::huber_nis`]); 1 without weighting.
+fn huber_weight(huber_nis: Option<f64>, v: f64, m: usize) -> f64 {
+    match huber_nis {
+        Some(c) if v > c * m as f64 / 2.0 => (c * m as f64 / 2.0 / v).sqrt(),
+        _ => 1.0,
+    }
+}
+
+/// The measurement with its noise covariance multiplied by `factor`.
+fn scale_noise(m: &CoopMeasurement, factor: f64) -> CoopMeasurement {
+    let k = factor.sqrt();
+    match m.clone() {
+        CoopMeasurement::Range { from, to, range_m, sigma_m } => {
+            CoopMeasurement::Range { from, to, range_m, sigma_m: sigma_m * k }
+        }
+        CoopMeasurement::PlanarRange { from, to, range_m, sigma_m } => {
+            CoopMeasurement::PlanarRange { from, to, range_m, sigma_m: sigma_m * k }
+        }
+        CoopMeasurement::RangeBearing { from, to, range_m, bearing_rad, sigma_range_m, sigma_bearing_rad } => {
+            CoopMeasurement::RangeBearing {
+                from,
+                to,
+                range_m,
+                bearing_rad,
+                sigma_range_m: sigma_range_m * k,
+                sigma_bearing_rad: sigma_bearing_rad * k,
+            }
+        }
+        CoopMeasurement::Linear { blocks, residual, r } => CoopMeasurement::Linear { blocks, residual, r: r * factor },
     }
 }
 

@@ -56,6 +56,31 @@ struct MrclamArgs {
     /// Only the first SECONDS of the data set (from its first ground-truth time).
     #[arg(long)]
     excerpt: Option<f64>,
+    /// Identify the noise model from the data's own innovations (no ground truth; see
+    /// src/dataset/identify.rs), print it and run with it. The figures it does not identify
+    /// (gate, Huber threshold, priors, first estimates) come from --noise or the committed file.
+    #[arg(long)]
+    identify: bool,
+    /// With --identify: identify on this stretch only, FROM:TO seconds from the start.
+    #[arg(long, value_parser = parse_span, requires = "identify")]
+    identify_span: Option<(f64, f64)>,
+    /// Run and score on this stretch only, FROM:TO seconds from the start (each robot starts at
+    /// its first ground-truth pose in it).
+    #[arg(long, value_parser = parse_span)]
+    span: Option<(f64, f64)>,
+    /// With --identify: write the identified noise model here (TOML, for --noise).
+    #[arg(long, requires = "identify")]
+    write_noise: Option<PathBuf>,
+}
+
+fn parse_span(s: &str) -> Result<(f64, f64), String> {
+    let (a, b) = s.split_once(':').ok_or_else(|| format!("{s}: expected FROM:TO in seconds"))?;
+    let a: f64 = a.trim().parse().map_err(|_| format!("{s}: FROM is not a number"))?;
+    let b: f64 = b.trim().parse().map_err(|_| format!("{s}: TO is not a number"))?;
+    if !(a.is_finite() && b.is_finite() && a >= 0.0 && b > a) {
+        return Err(format!("{s}: expected 0 <= FROM < TO"));
+    }
+    Ok((a, b))
 }
 
 pub fn run_cmd(args: Args) -> anyhow::Result<()> {
@@ -74,7 +99,7 @@ fn mrclam_cmd(a: MrclamArgs) -> anyhow::Result<()> {
         ds = ds.excerpt(s);
     }
     let read_s = start.elapsed().as_secs_f64();
-    let noise = match &a.noise {
+    let mut noise = match &a.noise {
         Some(p) => {
             let text = std::fs::read_to_string(p).with_context(|| format!("reading {}", p.display()))?;
             NoiseModel::from_toml_str(&text).map_err(|e| anyhow::anyhow!("{}: {e}", p.display()))?
@@ -85,6 +110,25 @@ fn mrclam_cmd(a: MrclamArgs) -> anyhow::Result<()> {
     println!("read in {read_s:.2} s");
     if a.estimate_noise {
         print_noise_estimate(&ds, noise.stale_command_s);
+    }
+    if a.identify {
+        let on = match a.identify_span {
+            Some((from, to)) => ds.window(from, to),
+            None => ds.clone(),
+        };
+        noise = identify_noise(&on, &noise, a.identify_span, a.write_noise.as_deref())?;
+    } else {
+        println!(
+            "noise model: {}",
+            match &a.noise {
+                Some(p) => format!("{} (--noise)", p.display()),
+                None => "the committed src/dataset/mrclam_noise.toml (identified on data set 6 from its innovations)".into(),
+            }
+        );
+    }
+    if let Some((from, to)) = a.span {
+        ds = ds.window(from, to);
+        println!("running on {from:.0}-{to:.0} s ({:.1} s)", ds.t_end.secs_since(ds.t0));
     }
     let mut ds_for_runs = ds;
     let mut noise_for_runs = noise;
@@ -119,6 +163,56 @@ fn mrclam_cmd(a: MrclamArgs) -> anyhow::Result<()> {
     }
     println!("total {:.2} s", start.elapsed().as_secs_f64());
     Ok(())
+}
+
+fn identify_noise(
+    ds: &Dataset,
+    base: &NoiseModel,
+    span: Option<(f64, f64)>,
+    write: Option<&std::path::Path>,
+) -> anyhow::Result<NoiseModel> {
+    use cooploc::dataset::identify;
+    let t = Instant::now();
+    let id = identify::identify(ds, &identify::start(base), &identify::Options::default())?;
+    let (s, b) = (&id.start, &id.best);
+    println!(
+        "noise identified from the innovations of dcl (full map) on {}: maximum likelihood, no ground truth (src/dataset/identify.rs)",
+        match span {
+            Some((from, to)) => format!("{from:.0}-{to:.0} s"),
+            None => "the whole data set".into(),
+        }
+    );
+    println!(
+        "  {} iterations, {} runs, {:.1} s; -log likelihood {:.1} -> {:.1}; NIS per scalar landmarks {:.2} -> {:.2}, teammates {:.2} -> {:.2}; gated landmarks {} -> {} of {}, teammates {} -> {} of {}",
+        id.iterations,
+        id.evaluations,
+        t.elapsed().as_secs_f64(),
+        s.cost,
+        b.cost,
+        s.landmark_nis,
+        b.landmark_nis,
+        s.robot_nis,
+        b.robot_nis,
+        s.landmark_gated,
+        b.landmark_gated,
+        b.landmark_gated + b.landmark_used,
+        s.robot_gated,
+        b.robot_gated,
+        b.robot_gated + b.robot_used
+    );
+    for line in identify::describe(&id) {
+        println!("  {line}");
+    }
+    if let Some(path) = write {
+        let mut text = format!(
+            "# Identified by cooploc dataset --identify on {} (maximum likelihood on the innovations, no ground truth)\n",
+            ds.name
+        );
+        text.push_str(&toml::to_string(&b.model)?);
+        std::fs::write(path, text).with_context(|| format!("writing {}", path.display()))?;
+        println!("  written to {}", path.display());
+    }
+    Ok(b.model)
 }
 
 fn print_summary(ds: &Dataset) {
@@ -190,6 +284,12 @@ fn print_noise_estimate(ds: &Dataset, stale: f64) {
     }
 }
 
+/// `used/gated (share)/weighted below one half`.
+fn counts(used: usize, gated: usize, below_half: usize) -> String {
+    let all = (used + gated).max(1) as f64;
+    format!("{used}/{gated} ({:.2}%)/{below_half}", 100.0 * gated as f64 / all)
+}
+
 /// Runs every (regime, method) pair in parallel and prints the table; returns the outcomes with
 /// their runtimes (s).
 pub fn evaluate(
@@ -216,7 +316,7 @@ pub fn evaluate(
         settings.map_robots
     );
     println!(
-        "{:<13}{:<12}{:>7}{:>9}{:>9}{:>15}{:>8}{:>17}{:>16}{:>8}{:>7}{:>8}{:>7}",
+        "{:<13}{:<12}{:>7}{:>9}{:>9}{:>15}{:>8}{:>27}{:>27}{:>8}{:>7}{:>8}{:>7}",
         "regime",
         "method",
         "pos m",
@@ -224,8 +324,8 @@ pub fn evaluate(
         "NEES",
         "(pos, hdg)",
         "in 95%",
-        "landmarks",
-        "teammates",
+        "landmarks used/gated/w<.5",
+        "teammates used/gated/w<.5",
         "epochs",
         "s",
         "dcl kB",
@@ -239,7 +339,7 @@ pub fn evaluate(
             ("-".into(), "-".into())
         };
         println!(
-            "{:<13}{:<12}{:>7.3}{:>9.2}{:>9.2}{:>15}{:>7.1}%{:>17}{:>16}{:>8}{:>7.2}{:>8}{:>7}",
+            "{:<13}{:<12}{:>7.3}{:>9.2}{:>9.2}{:>15}{:>7.1}%{:>27}{:>27}{:>8}{:>7.2}{:>8}{:>7}",
             o.regime.name(),
             o.method.short_name(),
             o.pos_rmse_m,
@@ -247,14 +347,22 @@ pub fn evaluate(
             o.avg_nees,
             format!("{:.1}, {:.1}", o.avg_nees_position, o.avg_nees_heading),
             100.0 * o.in_bound_share,
-            format!("{}/{} gated", o.landmark_updates, o.landmark_gated),
-            format!("{}/{} gated", o.robot_updates, o.robot_gated),
+            counts(o.landmark_updates, o.landmark_gated, o.landmark_weight_below_half),
+            counts(o.robot_updates, o.robot_gated, o.robot_weight_below_half),
             o.epochs,
             secs,
             bytes.0,
             bytes.1
         );
     }
+    println!(
+        "gate: chi-square, false-rejection probability {} per observation{}; w<.5: applied with a Huber weight under 0.5",
+        settings.noise.gate_probability,
+        match settings.noise.huber() {
+            Some(c) => format!("; Huber weights above NIS {c} (range and bearing)"),
+            None => ", no Huber weighting".into(),
+        }
+    );
     if let Some((o, _)) = results.first() {
         let masked: Vec<String> =
             o.robots.iter().filter(|r| r.masked > 0).map(|r| format!("robot {} {}", r.id, r.masked)).collect();
