@@ -20,6 +20,9 @@ use crate::protocol::dialect::cooploc::{MavAutopilot, MavType};
 pub struct Arrivals {
     pub name: String,
     pub count: u64,
+    /// Wall time of the first and the last, us.
+    pub first_us: u64,
+    pub last_us: u64,
     /// (system, component) ids it came from.
     pub sources: std::collections::BTreeSet<(u32, u8)>,
 }
@@ -32,15 +35,37 @@ pub struct Survey {
     pub components: BTreeMap<(u32, u8), (MavType, MavAutopilot)>,
     first_wall_us: Option<u64>,
     last_wall_us: u64,
-    /// SYSTEM_TIME: (wall us, time_boot_ms, time_unix_usec), first and last.
-    system_time: Option<((u64, u32, u64), (u64, u32, u64))>,
+    /// The first and the last SYSTEM_TIME.
+    system_time: Option<(SystemTimeSeen, SystemTimeSeen)>,
     pub signed_frames: u64,
     pub unsigned_frames: u64,
-    /// AUTOPILOT_VERSION's flight_sw_version, when it answered.
+    /// AUTOPILOT_VERSION's flight_sw_version, when it answered with one.
     pub flight_sw_version: Option<u32>,
+    /// ODOMETRY an odometer gives (not the autopilot's own EKF output, which a node refuses).
+    pub odometer_odometry: u64,
     /// The quickest TIMESYNC round trip, us, and the answers.
     pub timesync_rtt_us: Option<i64>,
     pub timesync_answers: u64,
+}
+
+/// One SYSTEM_TIME as it arrived.
+#[derive(Debug, Clone, Copy, PartialEq)]
+struct SystemTimeSeen {
+    wall_us: u64,
+    time_boot_ms: u32,
+    time_unix_usec: u64,
+}
+
+/// One message id's arrivals, summed up.
+#[derive(Debug, Clone, PartialEq)]
+pub struct MessageRate {
+    pub id: u32,
+    pub name: String,
+    pub count: u64,
+    /// Between its first and last arrival, Hz of the vehicle's clock when known.
+    pub hz: f64,
+    /// (system, component) ids it came from.
+    pub sources: Vec<(u32, u8)>,
 }
 
 /// What [`Survey::report`] found.
@@ -49,8 +74,7 @@ pub struct Report {
     /// Seconds of the window, wall and vehicle (SYSTEM_TIME), when known.
     pub wall_s: f64,
     pub vehicle_s: Option<f64>,
-    /// Per message: id, name, count, rate (Hz, vehicle time when known), sources.
-    pub rates: Vec<(u32, String, u64, f64, Vec<(u32, u8)>)>,
+    pub rates: Vec<MessageRate>,
     /// The autopilot (the first component 1 HEARTBEAT that is not a ground station or companion).
     pub autopilot: Option<(u32, MavAutopilot, MavType)>,
     /// Whether SYSTEM_TIME carried Unix time.
@@ -73,6 +97,10 @@ impl Survey {
             self.unsigned_frames += 1;
         }
         let entry = self.messages.entry(id).or_default();
+        if entry.count == 0 {
+            entry.first_us = wall_us;
+        }
+        entry.last_us = wall_us;
         entry.count += 1;
         entry.sources.insert((header.system_id, header.component_id));
         entry.name = msg.map_or_else(|| format!("(id {id}, not in the dialect)"), |m| m.message_name().to_string());
@@ -81,10 +109,17 @@ impl Survey {
                 self.components.insert((header.system_id, header.component_id), (h.mavtype, h.autopilot));
             }
             Some(MavMessage::SYSTEM_TIME(t)) => {
-                let now = (wall_us, t.time_boot_ms, t.time_unix_usec);
+                let now = SystemTimeSeen { wall_us, time_boot_ms: t.time_boot_ms, time_unix_usec: t.time_unix_usec };
                 self.system_time = Some(self.system_time.map_or((now, now), |(first, _)| (first, now)));
             }
-            Some(MavMessage::AUTOPILOT_VERSION(v)) => self.flight_sw_version = Some(v.flight_sw_version),
+            Some(MavMessage::AUTOPILOT_VERSION(v)) if v.flight_sw_version != 0 => {
+                self.flight_sw_version = Some(v.flight_sw_version)
+            }
+            Some(MavMessage::ODOMETRY(o))
+                if o.estimator_type != crate::protocol::dialect::cooploc::MavEstimatorType::MAV_ESTIMATOR_TYPE_AUTOPILOT =>
+            {
+                self.odometer_odometry += 1
+            }
             _ => {}
         }
     }
@@ -98,38 +133,49 @@ impl Survey {
     /// What arrived, checked against `profile` (the messages it reads, their rates, its clock).
     pub fn report(&self, profile: Option<&VehicleProfile>) -> Report {
         let wall_s = self.first_wall_us.map_or(0.0, |f| (self.last_wall_us - f) as f64 * 1e-6);
-        let vehicle_s = self.system_time.and_then(|((_, b0, _), (_, b1, _))| {
-            let s = f64::from(b1.wrapping_sub(b0)) * 1e-3;
-            (s > 0.5).then_some(s)
+        // how fast the vehicle's clock runs against the wall's (1 at real time), from the
+        // first and last SYSTEM_TIME: the window in the vehicle's time
+        let ratio = self.system_time.and_then(|(a, b)| {
+            let vehicle = f64::from(b.time_boot_ms.wrapping_sub(a.time_boot_ms)) * 1e-3;
+            let wall = (b.wall_us - a.wall_us) as f64 * 1e-6;
+            (vehicle > 0.5 && wall > 0.1).then_some(vehicle / wall)
         });
-        let span = vehicle_s.unwrap_or(wall_s).max(1e-9);
+        let vehicle_s = ratio.map(|r| wall_s * r);
+        let ratio = ratio.unwrap_or(1.0);
         let rates = self
             .messages
             .iter()
-            .map(|(&id, a)| (id, a.name.clone(), a.count, a.count as f64 / span, a.sources.iter().copied().collect()))
+            .map(|(&id, a)| MessageRate {
+                id,
+                name: a.name.clone(),
+                count: a.count,
+                hz: rate(a, ratio),
+                sources: a.sources.iter().copied().collect(),
+            })
             .collect();
         let autopilot = self
             .components
             .iter()
             .find(|((_, c), (t, _))| *c == 1 && !matches!(t, MavType::MAV_TYPE_GCS | MavType::MAV_TYPE_ONBOARD_CONTROLLER))
             .map(|(&(s, _), &(t, a))| (s, a, t));
-        let unix_time = self.system_time.map(|(_, (_, _, unix))| unix >= super::inputs::UNIX_TIME_FROM_US);
+        let unix_time = self.system_time.map(|(_, last)| last.time_unix_usec >= super::inputs::UNIX_TIME_FROM_US);
         let other_dialect = self.messages.iter().filter(|(_, a)| a.name.starts_with("(id ")).map(|(_, a)| a.count).sum();
         let mut report = Report { wall_s, vehicle_s, rates, autopilot, unix_time, other_dialect, checks: Vec::new() };
         if let Some(p) = profile {
-            report.checks = self.checks(p, span, unix_time);
+            report.checks = self.checks(p, ratio, unix_time);
         }
         report
     }
 
-    fn rate(&self, id: u32, span: f64) -> f64 {
-        self.messages.get(&id).map_or(0.0, |a| a.count as f64 / span)
-    }
-
-    fn checks(&self, p: &VehicleProfile, span: f64, unix_time: Option<bool>) -> Vec<(bool, String)> {
+    fn checks(&self, p: &VehicleProfile, ratio: f64, unix_time: Option<bool>) -> Vec<(bool, String)> {
         let mut out = Vec::new();
         let mut want = |id: u32, name: &str, hz: f64, what: &str| {
-            let got = self.rate(id, span);
+            let mut got = self.messages.get(&id).map_or(0.0, |a| rate(a, ratio));
+            if id == 331 {
+                // only an odometer's ODOMETRY counts (the autopilot's own EKF output is refused)
+                let all = self.messages.get(&id).map_or(0, |a| a.count).max(1);
+                got *= self.odometer_odometry as f64 / all as f64;
+            }
             let ok = got >= 0.8 * hz;
             let how = if got == 0.0 {
                 "none arrives"
@@ -170,12 +216,11 @@ impl Survey {
             (TeamClock::Companion | TeamClock::Auto, _, true) => (
                 true,
                 format!(
-                    "clock: {:?}: TIMESYNC answered ({} answers, quickest round trip {} us): the companion's clock is the team's (keep it synchronised: NTP or PTP)",
-                    p.inputs.clock,
+                    "clock: {}: TIMESYNC answered ({} answers, quickest round trip {} us): the companion's clock is the team's (keep it synchronised: NTP or PTP)",
+                    if p.inputs.clock == TeamClock::Auto { "auto" } else { "companion" },
                     self.timesync_answers,
                     self.timesync_rtt_us.unwrap_or(0)
-                )
-                .to_lowercase(),
+                ),
             ),
             (TeamClock::Auto, Some(true), false) => {
                 (true, "clock: auto: TIMESYNC unanswered, SYSTEM_TIME's Unix time will be taken".into())
@@ -185,6 +230,13 @@ impl Survey {
         out.push((ok, text));
         out
     }
+}
+
+/// A message's rate between its first and last arrival, Hz of the vehicle's clock (`ratio`:
+/// vehicle seconds per wall second).
+fn rate(a: &Arrivals, ratio: f64) -> f64 {
+    let wall_s = (a.last_us - a.first_us) as f64 * 1e-6;
+    if a.count < 2 || wall_s <= 0.0 { 0.0 } else { (a.count - 1) as f64 / (wall_s * ratio) }
 }
 
 /// The autopilot parameters a node on `profile` needs, for the autopilot and firmware version
@@ -276,8 +328,8 @@ mod tests {
         assert_eq!(r.autopilot, Some((1, MavAutopilot::MAV_AUTOPILOT_ARDUPILOTMEGA, MavType::MAV_TYPE_GROUND_ROVER)));
         assert_eq!(r.unix_time, Some(false));
         assert_eq!(r.other_dialect, 11);
-        let hb_rate = r.rates.iter().find(|x| x.0 == 0).unwrap().3;
-        assert!((hb_rate - 1.1).abs() < 1e-9, "{hb_rate}");
+        let hb_rate = r.rates.iter().find(|x| x.id == 0).unwrap().hz;
+        assert!((hb_rate - 1.0).abs() < 1e-9, "one a second of the vehicle's clock: {hb_rate}");
         // no IMU, no wheels, no clock yet
         assert!(r.checks.iter().all(|(ok, _)| !ok), "{:?}", r.checks);
         assert!(r.checks[0].1.contains("RAW_IMU at 0.0 Hz") && r.checks[0].1.contains("none arrives"), "{:?}", r.checks);

@@ -837,6 +837,9 @@ impl VehicleCore {
             capabilities: MavProtocolCapability::MAV_PROTOCOL_CAPABILITY_MAVLINK2
                 | MavProtocolCapability::MAV_PROTOCOL_CAPABILITY_COMMAND_INT,
             uid: u64::from(self.sysid),
+            // the firmware the ArduPilot personality was checked against (4.7.0-dev); the others
+            // say none
+            flight_sw_version: if self.config.autopilot == Autopilot::ArduPilot { 0x0407_0000 } else { 0 },
             ..Default::default()
         })
     }

@@ -121,13 +121,13 @@ pub fn run(args: Args) -> anyhow::Result<()> {
 fn print(survey: &Survey, profile: Option<&VehicleProfile>, args: &Args) {
     let r = survey.report(profile);
     let clock = match r.vehicle_s {
-        Some(v) => format!("{:.1} s of the vehicle's clock (SYSTEM_TIME) in {:.1} s", v, r.wall_s),
+        Some(v) => format!("{:.1} s of the vehicle's clock (by SYSTEM_TIME) in {:.1} s", v, r.wall_s),
         None => format!("{:.1} s (wall: no SYSTEM_TIME)", r.wall_s),
     };
-    println!("{} on {}: {clock}", "cooploc check", args.vehicle);
+    println!("cooploc check on {}: {clock}", args.vehicle);
     match r.autopilot {
         Some((sys, ap, ty)) => {
-            let version = survey.flight_sw_version.map_or("version unknown (no AUTOPILOT_VERSION)".to_string(), |v| {
+            let version = survey.flight_sw_version.map_or("version unknown (AUTOPILOT_VERSION gave none)".to_string(), |v| {
                 format!("firmware {}.{}.{}", v >> 24, (v >> 16) & 0xFF, (v >> 8) & 0xFF)
             });
             println!("autopilot: system {sys}, {ap:?}, {ty:?}, {version}");
@@ -136,10 +136,10 @@ fn print(survey: &Survey, profile: Option<&VehicleProfile>, args: &Args) {
     }
     let comps: Vec<String> = survey.components.iter().map(|((s, c), (t, _))| format!("{s}/{c} {t:?}")).collect();
     println!("components: {}", if comps.is_empty() { "none".into() } else { comps.join(", ") });
-    println!("messages (rate in the vehicle's time where it says it):");
-    for (id, name, count, hz, sources) in &r.rates {
-        let src: Vec<String> = sources.iter().map(|(s, c)| format!("{s}/{c}")).collect();
-        println!("  {id:>6} {name:<28} {count:>6} {hz:>8.2} Hz  from {}", src.join(","));
+    println!("messages (rate between the first and the last, in the vehicle's time where it says it):");
+    for m in &r.rates {
+        let src: Vec<String> = m.sources.iter().map(|(s, c)| format!("{s}/{c}")).collect();
+        println!("  {:>6} {:<28} {:>6} {:>8.2} Hz  from {}", m.id, m.name, m.count, m.hz, src.join(","));
     }
     let unix = match r.unix_time {
         Some(true) => "SYSTEM_TIME carries Unix time",
