@@ -632,8 +632,7 @@ pub async fn run(
                 if let Some((config, Some(origin), Some((t0, state)))) = &pending_init
                     && let Some(t0) = t0.or(last_imu_t)
                 {
-                    let t0 = &t0;
-                    let made = NodeCore::new(config.clone(), *t0, NavState::for_model(&config.model, *state))?;
+                    let made = NodeCore::new(config.clone(), t0, NavState::for_model(&config.model, *state))?;
                     tracing::info!(platform = id, t0 = %t0, pos = ?made.filter().position_ned_m(), lat_deg = origin.lat_deg, "initialised");
                     let o = origin_from_vehicle.map(|o| [o.lat_deg, o.lon_deg, o.alt_m]);
                     record_event(&recorder, id, &NodeEvent::Init { t0_us: t0.0, origin: o });

@@ -1,7 +1,8 @@
 //! The cooploc MAVLink dialect and the one place where the wire meets the core's types.
 //!
 //! - [`dialect`]: Rust generated at build time by mavlink-bindgen from `dialects/cooploc.xml`
-//!   (which includes the vendored common.xml): every common message plus the cooploc ones.
+//!   (which includes the vendored ardupilotmega.xml and through it common.xml): every common
+//!   and ArduPilot message plus the cooploc ones.
 //! - [`record`]: the state broadcast as bytes (layout, quantisation rule); [`compact`]: its
 //!   16-bit correlation-form matrices.
 //! - [`fragment`]: cutting records into COOPLOC_STATE_FRAGMENT payloads and reassembling them.

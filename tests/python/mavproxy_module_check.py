@@ -749,8 +749,10 @@ def prepare_dialect(tmp):
     older XML would be used as it is. So the check regenerates it from this tree's XML first."""
     mdef = os.path.join(tmp, "mdef")
     os.makedirs(os.path.join(mdef, "v1.0"))
-    for x in ("cooploc.xml", "common.xml", "standard.xml", "minimal.xml"):
-        shutil.copy(os.path.join(ROOT, "dialects", x), os.path.join(mdef, "v1.0", x))
+    # cooploc.xml and every XML it includes (ardupilotmega.xml and what that includes)
+    for x in sorted(os.listdir(os.path.join(ROOT, "dialects"))):
+        if x.endswith(".xml"):
+            shutil.copy(os.path.join(ROOT, "dialects", x), os.path.join(mdef, "v1.0", x))
     os.environ["MDEF"] = mdef
     os.environ["MAVLINK20"] = "1"
     from pymavlink.generator import mavgen, mavparse
