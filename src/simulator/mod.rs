@@ -495,13 +495,8 @@ impl Simulator {
             // a real team's schedule is (the nodes' `epoch_grid_ms`).
             let into_second = std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).map_or(0, |d| d.subsec_nanos());
             let deadline = Instant::now() + Duration::from_nanos(u64::from(1_000_000_000 - into_second));
-            loop {
-                tokio::select! {
-                    biased;
-                    _ = &mut shutdown => return Ok(self.finish(StopReason::Shutdown, sim_now).await),
-                    _ = tokio::time::sleep_until(deadline) => break,
-                    Some(msg) = self.inbound.recv() => self.handle_inbound(msg, sim_now, &trajectories, &mut out).await,
-                }
+            if !self.serve_until(deadline, &mut shutdown, sim_now, &trajectories, &mut out).await {
+                return Ok(self.finish(StopReason::Shutdown, sim_now).await);
             }
         }
         let real_time = self.config.speed == Speed::Factor(1.0);
@@ -524,13 +519,8 @@ impl Simulator {
                 if deadline > Instant::now() {
                     self.send_batches().await;
                 }
-                loop {
-                    tokio::select! {
-                        biased;
-                        _ = &mut shutdown => return Ok(self.finish(StopReason::Shutdown, sim_now).await),
-                        _ = tokio::time::sleep_until(deadline) => break,
-                        Some(msg) = self.inbound.recv() => self.handle_inbound(msg, sim_now, &trajectories, &mut out).await,
-                    }
+                if !self.serve_until(deadline, &mut shutdown, sim_now, &trajectories, &mut out).await {
+                    return Ok(self.finish(StopReason::Shutdown, sim_now).await);
                 }
             }
             if n % 64 == 0 {
@@ -588,6 +578,25 @@ impl Simulator {
             self.flush(i, &mut out, None).await;
         }
         Ok(self.finish(StopReason::EndOfScenario, end).await)
+    }
+
+    /// Serves the links until `deadline`; false when `shutdown` came first.
+    async fn serve_until(
+        &mut self,
+        deadline: Instant,
+        shutdown: &mut std::pin::Pin<&mut impl Future<Output = ()>>,
+        now: TimeUs,
+        trajectories: &[crate::sitl::Trajectory],
+        out: &mut Vec<Outgoing>,
+    ) -> bool {
+        loop {
+            tokio::select! {
+                biased;
+                _ = shutdown.as_mut() => return false,
+                _ = tokio::time::sleep_until(deadline) => return true,
+                Some(msg) = self.inbound.recv() => self.handle_inbound(msg, now, trajectories, out).await,
+            }
+        }
     }
 
     async fn handle_inbound(
