@@ -214,15 +214,7 @@ fn run_team(tag: &str, spec: &LinkSpec) -> Option<Outcome> {
         let (t0, state) = initial_state(&world, 1, 0, id).unwrap();
         let (r, p, y) = state.att_frd_to_ned.euler_angles();
         let mut node = topo.exec(&format!("n{id}"), bin);
-        node.args([
-            "node",
-            "--scenario",
-            "sitl/scenarios/paper.toml",
-            "--id",
-            &id.to_string(),
-            "--vehicle",
-            &format!("udpout:10.78.{id}.1:14540"),
-        ]);
+        node.args(common::paper_node_args(id, &format!("udpout:10.78.{id}.1:14540")));
         node.args(["--coop-bind", &format!("10.77.0.{id}:{COOP_PORT}"), "--method", "dcl", "--encoding", spec.encoding.name()]);
         node.args(["--retry-ms", &spec.retry_ms.to_string(), "--epoch-timeout-ms", &spec.timeout_ms.to_string()]);
         node.args(["--idle-exit-s", "3", "--init-time-us", &t0.0.to_string()]).arg("--team-key").arg(&key);

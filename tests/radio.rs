@@ -201,15 +201,7 @@ fn three_nodes_on_a_shared_serial_radio_run_the_paper_scenario_within_its_budget
         let (t0, state) = initial_state(&world, 1, 0, id).unwrap();
         let (r, p, y) = state.att_frd_to_ned.euler_angles();
         let mut node = std::process::Command::new(bin);
-        node.args([
-            "node",
-            "--scenario",
-            "sitl/scenarios/paper.toml",
-            "--id",
-            &id.to_string(),
-            "--vehicle",
-            &format!("udpout:{}", vehicle_addr[&id]),
-        ]);
+        node.args(common::paper_node_args(id, &format!("udpout:{}", vehicle_addr[&id])));
         node.args(["--coop-serial", &format!("{}:57600", paths[k]), "--method", "dcl", "--encoding", "compact"]);
         // The protocol's wall-time intervals shrink with the speed-up (1 s and 3 s at real time).
         node.args(["--retry-ms", &(1000 / speed).to_string(), "--epoch-timeout-ms", &(3000 / speed).to_string()]);

@@ -146,15 +146,7 @@ fn three_nodes_against_the_experiment(signed: bool) {
         let (t0, state) = initial_state(&world, seed, run, id).unwrap();
         let (r, p, y) = state.att_frd_to_ned.euler_angles();
         let mut node = bin();
-        node.args([
-            "node",
-            "--scenario",
-            "sitl/scenarios/paper.toml",
-            "--id",
-            &id.to_string(),
-            "--vehicle",
-            &format!("udpout:{}", vehicle_addr[&id]),
-        ]);
+        node.args(common::paper_node_args(id, &format!("udpout:{}", vehicle_addr[&id])));
         node.args(["--method", "dcl", "--idle-exit-s", "1.5", "--init-time-us", &t0.0.to_string()]);
         if signed {
             node.arg("--team-key").arg(&key_path);
@@ -528,15 +520,7 @@ fn lossy_links_and_a_restarted_node_do_not_break_the_team() {
     let net = LossyNet::new(ids.len(), 0.10, 7);
     let node_cmd = |k: usize, id: u16| {
         let mut node = bin();
-        node.args([
-            "node",
-            "--scenario",
-            "sitl/scenarios/paper.toml",
-            "--id",
-            &id.to_string(),
-            "--vehicle",
-            &format!("udpout:{}", vehicle_addr[&id]),
-        ]);
+        node.args(common::paper_node_args(id, &format!("udpout:{}", vehicle_addr[&id])));
         // The protocol's clocks scaled with the simulation (20x): 200 ms retries and a 4 s
         // timeout in vehicle time.
         node.args(["--method", "dcl", "--idle-exit-s", "1.5", "--retry-ms", "10", "--epoch-timeout-ms", "200"]);
@@ -620,15 +604,7 @@ fn a_frozen_node_wakes_up_and_catches_up() {
     let mut outs = Vec::new();
     for (k, &id) in ids.iter().enumerate() {
         let mut node = bin();
-        node.args([
-            "node",
-            "--scenario",
-            "sitl/scenarios/paper.toml",
-            "--id",
-            &id.to_string(),
-            "--vehicle",
-            &format!("udpout:{}", vehicle_addr[&id]),
-        ]);
+        node.args(common::paper_node_args(id, &format!("udpout:{}", vehicle_addr[&id])));
         node.args(["--method", "dcl", "--idle-exit-s", "1.0", "--retry-ms", "10", "--epoch-timeout-ms", "200"]);
         for j in (0..ids.len()).filter(|&j| j != k) {
             node.args(["--peer", &net.proxy(j)]);

@@ -111,3 +111,9 @@ pub fn committed_logs(dir: &std::path::Path) -> Vec<std::path::PathBuf> {
     logs.sort();
     logs
 }
+
+/// The first arguments of a `cooploc node` of the paper scenario's simulated run: its scenario,
+/// platform `id`, its vehicle at `vehicle` (a MAVLink URL).
+pub fn paper_node_args(id: u16, vehicle: &str) -> Vec<String> {
+    ["node", "--scenario", "sitl/scenarios/paper.toml", "--id", &id.to_string(), "--vehicle", vehicle].map(String::from).to_vec()
+}
