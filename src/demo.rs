@@ -152,6 +152,7 @@ pub async fn run_demo(cfg: DemoConfig, ready: impl FnOnce(&DemoAddresses)) -> Re
         origin: None,
         stream_rates: Vec::new(),
         gnss_time: false,
+        gnss_lost_at: None,
     };
     let sim = Simulator::bind(world.clone(), sitl).await.step("starting the simulator")?;
     let vehicles: Vec<(PlatformId, SocketAddr)> = sim

@@ -248,7 +248,7 @@ fn replay_node(log: &Log, world: Option<&World>, id: PlatformId) -> Result<NodeR
                     continue;
                 }
                 (NodeEvent::Range { epoch, range }, Some(c)) => c.handle(NodeInput::OwnRange { epoch, range }),
-                (NodeEvent::Init { t0_us, origin: from_vehicle }, None) => {
+                (NodeEvent::Init { t0_us, origin: from_vehicle, state: start }, None) => {
                     let mut cfg = cfg.clone();
                     let origin = match (from_vehicle, origin) {
                         (Some([lat_deg, lon_deg, alt_m]), _) => {
@@ -258,9 +258,11 @@ fn replay_node(log: &Log, world: Option<&World>, id: PlatformId) -> Result<NodeR
                         (None, Some(o)) => o,
                         (None, None) => return Err(node_err("Init event without the vehicle's origin".into())),
                     };
-                    let state = match &initial_state {
-                        Some((_, state)) => *state,
-                        None => {
+                    let state = match (&initial_state, start) {
+                        // the hand-over start: the autopilot's estimate, as logged
+                        (_, Some(start)) => start.state(),
+                        (Some((_, state)), None) => *state,
+                        (None, None) => {
                             let s = last_sim_state.as_ref().ok_or_else(|| node_err("Init event before any SIM_STATE".into()))?;
                             wire::ins_state_from_sim_state(s, &origin).map_err(|e| node_err(e.to_string()))?
                         }

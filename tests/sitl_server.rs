@@ -102,6 +102,7 @@ fn config(world: &World, speed: Speed) -> SitlConfig {
         origin: None,
         stream_rates: Vec::new(),
         gnss_time: false,
+        gnss_lost_at: None,
     }
 }
 

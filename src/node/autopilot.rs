@@ -114,6 +114,11 @@ impl RateRequests {
         RateRequests { target_system, requests }
     }
 
+    /// Asks for one more message at `rate_hz` (after the profile's).
+    pub fn add(&mut self, name: &'static str, message_id: u32, rate_hz: f64) {
+        self.requests.push(RateRequest::new(name, message_id, rate_hz));
+    }
+
     fn current(&mut self) -> Option<&mut RateRequest> {
         self.requests.iter_mut().find(|r| r.outcome.is_none())
     }
@@ -297,6 +302,130 @@ impl TimeSync {
     }
 }
 
+/// Wall time between the node's questions for the autopilot's origin, us.
+pub const ORIGIN_ASK_US: u64 = 2_000_000;
+/// Wall time the node waits for the autopilot's own origin before it gives the team's, us.
+pub const ORIGIN_WAIT_US: u64 = 5_000_000;
+/// Wall time between SET_GPS_GLOBAL_ORIGIN while the autopilot still reports none, us.
+pub const ORIGIN_SET_EVERY_US: u64 = 5_000_000;
+/// SET_GPS_GLOBAL_ORIGIN sent at most this many times.
+pub const ORIGIN_MAX_SETS: u32 = 5;
+/// GPS_GLOBAL_ORIGIN's id, for MAV_CMD_REQUEST_MESSAGE.
+const GPS_GLOBAL_ORIGIN_ID: u32 = 49;
+
+/// Gives the autopilot the team's origin when it has none, sans-io. An autopilot that never had
+/// GNSS has no origin (ArduPilot and PX4 alike): its EKF fuses ODOMETRY as a local position, but
+/// it reports no global position and takes no AUTO or GUIDED waypoint in latitude and
+/// longitude. The node asks for GPS_GLOBAL_ORIGIN (MAV_CMD_REQUEST_MESSAGE 49; ArduPilot answers
+/// ACCEPTED and sends nothing when it has none), and when none has come [`ORIGIN_WAIT_US`] after
+/// the first question it sends SET_GPS_GLOBAL_ORIGIN with the profile's `[origin]`, the frame its
+/// ODOMETRY is in, every [`ORIGIN_SET_EVERY_US`] until the autopilot reports an origin (at most
+/// [`ORIGIN_MAX_SETS`] times). An origin the autopilot reports first (from its own GNSS) is
+/// never overwritten.
+#[derive(Debug, Clone)]
+pub struct OriginOffer {
+    origin: wire::GeoOrigin,
+    target_system: u8,
+    first_ask_wall_us: Option<u64>,
+    next_ask_wall_us: u64,
+    last_set_wall_us: Option<u64>,
+    /// SET_GPS_GLOBAL_ORIGIN sent.
+    pub sets: u32,
+    /// The origin the autopilot reported, and whether it was ours (within [`ORIGIN_SAME_M`]).
+    pub settled: Option<(wire::GeoOrigin, bool)>,
+    /// Every SET_GPS_GLOBAL_ORIGIN went unheeded.
+    pub gave_up: bool,
+    /// ArduPilot's EKF_STATUS_REPORT seen, and whether its EKF has initialised: an origin set
+    /// before its cores initialise is lost with their start (measured on ArduRover's SITL), so
+    /// none is sent while it reports itself uninitialised.
+    ekf: Option<bool>,
+}
+
+/// An autopilot's origin this close to the team's is the team's, m.
+pub const ORIGIN_SAME_M: f64 = 1.0;
+
+impl OriginOffer {
+    /// None without a team origin (the node then takes the autopilot's).
+    pub fn new(origin: Option<wire::GeoOrigin>, target_system: u8) -> Option<Self> {
+        Some(OriginOffer {
+            origin: origin?,
+            target_system,
+            first_ask_wall_us: None,
+            next_ask_wall_us: 0,
+            last_set_wall_us: None,
+            sets: 0,
+            settled: None,
+            gave_up: false,
+            ekf: None,
+        })
+    }
+
+    /// The message to send now, if any.
+    pub fn poll(&mut self, wall_us: u64) -> Option<MavMessage> {
+        if self.settled.is_some() || self.gave_up {
+            return None;
+        }
+        let first = *self.first_ask_wall_us.get_or_insert(wall_us);
+        let set_due = wall_us >= first + ORIGIN_WAIT_US
+            && self.ekf != Some(false)
+            && self.sets < ORIGIN_MAX_SETS
+            && self.last_set_wall_us.is_none_or(|last| wall_us >= last + ORIGIN_SET_EVERY_US);
+        if set_due {
+            self.sets += 1;
+            self.last_set_wall_us = Some(wall_us);
+            // asked again soon after: ArduPilot sends no GPS_GLOBAL_ORIGIN on its own on every link
+            self.next_ask_wall_us = wall_us + ORIGIN_ASK_US / 2;
+            if self.sets == 1 {
+                tracing::info!(
+                    lat_deg = self.origin.lat_deg,
+                    lon_deg = self.origin.lon_deg,
+                    alt_m = self.origin.alt_m,
+                    "the autopilot reports no origin: giving it the team's (SET_GPS_GLOBAL_ORIGIN)"
+                );
+            }
+            return Some(wire::set_gps_global_origin(&self.origin, self.target_system));
+        }
+        if self.sets >= ORIGIN_MAX_SETS && self.last_set_wall_us.is_some_and(|last| wall_us >= last + ORIGIN_SET_EVERY_US) {
+            if !self.gave_up {
+                self.gave_up = true;
+                tracing::warn!(sets = self.sets, "the autopilot took none of the origins sent: it reports no global position");
+            }
+            return None;
+        }
+        if wall_us < self.next_ask_wall_us {
+            return None;
+        }
+        self.next_ask_wall_us = wall_us + ORIGIN_ASK_US;
+        Some(MavMessage::COMMAND_LONG(COMMAND_LONG_DATA {
+            command: MavCmd::MAV_CMD_REQUEST_MESSAGE,
+            param1: GPS_GLOBAL_ORIGIN_ID as f32,
+            target_system: self.target_system,
+            target_component: 1,
+            ..Default::default()
+        }))
+    }
+
+    /// ArduPilot's EKF_STATUS_REPORT `flags`: initialised once it has an attitude
+    /// (EKF_ATTITUDE) and no longer says EKF_UNINITIALIZED.
+    pub fn on_ekf_status(&mut self, flags: u16) {
+        self.ekf = Some(flags & 0x0001 != 0 && flags & 0x0400 == 0);
+    }
+
+    /// The autopilot reported its origin (GPS_GLOBAL_ORIGIN): nothing more to give. Returns
+    /// whether it is the team's.
+    pub fn on_origin(&mut self, o: wire::GeoOrigin) -> bool {
+        let apart =
+            wire::geodetic_to_ned(&self.origin, &wire::Geodetic { lat_deg: o.lat_deg, lon_deg: o.lon_deg, alt_m: o.alt_m })
+                .xy()
+                .norm();
+        let ours = apart <= ORIGIN_SAME_M;
+        if self.settled.is_none() {
+            self.settled = Some((o, ours));
+        }
+        ours
+    }
+}
+
 /// What a TIMESYNC from the autopilot asks of the node.
 #[derive(Debug, Clone, PartialEq)]
 pub enum TimesyncReply {
@@ -315,6 +444,9 @@ pub struct OdometryOutput {
     last: Option<(TimeUs, Vector3<f64>, Vector3<f64>)>,
     pub reset_counter: u8,
     pub sent: u64,
+    /// The autopilot's origin in the team's frame (NED, m), when it has its own (from its GNSS):
+    /// positions go out in the autopilot's frame, as its EKF takes them.
+    frame_offset_ned_m: Vector3<f64>,
 }
 
 impl OdometryOutput {
@@ -326,7 +458,13 @@ impl OdometryOutput {
             last: None,
             reset_counter: 0,
             sent: 0,
+            frame_offset_ned_m: Vector3::zeros(),
         })
+    }
+
+    /// The autopilot's local frame has its origin at `offset` in the team's (its own GNSS origin).
+    pub fn set_frame_offset(&mut self, offset_ned_m: Vector3<f64>) {
+        self.frame_offset_ned_m = offset_ned_m;
     }
 
     /// The ODOMETRY due now that the filter is at `nav.t`, if any; `to_vehicle` maps the team
@@ -349,6 +487,10 @@ impl OdometryOutput {
         }
         self.last = Some((nav.t, nav.position_ned_m, nav.velocity_ned_m_s));
         self.sent += 1;
+        if self.frame_offset_ned_m != Vector3::zeros() {
+            let shifted = Navigation { position_ned_m: nav.position_ned_m - self.frame_offset_ned_m, ..nav.clone() };
+            return Some(wire::navigation_to_odometry(&shifted, to_vehicle(nav.t), self.reset_counter));
+        }
         Some(wire::navigation_to_odometry(nav, to_vehicle(nav.t), self.reset_counter))
     }
 }
@@ -590,5 +732,89 @@ mod tests {
         let mut g = GpsInputOutput::new(5.0, Some(origin)).unwrap();
         let Some(MavMessage::GPS_INPUT(m)) = g.poll(&nav(5_000_000, 0.0), |t| t.0) else { panic!() };
         assert_eq!((m.time_week, m.time_week_ms), (0, 0));
+    }
+
+    const TEAM_ORIGIN: crate::protocol::wire::GeoOrigin =
+        crate::protocol::wire::GeoOrigin { lat_deg: -35.363261, lon_deg: 149.16523, alt_m: 584.0 };
+
+    fn is_origin_question(m: &Option<MavMessage>) -> bool {
+        matches!(m, Some(MavMessage::COMMAND_LONG(c)) if c.command == MavCmd::MAV_CMD_REQUEST_MESSAGE && c.param1 == 49.0 && c.target_system == 7)
+    }
+
+    #[test]
+    #[allow(deprecated)]
+    fn an_autopilot_without_an_origin_is_given_the_teams() {
+        let mut o = OriginOffer::new(Some(TEAM_ORIGIN), 7).unwrap();
+        // asks first, and again every 2 s
+        assert!(is_origin_question(&o.poll(1_000)));
+        assert!(o.poll(1_500_000).is_none());
+        assert!(is_origin_question(&o.poll(3_000_000)));
+        assert!(o.poll(4_000_000).is_none());
+        // no answer 5 s after the first question: the team's origin, in degE7 and mm
+        let Some(MavMessage::SET_GPS_GLOBAL_ORIGIN(m)) = o.poll(5_001_000) else { panic!("SET_GPS_GLOBAL_ORIGIN") };
+        assert_eq!((m.latitude, m.longitude, m.altitude, m.target_system), (-353632610, 1491652300, 584000, 7));
+        assert_eq!(o.sets, 1);
+        // then asks whether it took, sooner than before
+        assert!(is_origin_question(&o.poll(6_001_000)));
+        assert!(o.poll(7_000_000).is_none());
+        // unheeded: sent again 5 s on
+        assert!(matches!(o.poll(10_001_000), Some(MavMessage::SET_GPS_GLOBAL_ORIGIN(_))));
+        // the autopilot reports it (within a degE7 rounding): settled, silent from then on
+        assert!(o.on_origin(crate::protocol::wire::GeoOrigin { lat_deg: -35.3632610, lon_deg: 149.1652300, alt_m: 584.0 }));
+        assert!(o.settled.is_some_and(|(_, ours)| ours));
+        for t in (10_002_000..60_000_000).step_by(500_000) {
+            assert!(o.poll(t).is_none(), "{t}");
+        }
+    }
+
+    #[test]
+    #[allow(deprecated)]
+    fn no_origin_is_given_to_an_ekf_that_has_not_initialised() {
+        let mut o = OriginOffer::new(Some(TEAM_ORIGIN), 7).unwrap();
+        assert!(is_origin_question(&o.poll(0)));
+        // ArduPilot's EKF says it is uninitialised: questions only
+        o.on_ekf_status(0x0400);
+        for t in (1_000_000..20_000_000).step_by(100_000) {
+            let m = o.poll(t);
+            assert!(m.is_none() || is_origin_question(&m), "{t}: {m:?}");
+        }
+        assert_eq!(o.sets, 0);
+        // initialised (attitude, velocities, ...): given at once
+        o.on_ekf_status(0x00a7);
+        assert!(matches!(o.poll(20_000_000), Some(MavMessage::SET_GPS_GLOBAL_ORIGIN(_))));
+    }
+
+    #[test]
+    fn an_origin_the_autopilot_has_is_never_overwritten() {
+        let mut o = OriginOffer::new(Some(TEAM_ORIGIN), 7).unwrap();
+        assert!(is_origin_question(&o.poll(0)));
+        // its own GNSS origin, 100 m east of the team's, answers the question
+        let theirs = crate::protocol::wire::GeoOrigin { lat_deg: -35.363261, lon_deg: 149.16633, alt_m: 584.0 };
+        assert!(!o.on_origin(theirs));
+        for t in (0..60_000_000).step_by(250_000) {
+            assert!(o.poll(t).is_none(), "{t}");
+        }
+        // and a node without a team origin offers none
+        assert!(OriginOffer::new(None, 7).is_none());
+    }
+
+    #[test]
+    #[allow(deprecated)]
+    fn an_autopilot_that_never_takes_the_origin_is_left_alone_after_a_few_tries() {
+        let mut o = OriginOffer::new(Some(TEAM_ORIGIN), 7).unwrap();
+        let mut sets = 0;
+        let mut questions = 0;
+        for t in (0..120_000_000u64).step_by(100_000) {
+            match o.poll(t) {
+                Some(MavMessage::SET_GPS_GLOBAL_ORIGIN(_)) => sets += 1,
+                m if is_origin_question(&m) => questions += 1,
+                None => {}
+                Some(other) => panic!("{other:?}"),
+            }
+        }
+        assert_eq!(sets, ORIGIN_MAX_SETS);
+        assert!(o.gave_up);
+        // about 30 s of questions (every 2 s, with one sooner after each set), then silence
+        assert!((12..=20).contains(&questions), "{questions}");
     }
 }

@@ -626,6 +626,11 @@ impl VehicleInputs {
         self.boot_us(us)
     }
 
+    /// A `time_boot_ms` stamp of the vehicle in the team's clock, once the clock is mapped.
+    pub fn team_time_of_boot_ms(&mut self, ms: u32) -> Option<TimeUs> {
+        self.boot_ms(ms)
+    }
+
     /// A `time_boot_ms` stamp in the team's clock.
     fn boot_ms(&mut self, ms: u32) -> Option<TimeUs> {
         let us = self.unwrap_boot_ms(ms);

@@ -27,7 +27,37 @@ pub fn events_topic(id: PlatformId) -> String {
 /// Schema name of [`NodeEvent`] records.
 pub const NODE_EVENT_SCHEMA_NAME: &str = "cooploc.NodeEvent";
 /// JSON schema of [`NodeEvent`].
-pub const NODE_EVENT_SCHEMA: &str = r#"{"type":"object","title":"cooploc.NodeEvent","properties":{"kind":{"type":"string","enum":["poll","end_of_input","run_pending","init"]},"wall_us":{"type":"integer"},"t0_us":{"type":"integer"},"origin":{"type":"array","items":{"type":"number"},"description":"latitude, longitude (deg) and altitude (m) of the origin, when it came from the vehicle"}},"required":["kind"]}"#;
+pub const NODE_EVENT_SCHEMA: &str = r#"{"type":"object","title":"cooploc.NodeEvent","properties":{"kind":{"type":"string","enum":["poll","end_of_input","run_pending","init"]},"wall_us":{"type":"integer"},"t0_us":{"type":"integer"},"origin":{"type":"array","items":{"type":"number"},"description":"latitude, longitude (deg) and altitude (m) of the origin, when it came from the vehicle"},"state":{"type":"object","description":"the start state, when it came from the autopilot's estimate: pos_ned_m, vel_ned_m_s, att_frd_to_ned (w, x, y, z)"}},"required":["kind"]}"#;
+
+/// A start state in the node's log (the hand-over start's, which replay cannot rebuild from the
+/// frames alone without the decoder's clock).
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct StartState {
+    pub pos_ned_m: [f64; 3],
+    pub vel_ned_m_s: [f64; 3],
+    /// w, x, y, z.
+    pub att_frd_to_ned: [f64; 4],
+}
+
+impl StartState {
+    pub fn of(s: &InsState) -> Self {
+        let q = s.att_frd_to_ned.quaternion();
+        StartState { pos_ned_m: s.pos_ned_m.into(), vel_ned_m_s: s.vel_ned_m_s.into(), att_frd_to_ned: [q.w, q.i, q.j, q.k] }
+    }
+
+    /// The state (biases zero), exactly as logged.
+    pub fn state(&self) -> InsState {
+        let [w, i, j, k] = self.att_frd_to_ned;
+        InsState {
+            pos_ned_m: self.pos_ned_m.into(),
+            vel_ned_m_s: self.vel_ned_m_s.into(),
+            att_frd_to_ned: nalgebra::UnitQuaternion::new_unchecked(nalgebra::Quaternion::new(w, i, j, k)),
+            accel_bias_frd_m_s2: nalgebra::Vector3::zeros(),
+            gyro_bias_frd_rad_s: nalgebra::Vector3::zeros(),
+            odometer_scale_error: 0.0,
+        }
+    }
+}
 
 /// One call the runner made on its core other than `handle` (whose inputs are the frames).
 #[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
@@ -44,6 +74,10 @@ pub enum NodeEvent {
         t0_us: u64,
         #[serde(default, skip_serializing_if = "Option::is_none")]
         origin: Option<[f64; 3]>,
+        /// The state it started from, when it came from the autopilot's estimate (the hand-over
+        /// start): position and velocity NED, attitude quaternion w, x, y, z.
+        #[serde(default, skip_serializing_if = "Option::is_none")]
+        state: Option<StartState>,
     },
     /// TIMESYNC gave a new mapping of the vehicle's boot clock to the companion's clock
     /// (companion time minus boot time, us, and the round trip of the answer it came from):

@@ -17,6 +17,7 @@ pub mod autopilot;
 pub mod coop_link;
 pub mod core;
 pub mod error;
+pub mod handover;
 pub mod inputs;
 pub mod log;
 pub mod peers;

@@ -340,6 +340,16 @@ pub struct Output {
     /// `[origin]`, vehicle time, Hz; 0: none.
     #[serde(default)]
     pub gps_input_rate_hz: f64,
+    /// Give an autopilot that reports no origin (no GNSS since power-on) the `[origin]`, by
+    /// SET_GPS_GLOBAL_ORIGIN ([`super::autopilot::OriginOffer`]), so that it reports a global
+    /// position and takes waypoints; an origin it has is never overwritten.
+    #[serde(default = "yes")]
+    pub set_origin: bool,
+    /// When the node takes over at a GNSS loss (`cooploc node --init-from-autopilot`), switch
+    /// the autopilot's EKF to this source set (ArduPilot's MAV_CMD_SET_EKF_SOURCE_SET: the set
+    /// whose EK3_SRCn_* say ExternalNav, e.g. 2); none: the autopilot switches by itself.
+    #[serde(default)]
+    pub takeover_source_set: Option<u8>,
 }
 
 fn default_odometry_rate() -> f64 {
@@ -348,7 +358,13 @@ fn default_odometry_rate() -> f64 {
 
 impl Default for Output {
     fn default() -> Self {
-        Output { odometry_rate_hz: default_odometry_rate(), local_position_ned: true, gps_input_rate_hz: 0.0 }
+        Output {
+            odometry_rate_hz: default_odometry_rate(),
+            local_position_ned: true,
+            gps_input_rate_hz: 0.0,
+            set_origin: true,
+            takeover_source_set: None,
+        }
     }
 }
 

@@ -25,7 +25,9 @@ use std::net::SocketAddr;
 use std::sync::Arc;
 use std::time::Duration;
 
-use super::autopilot::{GpsInputOutput, OdometryOutput, RateOutcome, RateRequest, RateRequests, TimeSync, TimesyncReply};
+use super::autopilot::{
+    GpsInputOutput, OdometryOutput, OriginOffer, RateOutcome, RateRequest, RateRequests, TimeSync, TimesyncReply,
+};
 use super::coop_link::{CoopLink, CoopSpec, Source};
 use super::core::{NodeConfig, NodeCore, NodeInput, NodeOutput, NodeStats};
 use super::inputs::{ClockSource, InputCounters, VehicleEvent, VehicleInputs};
@@ -80,7 +82,15 @@ pub enum NodeInit {
     /// before it, once the team clock maps the vehicle's stamps. A state without a time is
     /// taken at the last IMU (or wheel) sample before the origin and the team clock are known
     /// (a real vehicle started where its configuration says).
-    Pending { config: Box<NodeConfig>, origin: Option<wire::GeoOrigin>, state: Option<(Option<TimeUs>, InsState)> },
+    ///
+    /// `from_autopilot`: the state comes from the autopilot's own estimate when its GNSS goes
+    /// (the hand-over start, [`super::handover`]), not from SIM_STATE.
+    Pending {
+        config: Box<NodeConfig>,
+        origin: Option<wire::GeoOrigin>,
+        state: Option<(Option<TimeUs>, InsState)>,
+        from_autopilot: bool,
+    },
 }
 
 /// Where the node connects.
@@ -250,6 +260,12 @@ pub struct NodeSummary {
     pub timesync_refused: u64,
     /// What the ranging device's stream held (None: no device).
     pub range_input: Option<super::ranging::RangeInputCounters>,
+    /// The team's origin offered to an autopilot without one (None: the profile has no
+    /// `[origin]`, or says `set_origin = false`).
+    pub origin_offer: Option<OriginOffer>,
+    /// A hand-over start: where the node started (NED, m) and how the autopilot answered the
+    /// EKF source-set switch (None: not asked, or unanswered).
+    pub hand_over: Option<(nalgebra::Vector3<f64>, Option<crate::protocol::dialect::cooploc::MavResult>)>,
 }
 
 /// The companion's clock, Unix time in ns (the team clock of `clock = "companion"`).
@@ -414,8 +430,13 @@ pub async fn run(
     };
     let (id, mut core, mut pending_init) = match init {
         NodeInit::Ready(core) => (core.id(), Some(*core), None),
-        NodeInit::Pending { config, origin, state } => (config.id, None, Some((*config, origin, state))),
+        NodeInit::Pending { config, origin, state, from_autopilot } => {
+            (config.id, None, Some((*config, origin, state, from_autopilot)))
+        }
     };
+    let mut handover = pending_init.as_ref().is_some_and(|p| p.3).then(super::handover::Handover::new);
+    // MAV_CMD_SET_EKF_SOURCE_SET after a hand-over start: (set, tries, next wall time)
+    let mut source_set: Option<(u8, u32, u64)> = None;
     // The origin came from the vehicle (recorded with the Init event, for replay).
     let mut origin_from_vehicle: Option<wire::GeoOrigin> = None;
     let sysid = u8::try_from(id)
@@ -441,11 +462,18 @@ pub async fn run(
     let mut peers = PeerTable::new(id, &team, &links.peers);
     let mut decoder = links.profile.decoder();
     let mut rates = RateRequests::new(&links.profile, sysid);
+    if handover.is_some() {
+        // the autopilot's fix and estimate, fresh at the loss
+        rates.add("GPS_RAW_INT", 24, 5.0);
+        rates.add("GLOBAL_POSITION_INT", 33, 10.0);
+        rates.add("ATTITUDE", 30, 10.0);
+    }
     let mut odometry = OdometryOutput::new(links.profile.output.odometry_rate_hz);
     let lpn = links.profile.output.local_position_ned;
     let mut gps_input = GpsInputOutput::new(links.profile.output.gps_input_rate_hz, links.profile.geo_origin());
     let profile_origin = links.profile.geo_origin();
     let mut vehicle_origin_checked = false;
+    let mut origin_offer = if links.profile.output.set_origin { OriginOffer::new(profile_origin, sysid) } else { None };
     // The team clock through TIMESYNC (clock = "companion" or "auto").
     let timesync_wanted = matches!(links.profile.inputs.clock, TeamClock::Companion | TeamClock::Auto);
     let mut timesync = TimeSync::default();
@@ -458,6 +486,8 @@ pub async fn run(
     };
     let mut clock_rtt_us: Option<i64> = None;
     let mut reboots_seen = 0u64;
+    let mut hand_over_state: Option<InsState> = None;
+    let mut source_set_result = None;
 
     // The vehicle link is read on its own task (a serial or TCP read has no timeout).
     let (vtx, mut vrx) = tokio::sync::mpsc::channel::<Received>(4096);
@@ -536,6 +566,15 @@ pub async fn run(
                 if heard_vehicle && let Some(cmd) = rates.poll(wall_us()) {
                     to_vehicle(&vehicle, &mut seqs, &recorder, sysid, &cmd).await;
                 }
+                if heard_vehicle && let Some(m) = origin_offer.as_mut().and_then(|o| o.poll(wall_us())) {
+                    to_vehicle(&vehicle, &mut seqs, &recorder, sysid, &m).await;
+                }
+                if let Some((set, tries, next)) = source_set
+                    && wall_us() >= next
+                {
+                    source_set = (tries < 3).then_some((set, tries + 1, wall_us() + 1_000_000));
+                    to_vehicle(&vehicle, &mut seqs, &recorder, sysid, &super::handover::ekf_source_set(set, sysid)).await;
+                }
                 if heard_vehicle && timesync_wanted && let Some(req) = timesync.poll(wall_us(), unix_now_ns(), sysid) {
                     to_vehicle(&vehicle, &mut seqs, &recorder, sysid, &req).await;
                 }
@@ -596,6 +635,9 @@ pub async fn run(
                     vehicle_other_dialect += 1;
                     continue;
                 };
+                if let (MavMessage::EKF_STATUS_REPORT(m), Some(offer)) = (&msg, origin_offer.as_mut()) {
+                    offer.on_ekf_status(m.flags.bits());
+                }
                 if let MavMessage::TIMESYNC(m) = &msg {
                     match timesync.on_message(m, unix_now_ns(), (header.system_id as u8, header.component_id)) {
                         TimesyncReply::Answer(answer) => to_vehicle(&vehicle, &mut seqs, &recorder, sysid, &MavMessage::TIMESYNC(answer)).await,
@@ -613,8 +655,32 @@ pub async fn run(
                     }
                     continue;
                 }
+                if let Some(h) = handover.as_mut()
+                    && let Some((_, Some(origin), state @ None, true)) = &mut pending_init
+                {
+                    match h.on_message(&msg, origin) {
+                        Some(super::handover::HandoverEvent::GnssLost { time_boot_ms, state: s }) => match decoder.team_time_of_boot_ms(time_boot_ms) {
+                            Some(t0) => {
+                                tracing::info!(platform = id, pos = ?s.pos_ned_m, "GNSS lost: starting from the autopilot's estimate");
+                                *state = Some((Some(t0), *s));
+                                hand_over_state = Some(*s);
+                                if let Some(set) = links.profile.output.takeover_source_set {
+                                    source_set = Some((set, 0, 0));
+                                }
+                            }
+                            None => {
+                                tracing::warn!(platform = id, "GNSS lost before the team clock is known: waiting for it");
+                                h.retry();
+                            }
+                        },
+                        Some(super::handover::HandoverEvent::GnssLostWithoutEstimate) => {
+                            tracing::warn!(platform = id, "GNSS lost, and no estimate of the autopilot's to start from yet")
+                        }
+                        None => {}
+                    }
+                }
                 if let MavMessage::SIM_STATE(m) = &msg
-                    && let Some((_, Some(origin), state @ None)) = &mut pending_init
+                    && let Some((_, Some(origin), state @ None, false)) = &mut pending_init
                     && let Some(t0) = last_imu_t
                 {
                     // (before the team clock maps the IMU's stamps there is no time to start at)
@@ -629,13 +695,14 @@ pub async fn run(
                         }
                     }
                 }
-                if let Some((config, Some(origin), Some((t0, state)))) = &pending_init
+                if let Some((config, Some(origin), Some((t0, state)), _)) = &pending_init
                     && let Some(t0) = t0.or(last_imu_t)
                 {
                     let made = NodeCore::new(config.clone(), t0, NavState::for_model(&config.model, *state))?;
                     tracing::info!(platform = id, t0 = %t0, pos = ?made.filter().position_ned_m(), lat_deg = origin.lat_deg, "initialised");
                     let o = origin_from_vehicle.map(|o| [o.lat_deg, o.lon_deg, o.alt_m]);
-                    record_event(&recorder, id, &NodeEvent::Init { t0_us: t0.0, origin: o });
+                    let start = hand_over_state.as_ref().map(super::log::StartState::of);
+                    record_event(&recorder, id, &NodeEvent::Init { t0_us: t0.0, origin: o, state: start });
                     core = Some(made);
                     pending_init = None;
                 }
@@ -670,6 +737,11 @@ pub async fn run(
                             }
                         }
                         VehicleEvent::Ack(ack) => {
+                            if ack.command == crate::protocol::dialect::cooploc::MavCmd::MAV_CMD_SET_EKF_SOURCE_SET && source_set.is_some() {
+                                source_set = None;
+                                source_set_result = Some(ack.result);
+                                tracing::info!(platform = id, result = ?ack.result, "the autopilot answered the EKF source-set switch");
+                            }
                             if let Some(r) = rates.on_ack(&ack) {
                                 match &r.outcome {
                                     Some(RateOutcome::Accepted) => tracing::info!(platform = id, message = r.message, rate_hz = r.rate_hz, "the autopilot accepted the rate"),
@@ -678,7 +750,17 @@ pub async fn run(
                             }
                         }
                         VehicleEvent::Origin(o) => {
-                            if let Some((config, origin @ None, _)) = &mut pending_init {
+                            if let Some(offer) = origin_offer.as_mut()
+                                && offer.settled.is_none()
+                            {
+                                let ours = offer.on_origin(o);
+                                tracing::info!(platform = id, ours, lat_deg = o.lat_deg, lon_deg = o.lon_deg, "the autopilot has an origin");
+                                if let (false, Some(team), Some(odometry)) = (ours, profile_origin, odometry.as_mut()) {
+                                    // its own (from its GNSS): ODOMETRY goes out in its frame
+                                    odometry.set_frame_offset(wire::geodetic_to_ned(&team, &wire::Geodetic { lat_deg: o.lat_deg, lon_deg: o.lon_deg, alt_m: o.alt_m }));
+                                }
+                            }
+                            if let Some((config, origin @ None, _, _)) = &mut pending_init {
                                 tracing::info!(platform = id, lat_deg = o.lat_deg, lon_deg = o.lon_deg, alt_m = o.alt_m, "origin from the vehicle");
                                 config.model.set_latitude(o.lat_deg);
                                 *origin = Some(o);
@@ -846,5 +928,7 @@ pub async fn run(
         timesync_requests: timesync.requests,
         timesync_refused: timesync.refused,
         range_input: range_lines.map(|l| l.counters),
+        origin_offer,
+        hand_over: hand_over_state.map(|s| (s.pos_ned_m, source_set_result)),
     })
 }

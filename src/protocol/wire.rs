@@ -11,10 +11,11 @@ use mavlink_core::{MavHeader, MavlinkVersion, Message};
 use nalgebra::{Matrix3, Vector3};
 
 use super::dialect::cooploc::{
-    COMMAND_ACK_DATA, COOPLOC_EPOCH_DATA, COOPLOC_ESTIMATE_DATA, COOPLOC_RANGE_BEARING_DATA, COOPLOC_RANGE_DATA,
-    COOPLOC_STATE_FRAGMENT_DATA, COOPLOC_STORE_FRAGMENT_DATA, CooplocEpochState, CooplocMethod, HEARTBEAT_DATA, HIGHRES_IMU_DATA,
-    LOCAL_POSITION_NED_DATA, MavAutopilot, MavCmd, MavEstimatorType, MavFrame, MavMessage, MavModeFlag, MavResult, MavState,
-    MavType, ODOMETRY_DATA, RAW_IMU_DATA, SCALED_IMU2_DATA, SIM_STATE_DATA, WHEEL_DISTANCE_DATA,
+    ATTITUDE_DATA, COMMAND_ACK_DATA, COOPLOC_EPOCH_DATA, COOPLOC_ESTIMATE_DATA, COOPLOC_RANGE_BEARING_DATA, COOPLOC_RANGE_DATA,
+    COOPLOC_STATE_FRAGMENT_DATA, COOPLOC_STORE_FRAGMENT_DATA, CooplocEpochState, CooplocMethod, GLOBAL_POSITION_INT_DATA,
+    HEARTBEAT_DATA, HIGHRES_IMU_DATA, LOCAL_POSITION_NED_DATA, MavAutopilot, MavCmd, MavEstimatorType, MavFrame, MavMessage,
+    MavModeFlag, MavResult, MavState, MavType, ODOMETRY_DATA, RAW_IMU_DATA, SCALED_IMU2_DATA, SIM_STATE_DATA,
+    WHEEL_DISTANCE_DATA,
 };
 use super::fragment::{FRAGMENT_DATA, Fragment, Payload};
 use crate::estimation::{ImuSample, Method, OdometerSample, PlatformId, RangeSample};
@@ -794,6 +795,21 @@ pub fn e7_to_deg(v: i32) -> f64 {
     v as f64 * 1e-7
 }
 
+/// SET_GPS_GLOBAL_ORIGIN: the team's origin for an autopilot that has none (no GNSS fix ever).
+/// `time_usec` 0: ArduPilot and PX4 ignore it. The message is deprecated in common.xml since
+/// 2025-04 for MAV_CMD_DO_SET_GLOBAL_ORIGIN, which ArduPilot 4.7 takes too; the message is what
+/// both ArduPilot and PX4 releases in the field take.
+#[allow(deprecated)]
+pub fn set_gps_global_origin(o: &GeoOrigin, target_system: u8) -> MavMessage {
+    MavMessage::SET_GPS_GLOBAL_ORIGIN(crate::protocol::dialect::cooploc::SET_GPS_GLOBAL_ORIGIN_DATA {
+        latitude: deg_to_e7(o.lat_deg),
+        longitude: deg_to_e7(o.lon_deg),
+        altitude: (o.alt_m * 1e3).round() as i32,
+        target_system,
+        time_usec: 0,
+    })
+}
+
 /// A vehicle's true motion, as SIM_STATE carries it (a simulator fills it from its world).
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct TrueMotion {
@@ -805,6 +821,53 @@ pub struct TrueMotion {
     pub body_accel_m_s2: Vector3<f64>,
     /// Angular rate relative to the Earth in the body frame, rad/s.
     pub body_rate_rad_s: Vector3<f64>,
+}
+
+/// An autopilot's own estimate as it reports it (GPS_RAW_INT, GLOBAL_POSITION_INT and ATTITUDE,
+/// stamped `time_boot_ms` of its clock), here exact: a simulated autopilot on GNSS. `fix`: the
+/// GNSS fix it has (a 3D fix, or none). What the node's hand-over start reads
+/// ([`crate::node::handover`]).
+pub fn truth_to_autopilot_estimate(truth: &TrueMotion, origin: &GeoOrigin, time_boot_ms: u32, fix: bool) -> [MavMessage; 3] {
+    use super::dialect::cooploc::{GPS_RAW_INT_DATA, GpsFixType};
+    let g = ned_to_geodetic(origin, &truth.pos_ned_m);
+    let v = truth.vel_ned_m_s * 100.0;
+    let (roll, pitch, yaw) = truth.attitude.euler_angles();
+    let (lat, lon) = (deg_to_e7(g.lat_deg), deg_to_e7(g.lon_deg));
+    let alt = (g.alt_m * 1e3).round() as i32;
+    [
+        MavMessage::GPS_RAW_INT(GPS_RAW_INT_DATA {
+            fix_type: if fix { GpsFixType::GPS_FIX_TYPE_3D_FIX } else { GpsFixType::GPS_FIX_TYPE_NO_FIX },
+            lat: if fix { lat } else { 0 },
+            lon: if fix { lon } else { 0 },
+            alt: if fix { alt } else { 0 },
+            satellites_visible: if fix { 12 } else { 0 },
+            eph: u16::MAX,
+            epv: u16::MAX,
+            vel: u16::MAX,
+            cog: u16::MAX,
+            ..Default::default()
+        }),
+        MavMessage::GLOBAL_POSITION_INT(GLOBAL_POSITION_INT_DATA {
+            time_boot_ms,
+            lat,
+            lon,
+            alt,
+            relative_alt: (-truth.pos_ned_m.z * 1e3).round() as i32,
+            vx: v.x.round() as i16,
+            vy: v.y.round() as i16,
+            vz: v.z.round() as i16,
+            hdg: ((yaw.to_degrees().rem_euclid(360.0)) * 100.0).round() as u16 % 36000,
+        }),
+        MavMessage::ATTITUDE(ATTITUDE_DATA {
+            time_boot_ms,
+            roll: roll as f32,
+            pitch: pitch as f32,
+            yaw: yaw as f32,
+            rollspeed: truth.body_rate_rad_s.x as f32,
+            pitchspeed: truth.body_rate_rad_s.y as f32,
+            yawspeed: truth.body_rate_rad_s.z as f32,
+        }),
+    ]
 }
 
 /// Simulator truth as SIM_STATE: attitude quaternion (body FRD to NED, q1 = w) and Euler angles,
@@ -884,6 +947,36 @@ pub fn ins_state_from_sim_state(m: &SIM_STATE_DATA, origin: &GeoOrigin) -> Resul
         pos_ned_m: s.pos_ned_m,
         vel_ned_m_s: s.vel_ned_m_s,
         att_frd_to_ned: s.att_frd_to_ned,
+        accel_bias_frd_m_s2: Vector3::zeros(),
+        gyro_bias_frd_rad_s: Vector3::zeros(),
+        odometer_scale_error: 0.0,
+    })
+}
+
+/// The autopilot's own estimate as an initial state in the local NED frame of `origin`: position
+/// and velocity from GLOBAL_POSITION_INT (degE7, mm above mean sea level, cm/s NED), attitude from
+/// ATTITUDE (rad). Biases zero. The node's hand-over start ([`crate::node::handover`]).
+pub fn ins_state_from_autopilot(
+    p: &GLOBAL_POSITION_INT_DATA,
+    a: &ATTITUDE_DATA,
+    origin: &GeoOrigin,
+) -> Result<crate::estimation::ins::InsState, WireError> {
+    const MSG: &str = "GLOBAL_POSITION_INT";
+    let (lat_deg, lon_deg) = (e7_to_deg(p.lat), e7_to_deg(p.lon));
+    if !(-90.0..=90.0).contains(&lat_deg) || !(-180.0..=180.0).contains(&lon_deg) || (p.lat == 0 && p.lon == 0) {
+        return Err(bad(MSG, "lat", format!("{lat_deg}, {lon_deg}: no position")));
+    }
+    let pos = geodetic_to_ned(origin, &Geodetic { lat_deg, lon_deg, alt_m: f64::from(p.alt) * 1e-3 });
+    if pos.xy().norm() > 100_000.0 {
+        return Err(bad(MSG, "lat", format!("{:.0} km from the origin", pos.xy().norm() * 1e-3)));
+    }
+    let vel = Vector3::new(f64::from(p.vx), f64::from(p.vy), f64::from(p.vz)) * 0.01;
+    let (roll, pitch, yaw) =
+        (finite("ATTITUDE", "roll", a.roll)?, finite("ATTITUDE", "pitch", a.pitch)?, finite("ATTITUDE", "yaw", a.yaw)?);
+    Ok(crate::estimation::ins::InsState {
+        pos_ned_m: pos,
+        vel_ned_m_s: vel,
+        att_frd_to_ned: nalgebra::UnitQuaternion::from_euler_angles(roll, pitch, yaw),
         accel_bias_frd_m_s2: Vector3::zeros(),
         gyro_bias_frd_rad_s: Vector3::zeros(),
         odometer_scale_error: 0.0,

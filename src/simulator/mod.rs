@@ -148,6 +148,9 @@ pub struct SitlConfig {
     /// The autopilots had a GNSS fix before GNSS was lost: ArduPilot's SYSTEM_TIME carries Unix
     /// time (without it, 0, as on the real firmware without GNSS; PX4's always does).
     pub gnss_time: bool,
+    /// With `gnss_time`: the GNSS fix goes at this simulated time (the autopilots keep their Unix
+    /// time and origin, and report no fix).
+    pub gnss_lost_at: Option<TimeUs>,
 }
 
 /// What can stop a simulator.
@@ -239,6 +242,10 @@ pub fn vehicle_config(
         },
         // ArduPilot has Unix time only from a GNSS fix ([`SitlConfig::gnss_time`])
         unix_time: autopilot != Autopilot::ArduPilot,
+        // the autopilots have GNSS only when told (`--gnss-time`); the simulator's own vehicles
+        // report none of it
+        gnss: autopilot == Autopilot::Cooploc,
+        gnss_lost_at: None,
     }
 }
 
@@ -438,6 +445,8 @@ impl Simulator {
         for (index, &id) in ids.iter().enumerate() {
             let mut vehicle = vehicle_config(&world, id, &config.schedule, config.streams, origin, config.autopilot);
             vehicle.unix_time |= config.gnss_time;
+            vehicle.gnss |= config.gnss_time;
+            vehicle.gnss_lost_at = config.gnss_lost_at;
             let core = VehicleCore::new(vehicle).map_err(|e| SimError::Config(e.to_string()))?;
             let mut core = core;
             for &(message_id, hz) in &config.stream_rates {

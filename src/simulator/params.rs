@@ -123,6 +123,8 @@ mod tests {
             autopilot,
             wheel_track_m: None,
             unix_time: true,
+            gnss: true,
+            gnss_lost_at: None,
         }
     }
 

@@ -26,7 +26,8 @@ pub const COMPONENT_ID: u8 = 1;
 const WHEEL_DISTANCE_ID: u32 = 9000;
 
 /// The streams sent on the simulated clock (the others at sensor samples).
-const CLOCK_STREAMS: [Stream; 4] = [Stream::Heartbeat, Stream::SimState, Stream::SystemTime, Stream::AutopilotOdometry];
+const CLOCK_STREAMS: [Stream; 5] =
+    [Stream::Heartbeat, Stream::SimState, Stream::SystemTime, Stream::AutopilotOdometry, Stream::Estimate];
 
 /// Shortest interval a periodic (clock-driven) stream accepts, us (1 kHz).
 pub const MIN_PERIODIC_INTERVAL_US: u64 = 1_000;
@@ -46,10 +47,13 @@ pub enum Stream {
     SystemTime,
     /// The autopilot's own EKF output as ODOMETRY (PX4).
     AutopilotOdometry,
+    /// The autopilot's GNSS fix and its own estimate: GPS_RAW_INT, GLOBAL_POSITION_INT and
+    /// ATTITUDE together (ArduPilot, PX4).
+    Estimate,
 }
 
 impl Stream {
-    pub const ALL: [Stream; 7] = [
+    pub const ALL: [Stream; 8] = [
         Stream::Heartbeat,
         Stream::HighresImu,
         Stream::Odometry,
@@ -57,6 +61,7 @@ impl Stream {
         Stream::Range,
         Stream::SystemTime,
         Stream::AutopilotOdometry,
+        Stream::Estimate,
     ];
 
     /// The MAVLink message id (the simulator's own personality; see [`VehicleCore::stream_of`]).
@@ -69,6 +74,7 @@ impl Stream {
             Stream::Range => 61001,
             Stream::SystemTime => 2,
             Stream::AutopilotOdometry => 331,
+            Stream::Estimate => 33,
         }
     }
 
@@ -141,6 +147,9 @@ pub struct VehicleConfig {
     /// carries it without GNSS): SYSTEM_TIME's `time_unix_usec`. Without it, 0 (ArduPilot
     /// without GNSS, as measured on its SITL).
     pub unix_time: bool,
+    /// It has GNSS from power-on (an origin, a fix); `gnss_lost_at`: until then (simulated time).
+    pub gnss: bool,
+    pub gnss_lost_at: Option<TimeUs>,
 }
 
 /// Where an outgoing message goes.
@@ -195,6 +204,10 @@ pub struct VehicleCounters {
     pub commands_unsupported: u64,
     /// PARAM_REQUEST_LIST, PARAM_REQUEST_READ and PARAM_SET addressed to this vehicle.
     pub param_requests: u64,
+    /// SET_GPS_GLOBAL_ORIGIN taken (the vehicle had no origin).
+    pub origins_set: u64,
+    /// The EKF source set last switched to by MAV_CMD_SET_EKF_SOURCE_SET (ArduPilot).
+    pub source_set: Option<u8>,
 }
 
 #[derive(Debug, Clone, Copy)]
@@ -213,7 +226,7 @@ pub struct VehicleCore {
     config: VehicleConfig,
     sysid: u8,
     sequence: u8,
-    streams: [StreamState; 7],
+    streams: [StreamState; 8],
     last_imu: Option<ImuSample>,
     last_odometer: Option<OdometerSample>,
     last_wheel: Option<WheelSample>,
@@ -228,6 +241,11 @@ pub struct VehicleCore {
     /// clock at zero for its peers, or running faster or slower than real time, says no: an
     /// answer would map its clock to the companion's wrongly).
     answers_timesync: bool,
+    /// The EKF origin the vehicle reports (GPS_GLOBAL_ORIGIN): with GNSS (`gnss`) its
+    /// fix's, which is the scenario's origin here; without, none until a SET_GPS_GLOBAL_ORIGIN
+    /// gives one, as on the real ArduPilot (measured: REQUEST_MESSAGE 49 answered ACCEPTED with
+    /// no message, "EKF3 IMU0 origin set" after SET_GPS_GLOBAL_ORIGIN, then the origin on request).
+    ekf_origin: Option<(i32, i32, i32)>,
 }
 
 /// A platform that cannot be a MAVLink system.
@@ -240,7 +258,7 @@ impl VehicleCore {
         let sysid = u8::try_from(config.platform).ok().filter(|&s| s != 0).ok_or(BadSystemId(config.platform))?;
         let d = config.defaults;
         let state = |default| StreamState { default, current: default, next_due_us: 0, last_sent_us: None };
-        let mut streams = [state(Interval::Every(1_000_000)); 7];
+        let mut streams = [state(Interval::Every(1_000_000)); 8];
         let (imu, odometry, system_time, autopilot_odometry) = match config.autopilot {
             Autopilot::Cooploc => (d.highres_imu, d.odometry, Interval::Disabled, Interval::Disabled),
             // stream groups at 1 Hz until a ground station or the node asks for more
@@ -258,8 +276,15 @@ impl VehicleCore {
         streams[Stream::Range.index()] = state(d.range);
         streams[Stream::SystemTime.index()] = state(system_time);
         streams[Stream::AutopilotOdometry.index()] = state(autopilot_odometry);
+        // the GNSS fix and the autopilot's estimate at 1 Hz, as the firmware's default streams
+        let estimate = if config.autopilot == Autopilot::Cooploc { Interval::Disabled } else { Interval::Every(1_000_000) };
+        streams[Stream::Estimate.index()] = state(estimate);
         let personality = Personality::new(config.autopilot, config.platform, config.odometer_period_us, config.unix_time);
+        let o = config.origin;
+        let ekf_origin =
+            config.gnss.then(|| (wire::deg_to_e7(o.lat_deg), wire::deg_to_e7(o.lon_deg), (o.alt_m * 1e3).round() as i32));
         Ok(VehicleCore {
+            ekf_origin,
             params: ParamTable::for_vehicle(&config, sysid),
             personality,
             checker: Checker::default(),
@@ -321,6 +346,7 @@ impl VehicleCore {
             _ if Some(id) == ap.odometer_message_id() && self.config.wheel_track_m.is_none() => Some(Stream::Odometry),
             331 if ap == Autopilot::Px4 => Some(Stream::AutopilotOdometry),
             2 if ap.boot_clock() => Some(Stream::SystemTime),
+            24 | 30 | 33 if ap != Autopilot::Cooploc => Some(Stream::Estimate),
             0 | 108 | 61001 => Stream::from_message_id(id),
             _ => None,
         }
@@ -406,6 +432,15 @@ impl VehicleCore {
                 let st = self.streams[stream.index()];
                 let Interval::Every(interval) = st.current else { continue };
                 if st.next_due_us != due.0 {
+                    continue;
+                }
+                if stream == Stream::Estimate {
+                    for message in self.estimate(due, truth) {
+                        self.emit(Destination::AllPeers, message, out);
+                    }
+                    let st = &mut self.streams[stream.index()];
+                    st.last_sent_us = Some(due.0);
+                    st.next_due_us = due.0 + interval;
                     continue;
                 }
                 let message = match stream {
@@ -590,6 +625,17 @@ impl VehicleCore {
                 }
                 return;
             }
+            #[allow(deprecated)] // for MAV_CMD_DO_SET_GLOBAL_ORIGIN; the message is what autopilots take
+            MavMessage::SET_GPS_GLOBAL_ORIGIN(m) => {
+                // ArduPilot and PX4 take it when their EKF has no origin yet (and say nothing)
+                if (m.target_system == 0 || m.target_system == self.sysid) && self.ekf_origin.is_none() {
+                    self.ekf_origin = Some((m.latitude, m.longitude, m.altitude));
+                    self.counters.origins_set += 1;
+                } else {
+                    self.counters.ignored += 1;
+                }
+                return;
+            }
             #[allow(deprecated)] // ArduPilot's stream groups
             MavMessage::REQUEST_DATA_STREAM(m) => {
                 let for_us = (m.target_system == 0 || m.target_system == self.sysid)
@@ -703,6 +749,15 @@ impl VehicleCore {
                 let Some(id) = message_id_param(p[0]) else { return (MAV_RESULT_DENIED, vec![]) };
                 self.request_message(now, id, p[1], truth)
             }
+            // ArduPilot's EKF source sets 1-3 (EK3_SRCn_*)
+            MavCmd::MAV_CMD_SET_EKF_SOURCE_SET if self.config.autopilot == Autopilot::ArduPilot => {
+                if (1.0..=3.0).contains(&p[0]) && p[0].fract() == 0.0 {
+                    self.counters.source_set = Some(p[0] as u8);
+                    (MAV_RESULT_ACCEPTED, vec![])
+                } else {
+                    (MAV_RESULT_DENIED, vec![])
+                }
+            }
             _ => (MAV_RESULT_UNSUPPORTED, vec![]),
         }
     }
@@ -796,9 +851,12 @@ impl VehicleCore {
         use MavResult::*;
         const AUTOPILOT_VERSION: u32 = 148;
         const MESSAGE_INTERVAL: u32 = 244;
+        const GPS_GLOBAL_ORIGIN: u32 = 49;
         let not_yet = (MAV_RESULT_TEMPORARILY_REJECTED, vec![]);
         match id {
             AUTOPILOT_VERSION => (MAV_RESULT_ACCEPTED, vec![self.autopilot_version()]),
+            // accepted either way; the message only when there is an origin
+            GPS_GLOBAL_ORIGIN => (MAV_RESULT_ACCEPTED, self.gps_global_origin().into_iter().collect()),
             MESSAGE_INTERVAL => match message_id_param(param2).and_then(|id| u16::try_from(id).ok()) {
                 Some(id) => (MAV_RESULT_ACCEPTED, vec![self.message_interval(id)]),
                 None => (MAV_RESULT_DENIED, vec![]),
@@ -810,6 +868,17 @@ impl VehicleCore {
                     (MAV_RESULT_ACCEPTED, vec![self.personality.autopilot_odometry(&truth.truth_at(now))])
                 }
                 Some(Stream::SimState) => (MAV_RESULT_ACCEPTED, vec![self.sim_state(now, truth)]),
+                Some(Stream::Estimate) => {
+                    let [fix, position, attitude] = self.estimate(now, truth);
+                    (
+                        MAV_RESULT_ACCEPTED,
+                        vec![match id {
+                            24 => fix,
+                            30 => attitude,
+                            _ => position,
+                        }],
+                    )
+                }
                 Some(Stream::HighresImu) => match self.last_imu {
                     Some(s) => (MAV_RESULT_ACCEPTED, vec![self.personality.clone().imu_message(&s)]),
                     None => not_yet,
@@ -830,6 +899,38 @@ impl VehicleCore {
                 None => (MAV_RESULT_DENIED, vec![]),
             },
         }
+    }
+
+    /// The autopilot's fix and estimate at `t` (exact: a simulated autopilot on GNSS; after the
+    /// loss, still the truth, while the fix says none).
+    fn estimate(&self, t: TimeUs, truth: &Trajectory) -> [MavMessage; 3] {
+        let tr = truth.truth_at(t);
+        let motion = wire::TrueMotion {
+            pos_ned_m: tr.pos_ned_m,
+            vel_ned_m_s: tr.vel_ned_m_s,
+            attitude: tr.attitude,
+            body_accel_m_s2: nalgebra::Vector3::zeros(),
+            body_rate_rad_s: nalgebra::Vector3::new(0.0, 0.0, tr.yaw_rate_rad_s),
+        };
+        let fix = self.config.gnss && self.config.gnss_lost_at.is_none_or(|lost| t < lost);
+        let time_boot_ms = ((self.personality.clock_us(t) / 1000) % (1 << 32)) as u32;
+        wire::truth_to_autopilot_estimate(&motion, &self.config.origin, time_boot_ms, fix)
+    }
+
+    /// The EKF origin, if it has one.
+    fn gps_global_origin(&self) -> Option<MavMessage> {
+        let (latitude, longitude, altitude) = self.ekf_origin?;
+        Some(MavMessage::GPS_GLOBAL_ORIGIN(crate::protocol::dialect::cooploc::GPS_GLOBAL_ORIGIN_DATA {
+            latitude,
+            longitude,
+            altitude,
+            time_usec: 0,
+        }))
+    }
+
+    /// The origin its EKF reports (degE7, degE7, mm), if any.
+    pub fn ekf_origin(&self) -> Option<(i32, i32, i32)> {
+        self.ekf_origin
     }
 
     fn autopilot_version(&self) -> MavMessage {
@@ -874,6 +975,8 @@ mod tests {
             autopilot: Autopilot::Cooploc,
             wheel_track_m: None,
             unix_time: true,
+            gnss: true,
+            gnss_lost_at: None,
         })
         .unwrap()
     }
@@ -1191,6 +1294,45 @@ mod tests {
         assert_eq!(replies, vec![MavMessage::MESSAGE_INTERVAL(MESSAGE_INTERVAL_DATA { interval_us: 500_000, message_id: 331 })]);
         let (_, replies) = ask(&mut c, &w, long(0, MavCmd::MAV_CMD_REQUEST_MESSAGE, 244.0, 105.0)).unwrap();
         assert_eq!(replies, vec![MavMessage::MESSAGE_INTERVAL(MESSAGE_INTERVAL_DATA { interval_us: 5_000, message_id: 105 })]);
+    }
+
+    #[test]
+    #[allow(deprecated)]
+    fn an_autopilot_without_gnss_has_no_origin_until_one_is_given() {
+        use crate::protocol::dialect::cooploc::SET_GPS_GLOBAL_ORIGIN_DATA;
+        let w = world();
+        let truth = w.trajectory(1).unwrap();
+        let mut ap =
+            VehicleCore::new(VehicleConfig { autopilot: Autopilot::ArduPilot, unix_time: false, gnss: false, ..core(1).config })
+                .unwrap();
+        // asked for: accepted, and nothing follows (as the real ArduRover answers)
+        let (r, replies) = ask(&mut ap, &w, long(1, MavCmd::MAV_CMD_REQUEST_MESSAGE, 49.0, 0.0)).unwrap();
+        assert_eq!((r, replies.len()), (MavResult::MAV_RESULT_ACCEPTED, 0));
+        let set = |lat, target_system| {
+            MavMessage::SET_GPS_GLOBAL_ORIGIN(SET_GPS_GLOBAL_ORIGIN_DATA {
+                latitude: lat,
+                longitude: 1491652300,
+                altitude: 584_000,
+                target_system,
+                time_usec: 0,
+            })
+        };
+        // another vehicle's origin is not ours
+        let mut out = Vec::new();
+        ap.on_message(TimeUs(0), GCS, &set(-353632610, 2), truth, &mut out);
+        assert_eq!(ap.ekf_origin(), None);
+        ap.on_message(TimeUs(0), GCS, &set(-353632610, 1), truth, &mut out);
+        assert!(out.is_empty(), "taken without a word");
+        let (_, replies) = ask(&mut ap, &w, long(1, MavCmd::MAV_CMD_REQUEST_MESSAGE, 49.0, 0.0)).unwrap();
+        let [MavMessage::GPS_GLOBAL_ORIGIN(o)] = replies.as_slice() else { panic!("{replies:?}") };
+        assert_eq!((o.latitude, o.longitude, o.altitude), (-353632610, 1491652300, 584_000));
+        // an origin it has is kept
+        ap.on_message(TimeUs(0), GCS, &set(-340000000, 1), truth, &mut out);
+        assert_eq!(ap.ekf_origin(), Some((-353632610, 1491652300, 584_000)));
+        // with GNSS: its fix's origin from the start
+        let mut gnss = core(1);
+        let (_, replies) = ask(&mut gnss, &w, long(1, MavCmd::MAV_CMD_REQUEST_MESSAGE, 49.0, 0.0)).unwrap();
+        assert!(matches!(replies.as_slice(), [MavMessage::GPS_GLOBAL_ORIGIN(_)]));
     }
 
     #[test]

@@ -130,6 +130,13 @@ pub struct Args {
     /// errors it draws), at time zero.
     #[arg(long, value_name = "SEED:RUN", requires = "scenario")]
     init_from_run: Option<String>,
+    /// The hand-over start: a vehicle that starts with GNSS flies on its autopilot's estimate;
+    /// when the autopilot's GNSS fix goes (GPS_RAW_INT), the node starts from the autopilot's
+    /// estimate (GLOBAL_POSITION_INT, ATTITUDE) and, if the profile says
+    /// `takeover_source_set`, switches the autopilot's EKF to that source set. Needs the
+    /// profile's [origin]
+    #[arg(long, conflicts_with_all = ["init_ned", "init_from_run"])]
+    init_from_autopilot: bool,
     /// Initial velocity N,E,D (m/s).
     #[arg(long, value_delimiter = ',', allow_hyphen_values = true, default_values_t = [0.0, 0.0, 0.0])]
     init_vel_ned: Vec<f64>,
@@ -287,7 +294,10 @@ pub fn run_cmd(args: Args) -> anyhow::Result<()> {
             // Checked now rather than when the vehicle has said what is missing.
             let at_rest = NavState::for_model(&cfg.model, InsState::at_rest(UnitQuaternion::identity()));
             NodeCore::new(cfg.clone(), TimeUs(0), at_rest).context("node configuration")?;
-            NodeInit::Pending { config: Box::new(cfg), origin, state }
+            if args.init_from_autopilot && origin.is_none() {
+                bail!("--init-from-autopilot: the profile needs an [origin], the team's frame");
+            }
+            NodeInit::Pending { config: Box::new(cfg), origin, state, from_autopilot: args.init_from_autopilot }
         }
     };
     let coop = match &args.coop_serial {
@@ -382,7 +392,13 @@ pub fn run_cmd(args: Args) -> anyhow::Result<()> {
         println!(
             "node {} done: never initialised (no {} from the vehicle); {} inputs ignored",
             args.id,
-            if summary.origin_from_vehicle.is_none() && profile.latitude().is_none() { "GPS_GLOBAL_ORIGIN" } else { "SIM_STATE" },
+            if summary.origin_from_vehicle.is_none() && profile.latitude().is_none() {
+                "GPS_GLOBAL_ORIGIN"
+            } else if args.init_from_autopilot {
+                "GNSS loss (GPS_RAW_INT) with an estimate (GLOBAL_POSITION_INT, ATTITUDE)"
+            } else {
+                "SIM_STATE"
+            },
             summary.before_init
         );
         return Ok(());
@@ -489,6 +505,26 @@ pub fn run_cmd(args: Args) -> anyhow::Result<()> {
             "node {} range_input ranges {} other_lines {} malformed {} bad_peer {} too_long {} off_grid {}",
             e.platform, c.ranges, c.other_lines, c.malformed, c.bad_peer, c.too_long, c.off_grid
         );
+    }
+    if let Some((pos, answer)) = &summary.hand_over {
+        println!(
+            "node {} hand_over started_at_ned_m [{:.2}, {:.2}, {:.2}] source_set {}",
+            e.platform,
+            pos.x,
+            pos.y,
+            pos.z,
+            answer.map_or("not asked or unanswered".into(), |r| format!("{r:?}"))
+        );
+    }
+    if let Some(o) = &summary.origin_offer {
+        let state = match o.settled {
+            Some((_, true)) if o.sets > 0 => "given (SET_GPS_GLOBAL_ORIGIN), the autopilot reports it",
+            Some((_, true)) => "the autopilot's is the team's",
+            Some((_, false)) => "the autopilot has its own (kept; positions sent back are in the profile's frame)",
+            None if o.gave_up => "given, never taken: the autopilot reports no origin",
+            None => "none reported yet",
+        };
+        println!("node {} origin {state} sets {}", e.platform, o.sets);
     }
     match summary.clock {
         Some((source, offset_us, rtt_us)) => println!(

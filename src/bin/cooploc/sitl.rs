@@ -9,6 +9,7 @@ use cooploc::node::profile::VehicleProfile;
 use cooploc::simulator::{self, Endpoint, Interval, SitlConfig, Speed, StreamDefaults};
 use cooploc::sitl::scenario::Scenario;
 use cooploc::sitl::world::World;
+use cooploc::time::TimeUs;
 
 #[derive(clap::Args)]
 #[command(after_help = "\
@@ -70,6 +71,11 @@ pub struct Args {
     /// firmware without GNSS does (PX4's carries Unix time either way).
     #[arg(long)]
     gnss_time: bool,
+    /// With --gnss-time: the autopilots' GNSS fix goes at this simulated time (s): GPS_RAW_INT
+    /// says no fix from then on, as on the real firmware after SIM_GPS1_ENABLE 0 (the hand-over
+    /// start of `cooploc node --init-from-autopilot`)
+    #[arg(long, requires = "gnss_time")]
+    gnss_lost_at_s: Option<f64>,
 }
 
 pub(crate) fn parse_stream_rate(s: &str) -> Result<(u32, f64), String> {
@@ -220,6 +226,11 @@ fn validate(args: Args) -> anyhow::Result<Validated> {
         origin: profile.as_ref().and_then(VehicleProfile::geo_origin),
         stream_rates: args.stream_rates.clone(),
         gnss_time: args.gnss_time,
+        gnss_lost_at: match args.gnss_lost_at_s {
+            Some(s) if s.is_finite() && s >= 0.0 => Some(TimeUs::from_secs_f64(s)),
+            Some(s) => anyhow::bail!("--gnss-lost-at-s: a time in seconds, at least 0, got {s}"),
+            None => None,
+        },
     };
     Ok(Validated { world, config })
 }
@@ -273,6 +284,12 @@ pub fn run(args: Args) -> anyhow::Result<()> {
                     "vehicle {} also sent raw_imu {}, wheel_distance {}, system_time {}",
                     v.platform, c.raw_imu_sent, c.wheel_distance_sent, c.system_time_sent
                 );
+            }
+            if c.origins_set > 0 {
+                println!("vehicle {} origin set by SET_GPS_GLOBAL_ORIGIN", v.platform);
+            }
+            if let Some(set) = c.source_set {
+                println!("vehicle {} EKF source set {set} (MAV_CMD_SET_EKF_SOURCE_SET)", v.platform);
             }
             let k = &v.checker;
             if k.gps_input_accepted + k.gps_input_ignored > 0 {
