@@ -38,24 +38,30 @@ fn vehicle_computer(root: &Path, name: &str, files: &[(&str, String)]) -> PathBu
     dir
 }
 
-#[test]
-fn nodes_on_bare_vehicle_computers_navigate_the_ardupilot_personality_without_gnss() {
+/// The paper's team, 25 s of it, at real time: `cooploc sitl` with the ArduPilot personality
+/// and `sitl_args`, and for each of its three vehicles a node in a bare folder (`rover.toml` =
+/// `profile`, a `node.toml` ending with `node_extra`). Returns the scenario's path, the
+/// processes (killed when dropped), the simulator's lines and each node's id, folder and lines.
+#[allow(clippy::type_complexity)]
+fn bare_team(
+    root: &Path,
+    profile: &str,
+    sitl_args: &[&str],
+    node_extra: &str,
+) -> (PathBuf, Kill, std::sync::mpsc::Receiver<String>, Vec<(u16, PathBuf, std::sync::mpsc::Receiver<String>)>) {
     let repo = Path::new(env!("CARGO_MANIFEST_DIR"));
-    let root = std::env::temp_dir().join(format!("cooploc-vehicle-computer-{}", std::process::id()));
-    let _ = std::fs::remove_dir_all(&root);
-    std::fs::create_dir_all(&root).unwrap();
-    // the paper's team, 25 s of it, at real time
+    let _ = std::fs::remove_dir_all(root);
+    std::fs::create_dir_all(root).unwrap();
     let scenario = std::fs::read_to_string(repo.join("sitl/scenarios/paper.toml"))
         .unwrap()
         .replacen("duration_s = 380.0", "duration_s = 25.0", 1)
         .replacen("at_s = [1.0, 100.0, 200.0, 300.0]", "at_s = [1.0, 10.0, 20.0]", 1);
     let scenario_path = root.join("short.toml");
     std::fs::write(&scenario_path, scenario).unwrap();
-    let profile = std::fs::read_to_string(repo.join("sitl/vehicles/ardupilot-rover.toml")).unwrap();
     let mut sitl = Command::new(env!("CARGO_BIN_EXE_cooploc"));
     sitl.arg("sitl").arg(&scenario_path).args(["--seed", "1", "--run", "0", "--schedule", "1hz", "--speed", "1"]);
-    sitl.args(["--base-port", "0", "--wait-for-peers", "--sim-state-hz", "1", "--autopilot", "ardupilot", "--vehicle-config"]);
-    sitl.arg(repo.join("sitl/vehicles/ardupilot-rover.toml"));
+    sitl.args(["--base-port", "0", "--wait-for-peers", "--sim-state-hz", "1", "--autopilot", "ardupilot"]);
+    sitl.args(sitl_args).arg("--vehicle-config").arg(repo.join("sitl/vehicles/ardupilot-rover.toml"));
     let (sitl_child, sitl_out) = spawn_lines(sitl);
     let mut kill = Kill(vec![sitl_child]);
     let mut vehicle_addr = std::collections::BTreeMap::new();
@@ -70,11 +76,11 @@ fn nodes_on_bare_vehicle_computers_navigate_the_ardupilot_personality_without_gn
         let peer_list: Vec<String> = peers.iter().map(|p| format!("\"{p}\"")).collect();
         let config = format!(
             "id = {id}\nvehicle = \"udpout:{}\"\nvehicle_config = \"rover.toml\"\nteam = [1, 2, 3]\nmethod = \"dcl\"\n\
-             idle_exit_s = 2.0\nlog = \"node.mcap\"\npeer = [{}]\n",
+             idle_exit_s = 2.0\nlog = \"node.mcap\"\npeer = [{}]\n{node_extra}",
             vehicle_addr[&id],
             peer_list.join(", ")
         );
-        let dir = vehicle_computer(&root, &format!("vehicle{id}"), &[("rover.toml", profile.clone()), ("node.toml", config)]);
+        let dir = vehicle_computer(root, &format!("vehicle{id}"), &[("rover.toml", profile.to_string()), ("node.toml", config)]);
         let mut node = Command::new(dir.join("cooploc"));
         node.args(["node", "--config", "node.toml"]);
         let (child, out) = spawn_lines_in(node, &dir);
@@ -83,6 +89,15 @@ fn nodes_on_bare_vehicle_computers_navigate_the_ardupilot_personality_without_gn
         peers.push(line.split_whitespace().last().unwrap().to_string());
         outs.push((id, dir, out));
     }
+    (scenario_path, kill, sitl_out, outs)
+}
+
+#[test]
+fn nodes_on_bare_vehicle_computers_navigate_the_ardupilot_personality_without_gnss() {
+    let repo = Path::new(env!("CARGO_MANIFEST_DIR"));
+    let root = std::env::temp_dir().join(format!("cooploc-vehicle-computer-{}", std::process::id()));
+    let profile = std::fs::read_to_string(repo.join("sitl/vehicles/ardupilot-rover.toml")).unwrap();
+    let (scenario_path, mut kill, sitl_out, outs) = bare_team(&root, &profile, &[], "");
     // the profile shipped before (the unix clock), against a vehicle of a second simulator
     let mut sitl2 = Command::new(env!("CARGO_BIN_EXE_cooploc"));
     sitl2.arg("sitl").arg(&scenario_path).args(["--seed", "1", "--run", "0", "--schedule", "1hz", "--speed", "1"]);
@@ -110,15 +125,20 @@ fn nodes_on_bare_vehicle_computers_navigate_the_ardupilot_personality_without_gn
         let stats = wait_line(out, &format!("node {id} stats"), Duration::from_secs(5));
         let vehicle = wait_line(out, &format!("node {id} vehicle "), Duration::from_secs(5));
         let mut requests = Vec::new();
+        let mut origin = String::new();
         let clock = loop {
             let line = wait_line(out, &format!("node {id} "), Duration::from_secs(5));
             if line.contains(" rate request ") {
                 requests.push(line);
+            } else if line.starts_with(&format!("node {id} origin ")) {
+                origin = line;
             } else if line.starts_with(&format!("node {id} clock ")) {
                 break line;
             }
         };
-        eprintln!("{done}\n{stats}\n{vehicle}\n{requests:?}\n{clock}");
+        eprintln!("{done}\n{stats}\n{vehicle}\n{requests:?}\n{origin}\n{clock}");
+        // no GNSS, no origin: the node gave the autopilot the profile's
+        assert!(origin.contains("given (SET_GPS_GLOBAL_ORIGIN), the autopilot reports it"), "{origin:?}");
         assert!(clock.contains("companion (TIMESYNC)"), "the team clock is the companions': {clock}");
         // the mapping's instant of simulated time zero (each vehicle booted at its own time)
         let offset: i64 = field(&clock, "offset_us").parse().unwrap();
@@ -176,6 +196,8 @@ fn nodes_on_bare_vehicle_computers_navigate_the_ardupilot_personality_without_gn
     let done = wait_line(&old_out, "node 1 done", Duration::from_secs(30));
     assert!(done.contains("never initialised"), "{done}");
     for id in [1u16, 2, 3] {
+        // (said before its odometry check)
+        wait_line(&sitl_out, &format!("vehicle {id} origin set by SET_GPS_GLOBAL_ORIGIN"), Duration::from_secs(30));
         let line = wait_line(&sitl_out, &format!("vehicle {id} odometry_check"), Duration::from_secs(30));
         eprintln!("{line}");
         let words: Vec<&str> = line.split_whitespace().collect();
@@ -186,4 +208,87 @@ fn nodes_on_bare_vehicle_computers_navigate_the_ardupilot_personality_without_gn
     }
     drop(kill);
     let _ = std::fs::remove_dir_all(&root);
+}
+
+/// The other start: vehicles with GNSS until 8 s into a 25 s run (`cooploc sitl --gnss-time
+/// --gnss-lost-at-s 8`); nodes told `init_from_autopilot` stay out of the way until the
+/// autopilots report no fix, then start from their estimates (exact here: the personality's
+/// autopilot on GNSS reports the truth), switch each EKF to source set 2 and navigate together.
+#[test]
+fn nodes_take_over_from_the_ardupilot_personality_when_gnss_goes() {
+    let repo = Path::new(env!("CARGO_MANIFEST_DIR"));
+    let root = std::env::temp_dir().join(format!("cooploc-hand-over-{}", std::process::id()));
+    // (the profile's last section is [output])
+    let profile = std::fs::read_to_string(repo.join("sitl/vehicles/ardupilot-rover.toml")).unwrap() + "takeover_source_set = 2\n";
+    let (scenario_path, kill, sitl_out, outs) =
+        bare_team(&root, &profile, &["--gnss-time", "--gnss-lost-at-s", "8"], "init_from_autopilot = true\n");
+    let world = cooploc::sitl::World::new(&cooploc::sitl::Scenario::from_path(&scenario_path).unwrap()).unwrap();
+    let end = world.end();
+    for (id, dir, out) in &outs {
+        let done = wait_line(out, &format!("node {id} done:"), Duration::from_secs(120));
+        let hand_over = wait_line(out, &format!("node {id} hand_over "), Duration::from_secs(5));
+        let origin = wait_line(out, &format!("node {id} origin "), Duration::from_secs(5));
+        eprintln!("{done}\n{hand_over}\n{origin}");
+        // it had its own origin (from GNSS): none given
+        assert!(origin.contains("the autopilot's is the team's") && origin.ends_with("sets 0"), "{origin}");
+        assert!(hand_over.ends_with("source_set MAV_RESULT_ACCEPTED"), "{hand_over}");
+        // started where the autopilot was when GNSS went (8 s, reported at 10 Hz)
+        let start: Vec<f64> = hand_over
+            .split('[')
+            .nth(1)
+            .unwrap()
+            .split(']')
+            .next()
+            .unwrap()
+            .split(',')
+            .map(|v| v.trim().parse().unwrap())
+            .collect();
+        let at_loss = world.trajectory(*id).unwrap().truth_at(cooploc::time::TimeUs(8_000_000)).pos_ned_m;
+        let apart = ((start[0] - at_loss[0]).powi(2) + (start[1] - at_loss[1]).powi(2)).sqrt();
+        assert!(apart < 2.0, "node {id} started {apart:.2} m from where it was at the loss: {hand_over}");
+        // no epoch before the loss, one a second after it
+        let applied: u64 = field(&done, "epochs_applied").parse().unwrap();
+        assert!((12..=17).contains(&applied), "{done}");
+        assert_eq!(field(&done, "epochs_skipped"), "0", "{done}");
+        let pos: Vec<f64> = done
+            .split("pos_ned_m [")
+            .nth(1)
+            .unwrap()
+            .split(']')
+            .next()
+            .unwrap()
+            .split(',')
+            .map(|v| v.trim().parse().unwrap())
+            .collect();
+        let truth = world.trajectory(*id).unwrap().truth_at(end).pos_ned_m;
+        let err = ((pos[0] - truth[0]).powi(2) + (pos[1] - truth[1]).powi(2)).sqrt();
+        eprintln!("node {id}: final error {err:.3} m");
+        assert!(err < 2.0, "node {id} {err:.2} m from the truth: {done}");
+        // the start from the autopilot's estimate is in the log: replay is exact
+        let replay = Command::new(dir.join("cooploc")).current_dir(dir).args(["replay", "node.mcap"]).output().unwrap();
+        let text = String::from_utf8_lossy(&replay.stdout);
+        assert!(replay.status.success() && text.contains("bit for bit"), "{text}{}", String::from_utf8_lossy(&replay.stderr));
+    }
+    for id in [1u16, 2, 3] {
+        wait_line(&sitl_out, &format!("vehicle {id} EKF source set 2 (MAV_CMD_SET_EKF_SOURCE_SET)"), Duration::from_secs(30));
+    }
+    drop(kill);
+    let _ = std::fs::remove_dir_all(&root);
+}
+
+/// The real-firmware script (tests/scripts/real_ardupilot_team.py) is run by hand against a
+/// binary built outside the repository; here it is only checked to say what it needs when the
+/// binary is missing, before it starts anything.
+#[test]
+fn the_real_firmware_script_names_what_it_lacks() {
+    let Some(python) = common::python("the real-firmware script") else { return };
+    let repo = Path::new(env!("CARGO_MANIFEST_DIR"));
+    let out = Command::new(python)
+        .arg(repo.join("tests/scripts/real_ardupilot_team.py"))
+        .args(["--ardurover", "/nonexistent/ardurover", "--setup", "nognss", "--method", "dcl"])
+        .output()
+        .unwrap();
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(!out.status.success(), "{err}");
+    assert!(err.contains("error: need the ardurover binary (/nonexistent/ardurover)"), "{err}");
 }

@@ -1,0 +1,55 @@
+#!/usr/bin/env bash
+# Three rovers on the real ArduPilot firmware, navigating without GNSS: runs
+# tests/scripts/real_ardupilot_team.py for each set-up and method and prints the table of the
+# README's "Against the real ArduPilot firmware". It runs an ArduRover SITL binary you built
+# yourself (ArduPilot's `./waf configure --board sitl && ./waf rover`); it builds nothing.
+#
+#   bash tests/scripts/real-ardupilot-team.sh /path/to/ardupilot/build/sitl/bin/ardurover [SETUP...]
+#
+# SETUP: nognss, gnss-lost (default: both). Each run takes about 4 minutes of real time (three
+# SITL instances at 1x, three nodes); results go to $OUT (default /tmp/real-ardupilot-team).
+# Needs pymavlink (tests/requirements.txt; COOPLOC_PYTHON names the interpreter) and
+# target/release/cooploc (cargo build --release).
+set -euo pipefail
+here="$(cd "$(dirname "$0")" && pwd)"
+root="$(cd "$here/../.." && pwd)"
+ardurover="${1:?usage: real-ardupilot-team.sh ARDUROVER [SETUP...]}"
+shift
+setups=("$@")
+[ ${#setups[@]} -gt 0 ] || setups=(nognss gnss-lost)
+py="${COOPLOC_PYTHON:-python3}"
+out="${OUT:-/tmp/real-ardupilot-team}"
+mkdir -p "$out"
+[ -x "$root/target/release/cooploc" ] || { echo "error: build cooploc first (cargo build --release)" >&2; exit 1; }
+"$root/target/release/cooploc" --version 2>/dev/null || true
+"$ardurover" --help 2>&1 | head -1 || true
+for setup in "${setups[@]}"; do
+  for method in dcl dr alone; do
+    echo "==> $setup $method"
+    "$py" "$here/real_ardupilot_team.py" --ardurover "$ardurover" --setup "$setup" --method "$method" \
+      --out "$out/$setup-$method" --json "$out/$setup-$method.json" | grep -E "without GNSS|team RMS|timeout|error" || true
+  done
+done
+"$py" - "$out" "${setups[@]}" <<'PY'
+import json, os, sys
+out, setups = sys.argv[1], sys.argv[2:]
+print("\n| set-up | rover | path without GNSS (m) | dcl RMS / final (m) | dr RMS / final (m) | ArduPilot alone RMS / final (m) |")
+print("|---|---|---|---|---|---|")
+for s in setups:
+    runs = {}
+    for m in ("dcl", "dr", "alone"):
+        p = os.path.join(out, "%s-%s.json" % (s, m))
+        if os.path.exists(p):
+            runs[m] = json.load(open(p))
+    if not runs:
+        continue
+    n = len(next(iter(runs.values()))["rovers"])
+    for k in range(n):
+        cells = []
+        for m in ("dcl", "dr", "alone"):
+            r = runs.get(m)
+            cells.append("%.2f / %.2f" % (r["rovers"][k]["rms_m"], r["rovers"][k]["final_m"]) if r else "-")
+        path = "/".join("%.0f" % runs[m]["rovers"][k]["path_m"] for m in ("dcl", "dr", "alone") if m in runs)
+        print("| %s | %d | %s | %s |" % (s, k + 1, path, " | ".join(cells)))
+    print("| %s | team RMS | | %s |" % (s, " | ".join("%.2f" % runs[m]["team_rms_m"] if m in runs else "-" for m in ("dcl", "dr", "alone"))))
+PY
