@@ -750,8 +750,10 @@ pub async fn run(
                             }
                         }
                         VehicleEvent::Origin(o) => {
+                            // (the EKF's origin: HOME_POSITION is where it armed, elsewhere)
                             if let Some(offer) = origin_offer.as_mut()
                                 && offer.settled.is_none()
+                                && matches!(msg, MavMessage::GPS_GLOBAL_ORIGIN(_))
                             {
                                 let ours = offer.on_origin(o);
                                 tracing::info!(platform = id, ours, lat_deg = o.lat_deg, lon_deg = o.lon_deg, "the autopilot has an origin");
