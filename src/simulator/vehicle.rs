@@ -26,6 +26,8 @@ pub const COMPONENT_ID: u8 = 1;
 const WHEEL_DISTANCE_ID: u32 = 9000;
 
 /// The streams sent on the simulated clock (the others at sensor samples).
+/// ArduPilot's own TIMESYNC requests, every this much of its clock (measured on ArduRover 4.7).
+const ARDUPILOT_TIMESYNC_EVERY_US: u64 = 10_000_000;
 const CLOCK_STREAMS: [Stream; 5] =
     [Stream::Heartbeat, Stream::SimState, Stream::SystemTime, Stream::AutopilotOdometry, Stream::Estimate];
 
@@ -438,6 +440,10 @@ impl VehicleCore {
                     for message in self.estimate(due, truth) {
                         self.emit(Destination::AllPeers, message, out);
                     }
+                    if self.config.autopilot == Autopilot::ArduPilot {
+                        let status = self.ekf_status();
+                        self.emit(Destination::AllPeers, status, out);
+                    }
                     let st = &mut self.streams[stream.index()];
                     st.last_sent_us = Some(due.0);
                     st.next_due_us = due.0 + interval;
@@ -450,11 +456,40 @@ impl VehicleCore {
                     _ => self.sim_state(due, truth),
                 };
                 self.emit(Destination::AllPeers, message, out);
+                if stream == Stream::Heartbeat && self.config.autopilot == Autopilot::ArduPilot && self.answers_timesync {
+                    // its own TIMESYNC requests, every 10 s of its clock (measured), for the
+                    // companion to answer
+                    let clock_us = self.personality.clock_us(due);
+                    if clock_us / ARDUPILOT_TIMESYNC_EVERY_US != clock_us.saturating_sub(interval) / ARDUPILOT_TIMESYNC_EVERY_US {
+                        let request = MavMessage::TIMESYNC(TIMESYNC_DATA {
+                            tc1: 0,
+                            ts1: (clock_us as i64).saturating_mul(1000),
+                            target_system: 0,
+                            target_component: 0,
+                        });
+                        self.emit(Destination::AllPeers, request, out);
+                    }
+                }
                 let st = &mut self.streams[stream.index()];
                 st.last_sent_us = Some(due.0);
                 st.next_due_us = due.0 + interval;
             }
         }
+    }
+
+    /// ArduPilot's EKF_STATUS_REPORT: an attitude and velocities, and a horizontal position once
+    /// it has an origin. (The real EKF3 reports itself uninitialised for 1-2 s after boot; the
+    /// personality's vehicles booted 20 s or more before the simulation starts.)
+    fn ekf_status(&self) -> MavMessage {
+        use crate::protocol::dialect::cooploc::{EKF_STATUS_REPORT_DATA, EkfStatusFlags};
+        let mut flags = EkfStatusFlags::EKF_ATTITUDE
+            | EkfStatusFlags::EKF_VELOCITY_HORIZ
+            | EkfStatusFlags::EKF_VELOCITY_VERT
+            | EkfStatusFlags::EKF_POS_VERT_ABS;
+        if self.ekf_origin.is_some() {
+            flags |= EkfStatusFlags::EKF_POS_HORIZ_REL | EkfStatusFlags::EKF_POS_HORIZ_ABS;
+        }
+        MavMessage::EKF_STATUS_REPORT(EKF_STATUS_REPORT_DATA { flags, ..Default::default() })
     }
 
     /// Whether a sample-driven stream sends the sample taken at `t`.
@@ -1333,6 +1368,34 @@ mod tests {
         let mut gnss = core(1);
         let (_, replies) = ask(&mut gnss, &w, long(1, MavCmd::MAV_CMD_REQUEST_MESSAGE, 49.0, 0.0)).unwrap();
         assert!(matches!(replies.as_slice(), [MavMessage::GPS_GLOBAL_ORIGIN(_)]));
+    }
+
+    #[test]
+    fn the_ardupilot_personality_reports_its_ekf_and_asks_for_timesync_as_the_firmware_does() {
+        let w = world();
+        let truth = w.trajectory(1).unwrap();
+        let mut ap =
+            VehicleCore::new(VehicleConfig { autopilot: Autopilot::ArduPilot, unix_time: false, gnss: false, ..core(1).config })
+                .unwrap();
+        let mut out = Vec::new();
+        ap.advance_to(TimeUs(25_000_000), truth, &mut out);
+        let flags: Vec<_> = out
+            .iter()
+            .filter_map(|o| if let MavMessage::EKF_STATUS_REPORT(m) = &o.message { Some(m.flags.bits()) } else { None })
+            .collect();
+        // 1 Hz: an attitude, and no horizontal position without an origin
+        assert!(flags.len() >= 24, "{flags:?}");
+        assert!(flags.iter().all(|f| f & 0x0001 != 0 && f & 0x0418 == 0), "{flags:?}");
+        // its own TIMESYNC requests every 10 s of its clock (booted 27.9 s before the simulation:
+        // at 30.9, 40.9 and 50.9 s of it in these 25 s), its boot time in ns
+        let requests: Vec<i64> =
+            out.iter().filter_map(|o| if let MavMessage::TIMESYNC(m) = &o.message { Some(m.ts1) } else { None }).collect();
+        assert_eq!(requests, [30_919_000_000, 40_919_000_000, 50_919_000_000]);
+        // with an origin, a horizontal position
+        let mut gnss = core(1);
+        gnss.config.autopilot = Autopilot::ArduPilot;
+        let MavMessage::EKF_STATUS_REPORT(m) = gnss.ekf_status() else { panic!() };
+        assert_eq!(m.flags.bits() & 0x0018, 0x0018);
     }
 
     #[test]
