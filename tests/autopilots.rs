@@ -102,16 +102,7 @@ fn drive(kind: &str, profile_edits: &[(&str, &str)], example: &str) -> Option<Ou
     let replay = Command::new(env!("CARGO_BIN_EXE_cooploc")).arg("replay").arg(dir.join("node.mcap")).output().unwrap();
     let (stdout, stderr) = (String::from_utf8_lossy(&replay.stdout).to_string(), String::from_utf8_lossy(&replay.stderr));
     let line = stdout.lines().find(|l| l.starts_with("node 1 ")).unwrap_or_else(|| panic!("replay: {stdout} {stderr}"));
-    let replayed: Vec<f64> = line
-        .split("final N/E [")
-        .nth(1)
-        .unwrap()
-        .split(']')
-        .next()
-        .unwrap()
-        .split(',')
-        .map(|v| v.trim().parse().unwrap())
-        .collect();
+    let replayed = common::numbers_after(line, "final N/E");
     let p = position(&done);
     assert!((replayed[0] - p[0]).abs() < 1e-4 && (replayed[1] - p[1]).abs() < 1e-4, "replay {line} vs {done}");
     let _ = std::fs::remove_dir_all(&dir);
@@ -119,8 +110,7 @@ fn drive(kind: &str, profile_edits: &[(&str, &str)], example: &str) -> Option<Ou
 }
 
 fn position(done: &str) -> Vec<f64> {
-    let inside = done.split('[').nth(1).unwrap().split(']').next().unwrap();
-    inside.split(',').map(|v| v.trim().parse().unwrap()).collect()
+    common::numbers_after(done, "pos_ned_m")
 }
 
 /// What every kind must show: the vehicle's 20 m north, and ODOMETRY back at >= 10 Hz in the

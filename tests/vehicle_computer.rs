@@ -92,6 +92,19 @@ fn bare_team(
     (scenario_path, kill, sitl_out, outs)
 }
 
+/// Node `id`'s final position (its `done` line) within 2 m of the truth at the scenario's end,
+/// and its log replayed bit for bit by the binary in its folder.
+fn near_the_truth_and_replayed(world: &cooploc::sitl::World, id: u16, dir: &Path, done: &str) {
+    let pos = common::numbers_after(done, "pos_ned_m");
+    let truth = world.trajectory(id).unwrap().truth_at(world.end()).pos_ned_m;
+    let err = ((pos[0] - truth[0]).powi(2) + (pos[1] - truth[1]).powi(2)).sqrt();
+    eprintln!("node {id}: final error {err:.3} m");
+    assert!(err < 2.0, "node {id} {err:.2} m from the truth: {done}");
+    let replay = Command::new(dir.join("cooploc")).current_dir(dir).args(["replay", "node.mcap"]).output().unwrap();
+    let text = String::from_utf8_lossy(&replay.stdout);
+    assert!(replay.status.success() && text.contains("bit for bit"), "{text}{}", String::from_utf8_lossy(&replay.stderr));
+}
+
 #[test]
 fn nodes_on_bare_vehicle_computers_navigate_the_ardupilot_personality_without_gnss() {
     let repo = Path::new(env!("CARGO_MANIFEST_DIR"));
@@ -118,7 +131,6 @@ fn nodes_on_bare_vehicle_computers_navigate_the_ardupilot_personality_without_gn
     kill.0.push(child);
 
     let world = cooploc::sitl::World::new(&cooploc::sitl::Scenario::from_path(&scenario_path).unwrap()).unwrap();
-    let end = world.end();
     let mut zeros = Vec::new();
     for (id, dir, out) in &outs {
         let done = wait_line(out, &format!("node {id} done:"), Duration::from_secs(120));
@@ -162,25 +174,8 @@ fn nodes_on_bare_vehicle_computers_navigate_the_ardupilot_personality_without_gn
         );
         assert!(requests.iter().any(|l| l.contains("RAW_IMU") && l.contains("Accepted")), "{requests:?}");
         assert!(count(&vehicle, "odometer") > 200, "WHEEL_DISTANCE at 20 Hz: {vehicle}");
-        // near the truth at the end
-        let pos: Vec<f64> = done
-            .split("pos_ned_m [")
-            .nth(1)
-            .unwrap()
-            .split(']')
-            .next()
-            .unwrap()
-            .split(',')
-            .map(|v| v.trim().parse().unwrap())
-            .collect();
-        let truth = world.trajectory(*id).unwrap().truth_at(end).pos_ned_m;
-        let err = ((pos[0] - truth[0]).powi(2) + (pos[1] - truth[1]).powi(2)).sqrt();
-        eprintln!("node {id}: final error {err:.3} m");
-        assert!(err < 2.0, "node {id} {err:.2} m from the truth: {done}");
-        // its log replays without a scenario (the profile is in it)
-        let replay = Command::new(dir.join("cooploc")).current_dir(dir).args(["replay", "node.mcap"]).output().unwrap();
-        let text = String::from_utf8_lossy(&replay.stdout);
-        assert!(replay.status.success() && text.contains("bit for bit"), "{text}{}", String::from_utf8_lossy(&replay.stderr));
+        // near the truth at the end, and its log replays without a scenario (the profile is in it)
+        near_the_truth_and_replayed(&world, *id, dir, &done);
         // nothing of the repository was needed
         let mut names: Vec<String> =
             std::fs::read_dir(dir).unwrap().map(|e| e.unwrap().file_name().into_string().unwrap()).collect();
@@ -223,7 +218,6 @@ fn nodes_take_over_from_the_ardupilot_personality_when_gnss_goes() {
     let (scenario_path, kill, sitl_out, outs) =
         bare_team(&root, &profile, &["--gnss-time", "--gnss-lost-at-s", "8"], "init_from_autopilot = true\n");
     let world = cooploc::sitl::World::new(&cooploc::sitl::Scenario::from_path(&scenario_path).unwrap()).unwrap();
-    let end = world.end();
     for (id, dir, out) in &outs {
         let done = wait_line(out, &format!("node {id} done:"), Duration::from_secs(120));
         let hand_over = wait_line(out, &format!("node {id} hand_over "), Duration::from_secs(5));
@@ -233,16 +227,7 @@ fn nodes_take_over_from_the_ardupilot_personality_when_gnss_goes() {
         assert!(origin.contains("the autopilot's is the team's") && origin.ends_with("sets 0"), "{origin}");
         assert!(hand_over.ends_with("source_set MAV_RESULT_ACCEPTED"), "{hand_over}");
         // started where the autopilot was when GNSS went (8 s, reported at 10 Hz)
-        let start: Vec<f64> = hand_over
-            .split('[')
-            .nth(1)
-            .unwrap()
-            .split(']')
-            .next()
-            .unwrap()
-            .split(',')
-            .map(|v| v.trim().parse().unwrap())
-            .collect();
+        let start = common::numbers_after(&hand_over, "started_at_ned_m");
         let at_loss = world.trajectory(*id).unwrap().truth_at(cooploc::time::TimeUs(8_000_000)).pos_ned_m;
         let apart = ((start[0] - at_loss[0]).powi(2) + (start[1] - at_loss[1]).powi(2)).sqrt();
         assert!(apart < 2.0, "node {id} started {apart:.2} m from where it was at the loss: {hand_over}");
@@ -250,24 +235,8 @@ fn nodes_take_over_from_the_ardupilot_personality_when_gnss_goes() {
         let applied: u64 = field(&done, "epochs_applied").parse().unwrap();
         assert!((12..=17).contains(&applied), "{done}");
         assert_eq!(field(&done, "epochs_skipped"), "0", "{done}");
-        let pos: Vec<f64> = done
-            .split("pos_ned_m [")
-            .nth(1)
-            .unwrap()
-            .split(']')
-            .next()
-            .unwrap()
-            .split(',')
-            .map(|v| v.trim().parse().unwrap())
-            .collect();
-        let truth = world.trajectory(*id).unwrap().truth_at(end).pos_ned_m;
-        let err = ((pos[0] - truth[0]).powi(2) + (pos[1] - truth[1]).powi(2)).sqrt();
-        eprintln!("node {id}: final error {err:.3} m");
-        assert!(err < 2.0, "node {id} {err:.2} m from the truth: {done}");
         // the start from the autopilot's estimate is in the log: replay is exact
-        let replay = Command::new(dir.join("cooploc")).current_dir(dir).args(["replay", "node.mcap"]).output().unwrap();
-        let text = String::from_utf8_lossy(&replay.stdout);
-        assert!(replay.status.success() && text.contains("bit for bit"), "{text}{}", String::from_utf8_lossy(&replay.stderr));
+        near_the_truth_and_replayed(&world, *id, dir, &done);
     }
     for id in [1u16, 2, 3] {
         wait_line(&sitl_out, &format!("vehicle {id} EKF source set 2 (MAV_CMD_SET_EKF_SOURCE_SET)"), Duration::from_secs(30));

@@ -117,3 +117,12 @@ pub fn committed_logs(dir: &std::path::Path) -> Vec<std::path::PathBuf> {
 pub fn paper_node_args(id: u16, vehicle: &str) -> Vec<String> {
     ["node", "--scenario", "sitl/scenarios/paper.toml", "--id", &id.to_string(), "--vehicle", vehicle].map(String::from).to_vec()
 }
+
+/// The numbers of the first `[a, b, ...]` after `marker` in a line the binary printed
+/// (`pos_ned_m [1.0, 2.0, 3.0]`).
+#[allow(dead_code)] // (not every test binary reads one)
+pub fn numbers_after(line: &str, marker: &str) -> Vec<f64> {
+    let rest = line.split_once(marker).unwrap_or_else(|| panic!("no {marker:?} in {line:?}")).1;
+    let inside = rest.split_once('[').and_then(|(_, r)| r.split_once(']')).unwrap_or_else(|| panic!("no [...] in {line:?}")).0;
+    inside.split(',').map(|v| v.trim().parse().unwrap_or_else(|e| panic!("{v:?} in {line:?}: {e}"))).collect()
+}
