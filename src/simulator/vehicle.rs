@@ -997,6 +997,12 @@ mod tests {
         World::new(&Scenario::from_toml_str(SMALL).unwrap()).unwrap()
     }
 
+    /// Vehicle 1 as the ArduPilot firmware without GNSS: no Unix time, no origin.
+    fn ardupilot_without_gnss() -> VehicleCore {
+        VehicleCore::new(VehicleConfig { autopilot: Autopilot::ArduPilot, unix_time: false, gnss: false, ..core(1).config })
+            .unwrap()
+    }
+
     fn core(platform: PlatformId) -> VehicleCore {
         VehicleCore::new(VehicleConfig {
             platform,
@@ -1096,8 +1102,7 @@ mod tests {
         use crate::protocol::dialect::cooploc::{MavDataStream, REQUEST_DATA_STREAM_DATA};
         let w = world();
         let truth = w.trajectory(1).unwrap();
-        let mut ap =
-            VehicleCore::new(VehicleConfig { autopilot: Autopilot::ArduPilot, unix_time: false, ..core(1).config }).unwrap();
+        let mut ap = ardupilot_without_gnss();
         let mut out = Vec::new();
         ap.advance_to(TimeUs(1_000_000), truth, &mut out);
         let st =
@@ -1337,9 +1342,7 @@ mod tests {
         use crate::protocol::dialect::cooploc::SET_GPS_GLOBAL_ORIGIN_DATA;
         let w = world();
         let truth = w.trajectory(1).unwrap();
-        let mut ap =
-            VehicleCore::new(VehicleConfig { autopilot: Autopilot::ArduPilot, unix_time: false, gnss: false, ..core(1).config })
-                .unwrap();
+        let mut ap = ardupilot_without_gnss();
         // asked for: accepted, and nothing follows (as the real ArduRover answers)
         let (r, replies) = ask(&mut ap, &w, long(1, MavCmd::MAV_CMD_REQUEST_MESSAGE, 49.0, 0.0)).unwrap();
         assert_eq!((r, replies.len()), (MavResult::MAV_RESULT_ACCEPTED, 0));
@@ -1374,9 +1377,7 @@ mod tests {
     fn the_ardupilot_personality_reports_its_ekf_and_asks_for_timesync_as_the_firmware_does() {
         let w = world();
         let truth = w.trajectory(1).unwrap();
-        let mut ap =
-            VehicleCore::new(VehicleConfig { autopilot: Autopilot::ArduPilot, unix_time: false, gnss: false, ..core(1).config })
-                .unwrap();
+        let mut ap = ardupilot_without_gnss();
         let mut out = Vec::new();
         ap.advance_to(TimeUs(25_000_000), truth, &mut out);
         let flags: Vec<_> = out

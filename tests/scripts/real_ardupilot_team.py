@@ -264,6 +264,19 @@ class Rover:
         self.conn.mav.param_set_send(self.sysid, 1, name.encode(), float(value), 9)
 
 
+def until(rovers, done, act, timeout_s, what, every_s=1.0):
+    """Calls act(rover) on each rover not done(rover), every every_s, until all are done; an
+    error naming `what` after timeout_s."""
+    t0 = time.time()
+    while not all(done(rv) for rv in rovers):
+        if time.time() - t0 > timeout_s:
+            raise RuntimeError("%s: not after %d s" % (what, timeout_s))
+        for rv in rovers:
+            if not done(rv):
+                act(rv, time.time() - t0)
+        time.sleep(every_s)
+
+
 def mission_for(i, laps):
     r = ROVERS[i]
     n0, e0 = r["start"]
@@ -365,32 +378,20 @@ def main():
             raise RuntimeError("no origin or position estimate after 120 s: %s" % [(rv.origin, rv.ekf_flags) for rv in rovers])
         # a home (ArduPilot runs no mission without one; EKF3 alone on wheel encoders, dropping
         # its relative aiding at rest, may never set it): its start when it has none
-        t0 = time.time()
-        while not all(rv.home for rv in rovers):
-            if time.time() - t0 > 60:
-                raise RuntimeError("no home after 60 s")
-            for rv in rovers:
-                if not rv.home:
-                    rv.conn.mav.command_long_send(rv.sysid, 1, 512, 0, 242, 0, 0, 0, 0, 0, 0)
-                    if time.time() - t0 > 3:
-                        # its start, surveyed (as the nodes' init_ned): "current location" needs
-                        # a position EKF3 alone keeps only half the time at rest
-                        lat, lon = ned_to_geo(*ROVERS[rv.i]["start"])
-                        rv.conn.mav.command_int_send(rv.sysid, 1, 0, 179, 0, 0, 0, 0, 0, 0,
-                                                     int(round(lat * 1e7)), int(round(lon * 1e7)), ORIGIN[2])
-            time.sleep(1.0)
+        def ask_or_set_home(rv, waited_s):
+            rv.conn.mav.command_long_send(rv.sysid, 1, 512, 0, 242, 0, 0, 0, 0, 0, 0)
+            if waited_s > 3:
+                # its start, surveyed (as the nodes' init_ned): "current location" needs a
+                # position EKF3 alone keeps only half the time at rest
+                lat, lon = ned_to_geo(*ROVERS[rv.i]["start"])
+                rv.conn.mav.command_int_send(rv.sysid, 1, 0, 179, 0, 0, 0, 0, 0, 0,
+                                             int(round(lat * 1e7)), int(round(lon * 1e7)), ORIGIN[2])
+        until(rovers, lambda rv: rv.home, ask_or_set_home, 60, "a home")
         for i, rv in enumerate(rovers):
             rv.upload_mission(mission_for(i, LAPS[args.setup]))
             rv.say("mission of %d waypoints" % len(mission_for(i, LAPS[args.setup])))
         # arm (ArduPilot refuses for ~20 s after boot: "Gyros inconsistent") and go
-        t0 = time.time()
-        while not all(rv.armed for rv in rovers):
-            if time.time() - t0 > 120:
-                raise RuntimeError("not armed after 120 s")
-            for rv in rovers:
-                if not rv.armed:
-                    rv.arm()
-            time.sleep(3.0)
+        until(rovers, lambda rv: rv.armed, lambda rv, _: rv.arm(), 120, "armed", every_s=3.0)
         if args.method == "alone":
             # EKF3 alone on wheel encoders gives a location only while they turn: at rest AUTO
             # waits and never starts its mission. A push in MANUAL first (RC override, 2 s of
@@ -404,15 +405,8 @@ def main():
                     rv.conn.mav.rc_channels_override_send(rv.sysid, 1, 1500, 0, 1700, 0, 0, 0, 0, 0)
                 time.sleep(0.1)
         # AUTO, until each says so (a rover whose EKF just dropped its relative aiding refuses)
-        t0 = time.time()
         auto = rovers[0].conn.mode_mapping()["AUTO"]
-        while not all(rv.mode == auto for rv in rovers):
-            if time.time() - t0 > 60:
-                raise RuntimeError("not in AUTO after 60 s: %s" % [rv.mode for rv in rovers])
-            for rv in rovers:
-                if rv.mode != auto:
-                    rv.set_mode("AUTO")
-            time.sleep(1.0)
+        until(rovers, lambda rv: rv.mode == auto, lambda rv, _: rv.set_mode("AUTO"), 60, "AUTO")
         # and the mission running (ArduPilot may enter AUTO without starting it: MISSION_START)
         t0 = time.time()
         for rv in rovers:
