@@ -168,6 +168,9 @@ pub async fn run_demo(cfg: DemoConfig, ready: impl FnOnce(&DemoAddresses)) -> Re
     let mut node_addrs: Vec<(PlatformId, SocketAddr)> = Vec::new();
     let mut node_tasks = Vec::new();
     let (stop_tx, stop_rx) = tokio::sync::watch::channel(false);
+    // Secure by default, as on vehicles: the demo's team signs its cooperative network with a
+    // key made for this run (the nodes and the ground station share it in memory).
+    let team_key = crate::protocol::signing::TeamKey::generate().map_err(|e| DemoError::Invalid(e.to_string()))?;
     for &(id, addr) in &vehicles {
         let (t0, state) = initial_state(&world, cfg.seed, cfg.run, id).step(format!("platform {id}'s initial state"))?;
         // an INS vehicle or a wheeled robot, as the scenario says
@@ -190,7 +193,7 @@ pub async fn run_demo(cfg: DemoConfig, ready: impl FnOnce(&DemoAddresses)) -> Re
             idle_exit: Some(Duration::from_millis(1500)),
             grace: Duration::from_millis(500),
             profile: crate::node::profile::VehicleProfile::from_scenario_platform(&scenario, id),
-            team_key: None,
+            team_key: Some(team_key.clone()),
             signing_state: None,
             vehicle_key: None,
             ranges: None,
@@ -211,7 +214,7 @@ pub async fn run_demo(cfg: DemoConfig, ready: impl FnOnce(&DemoAddresses)) -> Re
     }
 
     // The ground station, after the nodes (its vehicle links would start the clock).
-    let gcs_cfg = GcsConfig { origin, vehicles: ids.clone(), ..GcsConfig::default() };
+    let gcs_cfg = GcsConfig { origin, vehicles: ids.clone(), team_key: Some(team_key), ..GcsConfig::default() };
     let gcs_links = GcsLinks {
         coop_bind: "127.0.0.1:0".parse().expect("an address"),
         peers: node_addrs.iter().map(|(_, a)| *a).collect(),

@@ -58,6 +58,7 @@ fn drive(kind: &str, profile_edits: &[(&str, &str)], example: &str) -> Option<Ou
     let boot0_us: u64 = if kind == "scaled2" { ((1u64 << 32) - 5000) * 1000 } else { 100_000_000 };
     let mut node = Command::new(env!("CARGO_BIN_EXE_cooploc"));
     node.args(["node", "--id", "1", "--team", "1", "--method", "dr", "--idle-exit-s", "1.5"])
+        .args(common::team_key_args())
         .arg("--vehicle")
         .arg(format!("udpout:127.0.0.1:{port}"))
         .arg("--vehicle-config")
@@ -257,7 +258,7 @@ fn a_bad_profile_is_refused_before_any_socket_opens_naming_its_field() {
         // the vehicle address is a port nobody listens on: the profile must be refused first
         let out = Command::new(env!("CARGO_BIN_EXE_cooploc"))
             .current_dir(root)
-            .args(["node", "--id", "1", "--vehicle", "udpout:127.0.0.1:9", "--vehicle-config"])
+            .args(["node", "--id", "1", "--insecure", "--vehicle", "udpout:127.0.0.1:9", "--vehicle-config"])
             .arg(&path)
             .output()
             .unwrap();
@@ -436,7 +437,7 @@ fn team_of(
             Some((local, _)) => format!("udpout:{local}"),
             None => format!("udpout:{}", vehicle_addr[&id]),
         };
-        node.args(["node", "--id", &id.to_string(), "--vehicle", &vehicle_url]);
+        node.args(["node", "--id", &id.to_string(), "--vehicle", &vehicle_url]).args(common::team_key_args());
         if relay.is_some() {
             // the device's stream is not the IMU's: its ranges may come after the vehicle's
             // samples have passed the epoch (here by the relay's hops, at 20x real time), so the

@@ -152,6 +152,7 @@ fn a_node_killed_with_sigkill_leaves_a_log_that_replays() {
             "--log",
         ])
         .arg(&log_path)
+        .args(common::team_key_args())
         .stdout(Stdio::null())
         .stderr(Stdio::null())
         .spawn()

@@ -15,6 +15,9 @@ use std::process::Command;
 use std::time::Duration;
 
 /// `name value` on a node's output line.
+/// The team's key file on each vehicle computer (a node refuses an unsigned network).
+const TEAM_KEY: &str = "the vehicle computers' team passphrase\n";
+
 fn field<'a>(line: &'a str, name: &str) -> &'a str {
     line.split(&format!(" {name} ")).nth(1).unwrap_or_else(|| panic!("no {name} in {line}")).split_whitespace().next().unwrap()
 }
@@ -76,11 +79,15 @@ fn bare_team(
         let peer_list: Vec<String> = peers.iter().map(|p| format!("\"{p}\"")).collect();
         let config = format!(
             "id = {id}\nvehicle = \"udpout:{}\"\nvehicle_config = \"rover.toml\"\nteam = [1, 2, 3]\nmethod = \"dcl\"\n\
-             idle_exit_s = 2.0\nlog = \"node.mcap\"\npeer = [{}]\n{node_extra}",
+             idle_exit_s = 2.0\nlog = \"node.mcap\"\npeer = [{}]\nteam_key = \"team.key\"\n{node_extra}",
             vehicle_addr[&id],
             peer_list.join(", ")
         );
-        let dir = vehicle_computer(root, &format!("vehicle{id}"), &[("rover.toml", profile.to_string()), ("node.toml", config)]);
+        let dir = vehicle_computer(
+            root,
+            &format!("vehicle{id}"),
+            &[("rover.toml", profile.to_string()), ("node.toml", config), ("team.key", TEAM_KEY.into())],
+        );
         let mut node = Command::new(dir.join("cooploc"));
         node.args(["node", "--config", "node.toml"]);
         let (child, out) = spawn_lines_in(node, &dir);
@@ -121,10 +128,15 @@ fn nodes_on_bare_vehicle_computers_navigate_the_ardupilot_personality_without_gn
     let old_vehicle = wait_line(&sitl2_out, "vehicle 1 ", Duration::from_secs(30));
     let old_profile = profile.replacen("clock = \"auto\"", "clock = \"unix\"", 1);
     let old_config = format!(
-        "id = 1\nvehicle = \"udpout:{}\"\nvehicle_config = \"rover.toml\"\nteam = [1]\nmethod = \"dr\"\nidle_exit_s = 2.0\n",
+        "id = 1\nvehicle = \"udpout:{}\"\nvehicle_config = \"rover.toml\"\nteam = [1]\nmethod = \"dr\"\nidle_exit_s = 2.0\n\
+         team_key = \"team.key\"\n",
         old_vehicle.split_whitespace().last().unwrap()
     );
-    let old_dir = vehicle_computer(&root, "unix-clock", &[("rover.toml", old_profile), ("node.toml", old_config)]);
+    let old_dir = vehicle_computer(
+        &root,
+        "unix-clock",
+        &[("rover.toml", old_profile), ("node.toml", old_config), ("team.key", TEAM_KEY.into())],
+    );
     let mut old = Command::new(old_dir.join("cooploc"));
     old.args(["node", "--config", "node.toml"]);
     let (child, old_out) = spawn_lines_in(old, &old_dir);
@@ -180,7 +192,7 @@ fn nodes_on_bare_vehicle_computers_navigate_the_ardupilot_personality_without_gn
         let mut names: Vec<String> =
             std::fs::read_dir(dir).unwrap().map(|e| e.unwrap().file_name().into_string().unwrap()).collect();
         names.sort();
-        assert_eq!(names, ["cooploc", "node.mcap", "node.toml", "rover.toml"]);
+        assert_eq!(names, ["cooploc", "node.mcap", "node.toml", "rover.toml", "team.key"]);
     }
     // how far apart the nodes' team clocks are: each maps the simulator's time zero to an
     // instant of its companion's clock (one clock here, so any spread is the mapping's)

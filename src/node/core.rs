@@ -254,6 +254,12 @@ pub struct NodeStats {
     pub records_received: u64,
     /// Records refused: not decodable, or a covariance that is not positive semi-definite.
     pub records_implausible: u64,
+    /// Records refused at their epoch because most of the ranges the teammates measured to
+    /// that platform contradict them (`node::vetting`, rule 1).
+    pub records_contradicted: u64,
+    /// Epochs at which a platform had two different records or more still standing: all
+    /// refused (`node::vetting`, rule 2), the platform flagged.
+    pub records_rival: u64,
     pub fragments_rejected: u64,
     pub records_incomplete: u64,
     pub records_undecodable: u64,
@@ -348,6 +354,14 @@ struct Epoch {
     /// Ranges our vehicle measured at this epoch (they go into our record).
     own_ranges: Vec<RangeSample>,
     records: BTreeMap<PlatformId, StateRecord>,
+    /// Records for a platform that differ from the one in `records` (a forger's, or a
+    /// relabelled replay), at most [`MAX_RIVALS`] each: the epoch vets them all.
+    rivals: BTreeMap<PlatformId, Vec<StateRecord>>,
+    /// Records the vetting refused while the epoch waited (contradicted by the teammates'
+    /// ranges): not taken again when resent, and their platform waited for as if missing.
+    refused: Vec<StateRecord>,
+    /// Records and rivals held when the epoch was last vetted.
+    vetted_at: usize,
     /// Open while (or just after) we were frozen: the others may have run it without us, so
     /// we wait for how they ran it before we run it.
     after_freeze: bool,
@@ -365,11 +379,17 @@ impl Epoch {
             early_request_sent: false,
             own_ranges: Vec::new(),
             records: BTreeMap::new(),
+            rivals: BTreeMap::new(),
+            refused: Vec::new(),
+            vetted_at: 0,
             after_freeze: false,
             peer_ran: None,
         }
     }
 }
+
+/// Different records kept per platform and epoch besides the first (more are counted, not kept).
+const MAX_RIVALS: usize = 3;
 
 /// Shortest wall time between two answers to estimate requests, us.
 pub const ESTIMATE_REQUEST_INTERVAL_US: u64 = 200_000;
@@ -531,6 +551,9 @@ pub struct NodeCore {
     absent: BTreeSet<PlatformId>,
     /// Wall time of the last message heard from each member.
     heard_at: BTreeMap<PlatformId, u64>,
+    /// Platforms whose id came with two different records for one epoch (a forger's, or a
+    /// relabelled replay): flagged for the operator, for the rest of the run.
+    flagged: BTreeSet<PlatformId>,
     /// Since when (wall time) the lowest epoch known is not the one after the last resolved:
     /// an epoch in between that we have not heard of yet.
     gap_since: Option<u64>,
@@ -608,6 +631,7 @@ impl NodeCore {
             ran_on: VecDeque::new(),
             absent: BTreeSet::new(),
             heard_at: BTreeMap::new(),
+            flagged: BTreeSet::new(),
             gap_since: None,
             wall_us: 0,
             woke_at: None,
@@ -659,6 +683,12 @@ impl NodeCore {
     /// The stores kept for teammates that may ask: (epoch, store digest before it) of each.
     pub fn kept_stores(&self) -> impl Iterator<Item = (u32, u64)> + '_ {
         self.snapshots.iter().map(|(e, _, d, _)| (*e, *d))
+    }
+
+    /// Platforms whose id came with two different records for one epoch (see
+    /// [`super::vetting`]): someone else speaks as them, or replays their records.
+    pub fn flagged(&self) -> &BTreeSet<PlatformId> {
+        &self.flagged
     }
 
     /// The last epoch resolved (run, or passed over), if any.
@@ -1095,7 +1125,20 @@ impl NodeCore {
                             // on the team again after a stall, a restart or a late join).
                             let recent = self.last_applied.is_none_or(|(last, _)| rec.epoch.saturating_add(RECENT_EPOCHS) > last);
                             if let Some(e) = self.learn_epoch(rec.epoch, TimeUs(rec.time_usec)) {
-                                e.records.insert(rec.platform, r);
+                                match e.records.get(&rec.platform) {
+                                    _ if e.refused.contains(&r) => {}
+                                    None => {
+                                        e.records.insert(rec.platform, r);
+                                    }
+                                    Some(first) if *first == r => {}
+                                    Some(_) => {
+                                        let rivals = e.rivals.entry(rec.platform).or_default();
+                                        if !rivals.contains(&r) && rivals.len() < MAX_RIVALS {
+                                            rivals.push(r);
+                                        }
+                                        self.flagged.insert(rec.platform);
+                                    }
+                                }
                                 self.absent.remove(&rec.platform);
                             } else if recent {
                                 self.absent.remove(&rec.platform);
@@ -1279,6 +1322,10 @@ impl NodeCore {
                 self.broadcast(epoch, t, out);
                 continue;
             }
+            // Records the teammates' ranges contradict are refused now, and their platform
+            // waited for again (its genuine record may still come: a forger's came first).
+            self.sift(epoch);
+            let Some(e) = self.epochs.get(&epoch) else { continue };
             // Members found absent are not waited for until a recent record of theirs arrives
             // (waiting for them briefly was tried: it makes nodes race on the set they run).
             let missing: Vec<PlatformId> =
@@ -1442,11 +1489,70 @@ impl NodeCore {
         }
     }
 
+    /// Once `epoch` holds a record of every member it waits for: refuses, for good, the records
+    /// the vetting finds contradicted by the teammates' ranges (a rival of a refused record
+    /// takes its place; a platform left without one is waited for again).
+    fn sift(&mut self, epoch: u32) {
+        let Some(e) = self.epochs.get_mut(&epoch) else { return };
+        let held = e.records.len() + e.rivals.values().map(Vec::len).sum::<usize>();
+        let complete = self.cfg.team.iter().all(|p| self.absent.contains(p) || e.records.contains_key(p));
+        if !complete || held == e.vetted_at || held < 2 {
+            return;
+        }
+        let mut candidates: BTreeMap<PlatformId, Vec<StateRecord>> =
+            e.records.iter().map(|(&p, r)| (p, vec![r.clone()])).collect();
+        for (p, rivals) in &e.rivals {
+            candidates.entry(*p).or_default().extend(rivals.iter().cloned());
+        }
+        let v = super::vetting::vet(candidates);
+        for r in v.contradicted {
+            let p = r.snapshot.id;
+            if p == self.cfg.id {
+                continue; // our own is not waited for again: the epoch decides (see vetted)
+            }
+            if e.records.get(&p) == Some(&r) {
+                e.records.remove(&p);
+            } else if let Some(rivals) = e.rivals.get_mut(&p) {
+                rivals.retain(|x| *x != r);
+            }
+            if !e.records.contains_key(&p)
+                && let Some(next) = e.rivals.get_mut(&p).filter(|x| !x.is_empty()).map(|x| x.remove(0))
+            {
+                e.records.insert(p, next);
+            }
+            e.rivals.retain(|_, x| !x.is_empty());
+            e.refused.push(r);
+            self.stats.records_contradicted += 1;
+        }
+        e.vetted_at = e.records.len() + e.rivals.values().map(Vec::len).sum::<usize>();
+    }
+
+    /// The records `epoch` runs on: those held, less the ones [`super::vetting::vet`] refuses
+    /// (contradicted by the teammates' ranges, or rivals), counted. Our own record may be
+    /// among the refused (our state is far from where the teammates range us): we then sit the
+    /// epoch out, as the others do without us.
+    fn vetted(&mut self, epoch: u32) -> Vec<StateRecord> {
+        let Some(e) = self.epochs.get(&epoch) else { return Vec::new() };
+        if e.rivals.is_empty() && e.records.len() < 2 {
+            return e.records.values().cloned().collect();
+        }
+        let mut candidates: BTreeMap<PlatformId, Vec<StateRecord>> =
+            e.records.iter().map(|(&p, r)| (p, vec![r.clone()])).collect();
+        // (a platform's first record and its rivals: vet decides among them)
+        for (p, rivals) in &e.rivals {
+            candidates.entry(*p).or_default().extend(rivals.iter().cloned());
+        }
+        let v = super::vetting::vet(candidates);
+        self.stats.records_contradicted += v.contradicted.len() as u64;
+        self.stats.records_rival += v.rivals.len() as u64;
+        v.accepted
+    }
+
     /// The joint update of `epoch` on the records held (see the module docs), then the report.
     fn run_epoch(&mut self, epoch: u32, partial: bool, out: &mut Vec<NodeOutput>) {
         let Some(e) = self.epochs.get(&epoch) else { return };
         let t = e.t;
-        let mut records: Vec<StateRecord> = e.records.values().cloned().collect(); // sorted by platform id
+        let mut records = self.vetted(epoch); // sorted by platform id
         self.finish_epoch(epoch);
         if partial {
             self.stats.epochs_partial += 1;
@@ -1537,8 +1643,11 @@ impl NodeCore {
     /// they computed it, when it was theirs before the epoch. Else our store falls behind, and we
     /// are left out at the next epoch and take theirs.
     fn run_bystander(&mut self, epoch: u32, ran: &[PlatformId]) {
-        let Some(e) = self.epochs.get(&epoch) else { return };
-        let records: Vec<StateRecord> = e.records.values().filter(|r| ran.contains(&r.snapshot.id)).cloned().collect();
+        if !self.epochs.contains_key(&epoch) {
+            return;
+        }
+        let mut records = self.vetted(epoch);
+        records.retain(|r| ran.contains(&r.snapshot.id));
         self.finish_epoch(epoch);
         self.stats.epochs_bystood += 1;
         let participants: Vec<PlatformId> = records.iter().map(|r| r.snapshot.id).collect();

@@ -12,6 +12,7 @@
 //! | [`error`] | what can stop a node (`NodeError`): links that do not open, settings, a vehicle that goes away |
 //! | [`vehicle_link`] | the MAVLink connection to the vehicle (UDP, TCP, serial) |
 //! | [`survey`] | `cooploc check`: what an autopilot sends against what a profile needs, and the parameters to set |
+//! | [`vetting`] | which records an epoch runs on: refused when the teammates' ranges contradict them, or when a platform sent two different ones |
 //! | [`ranging`] | a ranging device on the companion (a UWB module): its line stream, as the core's own ranges |
 pub mod autopilot;
 pub mod coop_link;
@@ -26,3 +27,4 @@ pub mod ranging;
 pub mod runner;
 pub mod survey;
 pub mod vehicle_link;
+pub mod vetting;

@@ -211,6 +211,9 @@ pub fn save_signing_state(path: &std::path::Path, signer: &Signer) -> std::io::R
 #[derive(Debug, Clone)]
 pub struct NodeSummary {
     pub stats: NodeStats,
+    /// Platforms whose id came with two different records for one epoch (see
+    /// [`crate::node::vetting`]).
+    pub flagged: Vec<crate::estimation::PlatformId>,
     /// None when the node never got its initial state.
     pub estimate: Option<wire::EstimateReport>,
     /// Vehicle inputs received before the initial state (waiting for SIM_STATE).
@@ -900,6 +903,7 @@ pub async fn run(
     save_state(&seqs);
     Ok(NodeSummary {
         stats: core.as_ref().map(|c| c.stats.clone()).unwrap_or_default(),
+        flagged: core.as_ref().map(|c| c.flagged().iter().copied().collect()).unwrap_or_default(),
         estimate: core.as_ref().map(NodeCore::estimate),
         before_init,
         sim_state_init,

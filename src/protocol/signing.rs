@@ -92,6 +92,8 @@ pub enum KeyError {
     Io { path: String, message: String },
     #[error("the team key file {0} is empty: give 64 hex digits or a passphrase")]
     Empty(String),
+    #[error("no random source to make a key from: {0}")]
+    NoRandom(String),
 }
 
 impl TeamKey {
@@ -119,6 +121,26 @@ impl TeamKey {
             return Err(KeyError::Empty(path.display().to_string()));
         }
         Ok(Self::from_hex(line).unwrap_or_else(|| Self::from_passphrase(line)))
+    }
+
+    /// A new key from the operating system's random source.
+    pub fn generate() -> Result<Self, KeyError> {
+        use rand::TryRngCore;
+        let mut key = [0u8; 32];
+        rand::rngs::OsRng.try_fill_bytes(&mut key).map_err(|e| KeyError::NoRandom(e.to_string()))?;
+        Ok(TeamKey(key))
+    }
+
+    /// A new passphrase for a team key file (`cooploc keygen`): 48 characters of a 32-letter
+    /// alphabet (240 bits) from the operating system's random source. A passphrase rather than
+    /// the 64 hex digits of the key, so that MAVProxy's `signing setup PASSPHRASE` (SHA-256 of
+    /// it, as [`TeamKey::from_passphrase`]) makes the same key.
+    pub fn new_passphrase() -> Result<String, KeyError> {
+        use rand::TryRngCore;
+        const ALPHABET: &[u8; 32] = b"abcdefghijkmnpqrstuvwxyz23456789";
+        let mut bytes = [0u8; 48];
+        rand::rngs::OsRng.try_fill_bytes(&mut bytes).map_err(|e| KeyError::NoRandom(e.to_string()))?;
+        Ok(bytes.iter().map(|b| ALPHABET[usize::from(b & 31)] as char).collect())
     }
 
     /// 64 hex digits, if that is what `s` is.

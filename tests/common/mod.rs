@@ -118,6 +118,21 @@ pub fn paper_node_args(id: u16, vehicle: &str) -> Vec<String> {
     ["node", "--scenario", "sitl/scenarios/paper.toml", "--id", &id.to_string(), "--vehicle", vehicle].map(String::from).to_vec()
 }
 
+/// `--team-key FILE` for a test's node (or ground station): a node refuses an unsigned
+/// cooperative network unless told --insecure. The file (a fixed passphrase) is written once
+/// per test process, whole (renamed into place), so that tests running at once never read half
+/// of it.
+#[allow(dead_code)] // (not every test binary starts a node)
+pub fn team_key_args() -> Vec<String> {
+    let path = std::env::temp_dir().join(format!("cooploc-test-team-{}.key", std::process::id()));
+    if !path.exists() {
+        let tmp = path.with_extension(format!("{:?}.tmp", std::thread::current().id()).replace(['(', ')'], ""));
+        std::fs::write(&tmp, "the passphrase of the tests' team\n").unwrap();
+        std::fs::rename(&tmp, &path).unwrap();
+    }
+    vec!["--team-key".into(), path.display().to_string()]
+}
+
 /// The numbers of the first `[a, b, ...]` after `marker` in a line the binary printed
 /// (`pos_ned_m [1.0, 2.0, 3.0]`).
 #[allow(dead_code)] // (not every test binary reads one)

@@ -10,6 +10,7 @@ mod demo;
 mod experiment;
 mod faults;
 mod gcs;
+mod keygen;
 mod node;
 mod replay;
 mod signal;
@@ -61,6 +62,9 @@ enum Command {
     /// The ground station: the team's estimates, 95% ellipses, truth and link health on a web
     /// page and on Foxglove's live WebSocket protocol.
     Gcs(gcs::Args),
+    /// A new team key for signing the cooperative network, written to a file only its owner
+    /// can read (every node refuses an unsigned network unless told --insecure).
+    Keygen(keygen::Args),
     /// The per-vehicle companion: local filter on the vehicle's IMU and odometry, cooperative
     /// protocol with the other nodes, estimate back to the vehicle.
     Node(Box<node::Args>),
@@ -103,6 +107,7 @@ fn main() -> ExitCode {
         Command::Check(args) => check::run(args),
         Command::Dataset(args) => dataset::run_cmd(args),
         Command::Demo(args) => demo::run(args),
+        Command::Keygen(args) => keygen::run(args),
         Command::Experiment(args) => experiment::run(args),
         Command::Faults(args) => faults::run(args),
         Command::Replay(args) => replay::run(args),

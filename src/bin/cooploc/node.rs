@@ -76,9 +76,17 @@ pub struct Args {
     /// The team's signing key (MAVLink 2 signing on the cooperative network): a file whose first
     /// line is 64 hex digits or a passphrase (hashed with SHA-256, as MAVProxy's `signing setup`
     /// does). Every frame the node sends is signed; unsigned, wrongly signed and replayed frames
-    /// are refused and counted. Without it the cooperative network is unauthenticated.
+    /// are refused and counted. `cooploc keygen FILE` makes one. A node refuses to start
+    /// without it, unless told --insecure.
     #[arg(long, value_name = "FILE")]
     team_key: Option<PathBuf>,
+    /// Run on an unauthenticated cooperative network (no --team-key): anyone who can reach the
+    /// node's port can send it records. The node then refuses records that the teammates'
+    /// ranges contradict and both of two different records for one platform and epoch
+    /// (`node::vetting`), but a forgery that fits the ranges still moves the team. For a lab,
+    /// a simulation or a link that is private by other means.
+    #[arg(long, conflicts_with = "team_key")]
+    insecure: bool,
     /// Keep the signing timestamp in this file across restarts (read at start, written every
     /// 5 s and at the end, 15 s of headroom): a companion without a real-time clock, or whose
     /// clock stepped back, still signs above every timestamp it used and is not refused as a
@@ -193,7 +201,12 @@ pub fn run_cmd(args: Args) -> anyhow::Result<()> {
     }
     let team_key = match &args.team_key {
         Some(path) => Some(cooploc::protocol::signing::TeamKey::from_file(path).context("--team-key")?),
-        None => None,
+        None if args.insecure => None,
+        None => bail!(
+            "no --team-key: the cooperative network would be unauthenticated, and anyone who can reach this node's \
+             port could move this vehicle's estimate. Give every node of the team the same key file (--team-key FILE; \
+             `cooploc keygen FILE` makes one), or say --insecure to run without"
+        ),
     };
     let vehicle_key = match &args.vehicle_key {
         Some(path) => Some(cooploc::protocol::signing::TeamKey::from_file(path).context("--vehicle-key")?),
@@ -371,6 +384,11 @@ pub fn run_cmd(args: Args) -> anyhow::Result<()> {
                 Err(_) => {}
             }
         });
+        if args.insecure {
+            println!(
+                "node {id} cooperative network UNAUTHENTICATED (--insecure): records are vetted against the team's ranges, nothing more"
+            );
+        }
         let shutdown = crate::signal::shutdown_signal();
         let summary = run(init, links, runner_recorder, tx, shutdown).await;
         let _ = announce.await;
@@ -468,6 +486,14 @@ pub fn run_cmd(args: Args) -> anyhow::Result<()> {
         pc.observers_refused,
         st.records_resent,
         st.resends_limited
+    );
+    println!(
+        "node {} vetting records_contradicted {} records_rival {} flagged {:?}{}",
+        e.platform,
+        st.records_contradicted,
+        st.records_rival,
+        summary.flagged,
+        if summary.flagged.is_empty() { "" } else { " (two different records under one platform id: someone else speaks as it)" }
     );
     if args.team_key.is_some() {
         let c = &summary.coop_signing;

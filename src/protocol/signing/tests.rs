@@ -35,6 +35,22 @@ fn keys_from_a_passphrase_hex_or_file() {
 }
 
 #[test]
+fn generated_keys_and_passphrases_differ_and_a_passphrase_is_never_read_as_hex() {
+    let (a, b) = (TeamKey::generate().unwrap(), TeamKey::generate().unwrap());
+    assert_ne!(a.bytes(), b.bytes());
+    let (p, q) = (TeamKey::new_passphrase().unwrap(), TeamKey::new_passphrase().unwrap());
+    assert_ne!(p, q);
+    assert_eq!(p.len(), 48);
+    assert!(p.bytes().all(|c| c.is_ascii_lowercase() || c.is_ascii_digit()), "{p}");
+    assert!(TeamKey::from_hex(&p).is_none());
+    // A key file holding it is that passphrase's key (MAVProxy's `signing setup`).
+    let path = std::env::temp_dir().join(format!("cooploc-keygen-{}", std::process::id()));
+    std::fs::write(&path, format!("{p}\n")).unwrap();
+    assert_eq!(TeamKey::from_file(&path).unwrap().bytes(), TeamKey::from_passphrase(&p).bytes());
+    let _ = std::fs::remove_file(&path);
+}
+
+#[test]
 fn a_signed_frame_is_accepted_once_and_its_bytes_are_the_frame_plus_13() {
     let key = TeamKey::from_passphrase("team");
     let mut signer = Signer::new(key.clone(), 3, 0);

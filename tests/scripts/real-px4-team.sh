@@ -1,0 +1,71 @@
+#!/usr/bin/env bash
+# Three rovers on the real PX4 firmware, navigating without GNSS: runs tests/scripts/real_px4_team.py
+# for each set-up and method and prints its table. It runs a PX4 SIH SITL binary you built
+# yourself (PX4's px4_sitl_sih target); it builds nothing.
+#
+#   bash tests/scripts/real-px4-team.sh /path/to/PX4-Autopilot/build/px4_sitl_sih/bin/px4 [SETUP...]
+#
+# SETUP: nognss (the default and, for now, the only one: gnss-lost is not implemented for PX4). Each
+# run takes about 4 minutes of real time (three SIH instances at 1x, three nodes); results go to $OUT
+# (default /tmp/real-px4-team). Needs pymavlink (tests/requirements.txt; COOPLOC_PYTHON names the
+# interpreter) and a cooploc binary (COOPLOC_BIN, default target/release/cooploc: cargo build --release).
+set -euo pipefail
+here="$(cd "$(dirname "$0")" && pwd)"
+root="$(cd "$here/../.." && pwd)"
+px4="${1:?usage: real-px4-team.sh PX4_BINARY [SETUP...]}"
+shift
+setups=("$@")
+[ ${#setups[@]} -gt 0 ] || setups=(nognss)
+py="${COOPLOC_PYTHON:-python3}"
+out="${OUT:-/tmp/real-px4-team}"
+cooploc="${COOPLOC_BIN:-$root/target/release/cooploc}"
+mkdir -p "$out"
+[ -x "$cooploc" ] || { echo "error: build cooploc first (cargo build --release) or name it in COOPLOC_BIN" >&2; exit 1; }
+"$cooploc" --version 2>/dev/null || true
+for setup in "${setups[@]}"; do
+  if [ "$setup" != nognss ]; then
+    echo "==> $setup: not implemented for PX4"
+    continue
+  fi
+  for method in dcl dr alone; do
+    echo "==> $setup $method"
+    "$py" "$here/real_px4_team.py" --px4 "$px4" --cooploc "$cooploc" --setup "$setup" --method "$method" \
+      --out "$out/$setup-$method" --json "$out/$setup-$method.json" | grep -E "without GNSS|team RMS|timeout|error|EKF2 vision|node:" || true
+  done
+done
+"$py" - "$out" "${setups[@]}" <<'PY'
+import json, os, sys
+out, setups = sys.argv[1], sys.argv[2:]
+print("\n| set-up | rover | path without GNSS (m) | dcl RMS / final (m) | dr RMS / final (m) | PX4 alone RMS / final (m) |")
+print("|---|---|---|---|---|---|")
+for s in setups:
+    runs = {}
+    for m in ("dcl", "dr", "alone"):
+        p = os.path.join(out, "%s-%s.json" % (s, m))
+        if os.path.exists(p):
+            runs[m] = json.load(open(p))
+    if not runs:
+        continue
+    n = len(next(iter(runs.values()))["rovers"])
+    for k in range(n):
+        cells = []
+        for m in ("dcl", "dr", "alone"):
+            r = runs.get(m)
+            cells.append("%.2f / %.2f" % (r["rovers"][k]["rms_m"], r["rovers"][k]["final_m"]) if r else "-")
+        path = "/".join("%.0f" % runs[m]["rovers"][k]["path_m"] for m in ("dcl", "dr", "alone") if m in runs)
+        print("| %s | %d | %s | %s |" % (s, k + 1, path, " | ".join(cells)))
+    print("| %s | team RMS | | %s |" % (s, " | ".join("%.2f" % runs[m]["team_rms_m"] if m in runs else "-" for m in ("dcl", "dr", "alone"))))
+    for m in ("dcl", "dr"):
+        if m in runs:
+            figs = [r.get("node", {}) for r in runs[m]["rovers"]]
+            print("%s %s nodes: epochs applied %s, partial %s, skipped %s, disagreements %s" % (
+                s, m, [f.get("epochs_applied") for f in figs], [f.get("epochs_partial") for f in figs],
+                [f.get("epochs_skipped") for f in figs], [f.get("epoch_disagreements") for f in figs]))
+            print("%s %s nodes' own estimate RMS (m): %s; ranges gated %s" % (
+                s, m, ["%.2f" % r.get("node_own_rms_m", float("nan")) for r in runs[m]["rovers"]], [f.get("ranges_gated") for f in figs]))
+    for m in ("dcl", "dr", "alone"):
+        if m in runs:
+            print("%s %s EKF2 (share of its 1 Hz status during the mission: EV position / velocity / yaw fused, yaw aligned): %s; sim %s x real time" % (
+                s, m, ["%s/%s/%s/%s" % tuple((r.get("ekf2_fusion") or {}).get(k, "?") for k in ("cs_ev_pos", "cs_ev_vel", "cs_ev_yaw", "cs_yaw_align"))
+                       for r in runs[m]["rovers"]], ["%.3f" % r.get("sim_rate", float("nan")) for r in runs[m]["rovers"]]))
+PY
