@@ -20,8 +20,8 @@ use super::{ExperimentError, nav_model, run_filter, state_from};
 use crate::estimation::nav::NavState;
 use crate::estimation::{Method, PlatformId};
 use crate::node::core::{NodeConfig, NodeCore, NodeInput, NodeOutput, NodeStats};
-use crate::protocol::MavMessage;
 use crate::protocol::record::Encoding;
+use crate::protocol::{MavMessage, budget};
 use crate::sitl::world::{SimEvent, World};
 use crate::time::TimeUs;
 
@@ -59,6 +59,10 @@ pub struct Faults {
     pub kill: Option<Outage>,
     /// The node starts only at this time, s.
     pub join: Option<(usize, f64)>,
+    /// What a node sends at one step travels as the runner sends it on UDP: a record's first
+    /// fragment alone, the rest packed into datagrams of up to [`budget::MAX_DATAGRAM`] bytes;
+    /// loss and delay strike whole datagrams (as a lossy network does), not single messages.
+    pub packed: bool,
     /// The node's cooperative radio is out of range (both ways); its vehicle link is not.
     pub leave: Option<Outage>,
 }
@@ -110,6 +114,8 @@ pub fn standard_cases() -> Vec<FaultCase> {
         FaultCase { name: "coop loss 10%", faults: links(0.10, 0.0, (0, 0)) },
         FaultCase { name: "coop loss 30%", faults: links(0.30, 0.0, (0, 0)) },
         FaultCase { name: "coop loss 50%", faults: links(0.50, 0.0, (0, 0)) },
+        FaultCase { name: "coop loss 30%, packed datagrams", faults: Faults { packed: true, ..links(0.30, 0.0, (0, 0)) } },
+        FaultCase { name: "coop loss 50%, packed datagrams", faults: Faults { packed: true, ..links(0.50, 0.0, (0, 0)) } },
         FaultCase { name: "vehicle loss 0.5%", faults: links(0.0, 0.005, (0, 0)) },
         FaultCase { name: "vehicle loss 5%", faults: links(0.0, 0.05, (0, 0)) },
         FaultCase {
@@ -199,10 +205,17 @@ impl Sim<'_> {
         self.case.stall.is_some_and(|o| o.covers(k, t))
     }
 
-    /// Puts what node `k` sent at `now` on the network, one datagram per receiver.
+    /// Puts what node `k` sent at `now` on the network, to every receiver: one message per
+    /// datagram, or packed as the runner packs them ([`Faults::packed`]).
     fn send(&mut self, k: usize, out: Vec<NodeOutput>, now: TimeUs) {
-        for o in out {
-            let NodeOutput::ToPeers(msg) = o else { continue };
+        let msgs: Vec<MavMessage> = out
+            .into_iter()
+            .filter_map(|o| match o {
+                NodeOutput::ToPeers(m) => Some(m),
+                NodeOutput::Update(_) => None,
+            })
+            .collect();
+        for datagram in self.datagrams(k, msgs) {
             for j in (0..self.ids.len()).filter(|&j| j != k) {
                 if self.cut(k, now) || self.cut(j, now) {
                     continue;
@@ -217,11 +230,42 @@ impl Sim<'_> {
                         at += self.rng.random_range(lo..=hi) * 1000;
                     }
                 }
-                self.seq += 1;
-                self.in_flight.insert(self.seq, (self.ids[k], msg.clone()));
-                self.net.push(Reverse((at, self.seq, j)));
+                for msg in &datagram {
+                    self.seq += 1;
+                    self.in_flight.insert(self.seq, (self.ids[k], msg.clone()));
+                    self.net.push(Reverse((at, self.seq, j)));
+                }
             }
         }
+    }
+
+    /// The datagrams node `k`'s messages of one step travel in (see [`Faults::packed`]).
+    fn datagrams(&self, k: usize, msgs: Vec<MavMessage>) -> Vec<Vec<MavMessage>> {
+        if !self.case.packed {
+            return msgs.into_iter().map(|m| vec![m]).collect();
+        }
+        let header = mavlink_core::MavHeader { system_id: u32::from(self.ids[k]), component_id: 191, sequence: 0 };
+        let mut out: Vec<Vec<MavMessage>> = Vec::new();
+        let mut batch: Vec<MavMessage> = Vec::new();
+        let flush = |batch: &mut Vec<MavMessage>, out: &mut Vec<Vec<MavMessage>>| {
+            let sizes: Vec<usize> = batch.iter().map(|m| crate::protocol::wire::to_frame(header, m).len()).collect();
+            let starts = budget::packing(&sizes, budget::MAX_DATAGRAM);
+            let ends = starts.iter().skip(1).copied().chain([batch.len()]);
+            let mut frames = std::mem::take(batch).into_iter();
+            for (a, b) in starts.iter().zip(ends) {
+                out.push(frames.by_ref().take(b - a).collect());
+            }
+        };
+        for m in msgs {
+            if budget::goes_alone(&m) {
+                flush(&mut batch, &mut out);
+                out.push(vec![m]);
+            } else {
+                batch.push(m);
+            }
+        }
+        flush(&mut batch, &mut out);
+        out
     }
 
     /// Hands `input` to node `k` at `now`: lost if it is dead, queued if it is frozen.

@@ -356,13 +356,8 @@ async fn send_all(
             NodeOutput::ToPeers(msg) => {
                 let frame = seqs.coop_frame(&msg);
                 record_frame(rec, Link::Coop(sysid), Direction::Tx, &frame);
-                // A record's first fragment goes alone, ahead of the rest: it makes the epoch
-                // known to a node that measured no range, before the whole record has crossed
-                // a slow link (budget::epoch_frames counts it so).
-                if let MavMessage::COOPLOC_STATE_FRAGMENT(f) = &msg
-                    && f.frag_index == 0
-                    && f.frag_count > 1
-                {
+                // A record's first fragment goes alone, ahead of the rest (budget::goes_alone).
+                if crate::protocol::budget::goes_alone(&msg) {
                     send_to_peers(coop, peers, &std::mem::take(&mut frames), &mut seqs.tx).await;
                     send_to_peers(coop, peers, &[frame], &mut seqs.tx).await;
                     continue;

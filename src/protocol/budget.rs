@@ -234,9 +234,17 @@ pub fn datagrams(sizes: &[usize], packed: bool) -> usize {
     packing(sizes, if packed { MAX_DATAGRAM } else { 0 }).len()
 }
 
+/// Whether a node sends `msg` in a datagram of its own, ahead of the rest of its batch: a
+/// record's first fragment (of several), so that it makes the epoch known to a node that measured
+/// no range before the whole record has crossed a slow link ([`epoch_frames`] counts it so). The
+/// runner's rule, and the fault harness's.
+pub fn goes_alone(msg: &MavMessage) -> bool {
+    matches!(msg, MavMessage::COOPLOC_STATE_FRAGMENT(f) if f.frag_index == 0 && f.frag_count > 1)
+}
+
 /// Where each datagram of `sizes` packed up to `max` bytes starts (frames in order, each whole;
 /// a new datagram when the next frame would not fit; `max` 0: one frame each).
-fn packing(sizes: &[usize], max: usize) -> Vec<usize> {
+pub fn packing(sizes: &[usize], max: usize) -> Vec<usize> {
     let (mut starts, mut fill) = (Vec::new(), usize::MAX);
     for (i, &s) in sizes.iter().enumerate() {
         if fill.saturating_add(s) > max {

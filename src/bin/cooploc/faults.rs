@@ -32,6 +32,10 @@ pub struct Args {
     /// Only the cases whose name contains this text.
     #[arg(long)]
     only: Option<String>,
+    /// Every case with the nodes' messages packed into datagrams as the runner sends them on
+    /// UDP, loss and delay striking whole datagrams (`Faults::packed`), as on real sockets.
+    #[arg(long)]
+    packed: bool,
     /// Also write every case's summary as JSON here.
     #[arg(long)]
     json: Option<PathBuf>,
@@ -59,19 +63,24 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     for case in &cases {
         let runs: Vec<_> = (0..args.runs)
             .into_par_iter()
-            .map(|run| run_case(&world, &case.faults, method, &args.schedule, args.seed, run, encoding))
+            .map(|run| {
+                let faults =
+                    cooploc::experiment::faults::Faults { packed: args.packed || case.faults.packed, ..case.faults.clone() };
+                run_case(&world, &faults, method, &args.schedule, args.seed, run, encoding)
+            })
             .collect::<Result<_, _>>()
             .with_context(|| format!("case {:?}", case.name))?;
         summaries.push(summarize(case.name, &runs));
     }
     println!(
-        "cooploc faults: {} cases x {} runs, method {}, encoding {}, schedule {}, seed {} ({:.1} s)",
+        "cooploc faults: {} cases x {} runs, method {}, encoding {}, schedule {}, seed {}{} ({:.1} s)",
         cases.len(),
         args.runs,
         method.short_name(),
         encoding.name(),
         args.schedule,
         args.seed,
+        if args.packed { ", packed datagrams" } else { "" },
         started.elapsed().as_secs_f64()
     );
     let base = summaries.iter().find(|s| s.name == "fault-free").map(|s| s.final_rms_m);
