@@ -257,9 +257,9 @@ fn nodes_take_over_from_the_ardupilot_personality_when_gnss_goes() {
     let _ = std::fs::remove_dir_all(&root);
 }
 
-/// The real-firmware script (tests/scripts/real_ardupilot_team.py) is run by hand against a
-/// binary built outside the repository; here it is only checked to say what it needs when the
-/// binary is missing, before it starts anything.
+/// The real-firmware scripts (tests/scripts/real_ardupilot_team.py, real_px4_team.py) are run
+/// by hand against a binary built outside the repository; here they are only checked to say
+/// what they need when the binary is missing, before they start anything.
 #[test]
 fn the_real_firmware_script_names_what_it_lacks() {
     let Some(python) = common::python("the real-firmware script") else { return };
@@ -272,4 +272,13 @@ fn the_real_firmware_script_names_what_it_lacks() {
     let err = String::from_utf8_lossy(&out.stderr);
     assert!(!out.status.success(), "{err}");
     assert!(err.contains("error: need the ardurover binary (/nonexistent/ardurover)"), "{err}");
+    // the PX4 one likewise (its SIH build: the px4 binary and the etc/ beside its bin/)
+    let out = Command::new(common::python("the real-firmware script").unwrap())
+        .arg(repo.join("tests/scripts/real_px4_team.py"))
+        .args(["--px4", "/nonexistent/bin/px4", "--setup", "nognss", "--method", "dcl"])
+        .output()
+        .unwrap();
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(!out.status.success(), "{err}");
+    assert!(err.contains("error: need the px4 binary (/nonexistent/bin/px4)"), "{err}");
 }

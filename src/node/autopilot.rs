@@ -259,12 +259,25 @@ impl TimeSync {
     }
 
     /// Takes a TIMESYNC from the autopilot, received at companion time `unix_ns`: an answer to
-    /// one of our requests gives a sample; a request of the autopilot's (`tc1` 0) gets the
-    /// answer returned (our time now, its `ts1` echoed).
-    pub fn on_message(&mut self, m: &TIMESYNC_DATA, unix_ns: i64, source: (u8, u8)) -> TimesyncReply {
+    /// one of our requests gives a sample; a request of the autopilot's (`tc1` 0) gets an answer
+    /// in the clock the node stamps what it sends the autopilot with: the autopilot's own boot
+    /// clock, by the mapping in use (`boot_offset_us`: team time minus boot time), its `ts1`
+    /// echoed; none while no mapping is known. PX4 converts the `time_usec` of what it receives
+    /// from a system whose TIMESYNC it has converged on, by the offset it measured: answered in
+    /// the companion's Unix time, it moved the node's ODOMETRY (stamped in its boot time) by
+    /// decades and stopped fusing it (measured on PX4's SIH). Answered in its own clock, the
+    /// offset it finds is about zero.
+    pub fn on_message(
+        &mut self,
+        m: &TIMESYNC_DATA,
+        unix_ns: i64,
+        source: (u8, u8),
+        boot_offset_us: Option<i64>,
+    ) -> TimesyncReply {
         if m.tc1 == 0 {
+            let Some(offset_us) = boot_offset_us else { return TimesyncReply::Nothing };
             return TimesyncReply::Answer(TIMESYNC_DATA {
-                tc1: unix_ns,
+                tc1: unix_ns - offset_us * 1000,
                 ts1: m.ts1,
                 target_system: source.0,
                 target_component: source.1,
@@ -447,12 +460,15 @@ pub struct OdometryOutput {
     /// The autopilot's origin in the team's frame (NED, m), when it has its own (from its GNSS):
     /// positions go out in the autopilot's frame, as its EKF takes them.
     frame_offset_ned_m: Vector3<f64>,
+    /// The pose frame is called LOCAL_NED (PX4) rather than LOCAL_FRD (ArduPilot).
+    ned: bool,
 }
 
 impl OdometryOutput {
     /// None when the rate is 0 (off).
-    pub fn new(rate_hz: f64) -> Option<Self> {
+    pub fn new(rate_hz: f64, frame: crate::node::profile::OdometryFrame) -> Option<Self> {
         (rate_hz > 0.0).then(|| OdometryOutput {
+            ned: frame == crate::node::profile::OdometryFrame::LocalNed,
             period_us: (1e6 / rate_hz).round() as u64,
             next: None,
             last: None,
@@ -489,9 +505,9 @@ impl OdometryOutput {
         self.sent += 1;
         if self.frame_offset_ned_m != Vector3::zeros() {
             let shifted = Navigation { position_ned_m: nav.position_ned_m - self.frame_offset_ned_m, ..nav.clone() };
-            return Some(wire::navigation_to_odometry(&shifted, to_vehicle(nav.t), self.reset_counter));
+            return Some(wire::navigation_to_odometry(&shifted, to_vehicle(nav.t), self.reset_counter, self.ned));
         }
-        Some(wire::navigation_to_odometry(nav, to_vehicle(nav.t), self.reset_counter))
+        Some(wire::navigation_to_odometry(nav, to_vehicle(nav.t), self.reset_counter, self.ned))
     }
 }
 
@@ -634,7 +650,7 @@ mod tests {
         assert_eq!(ts.poll(100_000, unix + 100_000_000, 1), None);
         // an answer after 2 ms whose way out took 1.5 ms: the autopilot stamped it at unix + 1.5 ms
         assert_eq!(
-            ts.on_message(&timesync_answer(unix, boot_at(unix + 1_500_000)), unix + 2_000_000, (1, 1)),
+            ts.on_message(&timesync_answer(unix, boot_at(unix + 1_500_000)), unix + 2_000_000, (1, 1), None),
             TimesyncReply::Sample
         );
         let (offset, rtt) = ts.offset_us().unwrap();
@@ -643,21 +659,27 @@ mod tests {
         assert_eq!(offset, (unix - 42_000_000_000) / 1000 - 500);
         // a quicker one (0.2 ms, symmetric) wins; a slower one later does not
         let Some(MavMessage::TIMESYNC(q)) = ts.poll(200_000, unix + 200_000_000, 1) else { panic!() };
-        ts.on_message(&timesync_answer(q.ts1, boot_at(q.ts1 + 100_000)), q.ts1 + 200_000, (1, 1));
+        ts.on_message(&timesync_answer(q.ts1, boot_at(q.ts1 + 100_000)), q.ts1 + 200_000, (1, 1), None);
         let Some(MavMessage::TIMESYNC(q)) = ts.poll(1_200_000, unix + 1_200_000_000, 1) else { panic!() };
-        ts.on_message(&timesync_answer(q.ts1, boot_at(q.ts1 + 4_000_000)), q.ts1 + 9_000_000, (1, 1));
+        ts.on_message(&timesync_answer(q.ts1, boot_at(q.ts1 + 4_000_000)), q.ts1 + 9_000_000, (1, 1), None);
         assert_eq!(ts.offset_us().unwrap(), ((unix - 42_000_000_000) / 1000, 200));
         // not ours, answered twice, too slow, negative: refused
-        assert_eq!(ts.on_message(&timesync_answer(unix + 5, 77), unix + 10, (1, 1)), TimesyncReply::Nothing);
-        assert_eq!(ts.on_message(&timesync_answer(q.ts1, 1), q.ts1 + 10, (1, 1)), TimesyncReply::Nothing);
+        assert_eq!(ts.on_message(&timesync_answer(unix + 5, 77), unix + 10, (1, 1), None), TimesyncReply::Nothing);
+        assert_eq!(ts.on_message(&timesync_answer(q.ts1, 1), q.ts1 + 10, (1, 1), None), TimesyncReply::Nothing);
         let Some(MavMessage::TIMESYNC(q)) = ts.poll(2_200_000, unix + 2_200_000_000, 1) else { panic!() };
-        assert_eq!(ts.on_message(&timesync_answer(q.ts1, 5), q.ts1 + 900_000_000, (1, 1)), TimesyncReply::Nothing);
+        assert_eq!(ts.on_message(&timesync_answer(q.ts1, 5), q.ts1 + 900_000_000, (1, 1), None), TimesyncReply::Nothing);
         let Some(MavMessage::TIMESYNC(q)) = ts.poll(3_200_000, unix + 3_200_000_000, 1) else { panic!() };
-        assert_eq!(ts.on_message(&timesync_answer(q.ts1, -5), q.ts1 + 1000, (1, 1)), TimesyncReply::Nothing);
+        assert_eq!(ts.on_message(&timesync_answer(q.ts1, -5), q.ts1 + 1000, (1, 1), None), TimesyncReply::Nothing);
         assert_eq!(ts.refused, 4);
-        // the autopilot's own request gets our time, its ts1 echoed, addressed to it
-        let TimesyncReply::Answer(a) = ts.on_message(&timesync_answer(99, 0), unix + 7, (1, 1)) else { panic!() };
-        assert_eq!((a.tc1, a.ts1, a.target_system, a.target_component), (unix + 7, 99, 1, 1));
+        // the autopilot's own request: unanswered while no mapping is in use, then answered in
+        // its own boot clock by that mapping (the clock the node stamps ODOMETRY in), its ts1
+        // echoed, addressed to it
+        assert_eq!(ts.on_message(&timesync_answer(99, 0), unix + 7, (1, 1), None), TimesyncReply::Nothing);
+        let offset_us = (unix - 42_000_000_000) / 1000;
+        let TimesyncReply::Answer(a) = ts.on_message(&timesync_answer(99, 0), unix + 7, (1, 1), Some(offset_us)) else {
+            panic!()
+        };
+        assert_eq!((a.tc1, a.ts1, a.target_system, a.target_component), (boot_at(unix + 7), 99, 1, 1));
         // a reboot forgets every answer
         ts.reset();
         assert_eq!(ts.offset_us(), None);
@@ -676,7 +698,7 @@ mod tests {
 
     #[test]
     fn odometry_goes_out_at_its_rate_in_the_frames_autopilots_fuse() {
-        let mut o = OdometryOutput::new(20.0).unwrap();
+        let mut o = OdometryOutput::new(20.0, crate::node::profile::OdometryFrame::LocalFrd).unwrap();
         let mut times = Vec::new();
         // a 200 Hz filter for one second
         for k in 0..200u64 {
@@ -694,6 +716,10 @@ mod tests {
         }
         assert_eq!(times.len(), 20);
         assert!(times.windows(2).all(|w| w[1] - w[0] == 50_000), "{times:?}");
+        // PX4's profile names the same axes LOCAL_NED (EKF2 takes LOCAL_FRD as unknown heading)
+        let mut px4 = OdometryOutput::new(20.0, crate::node::profile::OdometryFrame::LocalNed).unwrap();
+        let Some(MavMessage::ODOMETRY(m)) = px4.poll(&nav(1_000_000, 0.0), |t| t.0) else { panic!() };
+        assert_eq!((m.frame_id, m.child_frame_id), (MavFrame::MAV_FRAME_LOCAL_NED, MavFrame::MAV_FRAME_BODY_FRD));
         assert_eq!(times[0], 0, "stamped in the vehicle's clock");
         // a 40 m correction is a reset, not motion
         let Some(MavMessage::ODOMETRY(m)) = o.poll(&nav(2_000_000, 50.0), |t| t.0) else { panic!() };

@@ -386,6 +386,16 @@ impl Epoch {
             peer_ran: None,
         }
     }
+
+    /// Every record held, per platform: the first one and its rivals (what the vetting decides
+    /// among).
+    fn candidates(&self) -> BTreeMap<PlatformId, Vec<StateRecord>> {
+        let mut c: BTreeMap<PlatformId, Vec<StateRecord>> = self.records.iter().map(|(&p, r)| (p, vec![r.clone()])).collect();
+        for (p, rivals) in &self.rivals {
+            c.entry(*p).or_default().extend(rivals.iter().cloned());
+        }
+        c
+    }
 }
 
 /// Different records kept per platform and epoch besides the first (more are counted, not kept).
@@ -1499,12 +1509,7 @@ impl NodeCore {
         if !complete || held == e.vetted_at || held < 2 {
             return;
         }
-        let mut candidates: BTreeMap<PlatformId, Vec<StateRecord>> =
-            e.records.iter().map(|(&p, r)| (p, vec![r.clone()])).collect();
-        for (p, rivals) in &e.rivals {
-            candidates.entry(*p).or_default().extend(rivals.iter().cloned());
-        }
-        let v = super::vetting::vet(candidates);
+        let v = super::vetting::vet(e.candidates());
         for r in v.contradicted {
             let p = r.snapshot.id;
             if p == self.cfg.id {
@@ -1536,13 +1541,7 @@ impl NodeCore {
         if e.rivals.is_empty() && e.records.len() < 2 {
             return e.records.values().cloned().collect();
         }
-        let mut candidates: BTreeMap<PlatformId, Vec<StateRecord>> =
-            e.records.iter().map(|(&p, r)| (p, vec![r.clone()])).collect();
-        // (a platform's first record and its rivals: vet decides among them)
-        for (p, rivals) in &e.rivals {
-            candidates.entry(*p).or_default().extend(rivals.iter().cloned());
-        }
-        let v = super::vetting::vet(candidates);
+        let v = super::vetting::vet(e.candidates());
         self.stats.records_contradicted += v.contradicted.len() as u64;
         self.stats.records_rival += v.rivals.len() as u64;
         v.accepted

@@ -329,10 +329,14 @@ impl Inputs {
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct Output {
-    /// ODOMETRY (frame LOCAL_FRD, child BODY_FRD, as ArduPilot and PX4 fuse it), vehicle time,
-    /// Hz; 0: none.
+    /// ODOMETRY (child frame BODY_FRD, pose frame `odometry_frame`), vehicle time, Hz; 0: none.
     #[serde(default = "default_odometry_rate")]
     pub odometry_rate_hz: f64,
+    /// The ODOMETRY pose frame: `local_frd` for ArduPilot (it refuses any other), `local_ned`
+    /// for PX4 (EKF2 fuses a LOCAL_FRD pose as one of unknown heading: no yaw alignment, no
+    /// global position, no arming; measured on its SIH). Both mean the node's NED axes.
+    #[serde(default)]
+    pub odometry_frame: OdometryFrame,
     /// LOCAL_POSITION_NED after every cooperative update (ground stations show it).
     #[serde(default = "yes")]
     pub local_position_ned: bool,
@@ -352,6 +356,15 @@ pub struct Output {
     pub takeover_source_set: Option<u8>,
 }
 
+/// The pose frame of the ODOMETRY a node sends (see [`Output::odometry_frame`]).
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Deserialize, Serialize)]
+#[serde(rename_all = "snake_case")]
+pub enum OdometryFrame {
+    #[default]
+    LocalFrd,
+    LocalNed,
+}
+
 fn default_odometry_rate() -> f64 {
     20.0
 }
@@ -360,6 +373,7 @@ impl Default for Output {
     fn default() -> Self {
         Output {
             odometry_rate_hz: default_odometry_rate(),
+            odometry_frame: OdometryFrame::LocalFrd,
             local_position_ned: true,
             gps_input_rate_hz: 0.0,
             set_origin: true,

@@ -466,7 +466,7 @@ pub async fn run(
         rates.add("GLOBAL_POSITION_INT", 33, 10.0);
         rates.add("ATTITUDE", 30, 10.0);
     }
-    let mut odometry = OdometryOutput::new(links.profile.output.odometry_rate_hz);
+    let mut odometry = OdometryOutput::new(links.profile.output.odometry_rate_hz, links.profile.output.odometry_frame);
     let lpn = links.profile.output.local_position_ned;
     let mut gps_input = GpsInputOutput::new(links.profile.output.gps_input_rate_hz, links.profile.geo_origin());
     let profile_origin = links.profile.geo_origin();
@@ -637,7 +637,7 @@ pub async fn run(
                     offer.on_ekf_status(m.flags.bits());
                 }
                 if let MavMessage::TIMESYNC(m) = &msg {
-                    match timesync.on_message(m, unix_now_ns(), (header.system_id as u8, header.component_id)) {
+                    match timesync.on_message(m, unix_now_ns(), (header.system_id as u8, header.component_id), decoder.clock_offset_us()) {
                         TimesyncReply::Answer(answer) => to_vehicle(&vehicle, &mut seqs, &recorder, sysid, &MavMessage::TIMESYNC(answer)).await,
                         TimesyncReply::Sample if timesync_wanted => {
                             if let Some((offset_us, rtt_us)) = timesync.offset_us()

@@ -493,13 +493,14 @@ fn upper_triangle(m: &nalgebra::Matrix6<f64>) -> [f32; 21] {
     out
 }
 
-/// The navigation solution as ODOMETRY the way ArduPilot and PX4 fuse it: `frame_id`
-/// LOCAL_FRD (a local frame whose axes are north, east, down: the node's NED frame),
+/// The navigation solution as ODOMETRY the way ArduPilot and PX4 fuse it: `frame_id` the
+/// node's NED frame as the autopilot names it (`ned`: LOCAL_NED, PX4's; else LOCAL_FRD,
+/// ArduPilot's only one, whose axes are the local frame's: north, east, down),
 /// `child_frame_id` BODY_FRD (velocity in the body frame, rotated by `q`), `q` the body
 /// attitude, the pose covariance in (x, y, z, roll, pitch, yaw) (the attitude errors about
 /// N, E, D rotated into roll and pitch about the body's heading), the body velocity's
 /// covariance (angular rates unknown: NaN), stamped `time_usec` in the vehicle's clock.
-pub fn navigation_to_odometry(n: &Navigation, time_usec: u64, reset_counter: u8) -> MavMessage {
+pub fn navigation_to_odometry(n: &Navigation, time_usec: u64, reset_counter: u8, ned: bool) -> MavMessage {
     let r = n.attitude_frd_to_ned.to_rotation_matrix();
     let v_body = r.inverse() * n.velocity_ned_m_s;
     let (_, _, yaw) = n.attitude_frd_to_ned.euler_angles();
@@ -517,7 +518,7 @@ pub fn navigation_to_odometry(n: &Navigation, time_usec: u64, reset_counter: u8)
     let q = n.attitude_frd_to_ned.quaternion();
     MavMessage::ODOMETRY(ODOMETRY_DATA {
         time_usec,
-        frame_id: MavFrame::MAV_FRAME_LOCAL_FRD,
+        frame_id: if ned { MavFrame::MAV_FRAME_LOCAL_NED } else { MavFrame::MAV_FRAME_LOCAL_FRD },
         child_frame_id: MavFrame::MAV_FRAME_BODY_FRD,
         x: n.position_ned_m[0] as f32,
         y: n.position_ned_m[1] as f32,

@@ -14,8 +14,10 @@
 //!
 //! Ranges (COOPLOC_RANGE) are stamped in the vehicle's clock too. What the node sends back is
 //! checked by [`Checker`]: ArduPilot fuses ODOMETRY only with `frame_id` LOCAL_FRD and
-//! `child_frame_id` BODY_FRD; PX4 takes pose frames LOCAL_NED, LOCAL_FRD or LOCAL_FLU with
-//! estimator_type UNKNOWN, NAIVE, VISION or VIO, and falls back to its own noise parameters when
+//! `child_frame_id` BODY_FRD; PX4 takes pose frame LOCAL_NED (its EKF2 fuses a LOCAL_FRD or
+//! LOCAL_FLU pose as one of unknown heading: no yaw alignment, no global position, no arming,
+//! measured on its SIH; the personality counts it as ignored) with estimator_type UNKNOWN,
+//! NAIVE, VISION or VIO, and falls back to its own noise parameters when
 //! the pose covariance's diagonal is not finite. Both need a finite position and a unit
 //! quaternion. Each ignored message is counted with its reason, and the rate of the accepted ones
 //! is measured in the vehicle's clock.
@@ -260,9 +262,8 @@ impl Personality {
             pose_covariance: nalgebra::Matrix6::from_element(f64::NAN),
             velocity_covariance_ned: nalgebra::Matrix3::from_element(f64::NAN),
         };
-        let mut m = wire::navigation_to_odometry(&nav, self.clock_us(truth.t), 0);
+        let mut m = wire::navigation_to_odometry(&nav, self.clock_us(truth.t), 0, true);
         if let MavMessage::ODOMETRY(o) = &mut m {
-            o.frame_id = MavFrame::MAV_FRAME_LOCAL_NED;
             o.estimator_type = MavEstimatorType::MAV_ESTIMATOR_TYPE_AUTOPILOT;
         }
         m
@@ -341,8 +342,12 @@ impl Checker {
             Autopilot::Px4 => {
                 use MavEstimatorType::*;
                 use MavFrame::*;
-                if !matches!(m.frame_id, MAV_FRAME_LOCAL_NED | MAV_FRAME_LOCAL_FRD | MAV_FRAME_LOCAL_FLU) {
-                    Some("pose frame_id not LOCAL_NED, LOCAL_FRD or LOCAL_FLU")
+                if matches!(m.frame_id, MAV_FRAME_LOCAL_FRD | MAV_FRAME_LOCAL_FLU) {
+                    Some(
+                        "pose frame_id LOCAL_FRD or LOCAL_FLU: EKF2 fuses it without a heading reference (no yaw, no global position)",
+                    )
+                } else if m.frame_id != MAV_FRAME_LOCAL_NED {
+                    Some("pose frame_id not LOCAL_NED")
                 } else if !matches!(
                     m.estimator_type,
                     MAV_ESTIMATOR_TYPE_UNKNOWN | MAV_ESTIMATOR_TYPE_NAIVE | MAV_ESTIMATOR_TYPE_VISION | MAV_ESTIMATOR_TYPE_VIO
@@ -503,20 +508,22 @@ mod tests {
 
     #[test]
     fn the_nodes_odometry_passes_both_autopilots_and_wrong_frames_do_not() {
-        let MavMessage::ODOMETRY(good) = wire::navigation_to_odometry(&nav(), 5_000_000, 0) else { panic!() };
-        for ap in [Autopilot::ArduPilot, Autopilot::Px4] {
+        // each autopilot's profile frame: ArduPilot LOCAL_FRD, PX4 LOCAL_NED (the same axes)
+        let MavMessage::ODOMETRY(frd) = wire::navigation_to_odometry(&nav(), 5_000_000, 0, false) else { panic!() };
+        let MavMessage::ODOMETRY(good) = wire::navigation_to_odometry(&nav(), 5_000_000, 0, true) else { panic!() };
+        for (ap, m) in [(Autopilot::ArduPilot, &frd), (Autopilot::Px4, &good)] {
             let mut c = Checker::default();
-            c.check(ap, &good, 5_000_000);
+            c.check(ap, m, 5_000_000);
             assert_eq!((c.accepted, c.ignored.len(), c.without_covariance, c.off_clock), (1, 0, 0, 0), "{ap:?}");
         }
-        // the simulator's own ODOMETRY convention (LOCAL_NED pose): PX4 takes it, ArduPilot does not
-        let mut ned = good.clone();
-        ned.frame_id = MavFrame::MAV_FRAME_LOCAL_NED;
+        // the other way round, neither: ArduPilot takes LOCAL_FRD only, PX4's EKF2 has no
+        // heading from a LOCAL_FRD pose (measured on its SIH)
         let mut c = Checker::default();
-        c.check(Autopilot::ArduPilot, &ned, 5_000_000);
-        c.check(Autopilot::Px4, &ned, 5_000_000);
-        assert_eq!(c.accepted, 1);
-        assert_eq!(c.ignored.values().sum::<u64>(), 1);
+        c.check(Autopilot::ArduPilot, &good, 5_000_000);
+        c.check(Autopilot::Px4, &frd, 5_000_000);
+        assert_eq!(c.accepted, 0);
+        assert_eq!(c.ignored.values().sum::<u64>(), 2);
+        assert!(c.ignored.keys().any(|r| r.contains("heading")), "{:?}", c.ignored);
         // an estimator PX4 routes elsewhere, a NaN position, a timestamp in another clock
         let mut mocap = good.clone();
         mocap.estimator_type = MavEstimatorType::MAV_ESTIMATOR_TYPE_MOCAP;

@@ -25,7 +25,7 @@ KIND: ardupilot  RAW_IMU (int16 mG / mrad/s, the latest sample, time_usec since 
 The vehicle drives straight north at 2 m/s on level ground for 10 s (at 10x real time), the node
 starting at rest: only a working odometer gets it to 20 m. Binds 127.0.0.1:0, prints
 "port N", waits for the node's HEARTBEAT, answers its SET_MESSAGE_INTERVAL requests with
-COMMAND_ACK, and checks the ODOMETRY the node sends back. Prints one JSON line at the end.
+COMMAND_ACK, and checks the ODOMETRY the node sends back (pose frame LOCAL_FRD, PX4 LOCAL_NED). Prints one JSON line at the end.
 """
 import hashlib
 import json
@@ -94,7 +94,10 @@ def main():
                     m.command_ack_send(msg.command, result)
                 elif t == "ODOMETRY":
                     report["odometry"] += 1
-                    if msg.frame_id != mav.MAV_FRAME_LOCAL_FRD or msg.child_frame_id != mav.MAV_FRAME_BODY_FRD:
+                    # ArduPilot takes a LOCAL_FRD pose only; PX4's EKF2 has no heading from one
+                    # (measured on its SIH): its profile names the same axes LOCAL_NED
+                    pose = mav.MAV_FRAME_LOCAL_NED if kind == "px4" else mav.MAV_FRAME_LOCAL_FRD
+                    if msg.frame_id != pose or msg.child_frame_id != mav.MAV_FRAME_BODY_FRD:
                         report["bad_frames"].append([msg.frame_id, msg.child_frame_id])
                     report["odometry_times"].append(msg.time_usec)
                     report["odometry_n"].append(msg.x)

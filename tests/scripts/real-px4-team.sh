@@ -5,17 +5,17 @@
 #
 #   bash tests/scripts/real-px4-team.sh /path/to/PX4-Autopilot/build/px4_sitl_sih/bin/px4 [SETUP...]
 #
-# SETUP: nognss (the default and, for now, the only one: gnss-lost is not implemented for PX4). Each
-# run takes about 4 minutes of real time (three SIH instances at 1x, three nodes); results go to $OUT
-# (default /tmp/real-px4-team). Needs pymavlink (tests/requirements.txt; COOPLOC_PYTHON names the
-# interpreter) and a cooploc binary (COOPLOC_BIN, default target/release/cooploc: cargo build --release).
+# SETUP: nognss, gnss-lost (default: both). Each run takes about 4 minutes of real time (three SIH
+# instances at 1x, three nodes); results go to $OUT (default /tmp/real-px4-team). Needs pymavlink
+# (tests/requirements.txt; COOPLOC_PYTHON names the interpreter) and a cooploc binary (COOPLOC_BIN,
+# default target/release/cooploc: cargo build --release).
 set -euo pipefail
 here="$(cd "$(dirname "$0")" && pwd)"
 root="$(cd "$here/../.." && pwd)"
 px4="${1:?usage: real-px4-team.sh PX4_BINARY [SETUP...]}"
 shift
 setups=("$@")
-[ ${#setups[@]} -gt 0 ] || setups=(nognss)
+[ ${#setups[@]} -gt 0 ] || setups=(nognss gnss-lost)
 py="${COOPLOC_PYTHON:-python3}"
 out="${OUT:-/tmp/real-px4-team}"
 cooploc="${COOPLOC_BIN:-$root/target/release/cooploc}"
@@ -23,10 +23,6 @@ mkdir -p "$out"
 [ -x "$cooploc" ] || { echo "error: build cooploc first (cargo build --release) or name it in COOPLOC_BIN" >&2; exit 1; }
 "$cooploc" --version 2>/dev/null || true
 for setup in "${setups[@]}"; do
-  if [ "$setup" != nognss ]; then
-    echo "==> $setup: not implemented for PX4"
-    continue
-  fi
   for method in dcl dr alone; do
     echo "==> $setup $method"
     "$py" "$here/real_px4_team.py" --px4 "$px4" --cooploc "$cooploc" --setup "$setup" --method "$method" \
@@ -58,9 +54,10 @@ for s in setups:
     for m in ("dcl", "dr"):
         if m in runs:
             figs = [r.get("node", {}) for r in runs[m]["rovers"]]
-            print("%s %s nodes: epochs applied %s, partial %s, skipped %s, disagreements %s" % (
+            print("%s %s nodes: epochs applied %s, partial %s, skipped %s, disagreements %s, vehicle_lost %s" % (
                 s, m, [f.get("epochs_applied") for f in figs], [f.get("epochs_partial") for f in figs],
-                [f.get("epochs_skipped") for f in figs], [f.get("epoch_disagreements") for f in figs]))
+                [f.get("epochs_skipped") for f in figs], [f.get("epoch_disagreements") for f in figs],
+                [f.get("vehicle_lost") for f in figs]))
             print("%s %s nodes' own estimate RMS (m): %s; ranges gated %s" % (
                 s, m, ["%.2f" % r.get("node_own_rms_m", float("nan")) for r in runs[m]["rovers"]], [f.get("ranges_gated") for f in figs]))
     for m in ("dcl", "dr", "alone"):

@@ -50,8 +50,9 @@ import time
 os.environ["MAVLINK20"] = "1"
 from pymavlink import mavutil  # noqa: E402
 
+from real_team_common import free_udp_port, geo_to_ned, ned_to_geo, until  # noqa: E402
+
 ORIGIN = (-35.363261, 149.165230, 584.0)  # ArduPilot's SITL home (CMAC), the team's origin
-M_PER_DEG_LAT = math.pi / 180.0 * 6378137.0
 RANGE_SIGMA_M = 0.1  # the paper's Table 1
 GNSS_LOSS_S = 60.0  # into the mission, set-up gnss-lost
 # Each rover: start (north, east, m), heading (deg), its rectangle (north, east sides, m, signed:
@@ -65,22 +66,7 @@ ROVERS = [
 LAPS = {"nognss": 2, "gnss-lost": 3}
 
 
-def ned_to_geo(n, e):
-    lat = ORIGIN[0] + n / M_PER_DEG_LAT
-    lon = ORIGIN[1] + e / (M_PER_DEG_LAT * math.cos(math.radians(ORIGIN[0])))
-    return lat, lon
 
-
-def geo_to_ned(lat, lon):
-    return ((lat - ORIGIN[0]) * M_PER_DEG_LAT, (lon - ORIGIN[1]) * M_PER_DEG_LAT * math.cos(math.radians(ORIGIN[0])))
-
-
-def free_udp_port():
-    s = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-    s.bind(("127.0.0.1", 0))
-    port = s.getsockname()[1]
-    s.close()
-    return port
 
 
 def params_for(i, setup, method):
@@ -179,13 +165,13 @@ class Rover:
                 continue
             with self.lock:
                 if ty == "SIMSTATE":
-                    n, e = geo_to_ned(m.lat * 1e-7, m.lng * 1e-7)
+                    n, e = geo_to_ned(ORIGIN, m.lat * 1e-7, m.lng * 1e-7)
                     self.truth.append((now, n, e, 0.0))
                 elif ty == "GLOBAL_POSITION_INT":
                     # EKF3's estimate as latitude and longitude: each rover's EKF has its own
                     # origin when it had GNSS, so its local frame is not the team's
                     if m.lat != 0 or m.lon != 0:
-                        n, e = geo_to_ned(m.lat * 1e-7, m.lon * 1e-7)
+                        n, e = geo_to_ned(ORIGIN, m.lat * 1e-7, m.lon * 1e-7)
                         self.ekf.append((now, n, e))
                 elif ty == "EKF_STATUS_REPORT":
                     if m.flags != self.ekf_flags:
@@ -245,7 +231,7 @@ class Rover:
             while self.mission_requests:
                 seq = self.mission_requests.pop(0)
                 n, e = items[seq]
-                lat, lon = ned_to_geo(n, e)
+                lat, lon = ned_to_geo(ORIGIN, n, e)
                 self.conn.mav.mission_item_int_send(self.sysid, 1, seq, 6, 16, 0, 1, 0, 0, 0, 0,
                                                     int(round(lat * 1e7)), int(round(lon * 1e7)), 0.0, 0)
                 sent.add(seq)
@@ -263,18 +249,6 @@ class Rover:
     def set_param(self, name, value):
         self.conn.mav.param_set_send(self.sysid, 1, name.encode(), float(value), 9)
 
-
-def until(rovers, done, act, timeout_s, what, every_s=1.0):
-    """Calls act(rover) on each rover not done(rover), every every_s, until all are done; an
-    error naming `what` after timeout_s."""
-    t0 = time.time()
-    while not all(done(rv) for rv in rovers):
-        if time.time() - t0 > timeout_s:
-            raise RuntimeError("%s: not after %d s" % (what, timeout_s))
-        for rv in rovers:
-            if not done(rv):
-                act(rv, time.time() - t0)
-        time.sleep(every_s)
 
 
 def mission_for(i, laps):
@@ -331,7 +305,7 @@ def main():
             with open(os.path.join(d, "extra.parm"), "w") as f:
                 for k, v in params_for(i, args.setup, args.method).items():
                     f.write("%s %s\n" % (k, v))
-            lat, lon = ned_to_geo(*r["start"])
+            lat, lon = ned_to_geo(ORIGIN, *r["start"])
             spawn([ardurover, "--model", "rover", "--speedup", "1", "-I%d" % i, "--sysid", str(i + 1),
                    "--home", "%.8f,%.8f,%.1f,%.1f" % (lat, lon, ORIGIN[2], r["heading"]),
                    "--defaults", "%s,%s" % (defaults, os.path.join(d, "extra.parm"))], d, "sitl%d.out" % (i + 1))
@@ -383,7 +357,7 @@ def main():
             if waited_s > 3:
                 # its start, surveyed (as the nodes' init_ned): "current location" needs a
                 # position EKF3 alone keeps only half the time at rest
-                lat, lon = ned_to_geo(*ROVERS[rv.i]["start"])
+                lat, lon = ned_to_geo(ORIGIN, *ROVERS[rv.i]["start"])
                 rv.conn.mav.command_int_send(rv.sysid, 1, 0, 179, 0, 0, 0, 0, 0, 0,
                                              int(round(lat * 1e7)), int(round(lon * 1e7)), ORIGIN[2])
         until(rovers, lambda rv: rv.home, ask_or_set_home, 60, "a home")

@@ -15,7 +15,10 @@ error of PX4's own EKF2 estimate (GLOBAL_POSITION_INT) against SIH's truth
 - Set-ups: `nognss`: no GNSS from power-on (SENS_EN_GPSSIM 0, SYS_HAS_GPS 0, EKF2_GPS_CTRL 0),
   no compass (SENS_EN_MAGSIM 0, SYS_HAS_MAG 0, EKF2_MAG_TYPE 5); the team's origin goes to each
   EKF2 by SET_GPS_GLOBAL_ORIGIN (see --origin) and each node starts from its rover's known
-  start pose. `gnss-lost` is not implemented for PX4.
+  start pose. `gnss-lost`: GNSS and a compass until 60 s into the mission, then SIM_GPS_USED 0
+  (SIH's receiver reports no fix) and EKF2's magnetometer fusion off (VEHICLE_CMD_ESTIMATOR_SENSOR_ENABLE);
+  each node starts from PX4's estimate then (`init_from_autopilot`); PX4 has no source sets, so
+  EKF2 simply fuses the node's ODOMETRY once it comes. Three laps.
 - Methods: `dcl` and `dr` (cooploc nodes; EKF2 fuses their ODOMETRY as external vision:
   EKF2_EV_CTRL 13 = horizontal position, velocity, yaw), `alone` (no cooploc: EKF2 fuses the SAME
   emulated wheel odometry as an external-vision body-frame velocity, EKF2_EV_CTRL 4, and its IMU).
@@ -34,17 +37,21 @@ error of PX4's own EKF2 estimate (GLOBAL_POSITION_INT) against SIH's truth
 - Ranges: one per pair of rovers per second (on the team's 1 s grid of Unix time), measured by
   the lower id's radio, from SIH's truth (interpolated to the epoch's instant) plus N(0, 0.1 m),
   sent to that rover's node (`--ranges`), exactly as real_ardupilot_team.py does.
-- Missions in AUTO.MISSION: each rover drives its own rectangle twice (>= 300 m without GNSS).
+- Missions in AUTO.MISSION: each rover drives its own rectangle twice, three times when GNSS goes
+  at 60 s (>= 300 m without GNSS either way).
 - Scored: EKF2's GLOBAL_POSITION_INT (20 Hz) against the truth interpolated at its time_boot_ms
-  (both PX4's simulated clock), horizontal, from the mission start to its end.
+  (both PX4's simulated clock), horizontal, from the mission start (or the GNSS loss) to its end.
 
 What PX4 did that the project's PX4 assumptions (sitl/vehicles/px4-rover.toml, the node) had not,
-and what the driver does about it (each has an option to turn the workaround off):
+and what the driver does about it (each has an option to turn the workaround off, or, for the two
+fixed in the node, back on):
 
-- The node's ODOMETRY says frame_id LOCAL_FRD. EKF2 fuses it (EV position, velocity and yaw) but
-  takes an FRD pose as a frame of unknown heading (ev_yaw_control.cpp: yaw_align = false): no
-  heading reference, no global position, no arming ("Preflight Fail: no heading reference"). The
-  relay rewrites frame_id to LOCAL_NED (the node's frame is north-east-down) (--odometry-frame).
+- Fixed in the node: before the node named the frame per profile, its ODOMETRY said frame_id
+  LOCAL_FRD. EKF2 fused it (EV position, velocity and yaw) but took an FRD pose as a frame of
+  unknown heading (ev_yaw_control.cpp: yaw_align = false): no heading reference, no global
+  position, no arming ("Preflight Fail: no heading reference"), and the relay rewrote frame_id to
+  LOCAL_NED. The node now sends LOCAL_NED where the profile says `odometry_frame = "local_ned"`
+  (px4-sih-rover.toml does); --odometry-frame ned keeps the old rewrite (default: as-sent).
 - PX4's HIGHRES_IMU has EKF2's IMU bias estimates taken out. EKF2 fusing the node's ODOMETRY
   learns the node's errors as biases and hands them back in the node's IMU: EKF2_IMU_CTRL 4 (no
   bias estimation) for dcl and dr (--ekf2-bias).
@@ -52,16 +59,19 @@ and what the driver does about it (each has an option to turn the workaround off
   PX4_SIM_SPEED_FACTOR 1 (its lockstep sleeps a little long each 4 ms step); the node's TIMESYNC
   mapping (the fastest of 16 answers) then lags by up to ~0.1 s, ranges are gated and records
   contradicted. PX4_SIM_SPEED_FACTOR 1.008 runs it at 1.000x on this machine (--sim-speed).
-- PX4 converges its own TIMESYNC with the companion after 500 answers and then takes ODOMETRY's
-  time_usec as the companion's clock; the node answers in Unix time but stamps ODOMETRY in PX4's
-  boot time. The relay withholds PX4's TIMESYNC requests from the node (--px4-timesync).
+- Fixed in the node: PX4 converges its own TIMESYNC with the companion after 500 answers and then
+  takes ODOMETRY's time_usec as the companion's clock. Before the node answered in PX4's clock, it
+  answered PX4's requests in Unix time but stamped ODOMETRY in PX4's boot time, and the relay
+  withheld PX4's TIMESYNC requests from the node. The node now answers them in PX4's boot clock
+  (by its mapping), and not at all before it has one; --px4-timesync drop keeps the old
+  withholding (default: pass).
 - PX4 alone (no compass, no GNSS, a velocity-only odometry) has no heading and no position: the
   driver gives its surveyed start heading (MAV_CMD_EXTERNAL_ATTITUDE_ESTIMATE) and position
   (MAV_CMD_EXTERNAL_POSITION_ESTIMATE); an origin alone leaves EKF2's global position near
   latitude 0, longitude 0 (EKF2 keeps a global position state of its own).
 
-usage: real_px4_team.py --px4 PATH --setup nognss --method dcl|dr|alone [--out DIR] [--cooploc PATH]
-       [--origin driver|node] [--px4-timesync drop|pass] [--odometry-frame ned|as-sent]
+usage: real_px4_team.py --px4 PATH --setup nognss|gnss-lost --method dcl|dr|alone [--out DIR] [--cooploc PATH]
+       [--origin driver|node] [--px4-timesync pass|drop] [--odometry-frame as-sent|ned]
        [--ekf2-bias off|on] [--sim-speed F] [--seed N] [--json FILE]
 """
 import argparse
@@ -84,10 +94,11 @@ import time
 
 os.environ["MAVLINK20"] = "1"
 from pymavlink import mavutil  # noqa: E402
+
+from real_team_common import free_udp_port, geo_to_ned, ned_to_geo, until  # noqa: E402
 from pymavlink.dialects.v20 import common as mavlink2  # noqa: E402
 
 ORIGIN = (47.397742, 8.545594, 488.0)  # PX4 SITL's default home (Zurich), the team's origin (px4-rover.toml)
-M_PER_DEG_LAT = math.pi / 180.0 * 6378137.0
 RANGE_SIGMA_M = 0.1  # the paper's Table 1
 ODOM_SIGMA_M_S = 0.05  # the emulated wheel odometry's white noise
 ODOM_COMPID = 197  # MAV_COMP_ID_VISUAL_INERTIAL_ODOMETRY: the wheel-odometry component
@@ -98,26 +109,12 @@ ROVERS = [
     dict(start=(0.0, 30.0), heading=0.0, rect=(60.0, -25.0), scale=-0.015),
     dict(start=(-10.0, 60.0), heading=0.0, rect=(70.0, 25.0), scale=0.01),
 ]
-LAPS = 2
+LAPS = {"nognss": 2, "gnss-lost": 3}  # the GNSS-less part >= 300 m (with GNSS lost at 60 s, a third lap)
+GNSS_LOSS_S = 60.0  # into the mission, set-up gnss-lost
 PX4_AUTO, PX4_AUTO_MISSION, PX4_AUTO_LOITER = 4, 4, 3
 
 
-def ned_to_geo(n, e):
-    lat = ORIGIN[0] + n / M_PER_DEG_LAT
-    lon = ORIGIN[1] + e / (M_PER_DEG_LAT * math.cos(math.radians(ORIGIN[0])))
-    return lat, lon
 
-
-def geo_to_ned(lat, lon):
-    return ((lat - ORIGIN[0]) * M_PER_DEG_LAT, (lon - ORIGIN[1]) * M_PER_DEG_LAT * math.cos(math.radians(ORIGIN[0])))
-
-
-def free_udp_port():
-    s = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-    s.bind(("127.0.0.1", 0))
-    port = s.getsockname()[1]
-    s.close()
-    return port
 
 
 def params_for(i, setup, method, ekf2_bias=False):
@@ -126,11 +123,18 @@ def params_for(i, setup, method, ekf2_bias=False):
         "SENS_EN_GPSSIM": 0, "SYS_HAS_GPS": 0, "EKF2_GPS_CTRL": 0,
         # no compass on either side
         "SENS_EN_MAGSIM": 0, "SYS_HAS_MAG": 0, "EKF2_MAG_TYPE": 5,
+    } if setup == "nognss" else {
+        # GNSS (SIH's simulated receiver) and a compass for its yaw until the loss; at the loss the
+        # driver sets SIM_GPS_USED 0 (no fix) and turns EKF2's magnetometer fusion off
+        # (VEHICLE_CMD_ESTIMATOR_SENSOR_ENABLE): the scored part uses neither
+        "EKF2_MAG_TYPE": 0,
+    }
+    p.update({
         # height from the barometer (all methods alike)
         "EKF2_HGT_REF": 1,
         # the rectangles' corners taken at speed (as ArduPilot's WP_RADIUS 2)
         "NAV_ACC_RAD": 2.0,
-    }
+    })
     if method == "alone":
         p["EKF2_EV_CTRL"] = 4  # external vision: velocity only (the wheel odometry)
     else:
@@ -286,7 +290,7 @@ class Rover:
             if m is None:
                 continue
             now = time.time()
-            n, e = geo_to_ned(m.lat * 1e-7, m.lon * 1e-7)
+            n, e = geo_to_ned(ORIGIN, m.lat * 1e-7, m.lon * 1e-7)
             t = m.time_usec * 1e-6
             with self.lock:
                 self.truth.append((t, n, e))
@@ -326,7 +330,7 @@ class Rover:
             with self.lock:
                 if ty == "GLOBAL_POSITION_INT":
                     if m.lat != 0 or m.lon != 0:
-                        n, e = geo_to_ned(m.lat * 1e-7, m.lon * 1e-7)
+                        n, e = geo_to_ned(ORIGIN, m.lat * 1e-7, m.lon * 1e-7)
                         self.ekf.append((m.time_boot_ms * 1e-3, n, e))
                 elif ty == "ESTIMATOR_STATUS":
                     if self.est_flags is None or (m.flags ^ self.est_flags) & ~0x40:
@@ -375,7 +379,7 @@ class Rover:
         while self.mission_ack is None and time.time() < deadline:
             while self.mission_requests:
                 seq = self.mission_requests.pop(0)
-                lat, lon = ned_to_geo(*waypoints[seq])
+                lat, lon = ned_to_geo(ORIGIN, *waypoints[seq])
                 self.conn.mav.mission_item_int_send(self.sysid, 1, seq, 6, 16, 0, 1, 0, 0, 0, float("nan"),
                                                     int(round(lat * 1e7)), int(round(lon * 1e7)), 0.0, 0)
             time.sleep(0.02)
@@ -385,26 +389,19 @@ class Rover:
     def set_origin(self, own_start=False):
         """The team's origin, or (PX4 alone) the rover's own surveyed start: EKF2's local position
         starts at 0, 0, so its origin is where it stands."""
-        lat, lon = ned_to_geo(*ROVERS[self.i]["start"]) if own_start else ORIGIN[:2]
+        lat, lon = ned_to_geo(ORIGIN, *ROVERS[self.i]["start"]) if own_start else ORIGIN[:2]
         self.conn.mav.set_gps_global_origin_send(self.sysid, int(round(lat * 1e7)), int(round(lon * 1e7)), int(ORIGIN[2] * 1e3), 0)
+
+
+SETUP = "nognss"
 
 
 def mission_for(i):
     r = ROVERS[i]
     n0, e0 = r["start"]
     dn, de = r["rect"]
-    return [(n0 + dn, e0), (n0 + dn, e0 + de), (n0, e0 + de), (n0, e0)] * LAPS
+    return [(n0 + dn, e0), (n0 + dn, e0 + de), (n0, e0 + de), (n0, e0)] * LAPS[SETUP]
 
-
-def until(rovers, done, act, timeout_s, what, every_s=1.0):
-    t0 = time.time()
-    while not all(done(rv) for rv in rovers):
-        if time.time() - t0 > timeout_s:
-            raise RuntimeError("%s: not after %d s" % (what, timeout_s))
-        for rv in rovers:
-            if not done(rv):
-                act(rv, time.time() - t0)
-        time.sleep(every_s)
 
 
 def ulog_fusion(px4_dir, from_s):
@@ -457,14 +454,16 @@ def main():
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--px4", required=True, help="PX4's SIH SITL binary (build/px4_sitl_sih/bin/px4)")
     ap.add_argument("--cooploc", default=None, help="the cooploc binary (default: target/release/cooploc)")
-    ap.add_argument("--setup", choices=["nognss"], required=True)
+    ap.add_argument("--setup", choices=["nognss", "gnss-lost"], required=True)
     ap.add_argument("--method", choices=["dcl", "dr", "alone"], required=True)
     ap.add_argument("--origin", choices=["driver", "node"], default="driver",
                     help="who gives EKF2 the team's origin: the driver before any odometry (default), or the node's own offer")
-    ap.add_argument("--px4-timesync", choices=["drop", "pass"], default="drop",
-                    help="PX4's own TIMESYNC requests to the node: withheld (default) or passed")
-    ap.add_argument("--odometry-frame", choices=["ned", "as-sent"], default="ned",
-                    help="the node's ODOMETRY frame_id on its way to PX4: rewritten LOCAL_FRD -> LOCAL_NED (default), or as the node sends it")
+    ap.add_argument("--px4-timesync", choices=["pass", "drop"], default="pass",
+                    help="PX4's own TIMESYNC requests to the node: passed (default; the node answers in PX4's boot clock) "
+                         "or withheld (the old workaround, from before the node did)")
+    ap.add_argument("--odometry-frame", choices=["as-sent", "ned"], default="as-sent",
+                    help="the node's ODOMETRY frame_id on its way to PX4: as the node sends it (default; LOCAL_NED per the "
+                         "profile), or rewritten LOCAL_FRD -> LOCAL_NED (the old workaround)")
     ap.add_argument("--sim-speed", type=float, default=1.008,
                     help="PX4_SIM_SPEED_FACTOR: SIH's lockstep sleeps a little long each 4 ms step and runs ~0.8 %% slow "
                          "on a 1.0; a slow simulated clock drifts from the companion's (see the docstring)")
@@ -475,6 +474,8 @@ def main():
     ap.add_argument("--json", default=None, help="write the result here too")
     ap.add_argument("--timeout-s", type=float, default=420.0, help="give up on the mission after this long")
     args = ap.parse_args()
+    global SETUP
+    SETUP = args.setup
     # Ctrl-C and a plain kill end the run cleanly (a background job starts with SIGINT ignored)
     signal.signal(signal.SIGINT, signal.default_int_handler)
     signal.signal(signal.SIGTERM, signal.default_int_handler)
@@ -514,7 +515,7 @@ def main():
             d = os.path.join(out, "r%d" % (i + 1))
             os.makedirs(os.path.join(d, "px4"))
             env = dict(os.environ, PX4_SYS_AUTOSTART="10045", PX4_SIMULATOR="sihsim", PX4_SIM_MODEL="sihsim_rover_ackermann")
-            lat, lon = ned_to_geo(*r["start"])
+            lat, lon = ned_to_geo(ORIGIN, *r["start"])
             if args.sim_speed != 1.0:
                 env["PX4_SIM_SPEED_FACTOR"] = "%g" % args.sim_speed
             env.update(PX4_HOME_LAT="%.8f" % lat, PX4_HOME_LON="%.8f" % lon, PX4_HOME_ALT="%.1f" % ORIGIN[2],
@@ -526,7 +527,7 @@ def main():
         rovers = [Rover(i, log, random.Random(args.seed * 100 + i)) for i in range(len(ROVERS))]
         for rv in rovers:
             rv.say("connected")
-        if args.origin == "driver" or args.method == "alone":
+        if args.setup == "nognss" and (args.origin == "driver" or args.method == "alone"):
             # the team's origin first, before any odometry reaches EKF2
             until(rovers, lambda rv: rv.origin is not None,
                   lambda rv, _: (rv.set_origin(), rv.cmd(512, 49)), 60, "the origin", every_s=1.0)
@@ -542,9 +543,14 @@ def main():
                             'method = "%s"\ncoop_bind = "127.0.0.1:%d"\npeer = [%s]\nteam_key = "%s"\n'
                             'ranges = "udpin:127.0.0.1:%d"\nrange_grace_ms = 300\n'
                             'log = "node.mcap"\nidle_exit_s = 3.0\n'
-                            'init_ned = [%.3f, %.3f, 0.0]\ninit_rpy_deg = [0.0, 0.0, %.1f]\n'
-                            % (i + 1, node_ports[i], profile, args.method, coop_ports[i], peers, key, range_ports[i],
-                               r["start"][0], r["start"][1], r["heading"]))
+                            % (i + 1, node_ports[i], profile, args.method, coop_ports[i], peers, key, range_ports[i]))
+                    if args.setup == "nognss":
+                        # a known start pose (surveyed, as the paper's platforms start)
+                        f.write("init_ned = [%.3f, %.3f, 0.0]\ninit_rpy_deg = [0.0, 0.0, %.1f]\n" % (r["start"][0], r["start"][1], r["heading"]))
+                    else:
+                        # the hand-over start: from PX4's estimate when its GNSS fix goes (PX4 has no EKF
+                        # source sets: EKF2 takes the node's ODOMETRY as soon as it comes)
+                        f.write("init_from_autopilot = true\n")
                 nodes_started.append(spawn([cooploc, "node", "--config", "node.toml"], d, "node%d.out" % (i + 1)))
         else:
             for rv in rovers:
@@ -553,7 +559,7 @@ def main():
         # wait for the origin and a global position
         def ask(rv, waited):
             rv.cmd(512, 49)
-            if args.method == "alone" and waited > 3:
+            if args.method == "alone" and args.setup == "nognss" and waited > 3:
                 # PX4 alone has no heading source (no compass, no GNSS, a velocity-only odometry): EKF2
                 # never declares its yaw aligned, gives no global position and refuses to arm ("no
                 # heading reference"). Its surveyed start heading, as the nodes get theirs
@@ -563,7 +569,7 @@ def main():
                 # origin set before any position aiding leaves near latitude 0, longitude 0 (EKF2
                 # alone on a velocity gets no position reset; MAV_CMD_EXTERNAL_POSITION_ESTIMATE,
                 # 43003, as COMMAND_INT: accuracy 0.5 m = the node's position_sigma_m)
-                lat, lon = ned_to_geo(*ROVERS[rv.i]["start"])
+                lat, lon = ned_to_geo(ORIGIN, *ROVERS[rv.i]["start"])
                 rv.conn.mav.command_int_send(rv.sysid, 1, 0, 43003, 0, 0, 0, 0, 0.5, 0,
                                              int(round(lat * 1e7)), int(round(lon * 1e7)), ORIGIN[2])
         until(rovers, lambda rv: rv.origin is not None and len(rv.ekf) > 0 and math.dist(rv.ekf[-1][1:], ROVERS[rv.i]["start"]) < 5.0,
@@ -586,11 +592,21 @@ def main():
         # the range emulator, on the team's 1 s grid of Unix time, until every mission is over
         dev = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
         epochs = 0
+        gnss_lost_at = start + GNSS_LOSS_S if args.setup == "gnss-lost" else start
+        gnss_off = args.setup == "nognss"
+        lost_sim = list(start_sim)
         done_at = None
         next_epoch = math.floor(time.time()) + 1
         n_items = len(mission_for(0))
         while True:
             now = time.time()
+            if not gnss_off and now >= gnss_lost_at:
+                for k, rv in enumerate(rovers):
+                    rv.conn.mav.param_set_send(rv.sysid, 1, b"SIM_GPS_USED", 0.0, 6)  # no satellites: no fix
+                    rv.cmd(43006, 6, 0, 0)  # EKF2: magnetometer fusion off
+                    lost_sim[k] = rv.truth[-1][0]
+                    rv.say("GNSS lost (SIM_GPS_USED 0), compass fusion off")
+                gnss_off = True
             if now >= next_epoch + 0.06:
                 t = next_epoch
                 next_epoch += 1
@@ -620,8 +636,8 @@ def main():
                   "epochs_ranged": epochs, "rovers": []}
         for k, rv in enumerate(rovers):
             with rv.lock:
-                ekf = [x for x in rv.ekf if x[0] >= start_sim[k]]
-                truth = [x for x in rv.truth if x[0] >= start_sim[k]]
+                ekf = [x for x in rv.ekf if x[0] >= lost_sim[k]]
+                truth = [x for x in rv.truth if x[0] >= lost_sim[k]]
             errs = []
             for (t, n, e) in ekf:
                 p = rv.truth_at(t)
@@ -630,12 +646,12 @@ def main():
             path = sum(math.hypot(b[1] - a[1], b[2] - a[2]) for a, b in zip(truth, truth[1:]))
             rms = math.sqrt(sum(x * x for x in errs) / len(errs)) if errs else float("nan")
             with rv.lock:
-                k0 = bisect.bisect_left(rv.truth, (start_sim[k],))
+                k0 = bisect.bisect_left(rv.truth, (lost_sim[k],))
                 (s0, s1), (w0, w1) = (rv.truth[k0][0], rv.truth[-1][0]), (rv.truth_wall[k0][0], rv.truth_wall[-1][0])
             rtf = (s1 - s0) / (w1 - w0) if w1 > w0 else float("nan")  # PX4's simulated time against real time
             node_errs = []
             if k < len(relays):
-                for (t, n, e) in [x for x in relays[k].node_est if x[0] >= start_sim[k]]:
+                for (t, n, e) in [x for x in relays[k].node_est if x[0] >= lost_sim[k]]:
                     p = rv.truth_at(t)
                     if p is not None:
                         node_errs.append(math.hypot(n - p[0], e - p[1]))
@@ -646,7 +662,7 @@ def main():
             result["rovers"].append({"sysid": rv.sysid, "path_m": path, "rms_m": rms, "final_m": errs[-1] if errs else float("nan"),
                                      "max_m": max(errs) if errs else float("nan"), "samples": len(errs),
                                      "node_own_rms_m": node_rms, "node_own_final_m": node_errs[-1] if node_errs else float("nan"),
-                                     "sim_rate": rtf, "start_s": start_sim[k],
+                                     "sim_rate": rtf, "start_s": lost_sim[k],
                                      "estimator_flags": ["0x%04x" % f for f in flags], "odometry_sent": rv.odom_sent,
                                      "mission_state": rv.mission_state, "texts": rv.texts[-20:]})
             rv.say("%s %s: %.0f m without GNSS, EKF2 error RMS %.2f m, final %.2f m (%d samples); node's own RMS %.2f m; sim %.3fx real time"

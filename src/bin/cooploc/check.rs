@@ -105,7 +105,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
                 survey.frame(h, msg.as_ref(), f.message_id, f.signed, wall_us);
                 if let Some(MavMessage::TIMESYNC(m)) = &msg
                     && h.system_id == u32::from(args.id)
-                    && let TimesyncReply::Sample = sync.on_message(m, unix_now_ns(), (h.system_id as u8, h.component_id))
+                    && let TimesyncReply::Sample = sync.on_message(m, unix_now_ns(), (h.system_id as u8, h.component_id), None)
                     && let Some((_, rtt)) = sync.offset_us()
                 {
                     survey.timesync(rtt);

@@ -71,6 +71,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
             let node = a.nodes.iter().find(|(n, _)| n == id).map(|(_, n)| n.to_string()).unwrap_or_default();
             println!("vehicle {id}: udp {v}, node coop udp {node}");
         }
+        println!("cooperative network signed with a key made for this run (the nodes and the ground station hold it)");
     }))?;
     println!(
         "finished in {:.1} s; log {} ({} messages)",

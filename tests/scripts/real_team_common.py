@@ -1,0 +1,41 @@
+"""What the real-firmware team drivers (real_ardupilot_team.py, real_px4_team.py) share: the
+flat-Earth conversion about the team's origin, a free UDP port, and the wait-and-retry loop."""
+
+import math
+import socket
+import time
+
+M_PER_DEG_LAT = math.pi / 180.0 * 6378137.0
+
+
+def ned_to_geo(origin, n, e):
+    """(lat, lon) in degrees of the point (n, e) m from `origin` (lat, lon, ...)."""
+    lat = origin[0] + n / M_PER_DEG_LAT
+    lon = origin[1] + e / (M_PER_DEG_LAT * math.cos(math.radians(origin[0])))
+    return lat, lon
+
+
+def geo_to_ned(origin, lat, lon):
+    """(n, e) in m of (lat, lon) about `origin`."""
+    return ((lat - origin[0]) * M_PER_DEG_LAT, (lon - origin[1]) * M_PER_DEG_LAT * math.cos(math.radians(origin[0])))
+
+
+def free_udp_port():
+    s = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    s.bind(("127.0.0.1", 0))
+    port = s.getsockname()[1]
+    s.close()
+    return port
+
+
+def until(rovers, done, act, timeout_s, what, every_s=1.0):
+    """Calls act(rover, elapsed_s) on each rover not done(rover), every every_s, until all are
+    done; an error naming `what` after timeout_s."""
+    t0 = time.time()
+    while not all(done(rv) for rv in rovers):
+        if time.time() - t0 > timeout_s:
+            raise RuntimeError("%s: not after %d s" % (what, timeout_s))
+        for rv in rovers:
+            if not done(rv):
+                act(rv, time.time() - t0)
+        time.sleep(every_s)
