@@ -40,7 +40,6 @@ import math
 import os
 import random
 import shutil
-import signal
 import socket
 import subprocess
 import sys
@@ -50,7 +49,7 @@ import time
 os.environ["MAVLINK20"] = "1"
 from pymavlink import mavutil  # noqa: E402
 
-from real_team_common import free_udp_port, geo_to_ned, ned_to_geo, until  # noqa: E402
+from real_team_common import free_udp_port, geo_to_ned, ned_to_geo, stop_all, until  # noqa: E402
 
 ORIGIN = (-35.363261, 149.165230, 584.0)  # ArduPilot's SITL home (CMAC), the team's origin
 RANGE_SIGMA_M = 0.1  # the paper's Table 1
@@ -469,19 +468,7 @@ def main():
             json.dump(result, f, indent=1)
     finally:
         # the nodes first, by Ctrl-C: each says its summary in its node.out
-        for p in procs[::-1]:
-            if p.poll() is None:
-                p.send_signal(signal.SIGINT if p in nodes_started else signal.SIGTERM)
-                if p in nodes_started:
-                    try:
-                        p.wait(timeout=10)
-                    except subprocess.TimeoutExpired:
-                        p.kill()
-        for p in procs:
-            try:
-                p.wait(timeout=10)
-            except subprocess.TimeoutExpired:
-                p.kill()
+        stop_all(procs, nodes_started)
         log.close()
 
 

@@ -95,7 +95,7 @@ import time
 os.environ["MAVLINK20"] = "1"
 from pymavlink import mavutil  # noqa: E402
 
-from real_team_common import free_udp_port, geo_to_ned, ned_to_geo, until  # noqa: E402
+from real_team_common import free_udp_port, geo_to_ned, ned_to_geo, stop_all, until  # noqa: E402
 from pymavlink.dialects.v20 import common as mavlink2  # noqa: E402
 
 ORIGIN = (47.397742, 8.545594, 488.0)  # PX4 SITL's default home (Zurich), the team's origin (px4-rover.toml)
@@ -677,19 +677,7 @@ def main():
                                                    "odometry_frame_rewritten": r.rewritten})
     finally:
         # the nodes first, by Ctrl-C: each says its summary in its node.out
-        for p in procs[::-1]:
-            if p.poll() is None:
-                p.send_signal(signal.SIGINT if p in nodes_started else signal.SIGTERM)
-                if p in nodes_started:
-                    try:
-                        p.wait(timeout=10)
-                    except subprocess.TimeoutExpired:
-                        p.kill()
-        for p in procs:
-            try:
-                p.wait(timeout=10)
-            except subprocess.TimeoutExpired:
-                p.kill()
+        stop_all(procs, nodes_started)
         for rv in rovers:
             rv.stop = True
         for r in relays:

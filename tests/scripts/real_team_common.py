@@ -1,8 +1,11 @@
 """What the real-firmware team drivers (real_ardupilot_team.py, real_px4_team.py) share: the
-flat-Earth conversion about the team's origin, a free UDP port, and the wait-and-retry loop."""
+flat-Earth conversion about the team's origin, a free UDP port, the wait-and-retry loop, and
+stopping what they started."""
 
 import math
+import signal
 import socket
+import subprocess
 import time
 
 M_PER_DEG_LAT = math.pi / 180.0 * 6378137.0
@@ -39,3 +42,22 @@ def until(rovers, done, act, timeout_s, what, every_s=1.0):
             if not done(rv):
                 act(rv, time.time() - t0)
         time.sleep(every_s)
+
+
+def stop_all(procs, nodes):
+    """Stops every process of `procs`, newest first: the nodes (in `nodes`) by Ctrl-C, so that
+    each writes its summary, waited for up to 10 s; the others by SIGTERM; any still running
+    after 10 s killed."""
+    for p in procs[::-1]:
+        if p.poll() is None:
+            p.send_signal(signal.SIGINT if p in nodes else signal.SIGTERM)
+            if p in nodes:
+                try:
+                    p.wait(timeout=10)
+                except subprocess.TimeoutExpired:
+                    p.kill()
+    for p in procs:
+        try:
+            p.wait(timeout=10)
+        except subprocess.TimeoutExpired:
+            p.kill()
