@@ -40,7 +40,7 @@ impl Outage {
 }
 
 /// What goes wrong in one case. Link faults apply from 0 s to `links_until_s`.
-#[derive(Debug, Clone, PartialEq, Serialize, Default)]
+#[derive(Debug, Clone, PartialEq, Serialize)]
 pub struct Faults {
     /// Probability that a datagram on the cooperative network is lost (per receiver).
     pub coop_loss: f64,
@@ -65,6 +65,28 @@ pub struct Faults {
     pub packed: bool,
     /// The node's cooperative radio is out of range (both ways); its vehicle link is not.
     pub leave: Option<Outage>,
+    /// How many times faster than real time the vehicles run (`cooploc sitl --speed`): the
+    /// nodes' wall-clock timers (retries, epoch timeouts) and the network's delays are wall
+    /// time, so in vehicle time they last `speed` times longer. 1: real time.
+    pub speed: f64,
+}
+
+impl Default for Faults {
+    fn default() -> Self {
+        Faults {
+            coop_loss: 0.0,
+            vehicle_loss: 0.0,
+            delay_ms: (0, 0),
+            links_until_s: 0.0,
+            drop_imu_at_epoch: None,
+            stall: None,
+            kill: None,
+            join: None,
+            packed: false,
+            leave: None,
+            speed: 1.0,
+        }
+    }
 }
 
 impl Faults {
@@ -116,6 +138,14 @@ pub fn standard_cases() -> Vec<FaultCase> {
         FaultCase { name: "coop loss 50%", faults: links(0.50, 0.0, (0, 0)) },
         FaultCase { name: "coop loss 30%, packed datagrams", faults: Faults { packed: true, ..links(0.30, 0.0, (0, 0)) } },
         FaultCase { name: "coop loss 50%, packed datagrams", faults: Faults { packed: true, ..links(0.50, 0.0, (0, 0)) } },
+        FaultCase {
+            name: "coop loss 30%, packed, 5x real time",
+            faults: Faults { packed: true, speed: 5.0, ..links(0.30, 0.0, (0, 0)) },
+        },
+        FaultCase {
+            name: "coop loss 50%, packed, 5x real time",
+            faults: Faults { packed: true, speed: 5.0, ..links(0.50, 0.0, (0, 0)) },
+        },
         FaultCase { name: "vehicle loss 0.5%", faults: links(0.0, 0.005, (0, 0)) },
         FaultCase { name: "vehicle loss 5%", faults: links(0.0, 0.05, (0, 0)) },
         FaultCase {
@@ -227,7 +257,7 @@ impl Sim<'_> {
                     }
                     let (lo, hi) = self.case.delay_ms;
                     if hi > 0 {
-                        at += self.rng.random_range(lo..=hi) * 1000;
+                        at += (self.rng.random_range(lo..=hi) as f64 * 1000.0 * self.case.speed) as u64;
                     }
                 }
                 for msg in &datagram {
@@ -282,10 +312,16 @@ impl Sim<'_> {
     }
 
     fn poll(&mut self, k: usize, now: TimeUs) {
+        let wall_us = self.wall_us(now);
         if let Some(core) = self.nodes[k].core.as_mut() {
-            let out = core.poll(now.0);
+            let out = core.poll(wall_us);
             self.send(k, out, now);
         }
+    }
+
+    /// The nodes' wall clock at vehicle time `now` (see [`Faults::speed`]), us.
+    fn wall_us(&self, now: TimeUs) -> u64 {
+        (now.0 as f64 / self.case.speed) as u64
     }
 
     /// Delivers every datagram due by `now`.

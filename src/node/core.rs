@@ -31,7 +31,8 @@
 //!    joint problem: nodes that hold the same records solve the same problem.
 //! 2. **Agreement**: the node waits for the record of every expected team member, sending a
 //!    COOPLOC_EPOCH (COLLECTING, the records it holds) every `retry_us` of wall time; a member
-//!    not listed resends its record. After `epoch_timeout_us` it runs without the missing
+//!    not listed resends its record. The retry interval follows the team's epoch cadence (at
+//!    most `retry_us`, at most a tenth of the epoch period in wall time: [`super::cadence`]). After `epoch_timeout_us` it runs without the missing
 //!    members, marks them absent until a record of theirs arrives for an epoch still open, and
 //!    says so (PARTIAL).
 //! 3. **Joint update** (Steps 4-5), on the records sorted by platform id. If every record carries
@@ -80,6 +81,7 @@
 
 use std::collections::{BTreeMap, BTreeSet, VecDeque};
 
+use super::cadence::Cadence;
 use super::log::{CoopUpdateRecord, RangeRecord};
 use crate::estimation::ci::ci_update;
 use crate::estimation::ins::{InsConfig, InsInitialSigma};
@@ -589,6 +591,8 @@ pub struct NodeCore {
     /// Wall time we last sent our store after each recent epoch.
     store_sent_at: BTreeMap<u32, u64>,
     store_reassembler: Reassembler,
+    /// The epoch cadence the retry interval follows.
+    cadence: Cadence,
     gate: Option<[f64; 3]>,
     last_event: Option<(u32, f64, u8, u8)>,
     pub stats: NodeStats,
@@ -654,6 +658,7 @@ impl NodeCore {
             want_store: None,
             store_sent_at: BTreeMap::new(),
             store_reassembler: Reassembler::new(16),
+            cadence: Cadence::new(),
             gate,
             last_event: None,
             stats: NodeStats::default(),
@@ -1015,9 +1020,16 @@ impl NodeCore {
             }
         }
         self.wall_us = self.wall_us.max(wall_us);
+        self.cadence.observe_clock(self.wall_us, self.filter.time().0);
         let mut out = Vec::new();
         self.advance(&mut out);
         out
+    }
+
+    /// The retry interval now, us: the configured one, shortened to the epoch cadence
+    /// ([`Cadence::retry_us`]).
+    fn retry_us(&self) -> u64 {
+        self.cadence.retry_us(self.cfg.retry_us)
     }
 
     fn in_team(&self, p: PlatformId) -> bool {
@@ -1270,7 +1282,7 @@ impl NodeCore {
     /// open or run, and at most [`RESENDS_PER_RETRY`] per retry interval in all.
     fn resend(&mut self, epoch: u32, out: &mut Vec<NodeOutput>) {
         let Some((_, frags)) = self.sent.iter().find(|(e, _)| *e == epoch) else { return };
-        let (wall, retry) = (self.wall_us, self.cfg.retry_us);
+        let (wall, retry) = (self.wall_us, self.retry_us());
         while self.resent_at.front().is_some_and(|&at| wall >= at + retry) {
             self.resent_at.pop_front();
         }
@@ -1389,8 +1401,9 @@ impl NodeCore {
     /// While we wait for records of `epoch`: our COLLECTING status (the records we hold, a
     /// retransmission request for the others) once per retry interval.
     fn ask_again(&mut self, epoch: u32, out: &mut Vec<NodeOutput>) {
+        let retry = self.retry_us();
         let Some(e) = self.epochs.get_mut(&epoch) else { return };
-        if self.wall_us < e.last_status_at + self.cfg.retry_us {
+        if self.wall_us < e.last_status_at + retry {
             return;
         }
         e.last_status_at = self.wall_us;
@@ -1412,7 +1425,7 @@ impl NodeCore {
             }
             return false;
         }
-        if self.wall_us >= w.last_request + self.cfg.retry_us {
+        if self.wall_us >= w.last_request + self.retry_us() {
             if let Some(x) = self.want_store.as_mut() {
                 x.last_request = self.wall_us;
             }
@@ -1488,6 +1501,7 @@ impl NodeCore {
         if self.last_applied.is_none_or(|last| epochs_fit(last, (epoch, e.t))) {
             let last = (epoch, e.t);
             self.last_applied = Some(last);
+            self.cadence.observe_epoch(epoch, e.t);
             self.reassembler.expire_before(epoch.saturating_add(1));
             // Claims that cannot follow this epoch are forgotten now: left open, a forged far
             // epoch would pin the history (and memory) at its time for ever.
@@ -1719,7 +1733,8 @@ impl NodeCore {
             return;
         };
         let ran_with_us = self.ran_on.iter().any(|r| r.epoch == epoch && r.participants.contains(&to));
-        let recently = self.store_sent_at.values().any(|&at| self.wall_us < at + self.cfg.retry_us);
+        let retry = self.retry_us();
+        let recently = self.store_sent_at.values().any(|&at| self.wall_us < at + retry);
         if ran_with_us || recently {
             return;
         }

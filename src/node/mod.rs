@@ -8,6 +8,7 @@
 //! | [`autopilot`] | rate requests (SET_MESSAGE_INTERVAL) and the estimate fed back as ODOMETRY |
 //! | [`coop_link`] | the cooperative link: UDP (packed datagrams, unicast peers, a multicast group) or a serial radio |
 //! | [`peers`] | where the cooperative traffic goes: given peers, team members, a few ground stations, bounded and expiring |
+//! | [`cadence`] | the retry interval, following the team's epoch cadence in wall time |
 //! | [`runner`] | the tokio runner that owns the sockets and the clock |
 //! | [`error`] | what can stop a node (`NodeError`): links that do not open, settings, a vehicle that goes away |
 //! | [`vehicle_link`] | the MAVLink connection to the vehicle (UDP, TCP, serial) |
@@ -15,6 +16,7 @@
 //! | [`vetting`] | which records an epoch runs on: refused when the teammates' ranges contradict them, or when a platform sent two different ones |
 //! | [`ranging`] | a ranging device on the companion (a UWB module): its line stream, as the core's own ranges |
 pub mod autopilot;
+pub mod cadence;
 pub mod coop_link;
 pub mod core;
 pub mod error;

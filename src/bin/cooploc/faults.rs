@@ -36,6 +36,12 @@ pub struct Args {
     /// UDP, loss and delay striking whole datagrams (`Faults::packed`), as on real sockets.
     #[arg(long)]
     packed: bool,
+    /// Run every case as `cooploc sitl --speed SPEED` runs the vehicles: the nodes' wall-clock
+    /// timers (retries, epoch timeouts) and network delays last SPEED times longer in vehicle
+    /// time (`Faults::speed`). 1: real time. Without it, each case's own (real time but for the
+    /// cases named "5x real time").
+    #[arg(long)]
+    speed: Option<f64>,
     /// Also write every case's summary as JSON here.
     #[arg(long)]
     json: Option<PathBuf>,
@@ -45,6 +51,9 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     let (method, encoding) = (args.method.0, args.encoding.0);
     if args.runs == 0 {
         bail!("--runs must be at least 1");
+    }
+    if let Some(speed) = args.speed.filter(|s| !(s.is_finite() && *s > 0.0)) {
+        bail!("--speed {speed}: must be a positive number (1 is real time)");
     }
     let world = World::new(&Scenario::from_path(&args.scenario)?)?;
     let duration_s = world.scenario().duration_s;
@@ -64,8 +73,11 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         let runs: Vec<_> = (0..args.runs)
             .into_par_iter()
             .map(|run| {
-                let faults =
-                    cooploc::experiment::faults::Faults { packed: args.packed || case.faults.packed, ..case.faults.clone() };
+                let faults = cooploc::experiment::faults::Faults {
+                    packed: args.packed || case.faults.packed,
+                    speed: args.speed.unwrap_or(case.faults.speed),
+                    ..case.faults.clone()
+                };
                 run_case(&world, &faults, method, &args.schedule, args.seed, run, encoding)
             })
             .collect::<Result<_, _>>()
@@ -73,7 +85,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         summaries.push(summarize(case.name, &runs));
     }
     println!(
-        "cooploc faults: {} cases x {} runs, method {}, encoding {}, schedule {}, seed {}{} ({:.1} s)",
+        "cooploc faults: {} cases x {} runs, method {}, encoding {}, schedule {}, seed {}{}{} ({:.1} s)",
         cases.len(),
         args.runs,
         method.short_name(),
@@ -81,6 +93,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         args.schedule,
         args.seed,
         if args.packed { ", packed datagrams" } else { "" },
+        args.speed.map(|s| format!(", every case at {s}x real time")).unwrap_or_default(),
         started.elapsed().as_secs_f64()
     );
     let base = summaries.iter().find(|s| s.name == "fault-free").map(|s| s.final_rms_m);
