@@ -10,7 +10,7 @@ use std::time::Duration;
 
 mod common;
 
-use common::{Kill, spawn_lines, wait_line};
+use common::{Kill, LossyNet, spawn_lines, wait_line};
 
 use cooploc::estimation::Method;
 use cooploc::experiment::{initial_state, run_filter};
@@ -467,66 +467,6 @@ fn mavproxy_sees_the_vehicle_and_the_node_and_gets_its_command_acknowledged() {
     assert!(text.contains("heartbeat 2:191 type 18"), "the node's heartbeat (onboard controller)");
     assert!(text.contains("ack 511 result 0 from 2:1"), "SET_MESSAGE_INTERVAL accepted by the vehicle");
     drop(children);
-}
-
-/// A lossy network between the nodes' cooperative sockets: proxy socket `j` stands for node `j`
-/// towards the others. A datagram from node `k` to proxy `j` goes on to node `j` from proxy `k`
-/// (so node `j` sees node `k` at proxy `k`), or is dropped with probability `loss` (seeded).
-struct LossyNet {
-    proxies: Vec<std::sync::Arc<std::net::UdpSocket>>,
-    real: std::sync::Arc<std::sync::Mutex<Vec<Option<std::net::SocketAddr>>>>,
-    stop: std::sync::Arc<std::sync::atomic::AtomicBool>,
-    forwarded: std::sync::Arc<std::sync::atomic::AtomicU64>,
-    dropped: std::sync::Arc<std::sync::atomic::AtomicU64>,
-}
-
-impl LossyNet {
-    fn new(n: usize, loss: f64, seed: u64) -> Self {
-        use rand::{Rng, SeedableRng};
-        use std::sync::atomic::Ordering;
-        use std::sync::{Arc, Mutex, atomic};
-        let proxies: Vec<Arc<std::net::UdpSocket>> =
-            (0..n).map(|_| Arc::new(std::net::UdpSocket::bind("127.0.0.1:0").unwrap())).collect();
-        let real = Arc::new(Mutex::new(vec![None; n]));
-        let stop = Arc::new(atomic::AtomicBool::new(false));
-        let (forwarded, dropped) = (Arc::new(atomic::AtomicU64::new(0)), Arc::new(atomic::AtomicU64::new(0)));
-        for j in 0..n {
-            let (proxies, real, stop) = (proxies.clone(), real.clone(), stop.clone());
-            let (forwarded, dropped) = (forwarded.clone(), dropped.clone());
-            std::thread::spawn(move || {
-                let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(seed ^ j as u64);
-                let me = &proxies[j];
-                me.set_read_timeout(Some(Duration::from_millis(100))).unwrap();
-                let mut buf = [0u8; 65536];
-                while !stop.load(Ordering::Relaxed) {
-                    let Ok((len, from)) = me.recv_from(&mut buf) else { continue };
-                    let addrs = real.lock().unwrap().clone();
-                    let (Some(k), Some(Some(to))) = (addrs.iter().position(|a| *a == Some(from)), addrs.get(j)) else { continue };
-                    if rng.random::<f64>() < loss {
-                        dropped.fetch_add(1, Ordering::Relaxed);
-                        continue;
-                    }
-                    let _ = proxies[k].send_to(&buf[..len], to);
-                    forwarded.fetch_add(1, Ordering::Relaxed);
-                }
-            });
-        }
-        Self { proxies, real, stop, forwarded, dropped }
-    }
-
-    fn proxy(&self, j: usize) -> String {
-        self.proxies[j].local_addr().unwrap().to_string()
-    }
-
-    fn set_real(&self, j: usize, addr: &str) {
-        self.real.lock().unwrap()[j] = Some(addr.parse().unwrap());
-    }
-}
-
-impl Drop for LossyNet {
-    fn drop(&mut self) {
-        self.stop.store(true, std::sync::atomic::Ordering::Relaxed);
-    }
 }
 
 /// The real world on loopback: the simulator's radios lose 1% of the vehicles' frames, the

@@ -115,7 +115,8 @@ pub struct NodeConfig {
     pub epoch_timeout_us: u64,
     /// Wall time between COOPLOC_EPOCH messages while waiting (retransmission requests), us.
     pub retry_us: u64,
-    /// How much history (checkpoints and the inputs after them) the node keeps, vehicle time, us.
+    /// How much history (checkpoints and the inputs after them) the node keeps, vehicle time, us
+    /// (more when the vehicle's clock runs faster than the wall clock: [`super::cadence`]).
     pub history_us: u64,
     /// An epoch still open this long (vehicle time) after its instant is run with what is
     /// there, so that memory stays bounded whatever the network does, us.
@@ -936,7 +937,7 @@ impl NodeCore {
     /// history (except what open epochs need).
     fn after_input(&mut self, out: &mut Vec<NodeOutput>) {
         self.advance(out);
-        let horizon = self.filter.time().0.saturating_sub(self.cfg.history_us);
+        let horizon = self.filter.time().0.saturating_sub(self.cadence.history_us(self.cfg.history_us));
         let keep_from = self.epochs.values().map(|e| e.t.0).min().unwrap_or(u64::MAX).min(horizon);
         while self.history.len() > 1 && self.history[0].0.0 < keep_from && self.history[1].0.0 <= keep_from {
             if let Some((_, slot)) = self.history.pop_front()

@@ -141,3 +141,92 @@ pub fn numbers_after(line: &str, marker: &str) -> Vec<f64> {
     let inside = rest.split_once('[').and_then(|(_, r)| r.split_once(']')).unwrap_or_else(|| panic!("no [...] in {line:?}")).0;
     inside.split(',').map(|v| v.trim().parse().unwrap_or_else(|e| panic!("{v:?} in {line:?}: {e}"))).collect()
 }
+
+/// What a spy on the network sends on seeing a datagram from node `k` to node `j`: datagrams
+/// that reach `j` first, from `k`'s address (a forger who can spoof the source), never lost.
+#[allow(dead_code)] // (not every test binary has a spy)
+pub type Spy = Box<dyn FnMut(usize, usize, &[u8]) -> Vec<Vec<u8>> + Send>;
+
+/// A lossy network between the nodes' cooperative sockets: proxy socket `j` stands for node `j`
+/// towards the others. A datagram from node `k` to proxy `j` goes on to node `j` from proxy `k`
+/// (so node `j` sees node `k` at proxy `k`), or is dropped with probability `loss` (seeded per
+/// proxy). A [`Spy`] sees every datagram before the loss and may inject its own.
+#[allow(dead_code)] // (not every test binary uses it)
+pub struct LossyNet {
+    proxies: Vec<std::sync::Arc<std::net::UdpSocket>>,
+    real: std::sync::Arc<std::sync::Mutex<Vec<Option<std::net::SocketAddr>>>>,
+    stop: std::sync::Arc<std::sync::atomic::AtomicBool>,
+    pub forwarded: std::sync::Arc<std::sync::atomic::AtomicU64>,
+    pub dropped: std::sync::Arc<std::sync::atomic::AtomicU64>,
+    pub injected: std::sync::Arc<std::sync::atomic::AtomicU64>,
+}
+
+#[allow(dead_code)]
+impl LossyNet {
+    pub fn new(n: usize, loss: f64, seed: u64) -> Self {
+        Self::with_spy(n, loss, seed, None)
+    }
+
+    pub fn with_spy(n: usize, loss: f64, seed: u64, spy: Option<Spy>) -> Self {
+        use rand::{Rng, SeedableRng};
+        use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
+        use std::sync::{Arc, Mutex};
+        let proxies: Vec<Arc<std::net::UdpSocket>> =
+            (0..n).map(|_| Arc::new(std::net::UdpSocket::bind("127.0.0.1:0").unwrap())).collect();
+        let real = Arc::new(Mutex::new(vec![None; n]));
+        let stop = Arc::new(AtomicBool::new(false));
+        let counters = || Arc::new(AtomicU64::new(0));
+        let (forwarded, dropped, injected) = (counters(), counters(), counters());
+        let spy = Arc::new(Mutex::new(spy));
+        for j in 0..n {
+            let (proxies, real, stop, spy) = (proxies.clone(), real.clone(), stop.clone(), spy.clone());
+            let (forwarded, dropped, injected) = (forwarded.clone(), dropped.clone(), injected.clone());
+            std::thread::spawn(move || {
+                let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(seed ^ j as u64);
+                let me = &proxies[j];
+                me.set_read_timeout(Some(std::time::Duration::from_millis(100))).unwrap();
+                let mut buf = [0u8; 65536];
+                while !stop.load(Ordering::Relaxed) {
+                    let Ok((len, from)) = me.recv_from(&mut buf) else { continue };
+                    let addrs = real.lock().unwrap().clone();
+                    let (Some(k), Some(Some(to))) = (addrs.iter().position(|a| *a == Some(from)), addrs.get(j)) else { continue };
+                    if let Some(spy) = spy.lock().unwrap().as_mut() {
+                        for extra in spy(k, j, &buf[..len]) {
+                            let _ = proxies[k].send_to(&extra, to);
+                            injected.fetch_add(1, Ordering::Relaxed);
+                        }
+                    }
+                    if rng.random::<f64>() < loss {
+                        dropped.fetch_add(1, Ordering::Relaxed);
+                        continue;
+                    }
+                    let _ = proxies[k].send_to(&buf[..len], to);
+                    forwarded.fetch_add(1, Ordering::Relaxed);
+                }
+            });
+        }
+        Self { proxies, real, stop, forwarded, dropped, injected }
+    }
+
+    /// Where the nodes send to reach node `j`.
+    pub fn proxy(&self, j: usize) -> String {
+        self.proxies[j].local_addr().unwrap().to_string()
+    }
+
+    /// Node `j`'s real cooperative address (from its `coop udp` line).
+    pub fn set_real(&self, j: usize, addr: &str) {
+        self.real.lock().unwrap()[j] = Some(addr.parse().unwrap());
+    }
+
+    /// (forwarded, dropped, injected) datagrams so far.
+    pub fn counts(&self) -> (u64, u64, u64) {
+        use std::sync::atomic::Ordering::Relaxed;
+        (self.forwarded.load(Relaxed), self.dropped.load(Relaxed), self.injected.load(Relaxed))
+    }
+}
+
+impl Drop for LossyNet {
+    fn drop(&mut self) {
+        self.stop.store(true, std::sync::atomic::Ordering::Relaxed);
+    }
+}

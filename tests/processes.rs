@@ -1,0 +1,289 @@
+//! Issue 33's process-level suite: what the sans-io fault harness (`tests/faults.rs`) claims,
+//! checked on real processes and sockets. `cooploc sitl` serves the paper scenario at 5x real
+//! time; three `cooploc node` processes (dcl, every protocol option at its default) reach each
+//! other only through a seeded relay ([`common::LossyNet`]) that loses whole datagrams and
+//! carries a spy that forges. Each case runs about 80 s of wall time.
+//!
+//! - datagram loss of 30% and 50%: the team within 1.6x of its loss-free final error (30%), no
+//!   node worse than its dead reckoning (50%), and the same ratios to the fault-free run as the
+//!   harness's cases at 5x (`coop loss 30%/50%, packed, 5x real time`), within 20%;
+//! - a forged record (platform 2's genuine record moved 30 m, sent to the others before the
+//!   genuine one) and a relabelled replay (platform 2's record of ten epochs earlier under the
+//!   current epoch's number), on the unsigned network (`--insecure`): every node ends within
+//!   max(5 cm, 1% of its clean final error) of the clean run; with a team key both are refused
+//!   as unsigned.
+//!
+//! The clean run is the reference: every node starts from the experiment's initial state at the
+//! scenario's start, so without loss the processes run exactly what `cooploc experiment` runs.
+
+use std::collections::BTreeMap;
+use std::process::Command;
+use std::time::Duration;
+
+mod common;
+
+use common::{Kill, LossyNet, Spy, spawn_lines, wait_line};
+
+use cooploc::estimation::Method;
+use cooploc::experiment::faults::{Faults, run_case};
+use cooploc::experiment::{initial_state, run_filter};
+use cooploc::protocol::MavMessage;
+use cooploc::protocol::fragment::{Fragment, Payload, fragment};
+use cooploc::protocol::record::{Encoding, decode_record, encode_record};
+use cooploc::protocol::{framing, wire};
+use cooploc::sitl::{PAPER_TOML, Scenario, World};
+use cooploc::time::TimeUs;
+
+const SPEED: f64 = 5.0;
+const SEED: u64 = 1;
+/// The platform whose records the spy forges, and the epoch it strikes at.
+const VICTIM: u16 = 2;
+const ATTACK_EPOCH: u32 = 100;
+
+#[derive(Clone, Copy, PartialEq, Debug)]
+enum Attack {
+    None,
+    /// Platform 2's genuine record of the attack epoch, its position moved 30 m north.
+    Forged,
+    /// Platform 2's genuine record of ten epochs before, relabelled as the attack epoch.
+    Relabelled,
+}
+
+struct Outcome {
+    /// Final horizontal error per node, m.
+    finals: Vec<f64>,
+    /// Dead reckoning's final horizontal error on the same inputs, per node, m.
+    dr: Vec<f64>,
+    /// Each node's closing lines (done, stats, coop_tx, vetting, signing).
+    report: Vec<String>,
+    /// Datagrams the relay forwarded, dropped and injected.
+    relay: (u64, u64, u64),
+}
+
+impl Outcome {
+    fn rms(&self) -> f64 {
+        (self.finals.iter().map(|e| e * e).sum::<f64>() / self.finals.len() as f64).sqrt()
+    }
+
+    /// The number after ` name ` in node `k`'s report line starting with `prefix`.
+    fn counter(&self, k: usize, prefix: &str, name: &str) -> u64 {
+        let line = self.report[k].lines().find(|l| l.contains(prefix)).unwrap_or_else(|| panic!("no {prefix} line"));
+        line.split(&format!(" {name} ")).nth(1).and_then(|r| r.split_whitespace().next()).unwrap().parse().unwrap()
+    }
+}
+
+/// The spy: reassembles platform 2's records as they pass; when the first fragment of the attack
+/// epoch comes by, it sends every other node its forgery of that epoch (once per node) before the
+/// genuine datagram goes on.
+fn spy(attack: Attack) -> Option<Spy> {
+    if attack == Attack::None {
+        return None;
+    }
+    let mut parts: BTreeMap<u32, BTreeMap<u8, Fragment>> = BTreeMap::new();
+    let mut records: BTreeMap<u32, (u64, Vec<u8>)> = BTreeMap::new();
+    let mut struck = std::collections::BTreeSet::new();
+    Some(Box::new(move |_k, j, datagram| {
+        let mut out = Vec::new();
+        for frame in framing::frames(datagram) {
+            let Ok(MavMessage::COOPLOC_STATE_FRAGMENT(m)) = &frame.message else { continue };
+            let Ok(f) = wire::fragment_from_message(m) else { continue };
+            if f.platform != VICTIM || f.payload != Payload::Record {
+                continue;
+            }
+            let (epoch, time_usec) = (f.epoch, f.time_usec);
+            let series = parts.entry(epoch).or_default();
+            series.insert(f.index, f.clone());
+            if series.len() == usize::from(f.count) && !records.contains_key(&epoch) {
+                let bytes: Vec<u8> = series.values().flat_map(|p| p.data.iter().copied()).collect();
+                records.insert(epoch, (time_usec, bytes));
+            }
+            if epoch != ATTACK_EPOCH || !struck.insert(j) {
+                continue;
+            }
+            let forged = match attack {
+                Attack::Forged => records.get(&(epoch - 1)).map(|(t, bytes)| {
+                    let mut rec = decode_record(VICTIM, TimeUs(*t), bytes).unwrap();
+                    rec.snapshot.geometry.position_ned_m.x += 30.0;
+                    encode_record(&rec, Encoding::F64).unwrap()
+                }),
+                Attack::Relabelled => records.get(&(epoch - 10)).map(|(_, bytes)| bytes.clone()),
+                Attack::None => None,
+            };
+            let Some(forged) = forged else { panic!("the spy has no record of platform {VICTIM} to forge from") };
+            for piece in fragment(VICTIM, epoch, time_usec, &forged).unwrap() {
+                let header = mavlink_core::MavHeader { system_id: u32::from(VICTIM), component_id: 191, sequence: piece.index };
+                out.push(wire::to_frame(header, &wire::fragment_to_message(&piece).unwrap()));
+            }
+        }
+        out
+    }))
+}
+
+/// The paper team as processes at 5x, the relay losing `loss` of the datagrams, the spy
+/// striking with `attack`, signed with a team key or `--insecure`.
+fn run_team(loss: f64, attack: Attack, signed: bool) -> Outcome {
+    let world = World::new(&Scenario::from_toml_str(PAPER_TOML).unwrap()).unwrap();
+    let (run, schedule) = (0u32, "1hz");
+    let mut sitl = Command::new(env!("CARGO_BIN_EXE_cooploc"));
+    sitl.args(["sitl", "sitl/scenarios/paper.toml", "--seed", &SEED.to_string(), "--run", "0", "--schedule", schedule]);
+    sitl.args(["--speed", &SPEED.to_string(), "--base-port", "0", "--wait-for-peers"]);
+    let (sitl_child, sitl_out) = spawn_lines(sitl);
+    let mut vehicle_addr = BTreeMap::new();
+    for _ in world.platform_ids() {
+        let line = wait_line(&sitl_out, "vehicle ", Duration::from_secs(30));
+        let words: Vec<&str> = line.split_whitespace().collect();
+        vehicle_addr.insert(words[1].parse::<u16>().unwrap(), words.last().unwrap().to_string());
+    }
+    let mut children = Kill(vec![sitl_child]);
+    let ids = world.platform_ids();
+    let net = LossyNet::with_spy(ids.len(), loss, 7, spy(attack));
+    let mut outs = Vec::new();
+    for (k, &id) in ids.iter().enumerate() {
+        let (t0, state) = initial_state(&world, SEED, run, id).unwrap();
+        let (r, p, y) = state.att_frd_to_ned.euler_angles();
+        let v3 = |v: nalgebra::Vector3<f64>| format!("{:.17e},{:.17e},{:.17e}", v[0], v[1], v[2]);
+        let mut node = Command::new(env!("CARGO_BIN_EXE_cooploc"));
+        node.args(common::paper_node_args(id, &format!("udpout:{}", vehicle_addr[&id])));
+        node.args(["--idle-exit-s", "3", "--init-time-us", &t0.0.to_string()]);
+        node.arg(format!("--init-ned={}", v3(state.pos_ned_m)));
+        node.arg(format!("--init-vel-ned={}", v3(state.vel_ned_m_s)));
+        node.arg(format!("--init-rpy-deg={:.17e},{:.17e},{:.17e}", r.to_degrees(), p.to_degrees(), y.to_degrees()));
+        if signed {
+            node.args(common::team_key_args());
+        } else {
+            node.arg("--insecure");
+        }
+        for j in (0..ids.len()).filter(|&j| j != k) {
+            node.args(["--peer", &net.proxy(j)]);
+        }
+        let (child, out) = spawn_lines(node);
+        children.0.push(child);
+        let line = wait_line(&out, &format!("node {id} coop udp "), Duration::from_secs(30));
+        net.set_real(k, line.split_whitespace().last().unwrap());
+        outs.push(out);
+    }
+    let inputs = world.run_inputs(SEED, run);
+    let dr = run_filter(&world, &inputs, &[], Method::DeadReckoning).unwrap();
+    let mut outcome = Outcome { finals: Vec::new(), dr: Vec::new(), report: Vec::new(), relay: (0, 0, 0) };
+    for (k, (&id, out)) in ids.iter().zip(&outs).enumerate() {
+        let done = wait_line(out, &format!("node {id} done:"), Duration::from_secs(300));
+        let mut report = vec![done.clone()];
+        while let Ok(line) = out.recv_timeout(Duration::from_secs(2)) {
+            if line.starts_with(&format!("node {id} ")) {
+                report.push(line);
+            }
+        }
+        let truth = inputs.platforms[k].truth.last().unwrap().pos_ned_m;
+        let pos = common::numbers_after(&done, "pos_ned_m");
+        outcome.finals.push(((truth[0] - pos[0]).powi(2) + (truth[1] - pos[1]).powi(2)).sqrt());
+        outcome.dr.push(dr.platforms[k].final_error().pos_err_m);
+        outcome.report.push(report.join("\n"));
+    }
+    outcome.relay = net.counts();
+    drop(children);
+    outcome
+}
+
+/// The harness's team RMS for `loss` at 5x with packed datagrams, and the fault-free one, over
+/// the same seed and run as the processes (one run each, the link faults to the end).
+fn harness_ratio(loss: f64) -> f64 {
+    let world = World::new(&Scenario::from_toml_str(PAPER_TOML).unwrap()).unwrap();
+    let rms = |faults: &Faults| {
+        let out = run_case(&world, faults, Method::Decentralized, "1hz", SEED, 0, Encoding::F64).unwrap();
+        (out.nodes.iter().map(|n| n.final_err_m.powi(2)).sum::<f64>() / out.nodes.len() as f64).sqrt()
+    };
+    let lossy = Faults { coop_loss: loss, links_until_s: 1e9, packed: true, speed: SPEED, ..Faults::default() };
+    rms(&lossy) / rms(&Faults { speed: SPEED, ..Faults::default() })
+}
+
+/// The teams of `cases` (loss, attack, signed) run side by side (each takes a fifth of a core).
+fn at_once<const N: usize>(cases: [(f64, Attack, bool); N]) -> [Outcome; N] {
+    std::thread::scope(|s| {
+        let handles = cases.map(|(loss, attack, signed)| s.spawn(move || run_team(loss, attack, signed)));
+        handles.map(|h| h.join().unwrap())
+    })
+}
+
+fn print(name: &str, o: &Outcome) {
+    eprintln!(
+        "== {name}: team RMS {:.2} m, per node {:.2?} m, dead reckoning {:.2?} m, relay {:?}",
+        o.rms(),
+        o.finals,
+        o.dr,
+        o.relay
+    );
+    for r in &o.report {
+        eprintln!("{r}");
+    }
+}
+
+/// 30% and 50% datagram loss on the sockets cost what the harness says they cost.
+#[test]
+fn datagram_loss_on_the_sockets_costs_what_the_core_harness_says() {
+    let [clean, thirty, fifty] = at_once([(0.0, Attack::None, true), (0.3, Attack::None, true), (0.5, Attack::None, true)]);
+    print("clean", &clean);
+    let mut problems = Vec::new();
+    for (loss, bound, lossy) in [(0.3, Some(1.6), thirty), (0.5, None, fifty)] {
+        print(&format!("{:.0}% loss", loss * 100.0), &lossy);
+        let (processes, harness) = (lossy.rms() / clean.rms(), harness_ratio(loss));
+        eprintln!("{:.0}% loss: processes {processes:.3}x their clean run, harness {harness:.3}x", loss * 100.0);
+        if let Some(bound) = bound
+            && processes > bound
+        {
+            problems.push(format!(
+                "{:.0}% loss: team RMS {:.2} m, {processes:.2}x the clean {:.2} m",
+                loss * 100.0,
+                lossy.rms(),
+                clean.rms()
+            ));
+        }
+        for (k, (e, dr)) in lossy.finals.iter().zip(&lossy.dr).enumerate() {
+            if e > dr {
+                problems.push(format!("{:.0}% loss: node {} ended {e:.2} m, its dead reckoning {dr:.2} m", loss * 100.0, k + 1));
+            }
+        }
+        if (processes / harness - 1.0).abs() > 0.2 {
+            problems.push(format!("{:.0}% loss: processes {processes:.3}x, harness {harness:.3}x: not within 20%", loss * 100.0));
+        }
+        let (_, dropped, _) = lossy.relay;
+        assert!(dropped > 0, "the relay lost nothing");
+    }
+    assert!(problems.is_empty(), "{}", problems.join("\n"));
+}
+
+/// A forged record and a relabelled replay on the unsigned network change no node's end by more
+/// than max(5 cm, 1%); signed, the same frames are refused as unsigned.
+#[test]
+fn a_forged_record_and_a_relabelled_replay_change_nothing() {
+    let cases = [(Attack::Forged, false), (Attack::Relabelled, false), (Attack::Forged, true)];
+    let [clean, forged, relabelled, signed_forged] =
+        at_once([(0.0, Attack::None, false), (0.0, cases[0].0, false), (0.0, cases[1].0, false), (0.0, cases[2].0, true)]);
+    print("clean, insecure", &clean);
+    let mut problems = Vec::new();
+    for ((attack, signed), o) in cases.into_iter().zip([forged, relabelled, signed_forged]) {
+        let name = format!("{attack:?}, {}", if signed { "signed" } else { "insecure" });
+        print(&name, &o);
+        let (_, _, injected) = o.relay;
+        assert!(injected > 0, "{name}: the spy sent nothing");
+        for k in 0..o.finals.len() {
+            let (e, c) = (o.finals[k], clean.finals[k]);
+            if (e - c).abs() > (0.01 * c).max(0.05) {
+                problems.push(format!("{name}: node {} ended {e:.3} m, clean {c:.3} m", k + 1));
+            }
+            if k + 1 == usize::from(VICTIM) {
+                continue; // the spy forges the victim's records to the others only
+            }
+            if signed {
+                if o.counter(k, "signing", "unsigned") == 0 {
+                    problems.push(format!("{name}: node {} refused nothing as unsigned", k + 1));
+                }
+            } else {
+                let refused = o.counter(k, "vetting", "records_contradicted") + o.counter(k, "vetting", "records_rival");
+                if refused == 0 {
+                    problems.push(format!("{name}: node {} refused no record", k + 1));
+                }
+            }
+        }
+    }
+    assert!(problems.is_empty(), "{}", problems.join("\n"));
+}
