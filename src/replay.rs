@@ -175,7 +175,7 @@ fn replay_node(log: &Log, world: Option<&World>, id: PlatformId) -> Result<NodeR
         let alt_m = if m.contains_key("origin_alt_m") { field(&record, m, "origin_alt_m")? } else { 0.0 };
         Some(GeoOrigin { lat_deg: field(&record, m, "origin_lat_deg")?, lon_deg: field(&record, m, "origin_lon_deg")?, alt_m })
     };
-    let initial_state: Option<(Option<u64>, crate::estimation::ins::InsState)> =
+    let mut initial_state: Option<(Option<u64>, crate::estimation::ins::InsState)> =
         match field::<String>(&record, m, "init")?.as_str() {
             "state" => {
                 // no t0_us: taken at the first sample (the Init event says when)
@@ -248,6 +248,12 @@ fn replay_node(log: &Log, world: Option<&World>, id: PlatformId) -> Result<NodeR
                     continue;
                 }
                 (NodeEvent::Range { epoch, range }, Some(c)) => c.handle(NodeInput::OwnRange { epoch, range }),
+                (NodeEvent::StartRefused { .. }, _) => {
+                    // the given state was stale: the node waited for SIM_STATE (its Init event)
+                    core = None;
+                    initial_state = None;
+                    continue;
+                }
                 (NodeEvent::Init { t0_us, origin: from_vehicle, state: start }, None) => {
                     let mut cfg = cfg.clone();
                     let origin = match (from_vehicle, origin) {

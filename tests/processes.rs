@@ -13,6 +13,10 @@
 //!   max(5 cm, 1% of its clean final error) of the clean run; with a team key both are refused
 //!   as unsigned.
 //!
+//! - node 3 killed at 30% of the run and restarted at once by its supervisor with the same
+//!   arguments (a start state for the scenario's start time): it refuses that stale state, starts
+//!   from its vehicle's SIM_STATE, and is back within 2x of its clean error within 10 epochs.
+//!
 //! The clean run is the reference: every node starts from the experiment's initial state at the
 //! scenario's start, so without loss the processes run exactly what `cooploc experiment` runs.
 
@@ -49,6 +53,9 @@ enum Attack {
     Relabelled,
 }
 
+/// Every node's COOPLOC_ESTIMATE as the relay saw it, by (platform, epoch).
+type Estimates = std::sync::Arc<std::sync::Mutex<BTreeMap<(u16, u32), wire::EstimateReport>>>;
+
 struct Outcome {
     /// Final horizontal error per node, m.
     finals: Vec<f64>,
@@ -58,6 +65,10 @@ struct Outcome {
     report: Vec<String>,
     /// Datagrams the relay forwarded, dropped and injected.
     relay: (u64, u64, u64),
+    /// Each node's estimates (the last process's, for a restarted node).
+    estimates: BTreeMap<(u16, u32), wire::EstimateReport>,
+    /// The first epoch the restarted node reported after its restart.
+    restarted_at_epoch: Option<u32>,
 }
 
 impl Outcome {
@@ -75,16 +86,21 @@ impl Outcome {
 /// The spy: reassembles platform 2's records as they pass; when the first fragment of the attack
 /// epoch comes by, it sends every other node its forgery of that epoch (once per node) before the
 /// genuine datagram goes on.
-fn spy(attack: Attack) -> Option<Spy> {
-    if attack == Attack::None {
-        return None;
-    }
+fn spy(attack: Attack, estimates: Estimates) -> Spy {
     let mut parts: BTreeMap<u32, BTreeMap<u8, Fragment>> = BTreeMap::new();
     let mut records: BTreeMap<u32, (u64, Vec<u8>)> = BTreeMap::new();
     let mut struck = std::collections::BTreeSet::new();
-    Some(Box::new(move |_k, j, datagram| {
+    Box::new(move |_k, j, datagram| {
         let mut out = Vec::new();
         for frame in framing::frames(datagram) {
+            if let Ok(MavMessage::COOPLOC_ESTIMATE(m)) = &frame.message
+                && let Ok(r) = wire::estimate_from_message(m)
+            {
+                estimates.lock().unwrap().insert((r.platform, r.epoch), r);
+            }
+            if attack == Attack::None {
+                continue;
+            }
             let Ok(MavMessage::COOPLOC_STATE_FRAGMENT(m)) = &frame.message else { continue };
             let Ok(f) = wire::fragment_from_message(m) else { continue };
             if f.platform != VICTIM || f.payload != Payload::Record {
@@ -116,17 +132,18 @@ fn spy(attack: Attack) -> Option<Spy> {
             }
         }
         out
-    }))
+    })
 }
 
 /// The paper team as processes at 5x, the relay losing `loss` of the datagrams, the spy
-/// striking with `attack`, signed with a team key or `--insecure`.
-fn run_team(loss: f64, attack: Attack, signed: bool) -> Outcome {
+/// striking with `attack`, signed with a team key or `--insecure`; with `restart`, node 3 killed
+/// at 30% of the run and started again at once with the same arguments.
+fn run_team(loss: f64, attack: Attack, signed: bool, restart: bool) -> Outcome {
     let world = World::new(&Scenario::from_toml_str(PAPER_TOML).unwrap()).unwrap();
     let (run, schedule) = (0u32, "1hz");
     let mut sitl = Command::new(env!("CARGO_BIN_EXE_cooploc"));
     sitl.args(["sitl", "sitl/scenarios/paper.toml", "--seed", &SEED.to_string(), "--run", "0", "--schedule", schedule]);
-    sitl.args(["--speed", &SPEED.to_string(), "--base-port", "0", "--wait-for-peers"]);
+    sitl.args(["--speed", &SPEED.to_string(), "--base-port", "0", "--wait-for-peers", "--sim-state-hz", "1"]);
     let (sitl_child, sitl_out) = spawn_lines(sitl);
     let mut vehicle_addr = BTreeMap::new();
     for _ in world.platform_ids() {
@@ -136,9 +153,10 @@ fn run_team(loss: f64, attack: Attack, signed: bool) -> Outcome {
     }
     let mut children = Kill(vec![sitl_child]);
     let ids = world.platform_ids();
-    let net = LossyNet::with_spy(ids.len(), loss, 7, spy(attack));
-    let mut outs = Vec::new();
-    for (k, &id) in ids.iter().enumerate() {
+    let estimates = Estimates::default();
+    let net = LossyNet::with_spy(ids.len(), loss, 7, Some(spy(attack, estimates.clone())));
+    let node_cmd = |k: usize| {
+        let id = ids[k];
         let (t0, state) = initial_state(&world, SEED, run, id).unwrap();
         let (r, p, y) = state.att_frd_to_ned.euler_angles();
         let v3 = |v: nalgebra::Vector3<f64>| format!("{:.17e},{:.17e},{:.17e}", v[0], v[1], v[2]);
@@ -156,18 +174,56 @@ fn run_team(loss: f64, attack: Attack, signed: bool) -> Outcome {
         for j in (0..ids.len()).filter(|&j| j != k) {
             node.args(["--peer", &net.proxy(j)]);
         }
-        let (child, out) = spawn_lines(node);
+        node
+    };
+    let mut outs = Vec::new();
+    for (k, &id) in ids.iter().enumerate() {
+        let (child, out) = spawn_lines(node_cmd(k));
         children.0.push(child);
         let line = wait_line(&out, &format!("node {id} coop udp "), Duration::from_secs(30));
         net.set_real(k, line.split_whitespace().last().unwrap());
         outs.push(out);
     }
+    let mut restarted_at_epoch = None;
+    if restart {
+        // The simulator's clock starts once every vehicle has its node: 30% of the 380 s run.
+        std::thread::sleep(Duration::from_secs_f64(0.3 * 380.0 / SPEED));
+        let k = ids.len() - 1;
+        children.0[k + 1].kill().unwrap();
+        children.0[k + 1].wait().unwrap();
+        let last_epoch = estimates.lock().unwrap().keys().filter(|(p, _)| *p == ids[k]).map(|(_, e)| *e).max();
+        estimates.lock().unwrap().retain(|(p, _), _| *p != ids[k]);
+        let (child, out) = spawn_lines(node_cmd(k));
+        children.0.push(child);
+        let line = wait_line(&out, &format!("node {} coop udp ", ids[k]), Duration::from_secs(30));
+        net.set_real(k, line.split_whitespace().last().unwrap());
+        outs[k] = out;
+        restarted_at_epoch = last_epoch.map(|e| e + 1);
+    }
     let inputs = world.run_inputs(SEED, run);
     let dr = run_filter(&world, &inputs, &[], Method::DeadReckoning).unwrap();
-    let mut outcome = Outcome { finals: Vec::new(), dr: Vec::new(), report: Vec::new(), relay: (0, 0, 0) };
+    let mut outcome = Outcome {
+        finals: Vec::new(),
+        dr: Vec::new(),
+        report: Vec::new(),
+        relay: (0, 0, 0),
+        estimates: BTreeMap::new(),
+        restarted_at_epoch,
+    };
     for (k, (&id, out)) in ids.iter().zip(&outs).enumerate() {
-        let done = wait_line(out, &format!("node {id} done:"), Duration::from_secs(300));
-        let mut report = vec![done.clone()];
+        // Everything the node said, up to its done line and the summary after it.
+        let (mut report, deadline) = (Vec::new(), std::time::Instant::now() + Duration::from_secs(300));
+        let done = loop {
+            let left = deadline.saturating_duration_since(std::time::Instant::now());
+            let line = out.recv_timeout(left).unwrap_or_else(|e| panic!("node {id} never said it was done: {e}"));
+            if line.starts_with(&format!("node {id} done:")) {
+                break line;
+            }
+            if line.starts_with(&format!("node {id} ")) {
+                report.push(line);
+            }
+        };
+        report.push(done.clone());
         while let Ok(line) = out.recv_timeout(Duration::from_secs(2)) {
             if line.starts_with(&format!("node {id} ")) {
                 report.push(line);
@@ -180,6 +236,7 @@ fn run_team(loss: f64, attack: Attack, signed: bool) -> Outcome {
         outcome.report.push(report.join("\n"));
     }
     outcome.relay = net.counts();
+    outcome.estimates = estimates.lock().unwrap().clone();
     drop(children);
     outcome
 }
@@ -199,7 +256,7 @@ fn harness_ratio(loss: f64) -> f64 {
 /// The teams of `cases` (loss, attack, signed) run side by side (each takes a fifth of a core).
 fn at_once<const N: usize>(cases: [(f64, Attack, bool); N]) -> [Outcome; N] {
     std::thread::scope(|s| {
-        let handles = cases.map(|(loss, attack, signed)| s.spawn(move || run_team(loss, attack, signed)));
+        let handles = cases.map(|(loss, attack, signed)| s.spawn(move || run_team(loss, attack, signed, false)));
         handles.map(|h| h.join().unwrap())
     })
 }
@@ -286,4 +343,54 @@ fn a_forged_record_and_a_relabelled_replay_change_nothing() {
         }
     }
     assert!(problems.is_empty(), "{}", problems.join("\n"));
+}
+
+/// Node 3 killed at 30% of the run and restarted at once with the arguments of its first start:
+/// the start state those give is 114 s old; the node refuses it, starts from SIM_STATE, and is
+/// back within twice its clean error within 10 epochs, to the end; its teammates are not hurt.
+#[test]
+fn a_node_restarted_with_its_first_arguments_does_not_trust_their_stale_state() {
+    let (clean, restarted) = std::thread::scope(|s| {
+        let clean = s.spawn(|| run_team(0.0, Attack::None, true, false));
+        let restarted = s.spawn(|| run_team(0.0, Attack::None, true, true));
+        (clean.join().unwrap(), restarted.join().unwrap())
+    });
+    print("clean", &clean);
+    print("node 3 restarted", &restarted);
+    let world = World::new(&Scenario::from_toml_str(PAPER_TOML).unwrap()).unwrap();
+    let truth = |r: &wire::EstimateReport| {
+        let t = world.trajectory(r.platform).unwrap().truth_at(r.t).pos_ned_m;
+        (t - r.position_ned_m).xy().norm()
+    };
+    let node3 = |o: &Outcome| -> Vec<(u32, f64)> {
+        o.estimates.iter().filter(|((p, _), _)| *p == 3).map(|((_, e), r)| (*e, truth(r))).collect()
+    };
+    let clean3 = node3(&clean);
+    let clean_rms = (clean3.iter().map(|(_, e)| e * e).sum::<f64>() / clean3.len() as f64).sqrt();
+    let back_from = restarted.restarted_at_epoch.expect("node 3 reported before it was killed") + 10;
+    let late: Vec<(u32, f64)> = node3(&restarted).into_iter().filter(|(e, _)| *e >= back_from).collect();
+    eprintln!(
+        "node 3 clean RMS {clean_rms:.2} m over {} epochs; after the restart, from epoch {back_from}: {} epochs, worst {:.2} m",
+        clean3.len(),
+        late.len(),
+        late.iter().map(|(_, e)| *e).fold(0.0, f64::max)
+    );
+    assert!(
+        restarted.report[2].contains("start state refused"),
+        "node 3 did not refuse its stale start state:\n{}",
+        restarted.report[2]
+    );
+    assert!(late.len() > 100, "node 3 reported only {} epochs from epoch {back_from} on", late.len());
+    for (e, err) in &late {
+        assert!(*err <= 2.0 * clean_rms, "node 3 at epoch {e}: {err:.2} m, more than twice its clean RMS {clean_rms:.2} m");
+    }
+    for k in 0..2 {
+        assert!(
+            restarted.finals[k] <= 2.0 * clean.finals[k],
+            "node {} ended {:.2} m, clean {:.2} m",
+            k + 1,
+            restarted.finals[k],
+            clean.finals[k]
+        );
+    }
 }

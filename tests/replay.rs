@@ -114,9 +114,29 @@ fn the_python_mcap_reader_finds_the_documented_channels_in_every_log() {
 /// the initialisation reaches the replayed filter).
 #[test]
 fn a_node_killed_with_sigkill_leaves_a_log_that_replays() {
+    killed_node_log_replays("kill", &[], 0.0);
+}
+
+/// A node started with a start state for the scenario's start (`--init-from-run`) while the
+/// vehicle has been running for about 15 s refuses that stale state (it says so in its log) and
+/// starts from SIM_STATE; its log replays the same way.
+#[test]
+fn a_node_that_refused_a_stale_start_state_leaves_a_log_that_replays() {
+    let log = killed_node_log_replays("stale", &["--init-from-run", "1:0"], 3.0);
+    let refused = log.topic("/vehicle_1/node/events").any(|m| {
+        matches!(m.json::<cooploc::node::runner::NodeEvent>(), Ok(cooploc::node::runner::NodeEvent::StartRefused { .. }))
+    });
+    assert!(refused, "no StartRefused event in the log");
+}
+
+/// Runs `cooploc sitl` at 5x, starts one dr node `wait_s` later with `extra` arguments and a log,
+/// kills it with SIGKILL 3.5 s later, and replays the log: the log it leaves has no summary,
+/// holds its traffic up to about a second before the kill, and every IMU sample logged after
+/// the initialisation reaches the replayed filter. The log, read.
+fn killed_node_log_replays(tag: &str, extra: &[&str], wait_s: f64) -> cooploc::recording::Log {
     use std::io::{BufRead, BufReader};
     use std::process::{Command, Stdio};
-    let dir = std::env::temp_dir().join(format!("cooploc-kill-{}", std::process::id()));
+    let dir = std::env::temp_dir().join(format!("cooploc-{tag}-{}", std::process::id()));
     std::fs::create_dir_all(&dir).unwrap();
     let log_path = dir.join("node.mcap");
     let bin = env!("CARGO_BIN_EXE_cooploc");
@@ -135,6 +155,7 @@ fn a_node_killed_with_sigkill_leaves_a_log_that_replays() {
             break line.split_whitespace().last().unwrap().to_string();
         }
     };
+    std::thread::sleep(std::time::Duration::from_secs_f64(wait_s));
     let mut node = Command::new(bin)
         .current_dir(root)
         .args([
@@ -153,6 +174,7 @@ fn a_node_killed_with_sigkill_leaves_a_log_that_replays() {
         ])
         .arg(&log_path)
         .args(common::team_key_args())
+        .args(extra)
         .stdout(Stdio::null())
         .stderr(Stdio::null())
         .spawn()
@@ -189,4 +211,5 @@ fn a_node_killed_with_sigkill_leaves_a_log_that_replays() {
     assert!(imu_logged > 1000);
     assert_eq!(replays[0].imu_replayed, imu_logged);
     let _ = std::fs::remove_dir_all(&dir);
+    log
 }

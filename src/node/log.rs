@@ -86,6 +86,12 @@ pub enum NodeEvent {
         offset_us: i64,
         rtt_us: i64,
     },
+    /// The start state given with its time was refused as stale: the vehicle's first sample
+    /// came long after it (`node::runner::STALE_START_US`); the node waited for SIM_STATE.
+    StartRefused {
+        given_t0_us: u64,
+        vehicle_t_us: u64,
+    },
     /// A range from the ranging device beside the vehicle link (`cooploc node --ranges`), as the
     /// core took it.
     Range {

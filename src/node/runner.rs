@@ -70,11 +70,21 @@ fn record_frame(rec: &Option<SharedRecorder>, link: Link, dir: Direction, bytes:
     }
 }
 
+/// How far (vehicle time) the vehicle's first sample may be after the time of a given start
+/// state ([`NodeInit::Given`]) for the state to be trusted, us.
+pub const STALE_START_US: u64 = 10_000_000;
+
 /// How the node gets its initial state.
 #[derive(Debug)]
 pub enum NodeInit {
-    /// Already initialised (command-line state).
+    /// Already initialised.
     Ready(Box<NodeCore>),
+    /// Initialised from a state given with its time (the command line), about `origin`: trusted
+    /// only if the vehicle's first sample comes at most [`STALE_START_US`] after that time. A
+    /// later one means the state is stale (a supervisor restarted the node with the arguments of
+    /// its first start, while the vehicle went on): the node then refuses it, says so, and waits
+    /// for a state as [`NodeInit::Pending`] does (SIM_STATE).
+    Given { core: Box<NodeCore>, origin: wire::GeoOrigin },
     /// Waiting for what it lacks. `origin` None: the vehicle's GPS_GLOBAL_ORIGIN (or
     /// HOME_POSITION) gives it, and its latitude goes into the INS configuration. `state` None:
     /// the first SIM_STATE the vehicle sends after the origin is known (simulated vehicles): its
@@ -423,11 +433,16 @@ pub async fn run(
     shutdown: impl std::future::Future<Output = ()>,
 ) -> Result<NodeSummary, NodeError> {
     let team = match &init {
-        NodeInit::Ready(core) => core.config().team.clone(),
+        NodeInit::Ready(core) | NodeInit::Given { core, .. } => core.config().team.clone(),
         NodeInit::Pending { config, .. } => config.team.clone(),
     };
+    // A given start state, checked against the vehicle's first sample: (origin, its time).
+    let mut given_start = match &init {
+        NodeInit::Given { core, origin } => Some((*origin, core.filter().time())),
+        _ => None,
+    };
     let (id, mut core, mut pending_init) = match init {
-        NodeInit::Ready(core) => (core.id(), Some(*core), None),
+        NodeInit::Ready(core) | NodeInit::Given { core, .. } => (core.id(), Some(*core), None),
         NodeInit::Pending { config, origin, state, from_autopilot } => {
             (config.id, None, Some((*config, origin, state, from_autopilot)))
         }
@@ -727,6 +742,19 @@ pub async fn run(
                 for event in events {
                     match event {
                         VehicleEvent::Input(input) => {
+                            if let Some(t) = input.drive_time()
+                                && let Some((origin, t0)) = given_start.take()
+                                && t.0 > t0.0.saturating_add(STALE_START_US)
+                                && let Some(refused) = core.take()
+                            {
+                                let late_s = (t.0 - t0.0) as f64 / 1e6;
+                                println!(
+                                    "node {id} start state refused: given for t {t0}, the vehicle is at {t} ({late_s:.1} s later): stale; waiting for SIM_STATE"
+                                );
+                                tracing::warn!(platform = id, late_s, "the given start state is stale: waiting for SIM_STATE");
+                                record_event(&recorder, id, &NodeEvent::StartRefused { given_t0_us: t0.0, vehicle_t_us: t.0 });
+                                pending_init = Some((refused.config().clone(), Some(origin), None, false));
+                            }
                             if core.is_none() {
                                 last_imu_t = input.drive_time().or(last_imu_t);
                                 before_init += 1;

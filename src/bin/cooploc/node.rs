@@ -299,9 +299,10 @@ pub fn run_cmd(args: Args) -> anyhow::Result<()> {
         None => None,
     };
     let init = match (initial, origin) {
-        (Some((Some(t0), state)), Some(_)) => {
+        (Some((Some(t0), state)), Some(origin)) => {
             let state = NavState::for_model(&cfg.model, state);
-            NodeInit::Ready(Box::new(NodeCore::new(cfg, t0, state).context("node configuration")?))
+            let core = Box::new(NodeCore::new(cfg, t0, state).context("node configuration")?);
+            NodeInit::Given { core, origin }
         }
         (state, origin) => {
             // Checked now rather than when the vehicle has said what is missing.
