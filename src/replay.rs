@@ -155,6 +155,9 @@ fn replay_node(log: &Log, world: Option<&World>, id: PlatformId) -> Result<NodeR
     let mut cfg = NodeConfig::for_model(id, method, model, encoding, team);
     cfg.epoch_timeout_us = field(&record, m, "epoch_timeout_us")?;
     cfg.retry_us = field(&record, m, "retry_us")?;
+    // Logs written before the retry interval followed the cadence: a fixed interval.
+    cfg.retry_follows_cadence =
+        if m.contains_key("retry_follows_cadence") { field(&record, m, "retry_follows_cadence")? } else { false };
     cfg.history_us = field(&record, m, "history_us")?;
     cfg.max_lag_us = field(&record, m, "max_lag_us")?;
     // Logs written before these settings existed ran with the defaults.

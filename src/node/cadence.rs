@@ -17,7 +17,8 @@
 //! last resolved epochs had in vehicle time, divided by how fast vehicle time runs against the
 //! wall clock (measured over windows of at least [`RATE_WINDOW_US`] of wall time), never below
 //! [`MIN_RETRY_US`] (the resends must not storm). The default (100 ms) is exactly a tenth of the
-//! paper's 1 s period at real time: there nothing changes.
+//! paper's 1 s period at real time: there nothing changes. An interval an operator set
+//! (`cooploc node --retry-ms`, `NodeConfig::retry_follows_cadence` false) is taken as given.
 //!
 //! The same holds for the history of checkpoints an epoch needs (`NodeConfig::history_us`,
 //! 4 s of vehicle time): a node learns of an epoch from its teammates' messages (a node without

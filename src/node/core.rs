@@ -32,9 +32,10 @@
 //! 2. **Agreement**: the node waits for the record of every expected team member, sending a
 //!    COOPLOC_EPOCH (COLLECTING, the records it holds) every `retry_us` of wall time; a member
 //!    not listed resends its record. The retry interval follows the team's epoch cadence (at
-//!    most `retry_us`, at most a tenth of the epoch period in wall time: [`super::cadence`]). After `epoch_timeout_us` it runs without the missing
-//!    members, marks them absent until a record of theirs arrives for an epoch still open, and
-//!    says so (PARTIAL).
+//!    most `retry_us`, at most a tenth of the epoch period in wall time: [`super::cadence`]),
+//!    unless configured not to.
+//!    After `epoch_timeout_us` it runs without the missing members, marks them absent until a
+//!    record of theirs arrives for an epoch still open, and says so (PARTIAL).
 //! 3. **Joint update** (Steps 4-5), on the records sorted by platform id. If every record carries
 //!    the same store digest, the exact method runs (the store and the Psi of each record). If
 //!    not, the stores have diverged (a node missed an epoch, ran it on other records, restarted).
@@ -115,6 +116,10 @@ pub struct NodeConfig {
     pub epoch_timeout_us: u64,
     /// Wall time between COOPLOC_EPOCH messages while waiting (retransmission requests), us.
     pub retry_us: u64,
+    /// The retry interval follows the team's epoch cadence ([`super::cadence`]: at most
+    /// `retry_us`, at most a tenth of the epoch period in wall time). False: `retry_us` as set
+    /// (an operator who chose the interval, e.g. for a radio's air time).
+    pub retry_follows_cadence: bool,
     /// How much history (checkpoints and the inputs after them) the node keeps, vehicle time, us
     /// (more when the vehicle's clock runs faster than the wall clock: [`super::cadence`]).
     pub history_us: u64,
@@ -161,6 +166,7 @@ impl NodeConfig {
             team,
             epoch_timeout_us: 2_000_000,
             retry_us: 100_000,
+            retry_follows_cadence: true,
             history_us: 4_000_000,
             max_lag_us: 120_000_000,
             range_grace_us: 100_000,
@@ -1030,7 +1036,7 @@ impl NodeCore {
     /// The retry interval now, us: the configured one, shortened to the epoch cadence
     /// ([`Cadence::retry_us`]).
     fn retry_us(&self) -> u64 {
-        self.cadence.retry_us(self.cfg.retry_us)
+        if self.cfg.retry_follows_cadence { self.cadence.retry_us(self.cfg.retry_us) } else { self.cfg.retry_us }
     }
 
     fn in_team(&self, p: PlatformId) -> bool {

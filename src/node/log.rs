@@ -121,6 +121,7 @@ pub fn node_metadata(cfg: &NodeConfig, init: Option<(Option<TimeUs>, &InsState)>
     m.insert("team".into(), cfg.team.iter().map(|p| p.to_string()).collect::<Vec<_>>().join(","));
     m.insert("epoch_timeout_us".into(), cfg.epoch_timeout_us.to_string());
     m.insert("retry_us".into(), cfg.retry_us.to_string());
+    m.insert("retry_follows_cadence".into(), cfg.retry_follows_cadence.to_string());
     m.insert("history_us".into(), cfg.history_us.to_string());
     m.insert("max_lag_us".into(), cfg.max_lag_us.to_string());
     m.insert("range_grace_us".into(), cfg.range_grace_us.to_string());
