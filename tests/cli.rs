@@ -87,3 +87,29 @@ fn a_node_needs_a_team_key_or_insecure_by_name_and_keygen_makes_one() {
     assert!(first.starts_with("node 1 coop udp "), "the node started: {first:?}");
     let _ = std::fs::remove_dir_all(&dir);
 }
+
+/// The ground station, like a node, refuses an unauthenticated cooperative network unless told
+/// --insecure by name, and says so when it is.
+#[test]
+fn a_ground_station_needs_a_team_key_or_insecure_by_name() {
+    let (code, out) = run(&["gcs", "--coop", "127.0.0.1:0", "--http", "127.0.0.1:0", "--no-foxglove"]);
+    assert_eq!(code, Some(1), "{out}");
+    assert!(out.contains("no --team-key") && out.contains("--insecure"), "{out}");
+    let (code, out) = run(&["gcs", "--team-key", "/nonexistent/team.key", "--insecure"]);
+    assert_eq!(code, Some(2), "a key and --insecure conflict: {out}");
+    use std::io::BufRead;
+    let mut gcs = Command::new(env!("CARGO_BIN_EXE_cooploc"))
+        .args(["gcs", "--coop", "127.0.0.1:0", "--http", "127.0.0.1:0", "--no-foxglove", "--insecure"])
+        .stdout(std::process::Stdio::piped())
+        .stderr(std::process::Stdio::null())
+        .spawn()
+        .unwrap();
+    let lines: Vec<String> = std::io::BufReader::new(gcs.stdout.take().unwrap())
+        .lines()
+        .map_while(Result::ok)
+        .take_while(|l| !l.starts_with("gcs http"))
+        .collect();
+    let _ = gcs.kill();
+    let _ = gcs.wait();
+    assert!(lines.iter().any(|l| l.contains("gcs cooperative network UNAUTHENTICATED (--insecure)")), "{lines:?}");
+}

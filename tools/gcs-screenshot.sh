@@ -18,7 +18,9 @@ wait_for() { for _ in $(seq 300); do grep -q "$2" "$1" 2>/dev/null && return 0; 
 for i in 1 2 3; do wait_for "$D/sitl.out" "^vehicle $i "; done
 addr() { grep "^vehicle $1 " "$D/sitl.out" | awk '{print $NF}'; }
 
-GCS_ARGS=()
+KEY="$D/team.key"
+"$BIN" keygen "$KEY" > /dev/null
+GCS_ARGS=(--team-key "$KEY")
 for i in 1 2 3; do GCS_ARGS+=(--vehicle "$i=udpout:$(addr $i)"); done
 "$BIN" gcs --coop 127.0.0.1:0 --http 127.0.0.1:0 --no-foxglove --link-capacity 5400 "${GCS_ARGS[@]}" > "$D/gcs.out" 2> "$D/gcs.err" &
 wait_for "$D/gcs.out" "gcs http "
@@ -28,7 +30,7 @@ GCS=$(grep "gcs coop udp " "$D/gcs.out" | awk '{print $NF}')
 PEERS=(--peer "$GCS")
 start_node() { # id, extra args...
   local i=$1; shift
-  "$BIN" node --scenario sitl/scenarios/paper.toml --id "$i" --vehicle "udpout:$(addr "$i")" --encoding compact "$@" "${PEERS[@]}" > "$D/node$i.out" 2> "$D/node$i.err" &
+  "$BIN" node --scenario sitl/scenarios/paper.toml --id "$i" --vehicle "udpout:$(addr "$i")" --encoding compact --team-key "$KEY" "$@" "${PEERS[@]}" > "$D/node$i.out" 2> "$D/node$i.err" &
   echo $! > "$D/node$i.pid"
   wait_for "$D/node$i.out" "coop udp"
 }

@@ -57,9 +57,14 @@ pub struct Args {
     #[arg(long, default_value_t = 0.0)]
     idle_exit_s: f64,
     /// The team's signing key (the nodes' --team-key file): only cooperative frames signed with
-    /// it are read, and the ground station's heartbeat is signed with it.
+    /// it are read, and the ground station's heartbeat is signed with it. The ground station
+    /// refuses to start without it, unless told --insecure.
     #[arg(long, value_name = "FILE")]
     team_key: Option<std::path::PathBuf>,
+    /// Watch an unauthenticated cooperative network (no --team-key): anyone who can reach the
+    /// ground station's port can show it vehicles, and its estimate requests go out unsigned.
+    #[arg(long, conflicts_with = "team_key")]
+    insecure: bool,
     /// Most vehicles shown (new system ids beyond it are refused and counted).
     #[arg(long, default_value_t = 64)]
     max_vehicles: usize,
@@ -129,7 +134,11 @@ fn validate(args: Args) -> anyhow::Result<Validated> {
     }
     let team_key = match &args.team_key {
         Some(path) => Some(cooploc::protocol::signing::TeamKey::from_file(path).context("--team-key")?),
-        None => None,
+        None if args.insecure => None,
+        None => bail!(
+            "no --team-key: the ground station would show whatever anyone sends to its port as the team. Give it the \
+             nodes' key file (--team-key FILE), or say --insecure to watch an unauthenticated network"
+        ),
     };
     let config = GcsConfig {
         origin: GeoOrigin { lat_deg: args.origin_lat_deg, lon_deg: args.origin_lon_deg, alt_m: args.origin_alt_m },
@@ -153,6 +162,7 @@ fn validate(args: Args) -> anyhow::Result<Validated> {
 
 pub fn run_cmd(args: Args) -> anyhow::Result<()> {
     let log = args.log.clone();
+    let insecure = args.insecure;
     let Validated { config, links } = validate(args)?;
     let recorder = match &log {
         Some(path) => {
@@ -169,6 +179,9 @@ pub fn run_cmd(args: Args) -> anyhow::Result<()> {
         let announce = tokio::spawn(async move {
             if let Ok(b) = rx.await {
                 println!("gcs coop udp {}", b.coop);
+                if insecure {
+                    println!("gcs cooperative network UNAUTHENTICATED (--insecure): every frame is taken as it comes");
+                }
                 println!("gcs http http://{}/", b.http);
                 if let Some(f) = b.foxglove {
                     println!("gcs foxglove ws://{f}");
