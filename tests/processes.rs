@@ -7,11 +7,11 @@
 //! - datagram loss of 30% and 50%: the team within 1.6x of its loss-free final error (30%), no
 //!   node worse than its dead reckoning (50%), and the same ratios to the fault-free run as the
 //!   harness's cases at 5x (`coop loss 30%/50%, packed, 5x real time`), within 20%;
-//! - a forged record (platform 2's genuine record moved 30 m, sent to the others before the
-//!   genuine one) and a relabelled replay (platform 2's record of ten epochs earlier under the
-//!   current epoch's number), on the unsigned network (`--insecure`): every node ends within
-//!   max(5 cm, 1% of its clean final error) of the clean run; with a team key both are refused
-//!   as unsigned.
+//! - a forged record (platform 2's genuine record of the epoch before, moved 30 m and labelled
+//!   as the attack epoch, sent to the others before the genuine one) and a relabelled replay
+//!   (platform 2's record of ten epochs earlier under the current epoch's number), on the
+//!   unsigned network (`--insecure`): every node ends within max(5 cm, 1% of its clean final
+//!   error) of the clean run; with a team key the forged record is refused as unsigned.
 //!
 //! - node 3 killed at 30% of the run and restarted at once by its supervisor with the same
 //!   arguments (a start state for the scenario's start time): it refuses that stale state, starts
@@ -47,7 +47,9 @@ const ATTACK_EPOCH: u32 = 100;
 #[derive(Clone, Copy, PartialEq, Debug)]
 enum Attack {
     None,
-    /// Platform 2's genuine record of the attack epoch, its position moved 30 m north.
+    /// Platform 2's genuine record of the epoch before the attack epoch (the attack epoch's own
+    /// is not whole yet when its first fragment passes), its position moved 30 m north, labelled
+    /// as the attack epoch.
     Forged,
     /// Platform 2's genuine record of ten epochs before, relabelled as the attack epoch.
     Relabelled,
