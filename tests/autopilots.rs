@@ -429,8 +429,6 @@ fn team_of(
     let mut coop: Vec<String> = Vec::new();
     for id in world.platform_ids() {
         let (t0, state) = initial_state(&world, seed, run, id).unwrap();
-        let (r, p, y) = state.att_frd_to_ned.euler_angles();
-        let v3 = |v: nalgebra::Vector3<f64>| format!("{:.17e},{:.17e},{:.17e}", v[0], v[1], v[2]);
         let mut node = Command::new(env!("CARGO_BIN_EXE_cooploc"));
         let relay = ranging_device.then(|| uwb_relay(vehicle_addr[&id].parse().unwrap(), id));
         let vehicle_url = match &relay {
@@ -455,9 +453,7 @@ fn team_of(
             node.args(["--retry-ms", "10", "--epoch-timeout-ms", "200"]);
         }
         node.arg(format!("--init-time-us={}", SIM_UNIX_EPOCH_US + t0.0));
-        node.arg(format!("--init-ned={}", v3(state.pos_ned_m)));
-        node.arg(format!("--init-vel-ned={}", v3(state.vel_ned_m_s)));
-        node.arg(format!("--init-rpy-deg={:.17e},{:.17e},{:.17e}", r.to_degrees(), p.to_degrees(), y.to_degrees()));
+        node.args(common::init_state_args(&state));
         for peer in &coop {
             node.args(["--peer", peer]);
         }

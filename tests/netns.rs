@@ -212,7 +212,6 @@ fn run_team(tag: &str, spec: &LinkSpec) -> Option<Outcome> {
     let mut outs = Vec::new();
     for &id in &ids {
         let (t0, state) = initial_state(&world, 1, 0, id).unwrap();
-        let (r, p, y) = state.att_frd_to_ned.euler_angles();
         let mut node = topo.exec(&format!("n{id}"), bin);
         node.args(common::paper_node_args(id, &format!("udpout:10.78.{id}.1:14540")));
         node.args(["--coop-bind", &format!("10.77.0.{id}:{COOP_PORT}"), "--method", "dcl", "--encoding", spec.encoding.name()]);
@@ -224,10 +223,7 @@ fn run_team(tag: &str, spec: &LinkSpec) -> Option<Outcome> {
         if !spec.packed {
             node.args(["--datagram-bytes", "0"]);
         }
-        let v3 = |v: nalgebra::Vector3<f64>| format!("{:.17e},{:.17e},{:.17e}", v[0], v[1], v[2]);
-        node.arg(format!("--init-ned={}", v3(state.pos_ned_m)));
-        node.arg(format!("--init-vel-ned={}", v3(state.vel_ned_m_s)));
-        node.arg(format!("--init-rpy-deg={:.17e},{:.17e},{:.17e}", r.to_degrees(), p.to_degrees(), y.to_degrees()));
+        node.args(common::init_state_args(&state));
         for &other in ids.iter().filter(|&&o| o != id && !spec.multicast) {
             node.args(["--peer", &format!("{RELAY_IP}:{}", RELAY_BASE + other)]);
         }

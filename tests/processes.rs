@@ -160,14 +160,10 @@ fn run_team(loss: f64, attack: Attack, signed: bool, restart: bool) -> Outcome {
     let node_cmd = |k: usize| {
         let id = ids[k];
         let (t0, state) = initial_state(&world, SEED, run, id).unwrap();
-        let (r, p, y) = state.att_frd_to_ned.euler_angles();
-        let v3 = |v: nalgebra::Vector3<f64>| format!("{:.17e},{:.17e},{:.17e}", v[0], v[1], v[2]);
         let mut node = Command::new(env!("CARGO_BIN_EXE_cooploc"));
         node.args(common::paper_node_args(id, &format!("udpout:{}", vehicle_addr[&id])));
         node.args(["--idle-exit-s", "3", "--init-time-us", &t0.0.to_string()]);
-        node.arg(format!("--init-ned={}", v3(state.pos_ned_m)));
-        node.arg(format!("--init-vel-ned={}", v3(state.vel_ned_m_s)));
-        node.arg(format!("--init-rpy-deg={:.17e},{:.17e},{:.17e}", r.to_degrees(), p.to_degrees(), y.to_degrees()));
+        node.args(common::init_state_args(&state));
         if signed {
             node.args(common::team_key_args());
         } else {

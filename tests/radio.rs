@@ -199,17 +199,13 @@ fn three_nodes_on_a_shared_serial_radio_run_the_paper_scenario_within_its_budget
     let mut outs = Vec::new();
     for (k, &id) in ids.iter().enumerate() {
         let (t0, state) = initial_state(&world, 1, 0, id).unwrap();
-        let (r, p, y) = state.att_frd_to_ned.euler_angles();
         let mut node = std::process::Command::new(bin);
         node.args(common::paper_node_args(id, &format!("udpout:{}", vehicle_addr[&id])));
         node.args(["--coop-serial", &format!("{}:57600", paths[k]), "--method", "dcl", "--encoding", "compact"]);
         // The protocol's wall-time intervals shrink with the speed-up (1 s and 3 s at real time).
         node.args(["--retry-ms", &(1000 / speed).to_string(), "--epoch-timeout-ms", &(3000 / speed).to_string()]);
         node.args(["--no-range-echo", "--idle-exit-s", "2", "--init-time-us", &t0.0.to_string()]).arg("--team-key").arg(&key);
-        let v3 = |v: nalgebra::Vector3<f64>| format!("{:.17e},{:.17e},{:.17e}", v[0], v[1], v[2]);
-        node.arg(format!("--init-ned={}", v3(state.pos_ned_m)));
-        node.arg(format!("--init-vel-ned={}", v3(state.vel_ned_m_s)));
-        node.arg(format!("--init-rpy-deg={:.17e},{:.17e},{:.17e}", r.to_degrees(), p.to_degrees(), y.to_degrees()));
+        node.args(common::init_state_args(&state));
         let (child, out) = spawn_lines(node);
         children.0.push(child);
         wait_line(&out, &format!("node {id} coop serial"), Duration::from_secs(30));

@@ -146,7 +146,6 @@ fn three_nodes_against_the_experiment(signed: bool) {
     let mut coop_addrs: Vec<String> = Vec::new();
     for id in world.platform_ids() {
         let (t0, state) = initial_state(&world, seed, run, id).unwrap();
-        let (r, p, y) = state.att_frd_to_ned.euler_angles();
         let mut node = bin();
         node.args(common::paper_node_args(id, &format!("udpout:{}", vehicle_addr[&id])));
         node.args(["--method", "dcl", "--idle-exit-s", "1.5", "--init-time-us", &t0.0.to_string()]);
@@ -155,10 +154,7 @@ fn three_nodes_against_the_experiment(signed: bool) {
         } else {
             node.arg("--insecure");
         }
-        let v3 = |v: nalgebra::Vector3<f64>| format!("{:.17e},{:.17e},{:.17e}", v[0], v[1], v[2]);
-        node.arg(format!("--init-ned={}", v3(state.pos_ned_m)));
-        node.arg(format!("--init-vel-ned={}", v3(state.vel_ned_m_s)));
-        node.arg(format!("--init-rpy-deg={:.17e},{:.17e},{:.17e}", r.to_degrees(), p.to_degrees(), y.to_degrees()));
+        node.args(common::init_state_args(&state));
         for peer in &coop_addrs {
             node.args(["--peer", peer]);
         }

@@ -230,3 +230,17 @@ impl Drop for LossyNet {
         self.stop.store(true, std::sync::atomic::Ordering::Relaxed);
     }
 }
+
+/// `--init-ned`, `--init-vel-ned` and `--init-rpy-deg` for a node starting from `state`, to the
+/// last bit (17 significant digits), so that a node started from the experiment's initial state
+/// runs what the experiment runs.
+#[allow(dead_code)] // (not every test binary starts a node from a state)
+pub fn init_state_args(state: &cooploc::estimation::ins::InsState) -> Vec<String> {
+    let v3 = |v: nalgebra::Vector3<f64>| format!("{:.17e},{:.17e},{:.17e}", v[0], v[1], v[2]);
+    let (r, p, y) = state.att_frd_to_ned.euler_angles();
+    vec![
+        format!("--init-ned={}", v3(state.pos_ned_m)),
+        format!("--init-vel-ned={}", v3(state.vel_ned_m_s)),
+        format!("--init-rpy-deg={:.17e},{:.17e},{:.17e}", r.to_degrees(), p.to_degrees(), y.to_degrees()),
+    ]
+}

@@ -29,28 +29,14 @@ for setup in "${setups[@]}"; do
       --out "$out/$setup-$method" --json "$out/$setup-$method.json" | grep -E "without GNSS|team RMS|timeout|error|EKF2 vision|node:" || true
   done
 done
-"$py" - "$out" "${setups[@]}" <<'PY'
-import json, os, sys
-out, setups = sys.argv[1], sys.argv[2:]
-print("\n| set-up | rover | path without GNSS (m) | dcl RMS / final (m) | dr RMS / final (m) | PX4 alone RMS / final (m) |")
-print("|---|---|---|---|---|---|")
+"$py" "$here/real_team_common.py" table "$out" PX4 "${setups[@]}"
+"$py" - "$here" "$out" "${setups[@]}" <<'PY'
+import sys
+sys.path.insert(0, sys.argv[1])
+from real_team_common import load_runs
+out, setups = sys.argv[2], sys.argv[3:]
 for s in setups:
-    runs = {}
-    for m in ("dcl", "dr", "alone"):
-        p = os.path.join(out, "%s-%s.json" % (s, m))
-        if os.path.exists(p):
-            runs[m] = json.load(open(p))
-    if not runs:
-        continue
-    n = len(next(iter(runs.values()))["rovers"])
-    for k in range(n):
-        cells = []
-        for m in ("dcl", "dr", "alone"):
-            r = runs.get(m)
-            cells.append("%.2f / %.2f" % (r["rovers"][k]["rms_m"], r["rovers"][k]["final_m"]) if r else "-")
-        path = "/".join("%.0f" % runs[m]["rovers"][k]["path_m"] for m in ("dcl", "dr", "alone") if m in runs)
-        print("| %s | %d | %s | %s |" % (s, k + 1, path, " | ".join(cells)))
-    print("| %s | team RMS | | %s |" % (s, " | ".join("%.2f" % runs[m]["team_rms_m"] if m in runs else "-" for m in ("dcl", "dr", "alone"))))
+    runs = load_runs(out, s)
     for m in ("dcl", "dr"):
         if m in runs:
             figs = [r.get("node", {}) for r in runs[m]["rovers"]]

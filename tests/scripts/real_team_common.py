@@ -2,10 +2,13 @@
 flat-Earth conversion about the team's origin, a free UDP port, the wait-and-retry loop, and
 stopping what they started."""
 
+import json
 import math
+import os
 import signal
 import socket
 import subprocess
+import sys
 import time
 
 M_PER_DEG_LAT = math.pi / 180.0 * 6378137.0
@@ -61,3 +64,46 @@ def stop_all(procs, nodes):
             p.wait(timeout=10)
         except subprocess.TimeoutExpired:
             p.kill()
+
+
+METHODS = ("dcl", "dr", "alone")
+
+
+def load_runs(out, setup):
+    """The JSON results of `setup` in folder `out`, by method (those present)."""
+    runs = {}
+    for m in METHODS:
+        p = os.path.join(out, "%s-%s.json" % (setup, m))
+        if os.path.exists(p):
+            with open(p) as f:
+                runs[m] = json.load(f)
+    return runs
+
+
+def print_table(out, setups, alone):
+    """The README's table of both drivers' runs in `out`: per set-up and rover the path without
+    GNSS and the autopilot EKF's error (RMS / final) for each method, then the team RMS; `alone`
+    names the autopilot on its own (ArduPilot, PX4)."""
+    print("\n| set-up | rover | path without GNSS (m) | dcl RMS / final (m) | dr RMS / final (m) | %s alone RMS / final (m) |" % alone)
+    print("|---|---|---|---|---|---|")
+    for s in setups:
+        runs = load_runs(out, s)
+        if not runs:
+            continue
+        n = len(next(iter(runs.values()))["rovers"])
+        for k in range(n):
+            cells = []
+            for m in METHODS:
+                r = runs.get(m)
+                cells.append("%.2f / %.2f" % (r["rovers"][k]["rms_m"], r["rovers"][k]["final_m"]) if r else "-")
+            path = "/".join("%.0f" % runs[m]["rovers"][k]["path_m"] for m in METHODS if m in runs)
+            print("| %s | %d | %s | %s |" % (s, k + 1, path, " | ".join(cells)))
+        print("| %s | team RMS | | %s |" % (s, " | ".join("%.2f" % runs[m]["team_rms_m"] if m in runs else "-" for m in METHODS)))
+
+
+if __name__ == "__main__":
+    # python real_team_common.py table OUT ALONE SETUP... (the drivers' .sh scripts)
+    if len(sys.argv) < 4 or sys.argv[1] != "table":
+        sys.exit("usage: real_team_common.py table OUT ALONE SETUP...")
+    print_table(sys.argv[2], sys.argv[4:], sys.argv[3])
+
