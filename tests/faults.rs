@@ -3,7 +3,7 @@
 //! node stays consistent, none ends meaningfully worse than dead reckoning, every disagreement
 //! of the nodes' stores is detected by the nodes themselves and healed within 3 epochs of the
 //! fault's end, and moderate datagram loss costs (almost) nothing.
-//! `cargo run --release -- faults` prints the same numbers as a table (README).
+//! `cargo run --release -- faults` prints the same numbers as a table (docs/robustness.md).
 
 use cooploc::estimation::Method;
 use cooploc::experiment::faults::{CaseSummary, run_case, standard_cases, summarize};

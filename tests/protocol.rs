@@ -177,7 +177,7 @@ fn quantisation_rule_keeps_nodes_bit_identical() {
 }
 
 /// Bytes on the wire, MAVLink framing included, for one 16-state INS platform per cooperative
-/// event, against streaming its raw sensors to a central node. Prints the figures the README
+/// event, against streaming its raw sensors to a central node. Prints the figures docs/protocol.md
 /// quotes (`cargo test --release --test protocol wire_budget -- --nocapture`).
 #[test]
 fn wire_budget() {

@@ -175,7 +175,7 @@ fn three_nodes_on_a_shared_serial_radio_run_the_paper_scenario_within_its_budget
     let speed = 5u32;
     // A SiK at 250 kbit/s air rate, about 21,000 B/s (`cooploc budget`'s estimate); at 5x, five
     // times that. (At 64 kbit/s, 5,400 B/s shared, the team's 4.8 KB/s at 1 Hz would load the
-    // channel to 89%: every epoch's burst queues behind the last, see the README.)
+    // channel to 89%: every epoch's burst queues behind the last, see docs/robustness.md.)
     let rate = 21_000.0 * f64::from(speed);
     let noise = 2e-5;
     let (paths, air, stop) = radio_network(ids.len(), rate, noise);

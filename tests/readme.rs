@@ -68,3 +68,57 @@ fn the_readme_commands_work_in_order_on_a_clean_clone() {
     assert!(replay.status.success(), "cooploc replay of the demo's log: {}", String::from_utf8_lossy(&replay.stderr));
     let _ = std::fs::remove_dir_all(&clone);
 }
+
+/// The relative links of a markdown text: `](target)`, less web addresses and in-page anchors,
+/// the anchor cut off.
+fn relative_links(text: &str) -> Vec<String> {
+    text.split("](")
+        .skip(1)
+        .filter_map(|rest| rest.split(')').next())
+        .map(|t| t.split('#').next().unwrap_or("").trim().to_string())
+        .filter(|t| !t.is_empty() && !t.contains("://") && !t.starts_with("mailto:"))
+        .collect()
+}
+
+/// The README is a front door: at most 300 lines, the set-up commands before any other
+/// command, every chapter under docs/ linked from it, and no link in it or in a chapter that
+/// leads nowhere.
+#[test]
+fn the_readme_is_a_short_front_door_whose_links_all_lead_somewhere() {
+    let root = Path::new(env!("CARGO_MANIFEST_DIR"));
+    let readme = std::fs::read_to_string(root.join("README.md")).unwrap();
+    let lines = readme.lines().count();
+    assert!(lines <= 300, "the README has {lines} lines: what does not belong at the front door goes to a docs/ chapter");
+    let first_command = readme.find("`cargo run --release -- demo`").expect("the demo command");
+    let before = &readme[..first_command];
+    assert!(!before.contains("```") && !before.contains("`cargo ") && !before.contains("`bash "), "no command comes before the set-up commands");
+
+    let mut chapters: Vec<_> = std::fs::read_dir(root.join("docs"))
+        .unwrap()
+        .filter_map(|e| e.ok().map(|e| e.path()))
+        .filter(|p| p.extension().is_some_and(|x| x == "md"))
+        .collect();
+    chapters.sort();
+    assert!(chapters.len() >= 8, "the chapters under docs/: {chapters:?}");
+    let mut broken = Vec::new();
+    for file in std::iter::once(root.join("README.md")).chain(chapters.iter().cloned()) {
+        let text = std::fs::read_to_string(&file).unwrap();
+        let dir = file.parent().unwrap();
+        for link in relative_links(&text) {
+            if !dir.join(&link).exists() {
+                broken.push(format!("{}: {link}", file.strip_prefix(root).unwrap().display()));
+            }
+        }
+    }
+    assert!(broken.is_empty(), "links that lead nowhere: {broken:#?}");
+    for chapter in &chapters {
+        let name = format!("docs/{}", chapter.file_name().unwrap().to_string_lossy());
+        assert!(readme.contains(&format!("]({name})")), "the README links {name}");
+    }
+}
+
+#[test]
+fn relative_links_are_found_and_web_addresses_left_out() {
+    let text = "see [a](docs/a.md), [b](b.md#part), ![i](images/x.png), [w](https://x.org/y) and [here](#top)";
+    assert_eq!(relative_links(text), ["docs/a.md", "b.md", "images/x.png"]);
+}

@@ -1,5 +1,5 @@
 #!/bin/bash
-# The ground station's page with the team's health, as a user sees it, for the README:
+# The ground station's page with the team's health, as a user sees it, for docs/ground-station.md:
 # `cooploc sitl` (paper scenario, real time), three nodes with the radio encoding (compact),
 # `cooploc gcs` with the vehicles' links and a SiK radio's capacity (5,400 B/s); after 30 s node 3 is killed and
 # restarted from its vehicle's SIM_STATE (a companion reboot): the team disagrees, asks for a

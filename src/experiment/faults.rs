@@ -596,7 +596,7 @@ pub fn run_case(
     })
 }
 
-/// A case over many runs: what the README table shows and the tests check.
+/// A case over many runs: what the table in docs/robustness.md shows and the tests check.
 #[derive(Debug, Clone, PartialEq, Serialize)]
 pub struct CaseSummary {
     pub name: String,

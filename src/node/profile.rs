@@ -214,7 +214,7 @@ pub enum TeamClock {
     /// are used as they are. An autopilot has Unix time only from a GNSS fix (or a ground
     /// station that set it): ArduPilot without GNSS sends `time_unix_usec` 0 for ever.
     Unix,
-    /// The companion computer's own clock (Unix time, kept by NTP or PTP; see the README on
+    /// The companion computer's own clock (Unix time, kept by NTP or PTP; see docs/node.md on
     /// time without GNSS), mapped to the autopilot's boot clock with MAVLink TIMESYNC
     /// exchanges (ArduPilot and PX4 answer them with their boot time in ns): needs no GNSS.
     Companion,

@@ -81,7 +81,7 @@ def load_runs(out, setup):
 
 
 def print_table(out, setups, alone):
-    """The README's table of both drivers' runs in `out`: per set-up and rover the path without
+    """The table (docs/real-autopilot.md) of both drivers' runs in `out`: per set-up and rover the path without
     GNSS and the autopilot EKF's error (RMS / final) for each method, then the team RMS; `alone`
     names the autopilot on its own (ArduPilot, PX4)."""
     print("\n| set-up | rover | path without GNSS (m) | dcl RMS / final (m) | dr RMS / final (m) | %s alone RMS / final (m) |" % alone)
