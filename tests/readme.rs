@@ -91,7 +91,10 @@ fn the_readme_is_a_short_front_door_whose_links_all_lead_somewhere() {
     assert!(lines <= 300, "the README has {lines} lines: what does not belong at the front door goes to a docs/ chapter");
     let first_command = readme.find("`cargo run --release -- demo`").expect("the demo command");
     let before = &readme[..first_command];
-    assert!(!before.contains("```") && !before.contains("`cargo ") && !before.contains("`bash "), "no command comes before the set-up commands");
+    assert!(
+        !before.contains("```") && !before.contains("`cargo ") && !before.contains("`bash "),
+        "no command comes before the set-up commands"
+    );
 
     let mut chapters: Vec<_> = std::fs::read_dir(root.join("docs"))
         .unwrap()

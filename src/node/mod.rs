@@ -9,12 +9,14 @@
 //! | [`coop_link`] | the cooperative link: UDP (packed datagrams, unicast peers, a multicast group) or a serial radio |
 //! | [`peers`] | where the cooperative traffic goes: given peers, team members, a few ground stations, bounded and expiring |
 //! | [`cadence`] | the retry interval, following the team's epoch cadence in wall time |
-//! | [`runner`] | the tokio runner that owns the sockets and the clock |
+//! | [`shell`] | the node between its sockets and its core, sans-io: datagrams and vehicle frames split, checked and decoded, the start, the ticks, what goes back; bytes and clock readings in, ordered outputs out |
+//! | [`runner`] | the tokio runner that owns the sockets and the clock and carries out the shell's outputs |
 //! | [`error`] | what can stop a node (`NodeError`): links that do not open, settings, a vehicle that goes away |
 //! | [`vehicle_link`] | the MAVLink connection to the vehicle (UDP, TCP, serial) |
 //! | [`survey`] | `cooploc check`: what an autopilot sends against what a profile needs, and the parameters to set |
 //! | [`vetting`] | which records an epoch runs on: refused when the teammates' ranges contradict them, or when a platform sent two different ones |
 //! | [`ranging`] | a ranging device on the companion (a UWB module): its line stream, as the core's own ranges |
+//! | [`range_link`] | the ranging device's serial line or UDP socket, read on its own task |
 pub mod autopilot;
 pub mod cadence;
 pub mod coop_link;
@@ -25,8 +27,10 @@ pub mod inputs;
 pub mod log;
 pub mod peers;
 pub mod profile;
+pub mod range_link;
 pub mod ranging;
 pub mod runner;
+pub mod shell;
 pub mod survey;
 pub mod vehicle_link;
 pub mod vetting;

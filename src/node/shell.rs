@@ -1,0 +1,1279 @@
+//! The node shell: everything a node does between its sockets and its [`NodeCore`], with no
+//! sockets and no clocks (sans-io). Bytes, frames and clock readings go in; messages for the
+//! vehicle, cooperative frames for the link and records for the log come out, in the order they
+//! must be acted on ([`ShellOutput`]).
+//!
+//! The shell owns:
+//! - the cooperative datagram: split into frames, or checked against the team key (only what
+//!   the key signed is logged and taken), the sender learned into the [`PeerTable`], the
+//!   node's own looped-back traffic dropped;
+//! - the vehicle's frames: its system id checked, sequence gaps counted, TIMESYNC answered and
+//!   sampled, the origin offer, the rate requests and their acknowledgements, decoding into the
+//!   core's inputs ([`VehicleInputs`]);
+//! - the start: the origin and the initial state (given, from SIM_STATE, or from the
+//!   autopilot's estimate when GNSS goes, [`super::handover`]), a given state refused when the
+//!   vehicle's first sample shows it stale;
+//! - the clock ticks: polls of the core, heartbeats, peer expiry, the signing state, the frozen
+//!   process, the end of the vehicle's stream;
+//! - what goes back: ODOMETRY, GPS_INPUT and LOCAL_POSITION_NED to the vehicle, the core's
+//!   messages signed and packed for the cooperative link.
+//!
+//! The tokio runner ([`super::runner`]) only reads the sockets, calls the shell and carries out
+//! its outputs. Wall time reaches the core only through recorded polls, so a log replays
+//! exactly.
+
+use super::autopilot::{
+    GpsInputOutput, OdometryOutput, OriginOffer, RateOutcome, RateRequest, RateRequests, TimeSync, TimesyncReply,
+};
+use super::coop_link::Source;
+use super::core::{NodeConfig, NodeCore, NodeInput, NodeOutput, NodeStats};
+use super::error::NodeError;
+use super::handover::{Handover, HandoverEvent};
+use super::inputs::{ClockSource, InputCounters, VehicleEvent, VehicleInputs};
+use super::log::{CoopUpdateRecord, NodeEvent};
+use super::peers::{Heard, PeerCounters, PeerTable};
+use super::profile::{TeamClock, VehicleProfile};
+use super::vehicle_link::Received;
+use crate::estimation::PlatformId;
+use crate::estimation::ins::InsState;
+use crate::estimation::nav::NavState;
+use crate::protocol::MavMessage;
+use crate::protocol::dialect::cooploc::{MavAutopilot, MavCmd, MavResult, MavType};
+use crate::protocol::signing::{Signer, SigningCounters, TeamKey, Verifier};
+use crate::protocol::wire;
+use crate::recording::{Direction, Link};
+use crate::time::TimeUs;
+use mavlink_core::MavHeader;
+use std::net::SocketAddr;
+use std::time::Duration;
+
+/// How far (vehicle time) the vehicle's first sample may be after the time of a given start
+/// state ([`NodeInit::Given`]) for the state to be trusted, us.
+pub const STALE_START_US: u64 = 10_000_000;
+
+/// How often the signing state is written (heartbeats).
+pub const SIGNING_STATE_EVERY: u32 = 5;
+
+/// The runner ticks the shell this often.
+pub const TICK: Duration = Duration::from_millis(25);
+
+/// Ticks this far apart mean the process itself was frozen (SIGSTOP, a stalled machine), us.
+const FROZEN_TICK_GAP_US: u64 = 500_000;
+
+/// A new TIMESYNC mapping replaces the one in use when they differ by more than this, us.
+const CLOCK_UPDATE_US: i64 = 200;
+
+/// How the node gets its initial state.
+#[derive(Debug)]
+pub enum NodeInit {
+    /// Already initialised.
+    Ready(Box<NodeCore>),
+    /// Initialised from a state given with its time (the command line), about `origin`: trusted
+    /// only if the vehicle's first sample comes at most [`STALE_START_US`] after that time. A
+    /// later one means the state is stale (a supervisor restarted the node with the arguments of
+    /// its first start, while the vehicle went on): the node then refuses it, says so, and waits
+    /// for a state as [`NodeInit::Pending`] does (SIM_STATE).
+    Given { core: Box<NodeCore>, origin: wire::GeoOrigin },
+    /// Waiting for what it lacks. `origin` None: the vehicle's GPS_GLOBAL_ORIGIN (or
+    /// HOME_POSITION) gives it, and its latitude goes into the INS configuration. `state` None:
+    /// the first SIM_STATE the vehicle sends after the origin is known (simulated vehicles): its
+    /// position about the origin, NED velocity and attitude, at the time of the last IMU sample
+    /// before it, once the team clock maps the vehicle's stamps. A state without a time is
+    /// taken at the last IMU (or wheel) sample before the origin and the team clock are known
+    /// (a real vehicle started where its configuration says).
+    ///
+    /// `from_autopilot`: the state comes from the autopilot's own estimate when its GNSS goes
+    /// (the hand-over start, [`super::handover`]), not from SIM_STATE.
+    Pending {
+        config: Box<NodeConfig>,
+        origin: Option<wire::GeoOrigin>,
+        state: Option<(Option<TimeUs>, InsState)>,
+        from_autopilot: bool,
+    },
+}
+
+/// A node still waiting for its origin or its initial state.
+#[derive(Debug)]
+struct Pending {
+    config: NodeConfig,
+    origin: Option<wire::GeoOrigin>,
+    /// The initial state and its time (None: the last IMU sample's).
+    state: Option<(Option<TimeUs>, InsState)>,
+    from_autopilot: bool,
+}
+
+/// What the shell is told at the start, besides how the node starts.
+#[derive(Debug, Clone)]
+pub struct ShellConfig {
+    /// The vehicle: which messages to read, what to ask for and send back.
+    pub profile: VehicleProfile,
+    /// The team's signing key (None: unsigned cooperative traffic).
+    pub team_key: Option<TeamKey>,
+    /// The signing timestamp to sign above (the signing state file's, 0 without one).
+    pub signing_resume_after: u64,
+    /// Peers known from the start.
+    pub peers: Vec<SocketAddr>,
+    /// End when the vehicle has been silent this long (after its first frame), then listen to
+    /// the peers for `grace` and run the epochs still pending.
+    pub idle_exit: Option<Duration>,
+    pub grace: Duration,
+    /// A ranging device on the companion feeds [`NodeShell::range_bytes`].
+    pub ranges: bool,
+    /// The cooperative link is UDP: frames also go to every unicast peer (a serial radio has
+    /// none).
+    pub unicast: bool,
+    /// A log is kept: the shell gives [`ShellOutput::Record`]s.
+    pub record: bool,
+}
+
+/// The two clocks of the companion, read by the runner at each call.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct Now {
+    /// Monotonic wall time since the node started, us.
+    pub wall_us: u64,
+    /// The companion's Unix time, ns (signing timestamps, TIMESYNC, the team clock of
+    /// `clock = "companion"`).
+    pub unix_ns: i64,
+}
+
+impl Now {
+    fn unix_us(self) -> u64 {
+        u64::try_from(self.unix_ns / 1000).unwrap_or(0)
+    }
+}
+
+/// Something for the log.
+#[derive(Debug, Clone)]
+pub enum Record {
+    Event(NodeEvent),
+    Frame {
+        link: Link,
+        dir: Direction,
+        bytes: Vec<u8>,
+    },
+    /// An estimate the node broadcast.
+    Estimate(wire::EstimateReport),
+    /// The internals of a joint update.
+    Update(Box<CoopUpdateRecord>),
+}
+
+/// What the runner must do, in order.
+#[derive(Debug, Clone)]
+pub enum ShellOutput {
+    /// Send a message to the vehicle (the vehicle link frames it, and signs it when signed).
+    Vehicle { header: MavHeader, msg: MavMessage },
+    /// Send cooperative frames, in order: onto the group or the radio, and to these unicast
+    /// peers. Report what went out with [`NodeShell::sent`].
+    Coop { frames: Vec<Vec<u8>>, unicast: Vec<SocketAddr> },
+    /// Write to the log.
+    Record(Record),
+    /// Keep this signing state (the text of the signing state file).
+    SigningState(String),
+}
+
+/// What the node put on the cooperative network.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
+pub struct CoopTx {
+    /// Frames, and their bytes once each (what a broadcast medium carries).
+    pub frames: u64,
+    pub frame_bytes: u64,
+    /// Datagrams sent (a frame goes to each peer) and their payload bytes.
+    pub datagrams: u64,
+    pub bytes: u64,
+    /// Batches a serial radio could not take (its write queue was full).
+    pub dropped: u64,
+}
+
+/// What the links know that the shell does not, for the summary.
+#[derive(Debug, Clone, Default)]
+pub struct LinkFacts {
+    /// Bytes of a serial radio's stream that were no valid frame.
+    pub coop_noise_bytes: u64,
+    /// Batches a serial radio could not take.
+    pub coop_dropped: u64,
+    /// What signing accepted and refused on a signed vehicle link.
+    pub vehicle_signing: Option<SigningCounters>,
+    /// How long the node ran, s.
+    pub wall_s: f64,
+}
+
+/// What a node did, when it stops.
+#[derive(Debug, Clone)]
+pub struct NodeSummary {
+    pub stats: NodeStats,
+    /// Platforms whose id came with two different records for one epoch (see
+    /// [`crate::node::vetting`]).
+    pub flagged: Vec<crate::estimation::PlatformId>,
+    /// None when the node never got its initial state.
+    pub estimate: Option<wire::EstimateReport>,
+    /// Vehicle inputs received before the initial state (waiting for SIM_STATE).
+    pub before_init: u64,
+    /// Time and position of the initialisation from SIM_STATE, when it happened.
+    pub sim_state_init: Option<(TimeUs, nalgebra::Vector3<f64>)>,
+    pub vehicle_frames: u64,
+    /// Vehicle frames from another system id (another vehicle, a ground station), not used.
+    pub vehicle_rejected: u64,
+    /// Vehicle frames of messages outside the dialect (the autopilot's own dialect), skipped by
+    /// their length.
+    pub vehicle_other_dialect: u64,
+    /// Vehicle frames lost on the link, from gaps in the vehicle's MAVLink sequence numbers.
+    pub vehicle_lost: u64,
+    pub coop_frames: u64,
+    pub coop_rejected: u64,
+    /// Bytes of a serial radio's stream that were no valid frame (noise, damaged frames).
+    pub coop_noise_bytes: u64,
+    /// What signing accepted and refused (unsigned, another key, replayed, stale; all zero without a team key).
+    pub coop_signing: SigningCounters,
+    /// What signing accepted and refused on a signed UDP vehicle link.
+    pub vehicle_signing: Option<SigningCounters>,
+    pub peers: Vec<SocketAddr>,
+    /// Peers learned, moved, expired and ground stations refused (table full).
+    pub peer_counters: PeerCounters,
+    /// What went out on the cooperative network, and over how long (wall time).
+    pub coop_tx: CoopTx,
+    pub wall_s: f64,
+    /// What the vehicle's messages gave (see [`InputCounters`]).
+    pub inputs: InputCounters,
+    /// The IMU rate that arrived, Hz.
+    pub imu_rate_hz: Option<f64>,
+    /// How each rate request ended.
+    pub rate_requests: Vec<RateRequest>,
+    /// ODOMETRY messages sent to the autopilot, and their last reset counter.
+    pub odometry_sent: u64,
+    pub odometry_resets: u8,
+    /// GPS_INPUT messages sent to the autopilot.
+    pub gps_input_sent: u64,
+    /// The origin the vehicle gave, when the profile had none.
+    pub origin_from_vehicle: Option<wire::GeoOrigin>,
+    /// Where the team clock's mapping came from, the mapping (team time minus the vehicle's
+    /// boot time, us) and, through TIMESYNC, the round trip of the answer it came from (us).
+    pub clock: Option<(ClockSource, i64, Option<i64>)>,
+    /// TIMESYNC requests sent and answers refused (not ours, too slow).
+    pub timesync_requests: u64,
+    pub timesync_refused: u64,
+    /// What the ranging device's stream held (None: no device).
+    pub range_input: Option<super::ranging::RangeInputCounters>,
+    /// The team's origin offered to an autopilot without one (None: the profile has no
+    /// `[origin]`, or says `set_origin = false`).
+    pub origin_offer: Option<OriginOffer>,
+    /// A hand-over start: where the node started (NED, m) and how the autopilot answered the
+    /// EKF source-set switch (None: not asked, or unanswered).
+    pub hand_over: Option<(nalgebra::Vector3<f64>, Option<MavResult>)>,
+}
+
+/// One sequence counter per link (MAVLink numbers each link on its own) and the signer.
+struct Sequences {
+    sysid: u32,
+    coop: u8,
+    vehicle: u8,
+    /// Signs the cooperative frames, when the team has a key.
+    signer: Option<Signer>,
+}
+
+impl Sequences {
+    fn next(seq: &mut u8, sysid: u32) -> MavHeader {
+        *seq = seq.wrapping_add(1);
+        MavHeader { system_id: sysid, component_id: wire::COMPANION_COMPID, sequence: *seq }
+    }
+}
+
+/// The vehicle's frames counted: received, from another system, of another dialect, lost in
+/// sequence gaps.
+#[derive(Debug, Clone, Copy, Default)]
+struct VehicleCounts {
+    frames: u64,
+    rejected: u64,
+    other_dialect: u64,
+    lost: u64,
+    last_seq: Option<u8>,
+}
+
+impl VehicleCounts {
+    /// A gap is loss; a frame from behind the last one (reordered on the way) was counted lost
+    /// in its gap and is not.
+    fn sequence(&mut self, seq: u8) {
+        match self.last_seq.map(|last| seq.wrapping_sub(last)) {
+            None => self.last_seq = Some(seq),
+            Some(0) => {}
+            Some(ahead) if ahead < 128 => {
+                self.lost += u64::from(ahead - 1);
+                self.last_seq = Some(seq);
+            }
+            Some(_) => self.lost = self.lost.saturating_sub(1),
+        }
+    }
+}
+
+/// The team clock's state: TIMESYNC and what the node last said about the clock.
+struct Clock {
+    wanted: bool,
+    timesync: TimeSync,
+    said: Option<ClockSource>,
+    rtt_us: Option<i64>,
+    reboots_seen: u64,
+}
+
+/// The autopilot's answers and outputs.
+struct Autopilot {
+    rates: RateRequests,
+    odometry: Option<OdometryOutput>,
+    gps_input: Option<GpsInputOutput>,
+    local_position_ned: bool,
+    profile_origin: Option<wire::GeoOrigin>,
+    origin_offer: Option<OriginOffer>,
+    origin_checked: bool,
+    origin_from_vehicle: Option<wire::GeoOrigin>,
+    /// MAV_CMD_SET_EKF_SOURCE_SET after a hand-over start: (set, tries, next wall time).
+    source_set: Option<(u8, u32, u64)>,
+    source_set_result: Option<MavResult>,
+    takeover_source_set: Option<u8>,
+}
+
+/// The sans-io node: see the module documentation.
+pub struct NodeShell {
+    id: PlatformId,
+    sysid: u8,
+    config: ShellConfig,
+    core: Option<NodeCore>,
+    pending: Option<Pending>,
+    /// A given start state, checked against the vehicle's first sample: (origin, its time).
+    given_start: Option<(wire::GeoOrigin, TimeUs)>,
+    handover: Option<Handover>,
+    hand_over_state: Option<InsState>,
+    last_imu_t: Option<TimeUs>,
+    before_init: u64,
+    sim_state_init: Option<(TimeUs, nalgebra::Vector3<f64>)>,
+    decoder: VehicleInputs,
+    autopilot: Autopilot,
+    clock: Clock,
+    range_lines: Option<super::ranging::RangeLines>,
+    peers: PeerTable,
+    seqs: Sequences,
+    verifier: Option<Verifier>,
+    vehicle: VehicleCounts,
+    coop_frames: u64,
+    coop_rejected: u64,
+    tx: CoopTx,
+    beats: u32,
+    last_tick_us: u64,
+    last_vehicle_us: u64,
+    heard_vehicle: bool,
+    ending_at_us: Option<u64>,
+    out: Vec<ShellOutput>,
+}
+
+fn heartbeat() -> MavMessage {
+    wire::heartbeat(MavType::MAV_TYPE_ONBOARD_CONTROLLER, MavAutopilot::MAV_AUTOPILOT_INVALID)
+}
+
+impl NodeShell {
+    /// A shell for a node that starts as `init` says, at `now`. Its first output is a
+    /// HEARTBEAT to the vehicle (a `udpin` autopilot learns the node's address from it).
+    pub fn new(init: NodeInit, config: ShellConfig, now: Now) -> Result<Self, NodeError> {
+        let team = match &init {
+            NodeInit::Ready(core) | NodeInit::Given { core, .. } => core.config().team.clone(),
+            NodeInit::Pending { config, .. } => config.team.clone(),
+        };
+        let given_start = match &init {
+            NodeInit::Given { core, origin } => Some((*origin, core.filter().time())),
+            _ => None,
+        };
+        let (id, core, pending) = match init {
+            NodeInit::Ready(core) | NodeInit::Given { core, .. } => (core.id(), Some(*core), None),
+            NodeInit::Pending { config, origin, state, from_autopilot } => {
+                (config.id, None, Some(Pending { config: *config, origin, state, from_autopilot }))
+            }
+        };
+        let sysid = u8::try_from(id).map_err(|_| {
+            NodeError::Invalid(format!("platform id {id}: a node's platform id is a MAVLink system id (1..=255)"))
+        })?;
+        let profile = &config.profile;
+        let handover = pending.as_ref().is_some_and(|p| p.from_autopilot).then(Handover::new);
+        let mut rates = RateRequests::new(profile, sysid);
+        if handover.is_some() {
+            // the autopilot's fix and estimate, fresh at the loss
+            rates.add("GPS_RAW_INT", 24, 5.0);
+            rates.add("GLOBAL_POSITION_INT", 33, 10.0);
+            rates.add("ATTITUDE", 30, 10.0);
+        }
+        let profile_origin = profile.geo_origin();
+        let autopilot = Autopilot {
+            rates,
+            odometry: OdometryOutput::new(profile.output.odometry_rate_hz, profile.output.odometry_frame),
+            gps_input: GpsInputOutput::new(profile.output.gps_input_rate_hz, profile_origin),
+            local_position_ned: profile.output.local_position_ned,
+            profile_origin,
+            origin_offer: if profile.output.set_origin { OriginOffer::new(profile_origin, sysid) } else { None },
+            origin_checked: false,
+            origin_from_vehicle: None,
+            source_set: None,
+            source_set_result: None,
+            takeover_source_set: profile.output.takeover_source_set,
+        };
+        let clock = Clock {
+            wanted: matches!(profile.inputs.clock, TeamClock::Companion | TeamClock::Auto),
+            timesync: TimeSync::default(),
+            said: None,
+            rtt_us: None,
+            reboots_seen: 0,
+        };
+        let range_lines = config.ranges.then(|| super::ranging::RangeLines::new(id, profile.inputs.epoch_grid_ms));
+        let signer = config.team_key.clone().map(|k| Signer::new(k, sysid, config.signing_resume_after));
+        let mut shell = NodeShell {
+            id,
+            sysid,
+            decoder: profile.decoder(),
+            peers: PeerTable::new(id, &team, &config.peers),
+            verifier: config.team_key.clone().map(Verifier::new),
+            config,
+            core,
+            pending,
+            given_start,
+            handover,
+            hand_over_state: None,
+            last_imu_t: None,
+            before_init: 0,
+            sim_state_init: None,
+            autopilot,
+            clock,
+            range_lines,
+            seqs: Sequences { sysid: u32::from(id), coop: 0, vehicle: 0, signer },
+            vehicle: VehicleCounts::default(),
+            coop_frames: 0,
+            coop_rejected: 0,
+            tx: CoopTx::default(),
+            beats: 0,
+            last_tick_us: now.wall_us,
+            last_vehicle_us: now.wall_us,
+            heard_vehicle: false,
+            ending_at_us: None,
+            out: Vec::new(),
+        };
+        let header = Sequences::next(&mut shell.seqs.vehicle, shell.seqs.sysid);
+        shell.out.push(ShellOutput::Vehicle { header, msg: heartbeat() });
+        Ok(shell)
+    }
+
+    /// The node's platform id.
+    pub fn id(&self) -> PlatformId {
+        self.id
+    }
+
+    /// The core, once the node has its initial state.
+    pub fn core(&self) -> Option<&NodeCore> {
+        self.core.as_ref()
+    }
+
+    /// What the runner must do now, in order.
+    pub fn take_outputs(&mut self) -> Vec<ShellOutput> {
+        std::mem::take(&mut self.out)
+    }
+
+    /// What went out of one [`ShellOutput::Coop`].
+    pub fn sent(&mut self, datagrams: u64, bytes: u64) {
+        self.tx.datagrams += datagrams;
+        self.tx.bytes += bytes;
+    }
+
+    /// The signing state to keep at the end (None: unsigned).
+    pub fn signing_state(&self) -> Option<String> {
+        self.seqs.signer.as_ref().map(crate::protocol::signing::state_text)
+    }
+
+    fn record(&mut self, record: Record) {
+        if self.config.record {
+            self.out.push(ShellOutput::Record(record));
+        }
+    }
+
+    fn event(&mut self, event: NodeEvent) {
+        self.record(Record::Event(event));
+    }
+
+    /// Sends one message to the vehicle (and logs it).
+    fn send_vehicle(&mut self, msg: MavMessage) {
+        let header = Sequences::next(&mut self.seqs.vehicle, self.seqs.sysid);
+        if self.config.record {
+            self.record(Record::Frame {
+                link: Link::Vehicle(self.sysid),
+                dir: Direction::Tx,
+                bytes: wire::to_frame(header, &msg),
+            });
+        }
+        self.out.push(ShellOutput::Vehicle { header, msg });
+    }
+
+    /// The next cooperative frame of `msg`, signed when the team has a key.
+    fn coop_frame(&mut self, msg: &MavMessage, now: Now) -> Vec<u8> {
+        let header = Sequences::next(&mut self.seqs.coop, self.seqs.sysid);
+        let frame = match &mut self.seqs.signer {
+            Some(s) => s.frame(header, msg, now.unix_us()),
+            None => wire::to_frame(header, msg),
+        };
+        self.tx.frames += 1;
+        self.tx.frame_bytes += frame.len() as u64;
+        frame
+    }
+
+    /// Cooperative frames (in order) to the group and every unicast peer, or onto the radio.
+    fn send_peers(&mut self, frames: Vec<Vec<u8>>) {
+        if frames.is_empty() {
+            return;
+        }
+        let unicast = if self.config.unicast { self.peers.addresses() } else { Vec::new() };
+        self.out.push(ShellOutput::Coop { frames, unicast });
+    }
+
+    /// The core's outputs: its messages framed for the team (a record's first fragment alone,
+    /// ahead of the rest), its estimate to the vehicle as LOCAL_POSITION_NED when the profile
+    /// asks for it, both to the log.
+    fn core_outputs(&mut self, outputs: Vec<NodeOutput>, now: Now) {
+        let mut frames = Vec::new();
+        for output in outputs {
+            match output {
+                NodeOutput::ToPeers(msg) => {
+                    let frame = self.coop_frame(&msg, now);
+                    if self.config.record {
+                        self.record(Record::Frame { link: Link::Coop(self.sysid), dir: Direction::Tx, bytes: frame.clone() });
+                    }
+                    if crate::protocol::budget::goes_alone(&msg) {
+                        self.send_peers(std::mem::take(&mut frames));
+                        self.send_peers(vec![frame]);
+                        continue;
+                    }
+                    frames.push(frame);
+                    if let MavMessage::COOPLOC_ESTIMATE(m) = &msg
+                        && (self.autopilot.local_position_ned || self.config.record)
+                        && let Ok(e) = wire::estimate_from_message(m)
+                    {
+                        if self.autopilot.local_position_ned {
+                            let boot_ms = (self.decoder.to_vehicle_time(e.t) / 1000) as u32;
+                            self.send_vehicle(wire::estimate_to_local_position(&e, boot_ms));
+                        }
+                        self.record(Record::Estimate(e));
+                    }
+                }
+                NodeOutput::Update(u) => self.record(Record::Update(u)),
+            }
+        }
+        self.send_peers(frames);
+    }
+
+    /// A clock tick (every [`TICK`]): requests to the vehicle, a poll of the core, the heartbeat
+    /// and peer expiry at 1 Hz, the end of the vehicle's stream. Returns false when the node is
+    /// done (the grace after the vehicle went silent is over).
+    pub fn tick(&mut self, now: Now) -> bool {
+        // A tick long after the last one: this process was frozen (SIGSTOP, a stalled machine).
+        // The silence was ours, not the vehicle's: start its idle clock again.
+        let gap = now.wall_us.saturating_sub(self.last_tick_us);
+        if gap > FROZEN_TICK_GAP_US {
+            tracing::warn!(platform = self.id, gap_ms = gap / 1000, "node was frozen");
+            self.last_vehicle_us = now.wall_us;
+        }
+        self.last_tick_us = now.wall_us;
+        if let (Some(idle), true, None) = (self.config.idle_exit, self.heard_vehicle, self.ending_at_us)
+            && now.wall_us.saturating_sub(self.last_vehicle_us) >= idle.as_micros() as u64
+        {
+            tracing::info!(platform = self.id, "vehicle silent: closing the last instant");
+            self.ending_at_us = Some(now.wall_us + self.config.grace.as_micros() as u64);
+            self.end_of_input(now);
+        }
+        self.requests(now);
+        self.poll(now);
+        if self.ending_at_us.is_some_and(|end| now.wall_us >= end) {
+            self.run_pending(now);
+            return false;
+        }
+        self.beats += 1;
+        if self.beats % 40 == 1 {
+            // heartbeat at 1 Hz, timeouts and idle checks at 40 Hz
+            let hb = heartbeat();
+            let header = Sequences::next(&mut self.seqs.vehicle, self.seqs.sysid);
+            self.out.push(ShellOutput::Vehicle { header, msg: hb.clone() });
+            let frame = self.coop_frame(&hb, now);
+            self.peers.expire(now.wall_us);
+            self.send_peers(vec![frame]);
+            if (self.beats / 40).is_multiple_of(SIGNING_STATE_EVERY)
+                && let Some(state) = self.signing_state()
+            {
+                self.out.push(ShellOutput::SigningState(state));
+            }
+        }
+        true
+    }
+
+    /// The core's timers at `now` (retries, epoch timeouts), without the tick's chores
+    /// (requests to the vehicle, heartbeats): what the fault harness calls between events.
+    pub fn poll(&mut self, now: Now) {
+        self.last_tick_us = now.wall_us;
+        if self.core.is_some() {
+            self.event(NodeEvent::Poll { wall_us: now.wall_us });
+            let out = self.core.as_mut().map(|c| c.poll(now.wall_us)).unwrap_or_default();
+            self.core_outputs(out, now);
+        }
+    }
+
+    /// The vehicle's stream ended: the node closes its last instant and broadcasts.
+    pub fn end_of_input(&mut self, now: Now) {
+        if self.core.is_some() {
+            self.event(NodeEvent::EndOfInput);
+            let out = self.core.as_mut().map(NodeCore::end_of_input).unwrap_or_default();
+            self.core_outputs(out, now);
+        }
+    }
+
+    /// Runs the epochs still open with what is there (the end of a run).
+    pub fn run_pending(&mut self, now: Now) {
+        if self.core.is_some() {
+            self.event(NodeEvent::RunPending);
+            let out = self.core.as_mut().map(NodeCore::run_pending).unwrap_or_default();
+            self.core_outputs(out, now);
+        }
+    }
+
+    /// A vehicle sample or an own range already decoded (the fault harness holds samples, not
+    /// frames); none before the node has its state.
+    pub fn input(&mut self, input: NodeInput, now: Now) {
+        self.feed(vec![input], now);
+    }
+
+    /// What the node asks of the vehicle on a tick: rates, the origin, the EKF source set,
+    /// TIMESYNC.
+    fn requests(&mut self, now: Now) {
+        if self.heard_vehicle
+            && let Some(cmd) = self.autopilot.rates.poll(now.wall_us)
+        {
+            self.send_vehicle(cmd);
+        }
+        if self.heard_vehicle
+            && let Some(m) = self.autopilot.origin_offer.as_mut().and_then(|o| o.poll(now.wall_us))
+        {
+            self.send_vehicle(m);
+        }
+        if let Some((set, tries, next)) = self.autopilot.source_set
+            && now.wall_us >= next
+        {
+            self.autopilot.source_set = (tries < 3).then_some((set, tries + 1, now.wall_us + 1_000_000));
+            self.send_vehicle(super::handover::ekf_source_set(set, self.sysid));
+        }
+        if self.heard_vehicle
+            && self.clock.wanted
+            && let Some(req) = self.clock.timesync.poll(now.wall_us, now.unix_ns, self.sysid)
+        {
+            self.send_vehicle(req);
+        }
+    }
+
+    /// One frame from the vehicle link. Fails only when the node cannot be made from the state
+    /// the vehicle gave (its configuration refused).
+    pub fn vehicle_frame(&mut self, frame: Received, now: Now) -> Result<(), NodeError> {
+        let (header, msg, bytes) = frame;
+        if self.config.record {
+            self.record(Record::Frame { link: Link::Vehicle(self.sysid), dir: Direction::Rx, bytes });
+        }
+        self.vehicle.frames += 1;
+        self.last_vehicle_us = now.wall_us;
+        self.heard_vehicle = true;
+        if header.system_id != u32::from(self.id) {
+            self.vehicle.rejected += 1;
+            return Ok(());
+        }
+        if header.component_id == 1 {
+            self.vehicle.sequence(header.sequence);
+        }
+        // A message of the autopilot's own dialect: its sequence number counted above, nothing
+        // for the node in it.
+        let Some(msg) = msg else {
+            self.vehicle.other_dialect += 1;
+            return Ok(());
+        };
+        if let (MavMessage::EKF_STATUS_REPORT(m), Some(offer)) = (&msg, self.autopilot.origin_offer.as_mut()) {
+            offer.on_ekf_status(m.flags.bits());
+        }
+        if let MavMessage::TIMESYNC(m) = &msg {
+            self.on_timesync(m, (header.system_id as u8, header.component_id), now);
+            return Ok(());
+        }
+        self.on_handover(&msg);
+        self.on_sim_state(&msg);
+        self.try_init()?;
+        if matches!(msg, MavMessage::SIM_STATE(_)) {
+            return Ok(());
+        }
+        let inputs = self.decode(&msg);
+        self.feed(inputs, now);
+        Ok(())
+    }
+
+    fn on_timesync(&mut self, m: &crate::protocol::dialect::cooploc::TIMESYNC_DATA, from: (u8, u8), now: Now) {
+        match self.clock.timesync.on_message(m, now.unix_ns, from, self.decoder.clock_offset_us()) {
+            TimesyncReply::Answer(answer) => self.send_vehicle(MavMessage::TIMESYNC(answer)),
+            TimesyncReply::Sample if self.clock.wanted => {
+                if let Some((offset_us, rtt_us)) = self.clock.timesync.offset_us()
+                    && self.decoder.clock_offset_us().is_none_or(|o| (o - offset_us).abs() > CLOCK_UPDATE_US)
+                    && self.decoder.clock_source() != Some(ClockSource::SystemTime)
+                {
+                    self.event(NodeEvent::Clock { offset_us, rtt_us });
+                    self.decoder.set_companion_offset(offset_us);
+                    self.clock.rtt_us = Some(rtt_us);
+                }
+            }
+            _ => {}
+        }
+    }
+
+    /// The hand-over start: the autopilot's estimate when its GNSS goes.
+    fn on_handover(&mut self, msg: &MavMessage) {
+        let id = self.id;
+        let (Some(h), Some(Pending { origin: Some(origin), state: state @ None, from_autopilot: true, .. })) =
+            (self.handover.as_mut(), self.pending.as_mut())
+        else {
+            return;
+        };
+        match h.on_message(msg, origin) {
+            Some(HandoverEvent::GnssLost { time_boot_ms, state: s }) => match self.decoder.team_time_of_boot_ms(time_boot_ms) {
+                Some(t0) => {
+                    tracing::info!(platform = id, pos = ?s.pos_ned_m, "GNSS lost: starting from the autopilot's estimate");
+                    *state = Some((Some(t0), *s));
+                    self.hand_over_state = Some(*s);
+                    if let Some(set) = self.autopilot.takeover_source_set {
+                        self.autopilot.source_set = Some((set, 0, 0));
+                    }
+                }
+                None => {
+                    tracing::warn!(platform = id, "GNSS lost before the team clock is known: waiting for it");
+                    h.retry();
+                }
+            },
+            Some(HandoverEvent::GnssLostWithoutEstimate) => {
+                tracing::warn!(platform = id, "GNSS lost, and no estimate of the autopilot's to start from yet")
+            }
+            None => {}
+        }
+    }
+
+    /// A simulated vehicle's true state, for a node that waits for it.
+    fn on_sim_state(&mut self, msg: &MavMessage) {
+        let (
+            MavMessage::SIM_STATE(m),
+            Some(Pending { origin: Some(origin), state: state @ None, from_autopilot: false, .. }),
+            Some(t0),
+        ) = (msg, self.pending.as_mut(), self.last_imu_t)
+        else {
+            return;
+        };
+        // (before the team clock maps the IMU's stamps there is no time to start at)
+        match wire::ins_state_from_sim_state(m, origin) {
+            Ok(s) => {
+                *state = Some((Some(t0), s));
+                self.sim_state_init = Some((t0, s.pos_ned_m));
+            }
+            Err(e) => {
+                self.vehicle.rejected += 1;
+                tracing::warn!(platform = self.id, error = %e, "SIM_STATE refused for initialisation");
+            }
+        }
+    }
+
+    /// Makes the core once the origin and the state (and its time) are known.
+    fn try_init(&mut self) -> Result<(), NodeError> {
+        let Some(Pending { config, origin: Some(origin), state: Some((t0, state)), .. }) = &self.pending else {
+            return Ok(());
+        };
+        let Some(t0) = t0.or(self.last_imu_t) else { return Ok(()) };
+        let made = NodeCore::new(config.clone(), t0, NavState::for_model(&config.model, *state))?;
+        tracing::info!(platform = self.id, t0 = %t0, pos = ?made.filter().position_ned_m(), lat_deg = origin.lat_deg, "initialised");
+        let o = self.autopilot.origin_from_vehicle.map(|o| [o.lat_deg, o.lon_deg, o.alt_m]);
+        let start = self.hand_over_state.as_ref().map(super::log::StartState::of);
+        self.event(NodeEvent::Init { t0_us: t0.0, origin: o, state: start });
+        self.core = Some(made);
+        self.pending = None;
+        Ok(())
+    }
+
+    /// Decodes a vehicle message into the core's inputs (none before the node has its state).
+    fn decode(&mut self, msg: &MavMessage) -> Vec<NodeInput> {
+        let id = self.id;
+        let mut inputs = Vec::new();
+        let events = self.decoder.decode(msg);
+        if self.decoder.counters.reboots != self.clock.reboots_seen {
+            // the autopilot's boot clock started again: the TIMESYNC answers are of the boot before
+            self.clock.reboots_seen = self.decoder.counters.reboots;
+            self.clock.timesync.reset();
+            self.clock.said = None;
+            tracing::warn!(platform = id, "the autopilot rebooted: mapping its clock again");
+        }
+        if self.decoder.clock_source() != self.clock.said {
+            self.clock.said = self.decoder.clock_source();
+            match self.clock.said {
+                Some(ClockSource::Timesync) => tracing::info!(
+                    platform = id,
+                    offset_us = self.decoder.clock_offset_us(),
+                    rtt_us = self.clock.rtt_us,
+                    "team clock: the companion's clock, mapped to the autopilot's boot clock by TIMESYNC"
+                ),
+                Some(ClockSource::SystemTime) => tracing::info!(
+                    platform = id,
+                    offset_us = self.decoder.clock_offset_us(),
+                    "team clock: the autopilot's Unix time (SYSTEM_TIME, from GNSS)"
+                ),
+                None => {}
+            }
+        }
+        for event in events {
+            match event {
+                VehicleEvent::Input(input) => {
+                    self.check_given_start(&input);
+                    if self.core.is_none() {
+                        self.last_imu_t = input.drive_time().or(self.last_imu_t);
+                        self.before_init += 1;
+                    } else {
+                        inputs.push(input);
+                    }
+                }
+                VehicleEvent::Ack(ack) => self.on_ack(&ack),
+                VehicleEvent::Origin(o) => self.on_origin(o, msg),
+                VehicleEvent::Nothing => {}
+            }
+        }
+        inputs
+    }
+
+    /// A given start state against the vehicle's first sample: refused when stale.
+    fn check_given_start(&mut self, input: &NodeInput) {
+        let id = self.id;
+        if let Some(t) = input.drive_time()
+            && let Some((origin, t0)) = self.given_start.take()
+            && t.0 > t0.0.saturating_add(STALE_START_US)
+            && let Some(refused) = self.core.take()
+        {
+            let late_s = (t.0 - t0.0) as f64 / 1e6;
+            println!(
+                "node {id} start state refused: given for t {t0}, the vehicle is at {t} ({late_s:.1} s later): stale; waiting for SIM_STATE"
+            );
+            tracing::warn!(platform = id, late_s, "the given start state is stale: waiting for SIM_STATE");
+            self.event(NodeEvent::StartRefused { given_t0_us: t0.0, vehicle_t_us: t.0 });
+            self.pending =
+                Some(Pending { config: refused.config().clone(), origin: Some(origin), state: None, from_autopilot: false });
+        }
+    }
+
+    fn on_ack(&mut self, ack: &crate::protocol::dialect::cooploc::COMMAND_ACK_DATA) {
+        let id = self.id;
+        if ack.command == MavCmd::MAV_CMD_SET_EKF_SOURCE_SET && self.autopilot.source_set.is_some() {
+            self.autopilot.source_set = None;
+            self.autopilot.source_set_result = Some(ack.result);
+            tracing::info!(platform = id, result = ?ack.result, "the autopilot answered the EKF source-set switch");
+        }
+        if let Some(r) = self.autopilot.rates.on_ack(ack) {
+            match &r.outcome {
+                Some(RateOutcome::Accepted) => {
+                    tracing::info!(platform = id, message = r.message, rate_hz = r.rate_hz, "the autopilot accepted the rate")
+                }
+                other => {
+                    tracing::warn!(platform = id, message = r.message, rate_hz = r.rate_hz, outcome = ?other, "the autopilot refused the rate; navigating on what it sends")
+                }
+            }
+        }
+    }
+
+    /// The vehicle's origin (the EKF's: HOME_POSITION is where it armed, elsewhere).
+    fn on_origin(&mut self, o: wire::GeoOrigin, msg: &MavMessage) {
+        let id = self.id;
+        let ap = &mut self.autopilot;
+        let geo = wire::Geodetic { lat_deg: o.lat_deg, lon_deg: o.lon_deg, alt_m: o.alt_m };
+        if let Some(offer) = ap.origin_offer.as_mut()
+            && offer.settled.is_none()
+            && matches!(msg, MavMessage::GPS_GLOBAL_ORIGIN(_))
+        {
+            let ours = offer.on_origin(o);
+            tracing::info!(platform = id, ours, lat_deg = o.lat_deg, lon_deg = o.lon_deg, "the autopilot has an origin");
+            if let (false, Some(team), Some(odometry)) = (ours, ap.profile_origin, ap.odometry.as_mut()) {
+                // its own (from its GNSS): ODOMETRY goes out in its frame
+                odometry.set_frame_offset(wire::geodetic_to_ned(&team, &geo));
+            }
+        }
+        if let Some(Pending { config, origin: origin @ None, .. }) = &mut self.pending {
+            tracing::info!(platform = id, lat_deg = o.lat_deg, lon_deg = o.lon_deg, alt_m = o.alt_m, "origin from the vehicle");
+            config.model.set_latitude(o.lat_deg);
+            *origin = Some(o);
+            ap.origin_from_vehicle = Some(o);
+            ap.origin_checked = true;
+        }
+        if let (Some(mine), false) = (ap.profile_origin, ap.origin_checked) {
+            ap.origin_checked = true;
+            let apart = wire::geodetic_to_ned(&mine, &geo).xy().norm();
+            if apart > 1000.0 {
+                tracing::warn!(
+                    platform = id,
+                    apart_m = apart,
+                    "the vehicle's origin is far from the profile's [origin]: positions sent back are in the profile's frame"
+                );
+            }
+        }
+    }
+
+    /// Bytes from the ranging device on the companion, read at `arrival_us` (Unix time, us).
+    pub fn range_bytes(&mut self, bytes: &[u8], arrival_us: u64, now: Now) {
+        let Some(lines) = self.range_lines.as_mut() else { return };
+        let ranges = lines.push(bytes, arrival_us);
+        let mut inputs = Vec::new();
+        for (epoch, range) in ranges {
+            // recorded before it is taken: replay takes the same
+            self.event(NodeEvent::Range { epoch, range });
+            if self.core.is_some() {
+                inputs.push(NodeInput::OwnRange { epoch, range });
+            } else {
+                self.before_init += 1;
+            }
+        }
+        self.feed(inputs, now);
+    }
+
+    /// One datagram from the cooperative link (a serial radio: one frame), from `from`.
+    pub fn coop_datagram(&mut self, bytes: &[u8], from: Source, now: Now) {
+        if bytes.is_empty() && from == Source::Radio {
+            return; // no whole frame in these bytes yet
+        }
+        self.coop_frames += 1;
+        let id = self.id;
+        let frames = match &mut self.verifier {
+            // only what the team key signed is logged and taken (a replay sees the same)
+            Some(v) => {
+                let got = v.datagram(bytes, now.unix_us());
+                if !got.refused.is_empty() {
+                    tracing::debug!(platform = id, %from, refused = ?got.refused, "cooperative frames refused by signing");
+                }
+                if self.config.record {
+                    for span in &got.spans {
+                        self.out.push(ShellOutput::Record(Record::Frame {
+                            link: Link::Coop(self.sysid),
+                            dir: Direction::Rx,
+                            bytes: bytes[span.clone()].to_vec(),
+                        }));
+                    }
+                }
+                got.frames
+            }
+            // Every frame of the datagram (a packed batch holds several), logged as taken: the
+            // log and the core see the same frames.
+            None => {
+                let mut frames = Vec::new();
+                for (header, msg, frame) in super::vehicle_link::split_frames(bytes) {
+                    self.record(Record::Frame { link: Link::Coop(self.sysid), dir: Direction::Rx, bytes: frame });
+                    frames.extend(msg.map(|m| (header, m)));
+                }
+                frames
+            }
+        };
+        if frames.is_empty() {
+            self.coop_rejected += 1;
+            tracing::debug!(platform = id, %from, bytes = bytes.len(), "cooperative datagram without a valid frame dropped");
+            return;
+        }
+        let mut inputs = Vec::with_capacity(frames.len());
+        for (header, msg) in frames {
+            if header.system_id == u32::from(id) {
+                continue; // our own traffic, looped back
+            }
+            let gcs = matches!(&msg, MavMessage::HEARTBEAT(hb) if hb.mavtype == MavType::MAV_TYPE_GCS);
+            if let Some(addr) = from.addr() {
+                match self.peers.heard(self.peers.sender(header.system_id, gcs), addr, now.wall_us) {
+                    Heard::New => tracing::info!(platform = id, peer = %from, sysid = header.system_id, "new peer"),
+                    Heard::Moved => tracing::info!(platform = id, peer = %from, sysid = header.system_id, "peer moved"),
+                    Heard::Refused => tracing::debug!(platform = id, peer = %from, "ground station refused: observer table full"),
+                    Heard::Known | Heard::Ignored => {}
+                }
+                if matches!(from, Source::Group(_)) {
+                    self.peers.heard_on_group(addr, now.wall_us);
+                }
+            }
+            let Ok(from) = PlatformId::try_from(header.system_id) else { continue };
+            inputs.push(NodeInput::Peer { from, msg: Box::new(msg) });
+        }
+        self.feed(inputs, now);
+    }
+
+    /// Inputs to the core, and what goes back to the vehicle after them.
+    fn feed(&mut self, inputs: Vec<NodeInput>, now: Now) {
+        if inputs.is_empty() || self.core.is_none() {
+            return;
+        }
+        // Wall time reaches the core only through recorded polls, so a replay is exact: on the
+        // ticks, and before a frame read while the ticks are late (this process was frozen and
+        // its sockets hold what came meanwhile: the core must see the freeze before that).
+        let mut out = Vec::new();
+        if now.wall_us.saturating_sub(self.last_tick_us) > FROZEN_TICK_GAP_US {
+            self.event(NodeEvent::Poll { wall_us: now.wall_us });
+            out.extend(self.core.as_mut().map(|c| c.poll(now.wall_us)).unwrap_or_default());
+        }
+        let Some(core) = self.core.as_mut() else { return };
+        let vehicle_input = inputs.iter().any(|i| i.drive_time().is_some());
+        for input in inputs {
+            out.extend(core.handle(input));
+        }
+        if vehicle_input {
+            let nav = core.navigation();
+            let decoder = &self.decoder;
+            let odo = self.autopilot.odometry.as_mut().and_then(|o| o.poll(&nav, |t| decoder.to_vehicle_time(t)));
+            let gps = self.autopilot.gps_input.as_mut().and_then(|g| g.poll(&nav, |t| decoder.to_vehicle_time(t)));
+            for msg in odo.into_iter().chain(gps) {
+                self.send_vehicle(msg);
+            }
+        }
+        self.core_outputs(out, now);
+    }
+
+    /// What the node did, with what the links know.
+    pub fn summary(&self, links: LinkFacts) -> NodeSummary {
+        let core = self.core.as_ref();
+        let ap = &self.autopilot;
+        NodeSummary {
+            stats: core.map(|c| c.stats.clone()).unwrap_or_default(),
+            flagged: core.map(|c| c.flagged().iter().copied().collect()).unwrap_or_default(),
+            estimate: core.map(NodeCore::estimate),
+            before_init: self.before_init,
+            sim_state_init: self.sim_state_init,
+            vehicle_frames: self.vehicle.frames,
+            vehicle_rejected: self.vehicle.rejected,
+            vehicle_other_dialect: self.vehicle.other_dialect,
+            vehicle_lost: self.vehicle.lost,
+            coop_frames: self.coop_frames,
+            coop_rejected: self.coop_rejected,
+            coop_noise_bytes: links.coop_noise_bytes,
+            coop_signing: self.verifier.as_ref().map(|v| v.counters.clone()).unwrap_or_default(),
+            vehicle_signing: links.vehicle_signing,
+            peers: self.peers.addresses(),
+            peer_counters: self.peers.counters,
+            coop_tx: CoopTx { dropped: links.coop_dropped, ..self.tx },
+            wall_s: links.wall_s,
+            inputs: self.decoder.counters.clone(),
+            imu_rate_hz: self.decoder.imu_rate_hz(),
+            rate_requests: ap.rates.requests.clone(),
+            odometry_sent: ap.odometry.as_ref().map_or(0, |o| o.sent),
+            odometry_resets: ap.odometry.as_ref().map_or(0, |o| o.reset_counter),
+            gps_input_sent: ap.gps_input.as_ref().map_or(0, |g| g.sent),
+            origin_from_vehicle: ap.origin_from_vehicle,
+            clock: self
+                .decoder
+                .clock_source()
+                .zip(self.decoder.clock_offset_us())
+                .map(|(source, offset)| (source, offset, if source == ClockSource::Timesync { self.clock.rtt_us } else { None })),
+            timesync_requests: self.clock.timesync.requests,
+            timesync_refused: self.clock.timesync.refused,
+            range_input: self.range_lines.as_ref().map(|l| l.counters.clone()),
+            origin_offer: ap.origin_offer.clone(),
+            hand_over: self.hand_over_state.map(|s| (s.pos_ned_m, ap.source_set_result)),
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::estimation::Method;
+    use crate::protocol::record::Encoding;
+    use crate::sitl::{PAPER_TOML, Scenario, World};
+
+    const UNIX_NS: i64 = 1_800_000_000_000_000_000;
+
+    fn at(ms: u64) -> Now {
+        Now { wall_us: ms * 1000, unix_ns: UNIX_NS + ms as i64 * 1_000_000 }
+    }
+
+    fn addr(port: u16) -> Source {
+        Source::Unicast(SocketAddr::from(([127, 0, 0, 1], port)))
+    }
+
+    /// Node 1 of the paper's team, initialised, with a log.
+    fn shell(key: Option<TeamKey>, idle_exit: Option<Duration>) -> NodeShell {
+        let scenario = Scenario::from_toml_str(PAPER_TOML).unwrap();
+        let world = World::new(&scenario).unwrap();
+        let (t0, state) = crate::experiment::initial_nav_state(&world, 1, 0, 1).unwrap();
+        let model = crate::experiment::nav_model(&world, 1);
+        let cfg = NodeConfig::for_model(1, Method::Decentralized, model, Encoding::F64, world.platform_ids());
+        let core = NodeCore::new(cfg, t0, state).unwrap();
+        let config = ShellConfig {
+            profile: VehicleProfile::from_scenario(&scenario),
+            team_key: key,
+            signing_resume_after: 0,
+            peers: Vec::new(),
+            idle_exit,
+            grace: Duration::from_secs(1),
+            ranges: false,
+            unicast: true,
+            record: true,
+        };
+        NodeShell::new(NodeInit::Ready(Box::new(core)), config, at(0)).unwrap()
+    }
+
+    fn frame(sysid: u32, compid: u8, seq: u8, msg: &MavMessage) -> Vec<u8> {
+        wire::to_frame(MavHeader { system_id: sysid, component_id: compid, sequence: seq }, msg)
+    }
+
+    fn vehicle_frame(sysid: u32, seq: u8) -> Received {
+        let msg = wire::heartbeat(MavType::MAV_TYPE_GROUND_ROVER, MavAutopilot::MAV_AUTOPILOT_ARDUPILOTMEGA);
+        let bytes = frame(sysid, 1, seq, &msg);
+        (MavHeader { system_id: sysid, component_id: 1, sequence: seq }, Some(msg), bytes)
+    }
+
+    fn summary(s: &NodeShell) -> NodeSummary {
+        s.summary(LinkFacts::default())
+    }
+
+    fn coop_outputs(out: &[ShellOutput]) -> Vec<(&Vec<Vec<u8>>, &Vec<SocketAddr>)> {
+        out.iter()
+            .filter_map(|o| match o {
+                ShellOutput::Coop { frames, unicast } => Some((frames, unicast)),
+                _ => None,
+            })
+            .collect()
+    }
+
+    #[test]
+    fn a_shell_says_heartbeat_to_its_vehicle_first_and_refuses_an_id_that_is_no_system_id() {
+        let mut s = shell(None, None);
+        let out = s.take_outputs();
+        assert!(
+            matches!(out.as_slice(), [ShellOutput::Vehicle { header, msg: MavMessage::HEARTBEAT(_) }] if header.system_id == 1 && header.component_id == wire::COMPANION_COMPID)
+        );
+
+        let scenario = Scenario::from_toml_str(PAPER_TOML).unwrap();
+        let world = World::new(&scenario).unwrap();
+        let mut cfg = NodeConfig::for_model(
+            300,
+            Method::Decentralized,
+            crate::experiment::nav_model(&world, 1),
+            Encoding::F64,
+            vec![300, 2],
+        );
+        cfg.id = 300;
+        let config = ShellConfig {
+            profile: VehicleProfile::from_scenario(&scenario),
+            team_key: None,
+            signing_resume_after: 0,
+            peers: Vec::new(),
+            idle_exit: None,
+            grace: Duration::ZERO,
+            ranges: false,
+            unicast: true,
+            record: false,
+        };
+        let init = NodeInit::Pending { config: Box::new(cfg), origin: None, state: None, from_autopilot: false };
+        let err = NodeShell::new(init, config, at(0)).err().expect("platform 300 refused");
+        assert!(err.to_string().contains("platform id 300"), "{err}");
+    }
+
+    /// Bytes that are no frame, a frame cut short, a frame whose checksum is wrong: each
+    /// datagram is counted and refused, nothing reaches the core, nothing is logged, nothing
+    /// panics.
+    #[test]
+    fn garbage_truncated_and_corrupted_datagrams_are_counted_and_feed_nothing() {
+        let mut s = shell(None, None);
+        s.take_outputs();
+        let hb = frame(2, 191, 0, &wire::heartbeat(MavType::MAV_TYPE_ONBOARD_CONTROLLER, MavAutopilot::MAV_AUTOPILOT_INVALID));
+        let mut corrupted = hb.clone();
+        let last = corrupted.len() - 1;
+        corrupted[last] ^= 0x55;
+        let garbage: Vec<u8> = (0..200u32).map(|i| (i.wrapping_mul(2_654_435_761) >> 13) as u8).collect();
+        for bytes in [&garbage[..], &hb[..hb.len() - 3], &corrupted[..], &[0xFD][..], &[][..]] {
+            s.coop_datagram(bytes, addr(7002), at(10));
+        }
+        let got = summary(&s);
+        assert_eq!((got.coop_frames, got.coop_rejected), (5, 5));
+        assert!(got.peers.is_empty(), "no peer learned from garbage: {:?}", got.peers);
+        assert!(s.take_outputs().is_empty(), "nothing logged or sent for garbage");
+        assert_eq!(s.core().unwrap().stats, NodeStats::default(), "the core saw nothing");
+    }
+
+    /// A teammate's frame teaches the shell where it is, and the next cooperative output goes
+    /// there too; the node's own frames looped back teach nothing.
+    #[test]
+    fn a_teammate_is_learned_and_sent_to_and_the_nodes_own_traffic_is_not() {
+        let mut s = shell(None, None);
+        s.take_outputs();
+        let hb = wire::heartbeat(MavType::MAV_TYPE_ONBOARD_CONTROLLER, MavAutopilot::MAV_AUTOPILOT_INVALID);
+        s.coop_datagram(&frame(1, 191, 0, &hb), addr(7001), at(5));
+        assert!(summary(&s).peers.is_empty(), "its own traffic, looped back");
+        s.coop_datagram(&frame(2, 191, 0, &hb), addr(7002), at(6));
+        s.coop_datagram(&frame(42, 191, 0, &hb), addr(7042), at(7));
+        assert_eq!(summary(&s).peers, [SocketAddr::from(([127, 0, 0, 1], 7002))], "a team member, not a stranger");
+        s.take_outputs();
+        assert!(s.tick(at(25)));
+        let out = s.take_outputs();
+        let coop = coop_outputs(&out);
+        assert_eq!(coop.len(), 1, "the heartbeat: {out:?}");
+        assert_eq!(coop[0].1, &[SocketAddr::from(([127, 0, 0, 1], 7002))]);
+        assert!(out.iter().any(|o| matches!(o, ShellOutput::Vehicle { msg: MavMessage::HEARTBEAT(_), .. })));
+    }
+
+    /// With a team key the shell takes only what the key signed, and logs only that; what it
+    /// sends is signed and a teammate's verifier takes it.
+    #[test]
+    fn a_signed_shell_takes_and_logs_only_signed_frames_and_signs_its_own() {
+        let key = TeamKey::from_passphrase("shell test");
+        let mut s = shell(Some(key.clone()), None);
+        s.take_outputs();
+        let hb = wire::heartbeat(MavType::MAV_TYPE_ONBOARD_CONTROLLER, MavAutopilot::MAV_AUTOPILOT_INVALID);
+        let header = MavHeader { system_id: 2, component_id: 191, sequence: 0 };
+        s.coop_datagram(&wire::to_frame(header, &hb), addr(7002), at(5));
+        let other = Signer::new(TeamKey::from_passphrase("another team"), 2, 0).frame(header, &hb, at(5).unix_us());
+        s.coop_datagram(&other, addr(7002), at(6));
+        assert!(s.take_outputs().is_empty(), "nothing refused is logged");
+        let got = summary(&s);
+        assert_eq!((got.coop_rejected, got.coop_signing.unsigned, got.coop_signing.bad_signature), (2, 1, 1));
+        assert!(got.peers.is_empty());
+
+        let signed = Signer::new(key.clone(), 2, 0).frame(header, &hb, at(7).unix_us());
+        s.coop_datagram(&signed, addr(7002), at(7));
+        let out = s.take_outputs();
+        assert!(
+            matches!(out.as_slice(), [ShellOutput::Record(Record::Frame { dir: Direction::Rx, bytes, .. })] if *bytes == signed)
+        );
+        assert_eq!(summary(&s).peers.len(), 1);
+
+        assert!(s.tick(at(25)));
+        let out = s.take_outputs();
+        let mut verifier = Verifier::new(key);
+        let coop = coop_outputs(&out);
+        let got = verifier.datagram(&coop[0].0[0], at(26).unix_us());
+        assert_eq!((got.frames.len(), got.refused.len()), (1, 0), "the shell's heartbeat is signed with the team key");
+    }
+
+    /// Frames from another system are refused; a gap in the autopilot's sequence numbers is
+    /// loss, and a frame that arrives behind the last one was counted in its gap and is not.
+    #[test]
+    fn vehicle_sequence_gaps_count_as_loss_and_a_late_frame_does_not() {
+        let mut s = shell(None, None);
+        for seq in [250, 251, 252, 255, 1] {
+            s.vehicle_frame(vehicle_frame(1, seq), at(1)).unwrap();
+        }
+        assert_eq!(summary(&s).vehicle_lost, 2 + 1, "253, 254 and 0 missing");
+        s.vehicle_frame(vehicle_frame(1, 254), at(2)).unwrap();
+        s.vehicle_frame(vehicle_frame(7, 2), at(2)).unwrap();
+        let got = summary(&s);
+        assert_eq!((got.vehicle_lost, got.vehicle_frames, got.vehicle_rejected), (2, 7, 1));
+    }
+
+    /// The node ends when its vehicle has been silent for the idle time and the grace after it;
+    /// a process frozen longer than that is not a silent vehicle.
+    #[test]
+    fn a_silent_vehicle_ends_the_node_after_the_grace_and_a_frozen_process_does_not() {
+        let ends = |frozen: bool| {
+            let mut s = shell(None, Some(Duration::from_secs(1)));
+            s.vehicle_frame(vehicle_frame(1, 0), at(0)).unwrap();
+            let mut ms = 0;
+            while ms < 20_000 {
+                ms += if frozen && ms == 500 { 4_000 } else { 25 };
+                if !s.tick(at(ms)) {
+                    let out = s.take_outputs();
+                    assert!(out.iter().any(|o| matches!(o, ShellOutput::Record(Record::Event(NodeEvent::RunPending)))));
+                    return ms;
+                }
+            }
+            panic!("never ended");
+        };
+        assert_eq!(ends(false), 2_000, "1 s of silence, then 1 s of grace");
+        assert_eq!(ends(true), 4_500 + 2_000, "the silence starts again after the freeze");
+    }
+}
