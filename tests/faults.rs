@@ -1,5 +1,5 @@
 //! The fault-injection harness (src/experiment/faults.rs) over every case of issue 10, 20 seeded
-//! runs each, three node cores on the paper scenario: whatever the links and the nodes do, every
+//! runs each, three node shells (fed the datagrams' bytes) on the paper scenario: whatever the links and the nodes do, every
 //! node stays consistent, none ends meaningfully worse than dead reckoning, every disagreement
 //! of the nodes' stores is detected by the nodes themselves and healed within 3 epochs of the
 //! fault's end, and moderate datagram loss costs (almost) nothing.
@@ -70,6 +70,10 @@ fn every_fault_case_stays_consistent_detects_and_heals() {
         ("coop loss 30%", 0.30),
         ("coop loss 30%, packed datagrams", 0.30),
         ("coop loss 30%, packed, 5x real time", 0.30),
+        // A damaged datagram costs at most what a lost one does: the shell takes its frames
+        // before the damage and refuses the rest.
+        ("damaged datagrams 10%", 0.10),
+        ("damaged datagrams 30%, packed", 0.30),
     ] {
         if rms(name) > base * (1.0 + allowed) {
             problems.push(format!(
@@ -105,4 +109,37 @@ fn every_fault_case_stays_consistent_detects_and_heals() {
         }
     }
     assert!(problems.is_empty(), "{}", problems.join("\n"));
+}
+
+/// Damage meets the node shell, not the core: datagrams arrive with a byte changed or cut
+/// short, the shell refuses what no longer checks out (its frames before the damage are taken),
+/// the core never sees a damaged record and resends what was lost, and the team ends exactly
+/// where it ends without the damage.
+#[test]
+fn damaged_datagrams_are_refused_by_the_shell_and_cost_nothing_in_the_end() {
+    let world = World::new(&Scenario::from_toml_str(PAPER_TOML).unwrap()).unwrap();
+    let case = |name: &str| standard_cases().into_iter().find(|c| c.name == name).unwrap().faults;
+    for run in 0..2 {
+        let clean = run_case(&world, &case("fault-free"), Method::Decentralized, "1hz", 1, run, Encoding::F64).unwrap();
+        for name in ["damaged datagrams 10%", "damaged datagrams 30%, packed"] {
+            let got = run_case(&world, &case(name), Method::Decentralized, "1hz", 1, run, Encoding::F64).unwrap();
+            for (node, free) in got.nodes.iter().zip(&clean.nodes) {
+                assert!(node.coop_refused > 0, "{name}, run {run}: node {} refused no datagram", node.id);
+                assert_eq!(free.coop_refused, 0);
+                let s = &node.stats;
+                assert_eq!(
+                    (s.records_undecodable, s.fragments_rejected, s.records_implausible),
+                    (0, 0, 0),
+                    "{name}, run {run}: node {} saw a damaged record",
+                    node.id
+                );
+                assert!(s.records_resent > free.stats.records_resent, "{name}: what was lost is sent again");
+                assert_eq!(
+                    node.final_err_m, free.final_err_m,
+                    "{name}, run {run}: node {} ends where it ends without damage",
+                    node.id
+                );
+            }
+        }
+    }
 }

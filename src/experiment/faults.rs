@@ -1,7 +1,10 @@
-//! Fault injection: a team of node cores ([`crate::node::core`]) run over a simulated network and
-//! simulated vehicle links that lose, delay and reorder, with nodes that stall, die and restart,
-//! join late and leave. Deterministic: every random choice comes from the seed, and wall time is
-//! the vehicle's time (real-time operation), so a case and a seed always give the same numbers.
+//! Fault injection: a team of nodes run over a simulated network and simulated vehicle links
+//! that lose, delay, reorder and damage, with nodes that stall, die and restart, join late and
+//! leave. Each node is the node shell a process runs ([`crate::node::shell`]), fed the bytes of
+//! the cooperative datagrams (so a fault can damage bytes, and the shell's framing and checks
+//! are what meets it) and the vehicle's samples as decoded inputs. Deterministic: every random
+//! choice comes from the seed, and wall time is the vehicle's time divided by [`Faults::speed`],
+//! so a case and a seed always give the same numbers.
 //!
 //! What a run measures, per node: the horizontal error and its 2-D NEES against the truth at the
 //! end of the fault window and at the end of the run, the dead-reckoning error of the same inputs,
@@ -19,9 +22,12 @@ use serde::Serialize;
 use super::{ExperimentError, nav_model, run_filter, state_from};
 use crate::estimation::nav::NavState;
 use crate::estimation::{Method, PlatformId};
-use crate::node::core::{NodeConfig, NodeCore, NodeInput, NodeOutput, NodeStats};
+use crate::node::coop_link::Source;
+use crate::node::core::{NodeConfig, NodeCore, NodeInput, NodeStats};
+use crate::node::profile::VehicleProfile;
+use crate::node::shell::{LinkFacts, NodeInit, NodeShell, Now, ShellConfig, ShellOutput};
+use crate::protocol::budget;
 use crate::protocol::record::Encoding;
-use crate::protocol::{MavMessage, budget};
 use crate::sitl::world::{SimEvent, World};
 use crate::time::TimeUs;
 
@@ -69,6 +75,9 @@ pub struct Faults {
     /// nodes' wall-clock timers (retries, epoch timeouts) and the network's delays are wall
     /// time, so in vehicle time they last `speed` times longer. 1: real time.
     pub speed: f64,
+    /// Probability that a cooperative datagram arrives damaged (per receiver, while the link
+    /// faults last): one byte changed, or the datagram cut short at a random length.
+    pub corrupt: f64,
 }
 
 impl Default for Faults {
@@ -85,6 +94,7 @@ impl Default for Faults {
             packed: false,
             leave: None,
             speed: 1.0,
+            corrupt: 0.0,
         }
     }
 }
@@ -92,7 +102,8 @@ impl Default for Faults {
 impl Faults {
     /// When the last fault ends (0 for none), s.
     pub fn end_s(&self) -> f64 {
-        let link = if self.coop_loss > 0.0 || self.vehicle_loss > 0.0 || self.delay_ms.1 > 0 { self.links_until_s } else { 0.0 };
+        let faulty = self.coop_loss > 0.0 || self.vehicle_loss > 0.0 || self.delay_ms.1 > 0 || self.corrupt > 0.0;
+        let link = if faulty { self.links_until_s } else { 0.0 };
         [self.stall, self.kill, self.leave]
             .iter()
             .flatten()
@@ -146,6 +157,11 @@ pub fn standard_cases() -> Vec<FaultCase> {
             name: "coop loss 50%, packed, 5x real time",
             faults: Faults { packed: true, speed: 5.0, ..links(0.50, 0.0, (0, 0)) },
         },
+        FaultCase { name: "damaged datagrams 10%", faults: Faults { corrupt: 0.10, ..links(0.0, 0.0, (0, 0)) } },
+        FaultCase {
+            name: "damaged datagrams 30%, packed",
+            faults: Faults { corrupt: 0.30, packed: true, ..links(0.0, 0.0, (0, 0)) },
+        },
         FaultCase { name: "vehicle loss 0.5%", faults: links(0.0, 0.005, (0, 0)) },
         FaultCase { name: "vehicle loss 5%", faults: links(0.0, 0.05, (0, 0)) },
         FaultCase {
@@ -182,6 +198,8 @@ pub struct NodeOutcome {
     pub dr_final_err_m: f64,
     #[serde(skip)]
     pub stats: NodeStats,
+    /// Cooperative datagrams the node's shell refused whole (no valid frame in them).
+    pub coop_refused: u64,
 }
 
 /// One run of one case.
@@ -202,12 +220,29 @@ pub struct RunOutcome {
 }
 
 struct Node {
-    core: Option<NodeCore>,
-    /// Inputs waiting while the node is frozen.
-    backlog: Vec<NodeInput>,
+    shell: Option<NodeShell>,
+    /// What waits in the sockets while the node is frozen.
+    backlog: Vec<Arrival>,
     /// Epoch -> store digest, recorded when the node resolves it.
     digests: BTreeMap<u32, u64>,
     last_seen: Option<u32>,
+}
+
+impl Node {
+    fn core(&self) -> Option<&NodeCore> {
+        self.shell.as_ref().and_then(NodeShell::core)
+    }
+}
+
+/// What reaches a node: a vehicle sample (decoded) or a cooperative datagram from node `from`.
+enum Arrival {
+    Input(NodeInput),
+    Datagram { from: usize, bytes: Vec<u8> },
+}
+
+/// Node `k`'s cooperative address (what its teammates' shells learn it by).
+fn address(k: usize) -> Source {
+    Source::Unicast(std::net::SocketAddr::from(([127, 0, 0, 1], 7000 + k as u16)))
 }
 
 /// The team, its network and the fault schedule.
@@ -218,7 +253,7 @@ struct Sim<'a> {
     rng: ChaCha8Rng,
     /// (deliver at, sequence, receiver): the datagram in `in_flight` under that sequence.
     net: BinaryHeap<Reverse<(u64, u64, usize)>>,
-    in_flight: BTreeMap<u64, (PlatformId, MavMessage)>,
+    in_flight: BTreeMap<u64, (usize, Vec<u8>)>,
     seq: u64,
 }
 
@@ -235,93 +270,86 @@ impl Sim<'_> {
         self.case.stall.is_some_and(|o| o.covers(k, t))
     }
 
-    /// Puts what node `k` sent at `now` on the network, to every receiver: one message per
-    /// datagram, or packed as the runner packs them ([`Faults::packed`]).
-    fn send(&mut self, k: usize, out: Vec<NodeOutput>, now: TimeUs) {
-        let msgs: Vec<MavMessage> = out
-            .into_iter()
-            .filter_map(|o| match o {
-                NodeOutput::ToPeers(m) => Some(m),
-                NodeOutput::Update(_) => None,
-            })
-            .collect();
-        for datagram in self.datagrams(k, msgs) {
-            for j in (0..self.ids.len()).filter(|&j| j != k) {
-                if self.cut(k, now) || self.cut(j, now) {
-                    continue;
-                }
-                let mut at = now.0;
-                if self.links_active(now) {
-                    if self.case.coop_loss > 0.0 && self.rng.random::<f64>() < self.case.coop_loss {
-                        continue;
-                    }
-                    let (lo, hi) = self.case.delay_ms;
-                    if hi > 0 {
-                        at += (self.rng.random_range(lo..=hi) as f64 * 1000.0 * self.case.speed) as u64;
-                    }
-                }
-                for msg in &datagram {
-                    self.seq += 1;
-                    self.in_flight.insert(self.seq, (self.ids[k], msg.clone()));
-                    self.net.push(Reverse((at, self.seq, j)));
+    /// Puts what node `k`'s shell sent by `now` on the network, to every receiver: one frame
+    /// per datagram, or packed as the link packs them ([`Faults::packed`]).
+    fn send(&mut self, k: usize, now: TimeUs) {
+        let outputs = self.nodes[k].shell.as_mut().map(NodeShell::take_outputs).unwrap_or_default();
+        for output in outputs {
+            let ShellOutput::Coop { frames, .. } = output else { continue };
+            for datagram in self.datagrams(frames) {
+                for j in (0..self.ids.len()).filter(|&j| j != k) {
+                    self.transmit(k, j, &datagram, now);
                 }
             }
         }
     }
 
-    /// The datagrams node `k`'s messages of one step travel in (see [`Faults::packed`]).
-    fn datagrams(&self, k: usize, msgs: Vec<MavMessage>) -> Vec<Vec<MavMessage>> {
+    /// One datagram from `k` to `j`: lost, delayed or damaged while the link faults last.
+    fn transmit(&mut self, k: usize, j: usize, datagram: &[u8], now: TimeUs) {
+        if self.cut(k, now) || self.cut(j, now) {
+            return;
+        }
+        let mut at = now.0;
+        let mut bytes = datagram.to_vec();
+        if self.links_active(now) {
+            if self.case.coop_loss > 0.0 && self.rng.random::<f64>() < self.case.coop_loss {
+                return;
+            }
+            let (lo, hi) = self.case.delay_ms;
+            if hi > 0 {
+                at += (self.rng.random_range(lo..=hi) as f64 * 1000.0 * self.case.speed) as u64;
+            }
+            if self.case.corrupt > 0.0 && self.rng.random::<f64>() < self.case.corrupt {
+                damage(&mut bytes, &mut self.rng);
+            }
+        }
+        self.seq += 1;
+        self.in_flight.insert(self.seq, (k, bytes));
+        self.net.push(Reverse((at, self.seq, j)));
+    }
+
+    /// The datagrams one batch of frames travels in (see [`Faults::packed`]; the shell already
+    /// sends a record's first fragment alone).
+    fn datagrams(&self, frames: Vec<Vec<u8>>) -> Vec<Vec<u8>> {
         if !self.case.packed {
-            return msgs.into_iter().map(|m| vec![m]).collect();
+            return frames;
         }
-        let header = mavlink_core::MavHeader { system_id: u32::from(self.ids[k]), component_id: 191, sequence: 0 };
-        let mut out: Vec<Vec<MavMessage>> = Vec::new();
-        let mut batch: Vec<MavMessage> = Vec::new();
-        let flush = |batch: &mut Vec<MavMessage>, out: &mut Vec<Vec<MavMessage>>| {
-            let sizes: Vec<usize> = batch.iter().map(|m| crate::protocol::wire::to_frame(header, m).len()).collect();
-            let starts = budget::packing(&sizes, budget::MAX_DATAGRAM);
-            let ends = starts.iter().skip(1).copied().chain([batch.len()]);
-            let mut frames = std::mem::take(batch).into_iter();
-            for (a, b) in starts.iter().zip(ends) {
-                out.push(frames.by_ref().take(b - a).collect());
-            }
-        };
-        for m in msgs {
-            if budget::goes_alone(&m) {
-                flush(&mut batch, &mut out);
-                out.push(vec![m]);
-            } else {
-                batch.push(m);
-            }
-        }
-        flush(&mut batch, &mut out);
-        out
+        let sizes: Vec<usize> = frames.iter().map(Vec::len).collect();
+        let starts = budget::packing(&sizes, budget::MAX_DATAGRAM);
+        let ends = starts.iter().skip(1).copied().chain([frames.len()]);
+        starts.iter().zip(ends).map(|(&a, b)| frames[a..b].concat()).collect()
     }
 
-    /// Hands `input` to node `k` at `now`: lost if it is dead, queued if it is frozen.
-    fn deliver(&mut self, k: usize, input: NodeInput, now: TimeUs) {
+    /// The nodes' clocks at vehicle time `now`: wall time (see [`Faults::speed`]) and a Unix
+    /// time that follows it.
+    fn clock(&self, now: TimeUs) -> Now {
+        let wall_us = (now.0 as f64 / self.case.speed) as u64;
+        Now { wall_us, unix_ns: 1_700_000_000_000_000_000 + wall_us as i64 * 1000 }
+    }
+
+    /// Hands what arrived to node `k` at `now`: lost if it is dead, queued if it is frozen.
+    fn deliver(&mut self, k: usize, arrival: Arrival, now: TimeUs) {
         if self.stalled(k, now) {
-            if self.nodes[k].core.is_some() {
-                self.nodes[k].backlog.push(input);
+            if self.nodes[k].shell.is_some() {
+                self.nodes[k].backlog.push(arrival);
             }
             return;
         }
-        let Some(core) = self.nodes[k].core.as_mut() else { return };
-        let out = core.handle(input);
-        self.send(k, out, now);
+        let clock = self.clock(now);
+        let Some(shell) = self.nodes[k].shell.as_mut() else { return };
+        match arrival {
+            Arrival::Input(input) => shell.input(input, clock),
+            Arrival::Datagram { from, bytes } => shell.coop_datagram(&bytes, address(from), clock),
+        }
+        self.send(k, now);
     }
 
     fn poll(&mut self, k: usize, now: TimeUs) {
-        let wall_us = self.wall_us(now);
-        if let Some(core) = self.nodes[k].core.as_mut() {
-            let out = core.poll(wall_us);
-            self.send(k, out, now);
+        let clock = self.clock(now);
+        if let Some(shell) = self.nodes[k].shell.as_mut() {
+            shell.poll(clock);
+            self.send(k, now);
         }
-    }
-
-    /// The nodes' wall clock at vehicle time `now` (see [`Faults::speed`]), us.
-    fn wall_us(&self, now: TimeUs) -> u64 {
-        (now.0 as f64 / self.case.speed) as u64
     }
 
     /// Delivers every datagram due by `now`.
@@ -331,14 +359,27 @@ impl Sim<'_> {
                 break;
             }
             self.net.pop();
-            if let Some((from, msg)) = self.in_flight.remove(&s) {
-                self.deliver(j, NodeInput::Peer { from, msg: Box::new(msg) }, TimeUs(at));
+            if let Some((from, bytes)) = self.in_flight.remove(&s) {
+                self.deliver(j, Arrival::Datagram { from, bytes }, TimeUs(at));
             }
         }
     }
 
     fn lose_vehicle_frame(&mut self, t: TimeUs) -> bool {
         self.links_active(t) && self.case.vehicle_loss > 0.0 && self.rng.random::<f64>() < self.case.vehicle_loss
+    }
+}
+
+/// Damages a datagram as a radio or a bad cable would: one byte changed, or the end cut off.
+fn damage(bytes: &mut Vec<u8>, rng: &mut ChaCha8Rng) {
+    if bytes.is_empty() {
+        return;
+    }
+    if rng.random::<bool>() {
+        let i = rng.random_range(0..bytes.len());
+        bytes[i] ^= rng.random_range(1..=255u8);
+    } else {
+        bytes.truncate(rng.random_range(0..bytes.len()));
     }
 }
 
@@ -430,11 +471,35 @@ pub fn run_case(
         NodeCore::new(cfg, t0, NavState::for_model(&model, state))
             .map_err(|e| ExperimentError::Settings(format!("node {id}: {e}")))
     };
+    // The shell around a core: what the team sees of the autopilot is not measured here, so
+    // nothing goes back to it (no ODOMETRY, GPS_INPUT or LOCAL_POSITION_NED).
+    let wrap = |core: NodeCore, at: TimeUs| -> Result<NodeShell, ExperimentError> {
+        let mut profile = VehicleProfile::from_scenario_platform(world.scenario(), core.id());
+        profile.output.odometry_rate_hz = 0.0;
+        profile.output.gps_input_rate_hz = 0.0;
+        profile.output.local_position_ned = false;
+        let config = ShellConfig {
+            profile,
+            team_key: None,
+            signing_resume_after: 0,
+            peers: Vec::new(),
+            idle_exit: None,
+            grace: std::time::Duration::ZERO,
+            ranges: false,
+            unicast: false,
+            record: false,
+        };
+        let clock = Now { wall_us: (at.0 as f64 / case.speed) as u64, unix_ns: 0 };
+        let mut shell = NodeShell::new(NodeInit::Ready(Box::new(core)), config, clock)
+            .map_err(|e| ExperimentError::Settings(format!("node shell: {e}")))?;
+        shell.take_outputs(); // its HEARTBEAT to the vehicle
+        Ok(shell)
+    };
     let mut nodes = Vec::new();
     for (k, &id) in ids.iter().enumerate() {
         let late = case.join.is_some_and(|(n, _)| n == k);
-        let core = if late { None } else { Some(make(id, None)?) };
-        nodes.push(Node { core, backlog: Vec::new(), digests: BTreeMap::new(), last_seen: None });
+        let shell = if late { None } else { Some(wrap(make(id, None)?, TimeUs(0))?) };
+        nodes.push(Node { shell, backlog: Vec::new(), digests: BTreeMap::new(), last_seen: None });
     }
     let epoch_times: Vec<TimeUs> = world.ranges(schedule, seed, run)?.into_iter().map(|(t, _)| t).collect();
     let dropped_imu = case.drop_imu_at_epoch.and_then(|(k, e)| Some((k, *epoch_times.get((e as usize).checked_sub(1)?)?)));
@@ -458,13 +523,13 @@ pub fn run_case(
         // Membership: kills, restarts, joins, wake-ups.
         for (k, &id) in ids.iter().enumerate() {
             if case.kill.is_some_and(|o| o.covers(k, now)) {
-                sim.nodes[k].core = None;
+                sim.nodes[k].shell = None;
             }
             let restart = case.kill.is_some_and(|o| o.node == k && !restarted && now.as_secs_f64() >= o.until_s);
-            let join = case.join.is_some_and(|(n, t)| n == k && sim.nodes[k].core.is_none() && now.as_secs_f64() >= t);
+            let join = case.join.is_some_and(|(n, t)| n == k && sim.nodes[k].shell.is_none() && now.as_secs_f64() >= t);
             if restart || join {
                 restarted |= restart;
-                sim.nodes[k].core = Some(make(id, Some(now))?);
+                sim.nodes[k].shell = Some(wrap(make(id, Some(now))?, now)?);
                 sim.nodes[k].last_seen = None;
             }
             if !sim.stalled(k, now) && !sim.nodes[k].backlog.is_empty() {
@@ -488,7 +553,7 @@ pub fn run_case(
             if fault_end.0 > 0 && now >= fault_end {
                 for k in 0..ids.len() {
                     if at_fault_end[k].is_none()
-                        && let Some(core) = &sim.nodes[k].core
+                        && let Some(core) = sim.nodes[k].core()
                     {
                         at_fault_end[k] = Some(horizontal_error(world, ids[k], core));
                     }
@@ -499,55 +564,60 @@ pub fn run_case(
             SimEvent::Imu(id, s) => {
                 let k = index(id);
                 if dropped_imu != Some((k, s.t)) && !sim.lose_vehicle_frame(s.t) {
-                    sim.deliver(k, NodeInput::Imu(s), now);
+                    sim.deliver(k, Arrival::Input(NodeInput::Imu(s)), now);
                 }
             }
             SimEvent::Odometer(id, s) => {
                 if !sim.lose_vehicle_frame(s.t) {
-                    sim.deliver(index(id), NodeInput::Odometer(s), now);
+                    sim.deliver(index(id), Arrival::Input(NodeInput::Odometer(s)), now);
                 }
             }
             SimEvent::Wheel(id, s) => {
                 let k = index(id);
                 if dropped_imu != Some((k, s.t)) && !sim.lose_vehicle_frame(s.t) {
-                    sim.deliver(k, NodeInput::Wheel(s), now);
+                    sim.deliver(k, Arrival::Input(NodeInput::Wheel(s)), now);
                 }
             }
             SimEvent::Ranges(t, samples) => {
                 epoch += 1;
                 for r in samples {
                     if !sim.lose_vehicle_frame(t) {
-                        sim.deliver(index(r.from), NodeInput::OwnRange { epoch, range: r }, now);
+                        sim.deliver(index(r.from), Arrival::Input(NodeInput::OwnRange { epoch, range: r }), now);
                     }
                 }
             }
         }
         for node in sim.nodes.iter_mut() {
-            if let Some(core) = &node.core
+            if let Some(core) = node.core()
                 && core.last_epoch() != node.last_seen
             {
-                node.last_seen = core.last_epoch();
-                if let Some(e) = node.last_seen {
-                    node.digests.insert(e, core.store_digest());
+                let (last, digest) = (core.last_epoch(), core.store_digest());
+                node.last_seen = last;
+                if let Some(e) = last {
+                    node.digests.insert(e, digest);
                 }
             }
         }
     }
     // The end of the run: close every node, deliver, run what is still open.
     let end = world.end();
+    let clock = sim.clock(end);
     for k in 0..ids.len() {
-        if let Some(core) = sim.nodes[k].core.as_mut() {
-            let out = core.end_of_input();
-            sim.send(k, out, end);
+        if let Some(shell) = sim.nodes[k].shell.as_mut() {
+            shell.end_of_input(clock);
+            sim.send(k, end);
         }
     }
     sim.network(TimeUs(u64::MAX));
     for node in sim.nodes.iter_mut() {
-        if let Some(core) = node.core.as_mut() {
-            core.run_pending();
-            if let Some(e) = core.last_epoch() {
-                node.digests.insert(e, core.store_digest());
-            }
+        if let Some(shell) = node.shell.as_mut() {
+            shell.run_pending(clock);
+        }
+        if let Some(core) = node.core()
+            && let Some(e) = core.last_epoch()
+        {
+            let digest = core.store_digest();
+            node.digests.insert(e, digest);
         }
     }
 
@@ -556,7 +626,7 @@ pub fn run_case(
     let mut outcomes = Vec::new();
     let mut detections = 0;
     for (k, node) in sim.nodes.iter().enumerate() {
-        let Some(core) = &node.core else {
+        let Some(core) = node.core() else {
             return Err(ExperimentError::Settings(format!("node {} never ran", ids[k])));
         };
         let (final_err_m, final_nees) = horizontal_error(world, ids[k], core);
@@ -572,6 +642,7 @@ pub fn run_case(
             final_sigma_m: (p[(0, 0)] + p[(1, 1)]).sqrt(),
             dr_final_err_m: dr.platforms[k].final_error().pos_err_m,
             stats: core.stats.clone(),
+            coop_refused: node.shell.as_ref().map_or(0, |sh| sh.summary(LinkFacts::default()).coop_rejected),
         });
     }
     // Disagreements seen from outside: epochs whose digests differ between the nodes that
@@ -584,7 +655,7 @@ pub fn run_case(
     }
     let divergent: Vec<u32> = all.iter().filter(|(_, d)| d.windows(2).any(|w| w[0] != w[1])).map(|(e, _)| *e).collect();
     let fault_end_epoch = epoch_times.iter().filter(|t| **t <= fault_end).count() as u32;
-    let cores: Vec<&NodeCore> = sim.nodes.iter().filter_map(|n| n.core.as_ref()).collect();
+    let cores: Vec<&NodeCore> = sim.nodes.iter().filter_map(Node::core).collect();
     let team_nees = team_nees(world, &ids, &cores);
     Ok(RunOutcome {
         nodes: outcomes,
