@@ -89,8 +89,9 @@ pub struct DemoReport {
     pub log_messages: u64,
 }
 
-/// Runs the demo; `ready` is called once every server listens.
-pub async fn run_demo(cfg: DemoConfig, ready: impl FnOnce(&DemoAddresses)) -> Result<DemoReport, DemoError> {
+/// The scenario, cut to the demo's duration: itself, as text for the log, its world, and the
+/// ranging schedule.
+fn load_scenario(cfg: &DemoConfig) -> Result<(Scenario, String, World, String), DemoError> {
     let toml = std::fs::read(&cfg.scenario).step(format!("reading {}", cfg.scenario.display()))?;
     let mut scenario =
         Scenario::from_toml_str(std::str::from_utf8(&toml).step("the scenario is not UTF-8")?).step("the scenario")?;
@@ -114,7 +115,11 @@ pub async fn run_demo(cfg: DemoConfig, ready: impl FnOnce(&DemoAddresses)) -> Re
         }
         None => scenario.ranging.schedules.first().map(|s| s.name.clone()).step("the scenario has no ranging schedule")?,
     };
-    let origin = GeoOrigin { lat_deg: scenario.latitude_deg, lon_deg: 0.0, alt_m: 0.0 };
+    Ok((scenario, scenario_text, world, schedule))
+}
+
+/// The demo's log, with the run's metadata and the scenario attached.
+fn open_log(cfg: &DemoConfig, schedule: &str, origin: GeoOrigin, scenario_text: &str) -> Result<SharedRecorder, DemoError> {
     if let Some(dir) = cfg.log.parent() {
         std::fs::create_dir_all(dir).step(format!("creating {}", dir.display()))?;
     }
@@ -125,7 +130,7 @@ pub async fn run_demo(cfg: DemoConfig, ready: impl FnOnce(&DemoAddresses)) -> Re
         [
             ("seed".to_string(), cfg.seed.to_string()),
             ("run".to_string(), cfg.run.to_string()),
-            ("schedule".to_string(), schedule.clone()),
+            ("schedule".to_string(), schedule.to_string()),
             ("speed".to_string(), cfg.speed.to_string()),
             ("command".to_string(), std::env::args().collect::<Vec<_>>().join(" ")),
         ]
@@ -134,6 +139,14 @@ pub async fn run_demo(cfg: DemoConfig, ready: impl FnOnce(&DemoAddresses)) -> Re
     .step("the log")?;
     rec.attachment("scenario.toml", "application/toml", scenario_text.as_bytes()).step("the log")?;
     let recorder: SharedRecorder = Arc::new(Mutex::new(rec));
+    Ok(recorder)
+}
+
+/// Runs the demo; `ready` is called once every server listens.
+pub async fn run_demo(cfg: DemoConfig, ready: impl FnOnce(&DemoAddresses)) -> Result<DemoReport, DemoError> {
+    let (scenario, scenario_text, world, schedule) = load_scenario(&cfg)?;
+    let origin = GeoOrigin { lat_deg: scenario.latitude_deg, lon_deg: 0.0, alt_m: 0.0 };
+    let recorder = open_log(&cfg, &schedule, origin, &scenario_text)?;
 
     // The simulator, on ephemeral ports, holding its clock until every vehicle has a node.
     let ids = world.platform_ids();

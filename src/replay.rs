@@ -133,7 +133,19 @@ pub fn replay_nodes(log: &Log) -> Result<Vec<NodeReplay>, ReplayError> {
     ids.into_par_iter().map(|id| replay_node(log, world.as_ref(), id)).collect()
 }
 
-fn replay_node(log: &Log, world: Option<&World>, id: PlatformId) -> Result<NodeReplay, ReplayError> {
+/// What a node's log metadata (`cooploc.node.ID`) says about how it ran.
+struct NodeHeader {
+    method: Method,
+    cfg: NodeConfig,
+    profile: crate::node::profile::VehicleProfile,
+    /// None: the vehicle gave it (its Init event says which).
+    origin: Option<GeoOrigin>,
+    /// A given start state and its time (None: taken at the first sample), or None: SIM_STATE
+    /// or the autopilot's estimate.
+    initial_state: Option<(Option<u64>, crate::estimation::ins::InsState)>,
+}
+
+fn node_header(log: &Log, world: Option<&World>, id: PlatformId) -> Result<NodeHeader, ReplayError> {
     let record = format!("cooploc.node.{id}");
     let m = &log.metadata_named(&record).expect("listed").entries;
     let method_name: String = field(&record, m, "method")?;
@@ -178,7 +190,7 @@ fn replay_node(log: &Log, world: Option<&World>, id: PlatformId) -> Result<NodeR
         let alt_m = if m.contains_key("origin_alt_m") { field(&record, m, "origin_alt_m")? } else { 0.0 };
         Some(GeoOrigin { lat_deg: field(&record, m, "origin_lat_deg")?, lon_deg: field(&record, m, "origin_lon_deg")?, alt_m })
     };
-    let mut initial_state: Option<(Option<u64>, crate::estimation::ins::InsState)> =
+    let initial_state: Option<(Option<u64>, crate::estimation::ins::InsState)> =
         match field::<String>(&record, m, "init")?.as_str() {
             "state" => {
                 // no t0_us: taken at the first sample (the Init event says when)
@@ -189,6 +201,45 @@ fn replay_node(log: &Log, world: Option<&World>, id: PlatformId) -> Result<NodeR
             }
             _ => None,
         };
+    Ok(NodeHeader { method, cfg, profile, origin, initial_state })
+}
+
+/// The core a node made at its Init event: at `t0_us`, about the origin the vehicle gave or the
+/// log's, from the hand-over state, the given state or the last SIM_STATE.
+fn core_at_init(
+    h: &NodeHeader,
+    init: (u64, Option<[f64; 3]>, Option<crate::node::log::StartState>),
+    initial_state: Option<&(Option<u64>, crate::estimation::ins::InsState)>,
+    last_sim_state: Option<&crate::protocol::dialect::cooploc::SIM_STATE_DATA>,
+) -> Result<NodeCore, String> {
+    let (t0_us, from_vehicle, start) = init;
+    let mut cfg = h.cfg.clone();
+    let origin = match (from_vehicle, h.origin) {
+        (Some([lat_deg, lon_deg, alt_m]), _) => {
+            cfg.model.set_latitude(lat_deg);
+            GeoOrigin { lat_deg, lon_deg, alt_m }
+        }
+        (None, Some(o)) => o,
+        (None, None) => return Err("Init event without the vehicle's origin".into()),
+    };
+    let state = match (initial_state, start) {
+        // the hand-over start: the autopilot's estimate, as logged
+        (_, Some(start)) => start.state(),
+        (Some((_, state)), None) => *state,
+        (None, None) => {
+            let s = last_sim_state.ok_or("Init event before any SIM_STATE")?;
+            wire::ins_state_from_sim_state(s, &origin).map_err(|e| e.to_string())?
+        }
+    };
+    let state = NavState::for_model(&cfg.model, state);
+    NodeCore::new(cfg, TimeUs(t0_us), state).map_err(|e| e.to_string())
+}
+
+fn replay_node(log: &Log, world: Option<&World>, id: PlatformId) -> Result<NodeReplay, ReplayError> {
+    let h = node_header(log, world, id)?;
+    let node_err = |e: String| ReplayError::Node(id, e);
+    let (method, cfg, origin) = (h.method, &h.cfg, h.origin);
+    let mut initial_state = h.initial_state;
     let mut core = match (&initial_state, origin) {
         (Some((Some(t0), state)), Some(_)) => {
             let state = NavState::for_model(&cfg.model, *state);
@@ -203,7 +254,7 @@ fn replay_node(log: &Log, world: Option<&World>, id: PlatformId) -> Result<NodeR
     let events = events_topic(id);
     let mut out = NodeReplay { id, method, recorded: Vec::new(), replayed: Vec::new(), last: None, imu_replayed: 0 };
     let mut last_sim_state = None;
-    let mut decoder = profile.decoder();
+    let mut decoder = h.profile.decoder();
     for msg in &log.messages {
         let topic = msg.topic();
         let outputs = if topic == vehicle_rx {
@@ -258,26 +309,8 @@ fn replay_node(log: &Log, world: Option<&World>, id: PlatformId) -> Result<NodeR
                     continue;
                 }
                 (NodeEvent::Init { t0_us, origin: from_vehicle, state: start }, None) => {
-                    let mut cfg = cfg.clone();
-                    let origin = match (from_vehicle, origin) {
-                        (Some([lat_deg, lon_deg, alt_m]), _) => {
-                            cfg.model.set_latitude(lat_deg);
-                            GeoOrigin { lat_deg, lon_deg, alt_m }
-                        }
-                        (None, Some(o)) => o,
-                        (None, None) => return Err(node_err("Init event without the vehicle's origin".into())),
-                    };
-                    let state = match (&initial_state, start) {
-                        // the hand-over start: the autopilot's estimate, as logged
-                        (_, Some(start)) => start.state(),
-                        (Some((_, state)), None) => *state,
-                        (None, None) => {
-                            let s = last_sim_state.as_ref().ok_or_else(|| node_err("Init event before any SIM_STATE".into()))?;
-                            wire::ins_state_from_sim_state(s, &origin).map_err(|e| node_err(e.to_string()))?
-                        }
-                    };
-                    let state = NavState::for_model(&cfg.model, state);
-                    core = Some(NodeCore::new(cfg, TimeUs(t0_us), state).map_err(|e| node_err(e.to_string()))?);
+                    let init = (t0_us, from_vehicle, start);
+                    core = Some(core_at_init(&h, init, initial_state.as_ref(), last_sim_state.as_ref()).map_err(node_err)?);
                     continue;
                 }
                 (NodeEvent::Poll { wall_us }, Some(c)) => c.poll(wall_us),

@@ -412,6 +412,108 @@ fn images(ds: &Dataset) -> Vec<Image<'_>> {
     out
 }
 
+/// Sums of the scoring samples over every robot.
+struct Sums {
+    nees: f64,
+    nees_position: f64,
+    nees_heading: f64,
+    in_bound: usize,
+}
+
+impl Outcome {
+    /// An outcome with nothing scored yet.
+    fn empty(regime: Regime, method: Method, ids: &[PlatformId]) -> Self {
+        Outcome {
+            regime,
+            method,
+            robots: Vec::new(),
+            pos_rmse_m: f64::NAN,
+            heading_rmse_deg: f64::NAN,
+            avg_nees: f64::NAN,
+            avg_nees_position: f64::NAN,
+            avg_nees_heading: f64::NAN,
+            in_bound_share: f64::NAN,
+            samples: 0,
+            masked: 0,
+            landmark_updates: 0,
+            landmark_gated: 0,
+            robot_updates: 0,
+            robot_gated: 0,
+            landmark_weighted: 0,
+            landmark_weight_below_half: 0,
+            robot_weighted: 0,
+            robot_weight_below_half: 0,
+            epochs: 0,
+            refused: 0,
+            landmark_innovations: InnovationStats::default(),
+            robot_innovations: InnovationStats::default(),
+            track: ids.iter().map(|&id| (id, Vec::new())).collect(),
+        }
+    }
+
+    /// The scores from each robot's (squared position errors, squared heading errors in deg,
+    /// samples, masked) and the sums over all of them.
+    fn score(&mut self, ids: &[PlatformId], acc: &[(f64, f64, usize, usize)], sums: Sums) {
+        let out = self;
+        let (mut pos2, mut head2) = (0.0, 0.0);
+        for (i, &(p2, h2, n, masked)) in acc.iter().enumerate() {
+            let n_f = n.max(1) as f64;
+            out.robots.push(RobotScore {
+                id: ids[i],
+                pos_rmse_m: (p2 / n_f).sqrt(),
+                heading_rmse_deg: (h2 / n_f).sqrt(),
+                samples: n,
+                masked,
+            });
+            pos2 += p2;
+            head2 += h2;
+            out.samples += n;
+            out.masked += masked;
+        }
+        let n = out.samples.max(1) as f64;
+        out.pos_rmse_m = (pos2 / n).sqrt();
+        out.heading_rmse_deg = (head2 / n).sqrt();
+        out.avg_nees = sums.nees / n;
+        out.avg_nees_position = sums.nees_position / n;
+        out.avg_nees_heading = sums.nees_heading / n;
+        out.in_bound_share = sums.in_bound as f64 / n;
+    }
+}
+
+/// One image's landmark observations, each a robust local update of the observer; true when
+/// one was applied (the team's absolute pose is then observable).
+fn apply_landmarks(
+    team: &mut Team<CommandedFilter>,
+    observer: PlatformId,
+    im: &Image<'_>,
+    ds: &Dataset,
+    noise: &NoiseModel,
+    gate: [f64; 3],
+    out: &mut Outcome,
+) -> bool {
+    let mut applied = false;
+    for o in im.observations {
+        let Target::Landmark(l) = o.target else { continue };
+        let Some(lm) = ds.landmark(l) else { continue };
+        let Some(meas) = landmark_measurement(team.filter(observer).expect("member"), lm, o, noise) else {
+            out.refused += 1;
+            continue;
+        };
+        match team.robust_local_update(observer, &meas, gate, noise.huber()) {
+            Ok(Some((d, w))) => {
+                applied = true;
+                out.landmark_updates += 1;
+                out.landmark_weighted += usize::from(w < 1.0);
+                out.landmark_weight_below_half += usize::from(w < 0.5);
+                out.landmark_innovations.add(&d);
+            }
+            Ok(None) => out.landmark_gated += 1,
+            Err(_) => out.refused += 1,
+        }
+    }
+    applied
+}
+
 /// Runs `method` over the data set in `regime` (see the module documentation).
 pub fn run(ds: &Dataset, settings: &Settings, regime: Regime, method: Method) -> Result<Outcome, RunError> {
     let noise = &settings.noise;
@@ -451,32 +553,7 @@ pub fn run(ds: &Dataset, settings: &Settings, regime: Regime, method: Method) ->
         }
         Ok(())
     };
-    let mut out = Outcome {
-        regime,
-        method,
-        robots: Vec::new(),
-        pos_rmse_m: f64::NAN,
-        heading_rmse_deg: f64::NAN,
-        avg_nees: f64::NAN,
-        avg_nees_position: f64::NAN,
-        avg_nees_heading: f64::NAN,
-        in_bound_share: f64::NAN,
-        samples: 0,
-        masked: 0,
-        landmark_updates: 0,
-        landmark_gated: 0,
-        robot_updates: 0,
-        robot_gated: 0,
-        landmark_weighted: 0,
-        landmark_weight_below_half: 0,
-        robot_weighted: 0,
-        robot_weight_below_half: 0,
-        epochs: 0,
-        refused: 0,
-        landmark_innovations: InnovationStats::default(),
-        robot_innovations: InnovationStats::default(),
-        track: ids.iter().map(|&id| (id, Vec::new())).collect(),
-    };
+    let mut out = Outcome::empty(regime, method, &ids);
     // Per robot: sum of squared position errors, of squared heading errors (deg), samples,
     // masked.
     let mut acc = vec![(0.0f64, 0.0f64, 0usize, 0usize); ids.len()];
@@ -500,25 +577,7 @@ pub fn run(ds: &Dataset, settings: &Settings, regime: Regime, method: Method) ->
             };
             if sees_landmarks && im.observations.iter().any(|o| matches!(o.target, Target::Landmark(_))) {
                 advance(&mut team, im.observer, t)?;
-                for o in im.observations {
-                    let Target::Landmark(l) = o.target else { continue };
-                    let Some(lm) = ds.landmark(l) else { continue };
-                    let Some(meas) = landmark_measurement(team.filter(observer).expect("member"), lm, o, noise) else {
-                        out.refused += 1;
-                        continue;
-                    };
-                    match team.robust_local_update(observer, &meas, gate, noise.huber()) {
-                        Ok(Some((d, w))) => {
-                            absolute_seen = true;
-                            out.landmark_updates += 1;
-                            out.landmark_weighted += usize::from(w < 1.0);
-                            out.landmark_weight_below_half += usize::from(w < 0.5);
-                            out.landmark_innovations.add(&d);
-                        }
-                        Ok(None) => out.landmark_gated += 1,
-                        Err(_) => out.refused += 1,
-                    }
-                }
+                absolute_seen |= apply_landmarks(&mut team, observer, im, ds, noise, gate, &mut out);
                 if absolute_seen {
                     for &id in &ids {
                         team.filter_mut(id).expect("member").reanchor_first_estimate();
@@ -599,28 +658,7 @@ pub fn run(ds: &Dataset, settings: &Settings, regime: Regime, method: Method) ->
         }
         t_score = TimeUs(t_score.0 + settings.score_period_us);
     }
-    let (mut pos2, mut head2) = (0.0, 0.0);
-    for (i, &(p2, h2, n, masked)) in acc.iter().enumerate() {
-        let n_f = n.max(1) as f64;
-        out.robots.push(RobotScore {
-            id: ids[i],
-            pos_rmse_m: (p2 / n_f).sqrt(),
-            heading_rmse_deg: (h2 / n_f).sqrt(),
-            samples: n,
-            masked,
-        });
-        pos2 += p2;
-        head2 += h2;
-        out.samples += n;
-        out.masked += masked;
-    }
-    let n = out.samples.max(1) as f64;
-    out.pos_rmse_m = (pos2 / n).sqrt();
-    out.heading_rmse_deg = (head2 / n).sqrt();
-    out.avg_nees = nees_sum / n;
-    out.avg_nees_position = nees_pos_sum / n;
-    out.avg_nees_heading = nees_yaw_sum / n;
-    out.in_bound_share = in_bound as f64 / n;
+    out.score(&ids, &acc, Sums { nees: nees_sum, nees_position: nees_pos_sum, nees_heading: nees_yaw_sum, in_bound });
     Ok(out)
 }
 

@@ -621,6 +621,142 @@ fn inflate(s: &Snapshot, w: f64, scope: BoundScope) -> Result<DMatrix<f64>, Esti
     Ok(out)
 }
 
+/// The joint prior's cross blocks (paper Eq. 10: `Psi_i C_ij Psi_j^T`) written into `p`, and the
+/// known platforms that did not broadcast, carried as passive columns (`Psi_i C_ik`) with their
+/// (id, first column, dimension).
+#[allow(clippy::type_complexity)]
+fn cross_blocks(
+    cross: &CrossCovariances,
+    snapshots: &[Snapshot],
+    offset: &BTreeMap<PlatformId, (usize, usize)>,
+    n: usize,
+    p: &mut DMatrix<f64>,
+) -> Result<(Option<DMatrix<f64>>, Vec<(PlatformId, usize, usize)>), EstimationError> {
+    let mut passive_ids = Vec::new();
+    let mut passive = None;
+    // A broadcast whose size is not the one the store holds for its platform (a forged or
+    // mistaken record; a platform that changed its model without a fresh start) is refused,
+    // not multiplied.
+    for (id, d) in cross.known_platforms() {
+        if let Some(&(_, ds)) = offset.get(&id)
+            && ds != d
+        {
+            return Err(EstimationError::DimensionMismatch {
+                what: "broadcast state against the stored cross-covariances",
+                expected: d,
+                got: ds,
+            });
+        }
+    }
+    for (a, sa) in snapshots.iter().enumerate() {
+        for sb in &snapshots[a + 1..] {
+            if let Some(c) = cross.get(sa.id, sb.id) {
+                let pij = &sa.psi * c * sb.psi.transpose();
+                let ((oa, da), (ob, db)) = (offset[&sa.id], offset[&sb.id]);
+                p.view_mut((oa, ob), (da, db)).copy_from(&pij);
+                p.view_mut((ob, oa), (db, da)).copy_from(&pij.transpose());
+            }
+        }
+    }
+    // Known platforms that did not broadcast: carry their cross blocks as passive columns.
+    let absent: Vec<(PlatformId, usize)> =
+        cross.known_platforms().into_iter().filter(|(id, _)| !offset.contains_key(id)).collect();
+    let width: usize = absent.iter().map(|(_, d)| d).sum();
+    if width > 0 {
+        let mut x = DMatrix::zeros(n, width);
+        let mut col = 0;
+        for (k, dk) in &absent {
+            for s in snapshots {
+                if let Some(c) = cross.get(s.id, *k) {
+                    let (o, d) = offset[&s.id];
+                    x.view_mut((o, col), (d, *dk)).copy_from(&(&s.psi * c));
+                }
+            }
+            passive_ids.push((*k, col, *dk));
+            col += dk;
+        }
+        passive = Some(x);
+    }
+    Ok((passive, passive_ids))
+}
+
+/// The gate: each measurement's own innovation against its predicted covariance under the
+/// joint prior `p`. Returns the measurements gated out and, with a gate or Huber weights, each
+/// measurement's weight (0 for those gated out).
+fn gate(
+    linearized: &[Vec<(PlatformId, LinearizedMeasurement)>],
+    offset: &BTreeMap<PlatformId, (usize, usize)>,
+    p: &DMatrix<f64>,
+    opts: &UpdateOptions,
+) -> (Vec<usize>, Vec<f64>) {
+    let mut gated = Vec::new();
+    let mut robust_weights = Vec::new();
+    if opts.gate_chi2.is_some() || opts.huber_nis.is_some() {
+        let q = opts.gate_chi2.unwrap_or([f64::INFINITY; 3]);
+        for (index, parts) in linearized.iter().enumerate() {
+            let first = &parts[0].1;
+            let k = first.len();
+            let mut s = first.r.clone();
+            for (ia, (a, la)) in parts.iter().enumerate() {
+                for (b, lb) in &parts[ia..] {
+                    let ((oa, da), (ob, db)) = (offset[a], offset[b]);
+                    let block = &la.h * p.view((oa, ob), (da, db)) * lb.h.transpose();
+                    if a == b {
+                        s += block;
+                    } else {
+                        s += &block + block.transpose();
+                    }
+                }
+            }
+            let nis = s.clone().cholesky().and_then(|c| {
+                let white = c.l().solve_lower_triangular(&first.residual)?;
+                Some(white.norm_squared())
+            });
+            let limit = q.get(k).copied().unwrap_or(f64::INFINITY);
+            if nis.is_none_or(|v| v.is_nan() || v > limit) {
+                gated.push(index);
+                robust_weights.push(0.0);
+            } else {
+                let c = opts.huber_nis.map_or(f64::INFINITY, |c| c * k as f64 / 2.0);
+                let v = nis.unwrap_or(0.0);
+                robust_weights.push(if v > c { (c / v).sqrt() } else { 1.0 });
+            }
+        }
+    }
+    (gated, robust_weights)
+}
+
+/// The measurements kept, stacked into one (a measurement with a weight under 1 gets its noise
+/// divided by it).
+fn stack(
+    kept: Vec<(f64, &Vec<(PlatformId, LinearizedMeasurement)>)>,
+    offset: &BTreeMap<PlatformId, (usize, usize)>,
+    n: usize,
+) -> LinearizedMeasurement {
+    let m: usize = kept.iter().map(|(_, parts)| parts[0].1.len()).sum();
+    let mut h = DMatrix::zeros(m, n);
+    let mut residual = DVector::zeros(m);
+    let mut r = DMatrix::zeros(m, m);
+    let mut row = 0;
+    for (w, parts) in kept {
+        let k = parts[0].1.len();
+        for (id, lin) in parts {
+            let (off, dim) = offset[id];
+            h.view_mut((row, off), (k, dim)).copy_from(&lin.h);
+        }
+        let first = &parts[0].1;
+        residual.rows_mut(row, k).copy_from(&first.residual);
+        if w < 1.0 {
+            r.view_mut((row, row), (k, k)).copy_from(&(&first.r / w));
+        } else {
+            r.view_mut((row, row), (k, k)).copy_from(&first.r);
+        }
+        row += k;
+    }
+
+    LinearizedMeasurement { h, residual, r }
+}
+
 /// [`cooperative_update`] with the prior and the gate chosen (see the module docs).
 /// With every measurement gated out (or none given, with the bound prior) the update still
 /// "applies": the corrections are zero and the posterior is the prior, so that the nodes' stores
@@ -668,89 +804,14 @@ pub fn cooperative_update_with(
         };
         p.view_mut((o, o), (d, d)).copy_from(&block);
     }
-    let mut passive_ids = Vec::new();
-    let mut passive = None;
-    if mode == CrossMode::Propagate && !bound {
-        // A broadcast whose size is not the one the store holds for its platform (a forged or
-        // mistaken record; a platform that changed its model without a fresh start) is refused,
-        // not multiplied.
-        for (id, d) in cross.known_platforms() {
-            if let Some(&(_, ds)) = offset.get(&id)
-                && ds != d
-            {
-                return Err(EstimationError::DimensionMismatch {
-                    what: "broadcast state against the stored cross-covariances",
-                    expected: d,
-                    got: ds,
-                });
-            }
-        }
-        for (a, sa) in snapshots.iter().enumerate() {
-            for sb in &snapshots[a + 1..] {
-                if let Some(c) = cross.get(sa.id, sb.id) {
-                    let pij = &sa.psi * c * sb.psi.transpose();
-                    let ((oa, da), (ob, db)) = (offset[&sa.id], offset[&sb.id]);
-                    p.view_mut((oa, ob), (da, db)).copy_from(&pij);
-                    p.view_mut((ob, oa), (db, da)).copy_from(&pij.transpose());
-                }
-            }
-        }
-        // Known platforms that did not broadcast: carry their cross blocks as passive columns.
-        let absent: Vec<(PlatformId, usize)> =
-            cross.known_platforms().into_iter().filter(|(id, _)| !offset.contains_key(id)).collect();
-        let width: usize = absent.iter().map(|(_, d)| d).sum();
-        if width > 0 {
-            let mut x = DMatrix::zeros(n, width);
-            let mut col = 0;
-            for (k, dk) in &absent {
-                for s in snapshots {
-                    if let Some(c) = cross.get(s.id, *k) {
-                        let (o, d) = offset[&s.id];
-                        x.view_mut((o, col), (d, *dk)).copy_from(&(&s.psi * c));
-                    }
-                }
-                passive_ids.push((*k, col, *dk));
-                col += dk;
-            }
-            passive = Some(x);
-        }
-    }
+    let (passive, passive_ids) = if mode == CrossMode::Propagate && !bound {
+        cross_blocks(cross, snapshots, &offset, n, &mut p)?
+    } else {
+        (None, Vec::new())
+    };
 
     // The gate: each measurement's own innovation against its predicted covariance.
-    let mut gated = Vec::new();
-    let mut robust_weights = Vec::new();
-    if opts.gate_chi2.is_some() || opts.huber_nis.is_some() {
-        let q = opts.gate_chi2.unwrap_or([f64::INFINITY; 3]);
-        for (index, parts) in linearized.iter().enumerate() {
-            let first = &parts[0].1;
-            let k = first.len();
-            let mut s = first.r.clone();
-            for (ia, (a, la)) in parts.iter().enumerate() {
-                for (b, lb) in &parts[ia..] {
-                    let ((oa, da), (ob, db)) = (offset[a], offset[b]);
-                    let block = &la.h * p.view((oa, ob), (da, db)) * lb.h.transpose();
-                    if a == b {
-                        s += block;
-                    } else {
-                        s += &block + block.transpose();
-                    }
-                }
-            }
-            let nis = s.clone().cholesky().and_then(|c| {
-                let white = c.l().solve_lower_triangular(&first.residual)?;
-                Some(white.norm_squared())
-            });
-            let limit = q.get(k).copied().unwrap_or(f64::INFINITY);
-            if nis.is_none_or(|v| v.is_nan() || v > limit) {
-                gated.push(index);
-                robust_weights.push(0.0);
-            } else {
-                let c = opts.huber_nis.map_or(f64::INFINITY, |c| c * k as f64 / 2.0);
-                let v = nis.unwrap_or(0.0);
-                robust_weights.push(if v > c { (c / v).sqrt() } else { 1.0 });
-            }
-        }
-    }
+    let (gated, mut robust_weights) = gate(&linearized, &offset, &p, opts);
     let kept: Vec<(f64, &Vec<(PlatformId, LinearizedMeasurement)>)> = linearized
         .iter()
         .enumerate()
@@ -763,27 +824,8 @@ pub fn cooperative_update_with(
     // With every measurement gated out the update still runs, as an update by nothing: the
     // joint prior becomes the posterior and the store is re-anchored on it (Psi back to the
     // reset), which every node does alike.
-    let m: usize = kept.iter().map(|(_, parts)| parts[0].1.len()).sum();
-    let mut h = DMatrix::zeros(m, n);
-    let mut residual = DVector::zeros(m);
-    let mut r = DMatrix::zeros(m, m);
-    let mut row = 0;
-    for (w, parts) in kept {
-        let k = parts[0].1.len();
-        for (id, lin) in parts {
-            let (off, dim) = offset[id];
-            h.view_mut((row, off), (k, dim)).copy_from(&lin.h);
-        }
-        let first = &parts[0].1;
-        residual.rows_mut(row, k).copy_from(&first.residual);
-        if w < 1.0 {
-            r.view_mut((row, row), (k, k)).copy_from(&(&first.r / w));
-        } else {
-            r.view_mut((row, row), (k, k)).copy_from(&first.r);
-        }
-        row += k;
-    }
-
+    let stacked = stack(kept, &offset, n);
+    let m = stacked.residual.len();
     let up = if m == 0 {
         // Nothing to update with: the prior (the bound, or the exact one) is the new joint state.
         kalman::JointUpdate {
@@ -793,7 +835,7 @@ pub fn cooperative_update_with(
             diagnostics: UpdateDiagnostics { innovation: DVector::zeros(0), innovation_cov: DMatrix::zeros(0, 0), nis: 0.0 },
         }
     } else {
-        kalman::joint_update(&p, &LinearizedMeasurement { h, residual, r }, passive.as_ref())?
+        kalman::joint_update(&p, &stacked, passive.as_ref())?
     };
     let layout: Vec<(usize, usize)> = snapshots.iter().map(|s| offset[&s.id]).collect();
     let own_blocks = checked_own_blocks(&layout, &up.p)?;

@@ -365,6 +365,30 @@ impl Sim<'_> {
         }
     }
 
+    /// The end of the run: every node closes its last instant, what is in flight is delivered,
+    /// and every node runs what is still open.
+    fn finish(&mut self, end: TimeUs) {
+        let clock = self.clock(end);
+        for k in 0..self.ids.len() {
+            if let Some(shell) = self.nodes[k].shell.as_mut() {
+                shell.end_of_input(clock);
+                self.send(k, end);
+            }
+        }
+        self.network(TimeUs(u64::MAX));
+        for node in self.nodes.iter_mut() {
+            if let Some(shell) = node.shell.as_mut() {
+                shell.run_pending(clock);
+            }
+            if let Some(core) = node.core()
+                && let Some(e) = core.last_epoch()
+            {
+                let digest = core.store_digest();
+                node.digests.insert(e, digest);
+            }
+        }
+    }
+
     fn lose_vehicle_frame(&mut self, t: TimeUs) -> bool {
         self.links_active(t) && self.case.vehicle_loss > 0.0 && self.rng.random::<f64>() < self.case.vehicle_loss
     }
@@ -448,33 +472,32 @@ fn team_nees(world: &World, ids: &[PlatformId], cores: &[&NodeCore]) -> f64 {
     crate::estimation::consistency::nees(&e, &p).unwrap_or(f64::INFINITY)
 }
 
-/// Runs one case once (`seed`, `run`) with method `method` on `schedule`, the nodes'
-/// records in `encoding`.
-pub fn run_case(
-    world: &World,
-    case: &Faults,
+/// Makes the nodes of a run: a core from the run's initial estimate (or an independent fix at a
+/// restart or a late join), inside the shell a process would run.
+struct Maker<'a> {
+    world: &'a World,
+    case: &'a Faults,
     method: Method,
-    schedule: &str,
+    encoding: Encoding,
     seed: u64,
     run: u32,
-    encoding: Encoding,
-) -> Result<RunOutcome, ExperimentError> {
-    let ids = world.platform_ids();
-    let make = |id: PlatformId, at: Option<TimeUs>| -> Result<NodeCore, ExperimentError> {
+    ids: Vec<PlatformId>,
+}
+
+impl Maker<'_> {
+    fn shell(&self, id: PlatformId, at: Option<TimeUs>) -> Result<NodeShell, ExperimentError> {
         let init = match at {
-            None => world.initial_estimate(seed, run, id)?,
-            Some(t) => world.estimate_at(seed, run, id, t, 1)?,
+            None => self.world.initial_estimate(self.seed, self.run, id)?,
+            Some(t) => self.world.estimate_at(self.seed, self.run, id, t, 1)?,
         };
         let (t0, state) = state_from(init)?;
-        let model = nav_model(world, id);
-        let cfg = NodeConfig::for_model(id, method, model, encoding, ids.clone());
-        NodeCore::new(cfg, t0, NavState::for_model(&model, state))
-            .map_err(|e| ExperimentError::Settings(format!("node {id}: {e}")))
-    };
-    // The shell around a core: what the team sees of the autopilot is not measured here, so
-    // nothing goes back to it (no ODOMETRY, GPS_INPUT or LOCAL_POSITION_NED).
-    let wrap = |core: NodeCore, at: TimeUs| -> Result<NodeShell, ExperimentError> {
-        let mut profile = VehicleProfile::from_scenario_platform(world.scenario(), core.id());
+        let model = nav_model(self.world, id);
+        let cfg = NodeConfig::for_model(id, self.method, model, self.encoding, self.ids.clone());
+        let core = NodeCore::new(cfg, t0, NavState::for_model(&model, state))
+            .map_err(|e| ExperimentError::Settings(format!("node {id}: {e}")))?;
+        // What the team sees of the autopilot is not measured here, so nothing goes back to it
+        // (no ODOMETRY, GPS_INPUT or LOCAL_POSITION_NED).
+        let mut profile = VehicleProfile::from_scenario_platform(self.world.scenario(), id);
         profile.output.odometry_rate_hz = 0.0;
         profile.output.gps_input_rate_hz = 0.0;
         profile.output.local_position_ned = false;
@@ -489,16 +512,31 @@ pub fn run_case(
             unicast: false,
             record: false,
         };
-        let clock = Now { wall_us: (at.0 as f64 / case.speed) as u64, unix_ns: 0 };
+        let clock = Now { wall_us: (at.unwrap_or(TimeUs(0)).0 as f64 / self.case.speed) as u64, unix_ns: 0 };
         let mut shell = NodeShell::new(NodeInit::Ready(Box::new(core)), config, clock)
             .map_err(|e| ExperimentError::Settings(format!("node shell: {e}")))?;
         shell.take_outputs(); // its HEARTBEAT to the vehicle
         Ok(shell)
-    };
+    }
+}
+
+/// Runs one case once (`seed`, `run`) with method `method` on `schedule`, the nodes'
+/// records in `encoding`.
+pub fn run_case(
+    world: &World,
+    case: &Faults,
+    method: Method,
+    schedule: &str,
+    seed: u64,
+    run: u32,
+    encoding: Encoding,
+) -> Result<RunOutcome, ExperimentError> {
+    let ids = world.platform_ids();
+    let maker = Maker { world, case, method, encoding, seed, run, ids: ids.clone() };
     let mut nodes = Vec::new();
     for (k, &id) in ids.iter().enumerate() {
         let late = case.join.is_some_and(|(n, _)| n == k);
-        let shell = if late { None } else { Some(wrap(make(id, None)?, TimeUs(0))?) };
+        let shell = if late { None } else { Some(maker.shell(id, None)?) };
         nodes.push(Node { shell, backlog: Vec::new(), digests: BTreeMap::new(), last_seen: None });
     }
     let epoch_times: Vec<TimeUs> = world.ranges(schedule, seed, run)?.into_iter().map(|(t, _)| t).collect();
@@ -529,7 +567,7 @@ pub fn run_case(
             let join = case.join.is_some_and(|(n, t)| n == k && sim.nodes[k].shell.is_none() && now.as_secs_f64() >= t);
             if restart || join {
                 restarted |= restart;
-                sim.nodes[k].shell = Some(wrap(make(id, Some(now))?, now)?);
+                sim.nodes[k].shell = Some(maker.shell(id, Some(now))?);
                 sim.nodes[k].last_seen = None;
             }
             if !sim.stalled(k, now) && !sim.nodes[k].backlog.is_empty() {
@@ -599,28 +637,21 @@ pub fn run_case(
             }
         }
     }
-    // The end of the run: close every node, deliver, run what is still open.
-    let end = world.end();
-    let clock = sim.clock(end);
-    for k in 0..ids.len() {
-        if let Some(shell) = sim.nodes[k].shell.as_mut() {
-            shell.end_of_input(clock);
-            sim.send(k, end);
-        }
-    }
-    sim.network(TimeUs(u64::MAX));
-    for node in sim.nodes.iter_mut() {
-        if let Some(shell) = node.shell.as_mut() {
-            shell.run_pending(clock);
-        }
-        if let Some(core) = node.core()
-            && let Some(e) = core.last_epoch()
-        {
-            let digest = core.store_digest();
-            node.digests.insert(e, digest);
-        }
-    }
+    sim.finish(world.end());
+    let at_end = AtFaultEnd { fault_end, epoch_times: &epoch_times, errors: &at_fault_end };
+    outcome(world, &sim, seed, run, &at_end)
+}
 
+/// When the faults ended and what each node's error was then.
+struct AtFaultEnd<'a> {
+    fault_end: TimeUs,
+    epoch_times: &'a [TimeUs],
+    errors: &'a [Option<(f64, f64)>],
+}
+
+/// What a finished run measured.
+fn outcome(world: &World, sim: &Sim<'_>, seed: u64, run: u32, at: &AtFaultEnd<'_>) -> Result<RunOutcome, ExperimentError> {
+    let ids = &sim.ids;
     let inputs = world.run_inputs(seed, run);
     let dr = run_filter(world, &inputs, &[], Method::DeadReckoning)?;
     let mut outcomes = Vec::new();
@@ -630,7 +661,7 @@ pub fn run_case(
             return Err(ExperimentError::Settings(format!("node {} never ran", ids[k])));
         };
         let (final_err_m, final_nees) = horizontal_error(world, ids[k], core);
-        let (fault_end_err_m, fault_end_nees) = at_fault_end[k].unwrap_or((final_err_m, final_nees));
+        let (fault_end_err_m, fault_end_nees) = at.errors[k].unwrap_or((final_err_m, final_nees));
         let p = core.filter().output_covariances().position();
         detections += core.stats.epoch_disagreements + core.stats.store_mismatches;
         outcomes.push(NodeOutcome {
@@ -654,9 +685,9 @@ pub fn run_case(
         }
     }
     let divergent: Vec<u32> = all.iter().filter(|(_, d)| d.windows(2).any(|w| w[0] != w[1])).map(|(e, _)| *e).collect();
-    let fault_end_epoch = epoch_times.iter().filter(|t| **t <= fault_end).count() as u32;
+    let fault_end_epoch = at.epoch_times.iter().filter(|t| **t <= at.fault_end).count() as u32;
     let cores: Vec<&NodeCore> = sim.nodes.iter().filter_map(Node::core).collect();
-    let team_nees = team_nees(world, &ids, &cores);
+    let team_nees = team_nees(world, ids, &cores);
     Ok(RunOutcome {
         nodes: outcomes,
         divergent_epochs: divergent.len() as u32,

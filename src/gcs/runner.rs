@@ -134,35 +134,17 @@ pub enum GcsError {
     Vehicle { id: PlatformId, url: String, source: std::io::Error },
 }
 
-/// Runs the ground station until `shutdown` resolves (or the idle exit). `extra_sinks` receive
-/// every event besides the Foxglove server (the recorder's hook). `bound` receives the bound
-/// addresses once every server listens; `shared` is the state the web server reads.
-pub async fn run(
-    config: GcsConfig,
-    links: GcsLinks,
-    mut extra_sinks: Vec<Box<dyn GcsSink>>,
-    bound: tokio::sync::oneshot::Sender<Bound>,
-    shutdown: impl Future<Output = ()>,
-) -> Result<GcsSummary, GcsError> {
-    let clock = Clock::new();
-    let origin = config.origin;
-    let state = Arc::new(Mutex::new(GcsState::new(config)));
-    let lock = || state.lock().unwrap_or_else(|e| e.into_inner());
-    lock().start(clock.now());
-    for p in &links.peers {
-        lock().add_peer(*p);
-    }
-
-    let coop_err = |source| GcsError::Coop { addr: links.coop_bind, source };
-    let coop = UdpSocket::bind(links.coop_bind).await.map_err(coop_err)?;
-    let coop_addr = coop.local_addr().map_err(coop_err)?;
-
-    // Web server.
-    let http_err = |source| GcsError::Http { addr: links.http, source };
-    let listener = tokio::net::TcpListener::bind(links.http).await.map_err(http_err)?;
+/// The web server on `addr`: its bound address, the sender that stops it, its task.
+async fn start_http(
+    addr: SocketAddr,
+    state: Arc<Mutex<GcsState>>,
+    clock: Clock,
+) -> Result<(SocketAddr, tokio::sync::oneshot::Sender<()>, tokio::task::JoinHandle<()>), GcsError> {
+    let http_err = |source| GcsError::Http { addr, source };
+    let listener = tokio::net::TcpListener::bind(addr).await.map_err(http_err)?;
     let http_addr = listener.local_addr().map_err(http_err)?;
     let (http_stop_tx, http_stop_rx) = tokio::sync::oneshot::channel::<()>();
-    let app = super::http::router(state.clone(), clock);
+    let app = super::http::router(state, clock);
     let http_task = tokio::spawn(async move {
         let serve = axum::serve(listener, app).with_graceful_shutdown(async move {
             let _ = http_stop_rx.await;
@@ -171,31 +153,39 @@ pub async fn run(
             tracing::warn!(error = %e, "web server stopped");
         }
     });
+    Ok((http_addr, http_stop_tx, http_task))
+}
 
-    // Foxglove server, on a context of its own.
-    let mut sinks: Vec<Box<dyn GcsSink>> = Vec::new();
-    let mut foxglove = None;
-    if let Some(addr) = links.foxglove {
-        let ctx = foxglove::Context::new();
-        let publisher = FoxglovePublisher::new(ctx.clone(), origin);
-        let handle = foxglove::WebSocketServer::new()
-            .context(&ctx)
-            .name("cooploc gcs")
-            .bind(addr.ip().to_string(), addr.port())
-            .start()
-            .await
-            .map_err(|e| GcsError::Foxglove { addr, reason: e.to_string() })?;
-        let fox_addr = SocketAddr::new(addr.ip(), handle.port());
-        sinks.push(Box::new(publisher));
-        foxglove = Some((handle, fox_addr));
-    }
-    sinks.append(&mut extra_sinks);
+/// The Foxglove server on `addr`, on a context of its own: its publisher, handle and address.
+async fn start_foxglove(
+    addr: SocketAddr,
+    origin: wire::GeoOrigin,
+) -> Result<(FoxglovePublisher, foxglove::WebSocketServerHandle, SocketAddr), GcsError> {
+    let ctx = foxglove::Context::new();
+    let publisher = FoxglovePublisher::new(ctx.clone(), origin);
+    let handle = foxglove::WebSocketServer::new()
+        .context(&ctx)
+        .name("cooploc gcs")
+        .bind(addr.ip().to_string(), addr.port())
+        .start()
+        .await
+        .map_err(|e| GcsError::Foxglove { addr, reason: e.to_string() })?;
+    let fox_addr = SocketAddr::new(addr.ip(), handle.port());
+    Ok((publisher, handle, fox_addr))
+}
 
-    // Vehicle links, each read on its own task (recv has no timeout).
-    let (vtx, mut vrx) = tokio::sync::mpsc::channel::<(PlatformId, Vec<u8>)>(8192);
+/// A vehicle link: its id, the connection, its sequence counter.
+type VehicleConn = (PlatformId, Arc<mavlink_core::AsyncConnection<MavMessage>>, Sequence);
+
+/// Opens the vehicle links, each read on its own task (recv has no timeout): the links, the
+/// reading tasks, and the channel their frames arrive on.
+async fn open_vehicles(
+    vehicles: &[(PlatformId, String)],
+) -> Result<(Vec<VehicleConn>, Vec<tokio::task::JoinHandle<()>>, tokio::sync::mpsc::Receiver<(PlatformId, Vec<u8>)>), GcsError> {
+    let (vtx, vrx) = tokio::sync::mpsc::channel::<(PlatformId, Vec<u8>)>(8192);
     let mut vehicle_conns = Vec::new();
     let mut readers = Vec::new();
-    for (id, url) in &links.vehicles {
+    for (id, url) in vehicles {
         let conn = Arc::new(mavlink_core::connect_async::<MavMessage>(url).await.map_err(|source| GcsError::Vehicle {
             id: *id,
             url: url.clone(),
@@ -220,7 +210,45 @@ pub async fn run(
         }));
         vehicle_conns.push((id, conn, Sequence::default()));
     }
-    drop(vtx);
+    Ok((vehicle_conns, readers, vrx))
+}
+
+/// Runs the ground station until `shutdown` resolves (or the idle exit). `extra_sinks` receive
+/// every event besides the Foxglove server (the recorder's hook). `bound` receives the bound
+/// addresses once every server listens; `shared` is the state the web server reads.
+pub async fn run(
+    config: GcsConfig,
+    links: GcsLinks,
+    mut extra_sinks: Vec<Box<dyn GcsSink>>,
+    bound: tokio::sync::oneshot::Sender<Bound>,
+    shutdown: impl Future<Output = ()>,
+) -> Result<GcsSummary, GcsError> {
+    let clock = Clock::new();
+    let origin = config.origin;
+    let state = Arc::new(Mutex::new(GcsState::new(config)));
+    let lock = || state.lock().unwrap_or_else(|e| e.into_inner());
+    lock().start(clock.now());
+    for p in &links.peers {
+        lock().add_peer(*p);
+    }
+
+    let coop_err = |source| GcsError::Coop { addr: links.coop_bind, source };
+    let coop = UdpSocket::bind(links.coop_bind).await.map_err(coop_err)?;
+    let coop_addr = coop.local_addr().map_err(coop_err)?;
+
+    let (http_addr, http_stop_tx, http_task) = start_http(links.http, state.clone(), clock).await?;
+    let mut sinks: Vec<Box<dyn GcsSink>> = Vec::new();
+    let foxglove = match links.foxglove {
+        Some(addr) => {
+            let (publisher, handle, fox_addr) = start_foxglove(addr, origin).await?;
+            sinks.push(Box::new(publisher));
+            Some((handle, fox_addr))
+        }
+        None => None,
+    };
+    sinks.append(&mut extra_sinks);
+
+    let (mut vehicle_conns, readers, mut vrx) = open_vehicles(&links.vehicles).await?;
 
     let _ = bound.send(Bound { coop: coop_addr, http: http_addr, foxglove: foxglove.as_ref().map(|(_, a)| *a) });
     tracing::info!(coop = %coop_addr, http = %http_addr, "ground station started");

@@ -1,8 +1,8 @@
 #!/usr/bin/env bash
 # Three rovers on the real ArduPilot firmware, navigating without GNSS: runs
-# tests/scripts/real_ardupilot_team.py for each set-up and method and prints the table of the
-# docs/node.md, "Against the real ArduPilot and PX4 firmware", and docs/real-autopilot.md. It runs an ArduRover SITL binary you built
-# yourself from ArduPilot's sources (its SITL rover build); it builds nothing.
+# tests/scripts/real_ardupilot_team.py for each set-up and method and prints the table of
+# docs/real-autopilot.md. It runs an ArduRover SITL binary you built yourself from ArduPilot's
+# sources (its SITL rover build); it builds nothing.
 #
 #   bash tests/scripts/real-ardupilot-team.sh /path/to/ardupilot/build/sitl/bin/ardurover [SETUP...]
 #
