@@ -15,7 +15,9 @@ use crate::gcs::GcsSink;
 use crate::gcs::runner::{GcsLinks, run as run_gcs};
 use crate::gcs::state::GcsConfig;
 use crate::node::core::{NodeConfig, NodeCore};
-use crate::node::runner::{Links, NodeInit, NodeSummary, SharedRecorder, metadata_name, node_metadata, run as run_node};
+use crate::node::runner::{
+    Links, LogStart, NodeInit, NodeLogHeader, NodeSummary, SharedRecorder, metadata_name, run as run_node,
+};
 use crate::protocol::record::Encoding;
 use crate::protocol::wire::GeoOrigin;
 use crate::recording::{Link, Recorder, RecorderOptions, read_log};
@@ -189,9 +191,7 @@ pub async fn run_demo(cfg: DemoConfig, ready: impl FnOnce(&DemoAddresses)) -> Re
         // an INS vehicle or a wheeled robot, as the scenario says
         let model = crate::experiment::nav_model(&world, id);
         let node_cfg = NodeConfig::for_model(id, cfg.method, model, Encoding::F64, ids.clone());
-        let mut meta = node_metadata(&node_cfg, Some((Some(t0), &state)));
-        meta.insert("origin_lat_deg".into(), origin.lat_deg.to_string());
-        meta.insert("origin_lon_deg".into(), origin.lon_deg.to_string());
+        let meta = NodeLogHeader::new(&node_cfg, LogStart::Given { t0: Some(t0), state }, Some(origin)).to_metadata();
         {
             let mut r = recorder.lock().map_err(|_| DemoError::Invalid("recorder lock poisoned".into()))?;
             r.metadata(&metadata_name(id), meta).step("the log")?;

@@ -17,10 +17,9 @@ use crate::estimation::{Method, PlatformId, RangeSample};
 use crate::experiment::{FilterRun, run_filter};
 use crate::node::core::{NodeConfig, NodeCore, NodeInput, NodeOutput};
 use crate::node::inputs::VehicleEvent;
-use crate::node::log::{NodeEvent, events_topic, vehicle_attachment_name};
+use crate::node::log::{LogStart, NodeEvent, NodeLogHeader, events_topic, vehicle_attachment_name};
 use crate::node::profile::VehicleProfile;
 use crate::protocol::MavMessage;
-use crate::protocol::record::Encoding;
 use crate::protocol::wire::{self, EstimateReport, GeoOrigin};
 use crate::recording::{Direction, Link, Log, topics};
 use crate::sitl::{Scenario, World};
@@ -148,60 +147,19 @@ struct NodeHeader {
 fn node_header(log: &Log, world: Option<&World>, id: PlatformId) -> Result<NodeHeader, ReplayError> {
     let record = format!("cooploc.node.{id}");
     let m = &log.metadata_named(&record).expect("listed").entries;
-    let method_name: String = field(&record, m, "method")?;
-    let method = Method::from_short_name(&method_name).ok_or_else(|| ReplayError::Metadata {
+    let header = NodeLogHeader::from_metadata(m).map_err(|e| ReplayError::Metadata {
         record: record.clone(),
-        field: "method".into(),
-        problem: method_name.clone(),
+        field: e.field,
+        problem: e.problem,
     })?;
-    let encoding_name: String = field(&record, m, "encoding")?;
-    let encoding = Encoding::from_name(&encoding_name).ok_or_else(|| ReplayError::Metadata {
-        record: record.clone(),
-        field: "encoding".into(),
-        problem: encoding_name.clone(),
-    })?;
-    let team: Vec<PlatformId> = field::<String>(&record, m, "team")?.split(',').filter_map(|s| s.parse().ok()).collect();
     let profile = profile_of(log, world, id)?;
     // No latitude in the profile: the node took the vehicle's origin (its Init event says which).
     let model = profile.nav_model(profile.latitude().unwrap_or(0.0));
-    let mut cfg = NodeConfig::for_model(id, method, model, encoding, team);
-    cfg.epoch_timeout_us = field(&record, m, "epoch_timeout_us")?;
-    cfg.retry_us = field(&record, m, "retry_us")?;
-    // Logs written before the retry interval followed the cadence: a fixed interval.
-    cfg.retry_follows_cadence =
-        if m.contains_key("retry_follows_cadence") { field(&record, m, "retry_follows_cadence")? } else { false };
-    cfg.history_us = field(&record, m, "history_us")?;
-    cfg.max_lag_us = field(&record, m, "max_lag_us")?;
-    // Logs written before these settings existed ran with the defaults.
-    if m.contains_key("range_grace_us") {
-        cfg.range_grace_us = field(&record, m, "range_grace_us")?;
-        cfg.max_lead_us = field(&record, m, "max_lead_us")?;
-        cfg.gate_probability = field(&record, m, "gate_probability")?;
-        cfg.independent_start = field(&record, m, "independent_start")?;
-    }
-    if m.contains_key("echo_ranges") {
-        cfg.echo_ranges = field(&record, m, "echo_ranges")?;
-    }
-    let node_err = |e: String| ReplayError::Node(id, e);
-    // The origin: in the metadata, or (`origin` = `vehicle`) from the Init event.
-    let origin = if m.get("origin").is_some_and(|o| o == "vehicle") {
-        None
-    } else {
-        let alt_m = if m.contains_key("origin_alt_m") { field(&record, m, "origin_alt_m")? } else { 0.0 };
-        Some(GeoOrigin { lat_deg: field(&record, m, "origin_lat_deg")?, lon_deg: field(&record, m, "origin_lon_deg")?, alt_m })
+    let initial_state = match header.start {
+        LogStart::Given { t0, state } => Some((t0.map(|t| t.0), state)),
+        LogStart::FromVehicle => None,
     };
-    let initial_state: Option<(Option<u64>, crate::estimation::ins::InsState)> =
-        match field::<String>(&record, m, "init")?.as_str() {
-            "state" => {
-                // no t0_us: taken at the first sample (the Init event says when)
-                let t0: Option<u64> = if m.contains_key("t0_us") { Some(field(&record, m, "t0_us")?) } else { None };
-                let state =
-                    serde_json::from_str(&field::<String>(&record, m, "initial_state")?).map_err(|e| node_err(e.to_string()))?;
-                Some((t0, state))
-            }
-            _ => None,
-        };
-    Ok(NodeHeader { method, cfg, profile, origin, initial_state })
+    Ok(NodeHeader { method: header.method, cfg: header.config(model), profile, origin: header.origin, initial_state })
 }
 
 /// The core a node made at its Init event: at `t0_us`, about the origin the vehicle gave or the

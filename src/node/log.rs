@@ -110,39 +110,213 @@ pub fn metadata_name(id: PlatformId) -> String {
     format!("cooploc.node.{id}")
 }
 
-/// What a log must hold to rebuild node `cfg`'s core (`cooploc replay`): the configuration and
-/// how it started (the INS settings come from the scenario, attached to the log).
-pub fn node_metadata(cfg: &NodeConfig, init: Option<(Option<TimeUs>, &InsState)>) -> std::collections::BTreeMap<String, String> {
-    let mut m = std::collections::BTreeMap::new();
-    m.insert("id".into(), cfg.id.to_string());
-    m.insert("method".into(), cfg.method.short_name().into());
-    m.insert("model".into(), cfg.model.name().into());
-    m.insert("encoding".into(), cfg.encoding.name().to_string());
-    m.insert("team".into(), cfg.team.iter().map(|p| p.to_string()).collect::<Vec<_>>().join(","));
-    m.insert("epoch_timeout_us".into(), cfg.epoch_timeout_us.to_string());
-    m.insert("retry_us".into(), cfg.retry_us.to_string());
-    m.insert("retry_follows_cadence".into(), cfg.retry_follows_cadence.to_string());
-    m.insert("history_us".into(), cfg.history_us.to_string());
-    m.insert("max_lag_us".into(), cfg.max_lag_us.to_string());
-    m.insert("range_grace_us".into(), cfg.range_grace_us.to_string());
-    m.insert("max_lead_us".into(), cfg.max_lead_us.to_string());
-    m.insert("gate_probability".into(), format!("{:e}", cfg.gate_probability));
-    m.insert("independent_start".into(), cfg.independent_start.to_string());
-    m.insert("echo_ranges".into(), cfg.echo_ranges.to_string());
-    match init {
-        Some((t0, state)) => {
-            m.insert("init".into(), "state".into());
-            // without a time, the state is taken at the first IMU or wheel sample (the Init event's)
-            if let Some(t0) = t0 {
-                m.insert("t0_us".into(), t0.0.to_string());
-            }
-            m.insert("initial_state".into(), serde_json::to_string(state).unwrap_or_default());
-        }
-        None => {
-            m.insert("init".into(), "sim_state".into());
+/// How a logged node started: with a state given at the start (its time, or None: taken at the
+/// first IMU or wheel sample, which the Init event says), or from what the vehicle sends
+/// (SIM_STATE, or the autopilot's estimate when GNSS goes: the Init event holds it).
+#[derive(Debug, Clone, PartialEq)]
+pub enum LogStart {
+    Given { t0: Option<TimeUs>, state: InsState },
+    FromVehicle,
+}
+
+/// What a log holds about one node (metadata record `cooploc.node.<id>`), written and read by
+/// this one type: the node's configuration (its navigation model comes from the vehicle profile
+/// attached to the log, or the scenario), how it started, and its origin (None: the vehicle
+/// gave it, and the Init event says which). Logs written before a field existed read with the
+/// value the node then ran with.
+#[derive(Debug, Clone, PartialEq)]
+pub struct NodeLogHeader {
+    pub id: PlatformId,
+    pub method: crate::estimation::Method,
+    /// The navigation model's name (`NavModel::name`).
+    pub model: String,
+    pub encoding: crate::protocol::record::Encoding,
+    pub team: Vec<PlatformId>,
+    pub epoch_timeout_us: u64,
+    pub retry_us: u64,
+    pub retry_follows_cadence: bool,
+    pub history_us: u64,
+    pub max_lag_us: u64,
+    /// These five: None in a log written before they existed (the node ran with the defaults
+    /// of [`NodeConfig::for_model`]).
+    pub range_grace_us: Option<u64>,
+    pub max_lead_us: Option<u64>,
+    pub gate_probability: Option<f64>,
+    pub independent_start: Option<bool>,
+    pub echo_ranges: Option<bool>,
+    pub start: LogStart,
+    pub origin: Option<crate::protocol::wire::GeoOrigin>,
+}
+
+/// A field of a node's log header that is missing or does not read.
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+#[error("field {field}: {problem}")]
+pub struct HeaderError {
+    pub field: String,
+    pub problem: String,
+}
+
+impl NodeLogHeader {
+    /// The header of a node configured as `cfg`, started as `start`, about `origin`.
+    pub fn new(cfg: &NodeConfig, start: LogStart, origin: Option<crate::protocol::wire::GeoOrigin>) -> Self {
+        NodeLogHeader {
+            id: cfg.id,
+            method: cfg.method,
+            model: cfg.model.name().into(),
+            encoding: cfg.encoding,
+            team: cfg.team.clone(),
+            epoch_timeout_us: cfg.epoch_timeout_us,
+            retry_us: cfg.retry_us,
+            retry_follows_cadence: cfg.retry_follows_cadence,
+            history_us: cfg.history_us,
+            max_lag_us: cfg.max_lag_us,
+            range_grace_us: Some(cfg.range_grace_us),
+            max_lead_us: Some(cfg.max_lead_us),
+            gate_probability: Some(cfg.gate_probability),
+            independent_start: Some(cfg.independent_start),
+            echo_ranges: Some(cfg.echo_ranges),
+            start,
+            origin,
         }
     }
-    m
+
+    /// The configuration the node ran with, on navigation model `model`.
+    pub fn config(&self, model: crate::estimation::nav::NavModel) -> NodeConfig {
+        let mut cfg = NodeConfig::for_model(self.id, self.method, model, self.encoding, self.team.clone());
+        cfg.epoch_timeout_us = self.epoch_timeout_us;
+        cfg.retry_us = self.retry_us;
+        cfg.retry_follows_cadence = self.retry_follows_cadence;
+        cfg.history_us = self.history_us;
+        cfg.max_lag_us = self.max_lag_us;
+        cfg.range_grace_us = self.range_grace_us.unwrap_or(cfg.range_grace_us);
+        cfg.max_lead_us = self.max_lead_us.unwrap_or(cfg.max_lead_us);
+        cfg.gate_probability = self.gate_probability.unwrap_or(cfg.gate_probability);
+        cfg.independent_start = self.independent_start.unwrap_or(cfg.independent_start);
+        cfg.echo_ranges = self.echo_ranges.unwrap_or(cfg.echo_ranges);
+        cfg
+    }
+
+    /// The metadata record's entries.
+    pub fn to_metadata(&self) -> std::collections::BTreeMap<String, String> {
+        let mut m = std::collections::BTreeMap::new();
+        let mut put = |k: &str, v: String| {
+            m.insert(k.to_string(), v);
+        };
+        put("id", self.id.to_string());
+        put("method", self.method.short_name().into());
+        put("model", self.model.clone());
+        put("encoding", self.encoding.name().to_string());
+        put("team", self.team.iter().map(|p| p.to_string()).collect::<Vec<_>>().join(","));
+        put("epoch_timeout_us", self.epoch_timeout_us.to_string());
+        put("retry_us", self.retry_us.to_string());
+        put("retry_follows_cadence", self.retry_follows_cadence.to_string());
+        put("history_us", self.history_us.to_string());
+        put("max_lag_us", self.max_lag_us.to_string());
+        if let Some(v) = self.range_grace_us {
+            put("range_grace_us", v.to_string());
+        }
+        if let Some(v) = self.max_lead_us {
+            put("max_lead_us", v.to_string());
+        }
+        if let Some(v) = self.gate_probability {
+            put("gate_probability", format!("{v:e}"));
+        }
+        if let Some(v) = self.independent_start {
+            put("independent_start", v.to_string());
+        }
+        if let Some(v) = self.echo_ranges {
+            put("echo_ranges", v.to_string());
+        }
+        match &self.start {
+            LogStart::Given { t0, state } => {
+                put("init", "state".into());
+                if let Some(t0) = t0 {
+                    put("t0_us", t0.0.to_string());
+                }
+                put("initial_state", serde_json::to_string(state).unwrap_or_default());
+            }
+            LogStart::FromVehicle => put("init", "sim_state".into()),
+        }
+        match &self.origin {
+            Some(o) => {
+                put("origin_lat_deg", o.lat_deg.to_string());
+                put("origin_lon_deg", o.lon_deg.to_string());
+                put("origin_alt_m", o.alt_m.to_string());
+            }
+            None => put("origin", "vehicle".into()),
+        }
+        m
+    }
+
+    /// Reads a metadata record's entries back; a field that is missing (where logs always had
+    /// it) or does not read is named.
+    pub fn from_metadata(m: &std::collections::BTreeMap<String, String>) -> Result<Self, HeaderError> {
+        fn get<T: std::str::FromStr>(m: &std::collections::BTreeMap<String, String>, name: &str) -> Result<T, HeaderError>
+        where
+            T::Err: std::fmt::Display,
+        {
+            let bad = |problem: String| HeaderError { field: name.into(), problem };
+            m.get(name).ok_or_else(|| bad("missing".into()))?.parse::<T>().map_err(|e| bad(e.to_string()))
+        }
+        // A field logs did not always have.
+        fn opt<T: std::str::FromStr>(m: &std::collections::BTreeMap<String, String>, name: &str) -> Result<Option<T>, HeaderError>
+        where
+            T::Err: std::fmt::Display,
+        {
+            if m.contains_key(name) { get(m, name).map(Some) } else { Ok(None) }
+        }
+        let bad = |field: &str, problem: &str| HeaderError { field: field.into(), problem: problem.into() };
+        let method_name: String = get(m, "method")?;
+        let method = crate::estimation::Method::from_short_name(&method_name).ok_or_else(|| bad("method", &method_name))?;
+        let encoding_name: String = get(m, "encoding")?;
+        let encoding =
+            crate::protocol::record::Encoding::from_name(&encoding_name).ok_or_else(|| bad("encoding", &encoding_name))?;
+        let team_text: String = get(m, "team")?;
+        let team = team_text
+            .split(',')
+            .map(|s| s.trim().parse::<PlatformId>())
+            .collect::<Result<Vec<_>, _>>()
+            .map_err(|e| bad("team", &format!("{team_text:?}: {e}")))?;
+        let start = match get::<String>(m, "init")?.as_str() {
+            "state" => {
+                let t0 = if m.contains_key("t0_us") { Some(TimeUs(get(m, "t0_us")?)) } else { None };
+                let text: String = get(m, "initial_state")?;
+                let state = serde_json::from_str(&text).map_err(|e| bad("initial_state", &e.to_string()))?;
+                LogStart::Given { t0, state }
+            }
+            "sim_state" => LogStart::FromVehicle,
+            other => return Err(bad("init", &format!("{other:?}: expected state or sim_state"))),
+        };
+        let origin = if m.get("origin").is_some_and(|o| o == "vehicle") {
+            None
+        } else {
+            Some(crate::protocol::wire::GeoOrigin {
+                lat_deg: get(m, "origin_lat_deg")?,
+                lon_deg: get(m, "origin_lon_deg")?,
+                alt_m: opt(m, "origin_alt_m")?.unwrap_or(0.0),
+            })
+        };
+        Ok(NodeLogHeader {
+            id: get(m, "id")?,
+            method,
+            model: opt(m, "model")?.unwrap_or_default(),
+            encoding,
+            team,
+            epoch_timeout_us: get(m, "epoch_timeout_us")?,
+            retry_us: get(m, "retry_us")?,
+            // logs written before the retry interval followed the cadence: a fixed interval
+            retry_follows_cadence: opt(m, "retry_follows_cadence")?.unwrap_or(false),
+            history_us: get(m, "history_us")?,
+            max_lag_us: get(m, "max_lag_us")?,
+            range_grace_us: opt(m, "range_grace_us")?,
+            max_lead_us: opt(m, "max_lead_us")?,
+            gate_probability: opt(m, "gate_probability")?,
+            independent_start: opt(m, "independent_start")?,
+            echo_ranges: opt(m, "echo_ranges")?,
+            start,
+            origin,
+        })
+    }
 }
 
 /// Schema name of [`CoopUpdateRecord`] (`/vehicle_<id>/internals`).
@@ -238,4 +412,90 @@ pub fn record_update<W: std::io::Write>(
         wall_ns,
         update,
     )
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn header() -> NodeLogHeader {
+        let state = InsState {
+            pos_ned_m: nalgebra::Vector3::new(1.0, -2.5, 0.25),
+            vel_ned_m_s: nalgebra::Vector3::new(0.5, 0.0, 0.0),
+            att_frd_to_ned: nalgebra::UnitQuaternion::from_euler_angles(0.0, 0.0, 0.3),
+            accel_bias_frd_m_s2: nalgebra::Vector3::zeros(),
+            gyro_bias_frd_rad_s: nalgebra::Vector3::zeros(),
+            odometer_scale_error: 0.0,
+        };
+        NodeLogHeader {
+            id: 2,
+            method: crate::estimation::Method::Decentralized,
+            model: "ins".into(),
+            encoding: crate::protocol::record::Encoding::F64,
+            team: vec![1, 2, 3],
+            epoch_timeout_us: 2_000_000,
+            retry_us: 100_000,
+            retry_follows_cadence: true,
+            history_us: 4_000_000,
+            max_lag_us: 120_000_000,
+            range_grace_us: Some(100_000),
+            max_lead_us: Some(30_000_000),
+            gate_probability: Some(1e-6),
+            independent_start: Some(true),
+            echo_ranges: Some(false),
+            start: LogStart::Given { t0: Some(TimeUs(1_500_000)), state },
+            origin: Some(crate::protocol::wire::GeoOrigin { lat_deg: 43.07, lon_deg: -79.5, alt_m: 12.5 }),
+        }
+    }
+
+    #[test]
+    fn a_node_log_header_reads_back_as_written() {
+        let h = header();
+        assert_eq!(NodeLogHeader::from_metadata(&h.to_metadata()).unwrap(), h);
+        let from_vehicle = NodeLogHeader { start: LogStart::FromVehicle, origin: None, ..header() };
+        let m = from_vehicle.to_metadata();
+        assert_eq!((m["init"].as_str(), m["origin"].as_str()), ("sim_state", "vehicle"));
+        assert_eq!(NodeLogHeader::from_metadata(&m).unwrap(), from_vehicle);
+    }
+
+    /// A log written before the later fields existed reads with what the node then ran with.
+    #[test]
+    fn an_old_node_log_header_reads_with_the_settings_of_its_time() {
+        let mut m = header().to_metadata();
+        for k in [
+            "range_grace_us",
+            "max_lead_us",
+            "gate_probability",
+            "independent_start",
+            "echo_ranges",
+            "retry_follows_cadence",
+            "model",
+            "origin_alt_m",
+        ] {
+            m.remove(k);
+        }
+        let h = NodeLogHeader::from_metadata(&m).unwrap();
+        assert_eq!((h.range_grace_us, h.echo_ranges, h.retry_follows_cadence), (None, None, false));
+        assert_eq!(h.origin.unwrap().alt_m, 0.0);
+    }
+
+    #[test]
+    fn a_bad_node_log_header_names_its_field() {
+        let cases: [(&str, Option<&str>); 5] = [
+            ("team", Some("1,x,3")),
+            ("method", Some("kalman")),
+            ("init", Some("guess")),
+            ("retry_us", Some("-5")),
+            ("epoch_timeout_us", None),
+        ];
+        for (field, value) in cases {
+            let mut m = header().to_metadata();
+            match value {
+                Some(v) => m.insert(field.into(), v.into()),
+                None => m.remove(field),
+            };
+            let err = NodeLogHeader::from_metadata(&m).unwrap_err();
+            assert_eq!(err.field, field, "{err}");
+        }
+    }
 }

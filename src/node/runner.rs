@@ -34,7 +34,8 @@ use std::sync::Arc;
 use std::time::Duration;
 
 pub use super::log::{
-    NODE_EVENT_SCHEMA, NODE_EVENT_SCHEMA_NAME, NodeEvent, events_topic, metadata_name, node_metadata, vehicle_attachment_name,
+    LogStart, NODE_EVENT_SCHEMA, NODE_EVENT_SCHEMA_NAME, NodeEvent, NodeLogHeader, events_topic, metadata_name,
+    vehicle_attachment_name,
 };
 pub use super::profile::VehicleProfile;
 pub use super::range_link::RangeSource;

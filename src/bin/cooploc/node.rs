@@ -10,7 +10,7 @@ use cooploc::estimation::nav::NavState;
 use cooploc::node::coop_link::{CoopSpec, Multicast};
 use cooploc::node::core::{NodeConfig, NodeCore};
 use cooploc::node::profile::VehicleProfile;
-use cooploc::node::runner::{Links, NodeInit, RangeSource, metadata_name, node_metadata, run, vehicle_attachment_name};
+use cooploc::node::runner::{Links, LogStart, NodeInit, NodeLogHeader, RangeSource, metadata_name, run, vehicle_attachment_name};
 use cooploc::protocol::wire::GeoOrigin;
 use cooploc::recording::{Link, Recorder, RecorderOptions};
 use cooploc::sitl::scenario::Scenario;
@@ -280,17 +280,11 @@ pub fn run_cmd(args: Args) -> anyhow::Result<()> {
         Some(path) => {
             let options = RecorderOptions { geo_origin: origin, ..RecorderOptions::default() };
             let mut rec = Recorder::create(path, options).with_context(|| format!("--log {}", path.display()))?;
-            let mut meta = node_metadata(&cfg, initial.as_ref().map(|(t0, s)| (*t0, s)));
-            match origin {
-                Some(o) => {
-                    meta.insert("origin_lat_deg".into(), o.lat_deg.to_string());
-                    meta.insert("origin_lon_deg".into(), o.lon_deg.to_string());
-                    meta.insert("origin_alt_m".into(), o.alt_m.to_string());
-                }
-                None => {
-                    meta.insert("origin".into(), "vehicle".into());
-                }
-            }
+            let start = match &initial {
+                Some((t0, state)) => LogStart::Given { t0: *t0, state: *state },
+                None => LogStart::FromVehicle,
+            };
+            let meta = NodeLogHeader::new(&cfg, start, origin).to_metadata();
             rec.metadata(&metadata_name(args.id), meta)?;
             if let Some(path) = &args.scenario {
                 let toml = std::fs::read(path).with_context(|| format!("reading {}", path.display()))?;
