@@ -1,11 +1,11 @@
-//! The library's shape, measured on its sources (issue 34): no function over 150 lines, and the
-//! node's tokio runner under 300 lines in all (everything else a node does is in the sans-io
+//! The code's shape, measured on its sources (issue 34): no function of the library or the
+//! binary over 150 lines, and the node's tokio runner under 300 lines in all (everything else a node does is in the sans-io
 //! node shell, `src/node/shell.rs`).
 
 use std::path::{Path, PathBuf};
 use syn::visit::Visit;
 
-/// The longest a function of the library may be, lines from `fn` to its closing brace.
+/// The longest a function may be, lines from `fn` to its closing brace.
 const MAX_FN_LINES: usize = 150;
 
 fn rust_files(dir: &Path, out: &mut Vec<PathBuf>) {
@@ -55,13 +55,13 @@ fn functions(source: &str) -> Vec<(String, usize, usize)> {
 }
 
 #[test]
-fn no_function_of_the_library_is_over_150_lines() {
+fn no_function_of_the_library_or_the_binary_is_over_150_lines() {
     let root = Path::new(env!("CARGO_MANIFEST_DIR"));
     let mut files = Vec::new();
     rust_files(&root.join("src"), &mut files);
-    files.retain(|f| !f.starts_with(root.join("src/bin")));
     files.sort();
-    assert!(files.len() > 50, "the library's sources: {}", files.len());
+    assert!(files.len() > 50, "the sources: {}", files.len());
+    assert!(files.iter().any(|f| f.ends_with("src/bin/cooploc/node.rs")), "the binary's sources are measured too");
     let mut long = Vec::new();
     let mut count = 0;
     for file in &files {

@@ -55,7 +55,7 @@ enum Command {
     Demo(demo::Args),
     /// Monte Carlo reproduction of the paper's experiment: every method on the same simulated inputs.
     Experiment(experiment::Args),
-    /// Fault injection on the node cores (deterministic, seeded): lost, delayed and reordered
+    /// Fault injection on the node shells (deterministic, seeded): lost, delayed, reordered and damaged
     /// datagrams, lost vehicle frames, stalls, restarts, late joins and leaves; one table row per
     /// case (final error, NEES, disagreements detected and healed).
     Faults(faults::Args),

@@ -201,19 +201,7 @@ pub fn run_cmd(args: Args) -> anyhow::Result<()> {
             }
         }
     }
-    let team_key = match &args.team_key {
-        Some(path) => Some(cooploc::protocol::signing::TeamKey::from_file(path).context("--team-key")?),
-        None if args.insecure => None,
-        None => bail!(
-            "no --team-key: the cooperative network would be unauthenticated, and anyone who can reach this node's \
-             port could move this vehicle's estimate. Give every node of the team the same key file (--team-key FILE; \
-             `cooploc keygen FILE` makes one), or say --insecure to run without"
-        ),
-    };
-    let vehicle_key = match &args.vehicle_key {
-        Some(path) => Some(cooploc::protocol::signing::TeamKey::from_file(path).context("--vehicle-key")?),
-        None => None,
-    };
+    let (team_key, vehicle_key) = keys(&args)?;
     // The scenario of a simulated run, if any; the profile: a bad one is refused before any
     // socket opens.
     let world = match &args.scenario {
@@ -231,27 +219,7 @@ pub fn run_cmd(args: Args) -> anyhow::Result<()> {
     // or HOME_POSITION) before it starts; the INS gets that latitude.
     let latitude = profile.latitude();
     let model = profile.nav_model(latitude.unwrap_or(0.0));
-    let initial = match (from_run, &world) {
-        (Some((seed, run)), Some(world)) => Some(
-            cooploc::experiment::initial_state(world, seed, run, args.id)
-                .map(|(t0, s)| (Some(t0), s))
-                .with_context(|| format!("--init-from-run: platform {} is not in the scenario", args.id))?,
-        ),
-        (Some(_), None) => bail!("--init-from-run needs the --scenario of the run"),
-        (None, _) if !from_cli => None,
-        (None, _) => {
-            let rpy = &args.init_rpy_deg;
-            let state = InsState {
-                pos_ned_m: Vector3::from_column_slice(&args.init_ned),
-                vel_ned_m_s: Vector3::from_column_slice(&args.init_vel_ned),
-                att_frd_to_ned: UnitQuaternion::from_euler_angles(rpy[0].to_radians(), rpy[1].to_radians(), rpy[2].to_radians()),
-                accel_bias_frd_m_s2: Vector3::zeros(),
-                gyro_bias_frd_rad_s: Vector3::zeros(),
-                odometer_scale_error: 0.0,
-            };
-            Some((args.init_time_us.map(TimeUs), state))
-        }
-    };
+    let initial = initial_state(&args, from_run, from_cli, world.as_ref())?;
     let team = match (&world, args.team.is_empty()) {
         (_, false) => args.team.clone(),
         (Some(world), true) => world.platform_ids(),
@@ -276,89 +244,10 @@ pub fn run_cmd(args: Args) -> anyhow::Result<()> {
     cfg.echo_ranges = !args.no_range_echo;
     cfg.gate_probability = args.gate_probability;
     let origin = profile.geo_origin().or(latitude.map(|lat_deg| GeoOrigin { lat_deg, lon_deg: args.origin_lon_deg, alt_m: 0.0 }));
-    let recorder = match &args.log {
-        Some(path) => {
-            let options = RecorderOptions { geo_origin: origin, ..RecorderOptions::default() };
-            let mut rec = Recorder::create(path, options).with_context(|| format!("--log {}", path.display()))?;
-            let start = match &initial {
-                Some((t0, state)) => LogStart::Given { t0: *t0, state: *state },
-                None => LogStart::FromVehicle,
-            };
-            let meta = NodeLogHeader::new(&cfg, start, origin).to_metadata();
-            rec.metadata(&metadata_name(args.id), meta)?;
-            if let Some(path) = &args.scenario {
-                let toml = std::fs::read(path).with_context(|| format!("reading {}", path.display()))?;
-                rec.attachment("scenario.toml", "application/toml", &toml)?;
-            }
-            rec.attachment(&vehicle_attachment_name(args.id), "application/toml", profile.to_toml().as_bytes())?;
-            rec.declare_link(Link::Vehicle(args.id as u8), args.vehicle.clone());
-            Some(std::sync::Arc::new(std::sync::Mutex::new(rec)))
-        }
-        None => None,
-    };
-    let init = match (initial, origin) {
-        (Some((Some(t0), state)), Some(origin)) => {
-            let state = NavState::for_model(&cfg.model, state);
-            let core = Box::new(NodeCore::new(cfg, t0, state).context("node configuration")?);
-            NodeInit::Given { core, origin }
-        }
-        (state, origin) => {
-            // Checked now rather than when the vehicle has said what is missing.
-            let at_rest = NavState::for_model(&cfg.model, InsState::at_rest(UnitQuaternion::identity()));
-            NodeCore::new(cfg.clone(), TimeUs(0), at_rest).context("node configuration")?;
-            if args.init_from_autopilot && origin.is_none() {
-                bail!("--init-from-autopilot: the profile needs an [origin], the team's frame");
-            }
-            NodeInit::Pending { config: Box::new(cfg), origin, state, from_autopilot: args.init_from_autopilot }
-        }
-    };
-    let coop = match &args.coop_serial {
-        Some(text) => CoopSpec::serial(text).map_err(|e| anyhow::anyhow!("--coop-serial {e}"))?,
-        None => {
-            let on = match args.multicast.as_str() {
-                "on" => Some(true),
-                // auto: a LAN (IPv4, not loopback) set-up without peers; IPv6 stays unicast
-                "auto" if args.coop_bind.is_ipv4() && !args.coop_bind.ip().is_loopback() && args.peers.is_empty() => Some(false),
-                _ => None,
-            };
-            if on.is_some() && !args.coop_bind.is_ipv4() {
-                bail!("--multicast: the cooperative socket must be IPv4 for multicast, not --coop-bind {}", args.coop_bind);
-            }
-            let multicast = on.map(|required| Multicast {
-                group: args.multicast_group,
-                ttl: args.multicast_ttl,
-                interface: args.multicast_interface,
-                required,
-            });
-            CoopSpec::Udp { bind: args.coop_bind, multicast, max_datagram: args.datagram_bytes }
-        }
-    };
-    if args.datagram_bytes > MAX_UDP_PAYLOAD {
-        bail!("--datagram-bytes {}: a UDP datagram carries at most {MAX_UDP_PAYLOAD} bytes", args.datagram_bytes);
-    }
-    if !args.multicast_group.ip().is_multicast() {
-        bail!("--multicast-group {}: not a multicast address (224.0.0.0/4)", args.multicast_group);
-    }
-    if args.multicast_ttl == 0 || args.multicast_ttl > 255 {
-        bail!("--multicast-ttl {}: 1..=255", args.multicast_ttl);
-    }
-    let ranges = match &args.ranges {
-        None => None,
-        Some(url) => Some(if let Some(rest) = url.strip_prefix("udpin:") {
-            let addr: SocketAddr = rest.parse().with_context(|| format!("--ranges {url}: expected udpin:HOST:PORT"))?;
-            let socket = std::net::UdpSocket::bind(addr).with_context(|| format!("--ranges {url}: binding"))?;
-            println!("node {} ranges udp {}", args.id, socket.local_addr()?);
-            RangeSource::Udp(std::sync::Arc::new(socket))
-        } else if let Some(rest) = url.strip_prefix("serial:") {
-            let (path, baud) = rest
-                .rsplit_once(':')
-                .and_then(|(p, b)| Some((p.to_string(), b.parse::<u32>().ok()?)))
-                .with_context(|| format!("--ranges {url}: expected serial:PATH:BAUD"))?;
-            RangeSource::Serial { path, baud }
-        } else {
-            bail!("--ranges {url}: expected udpin:HOST:PORT or serial:PATH:BAUD");
-        }),
-    };
+    let recorder = open_log(&args, &cfg, &initial, origin, &profile)?;
+    let init = node_init(&args, cfg, initial, origin)?;
+    let coop = coop_spec(&args)?;
+    let ranges = range_source(&args)?;
     let links = Links {
         vehicle: args.vehicle.clone(),
         coop,
@@ -420,31 +309,64 @@ pub fn run_cmd(args: Args) -> anyhow::Result<()> {
         );
         return Ok(());
     };
-    if let Some((t0, p)) = &summary.sim_state_init {
-        println!("node {} initialised from SIM_STATE: t {} pos_ned_m [{:.4}, {:.4}, {:.4}]", e.platform, t0.0, p[0], p[1], p[2]);
-    }
+    print_summary(&args, &summary, e, &profile, (budget_team, budget_dim, encoding));
+    Ok(())
+}
+
+/// How the node starts: from the given state, or waiting for what the vehicle gives (its
+/// configuration checked now rather than when the vehicle has said what is missing).
+fn node_init(
+    args: &Args,
+    cfg: NodeConfig,
+    initial: Option<(Option<TimeUs>, InsState)>,
+    origin: Option<GeoOrigin>,
+) -> anyhow::Result<NodeInit> {
+    Ok(match (initial, origin) {
+        (Some((Some(t0), state)), Some(origin)) => {
+            let state = NavState::for_model(&cfg.model, state);
+            let core = Box::new(NodeCore::new(cfg, t0, state).context("node configuration")?);
+            NodeInit::Given { core, origin }
+        }
+        (state, origin) => {
+            // Checked now rather than when the vehicle has said what is missing.
+            let at_rest = NavState::for_model(&cfg.model, InsState::at_rest(UnitQuaternion::identity()));
+            NodeCore::new(cfg.clone(), TimeUs(0), at_rest).context("node configuration")?;
+            if args.init_from_autopilot && origin.is_none() {
+                bail!("--init-from-autopilot: the profile needs an [origin], the team's frame");
+            }
+            NodeInit::Pending { config: Box::new(cfg), origin, state, from_autopilot: args.init_from_autopilot }
+        }
+    })
+}
+
+/// The team's key (refused absent unless `--insecure`) and the autopilot's.
+fn keys(
+    args: &Args,
+) -> anyhow::Result<(Option<cooploc::protocol::signing::TeamKey>, Option<cooploc::protocol::signing::TeamKey>)> {
+    let team_key = match &args.team_key {
+        Some(path) => Some(cooploc::protocol::signing::TeamKey::from_file(path).context("--team-key")?),
+        None if args.insecure => None,
+        None => bail!(
+            "no --team-key: the cooperative network would be unauthenticated, and anyone who can reach this node's \
+             port could move this vehicle's estimate. Give every node of the team the same key file (--team-key FILE; \
+             `cooploc keygen FILE` makes one), or say --insecure to run without"
+        ),
+    };
+    let vehicle_key = match &args.vehicle_key {
+        Some(path) => Some(cooploc::protocol::signing::TeamKey::from_file(path).context("--vehicle-key")?),
+        None => None,
+    };
+    Ok((team_key, vehicle_key))
+}
+
+/// What the node put on the cooperative network, against the byte budget of its team.
+fn print_traffic(
+    args: &Args,
+    summary: &cooploc::node::runner::NodeSummary,
+    e: &cooploc::protocol::wire::EstimateReport,
+    (budget_team, budget_dim, encoding): (usize, usize, cooploc::protocol::record::Encoding),
+) {
     let st = &summary.stats;
-    println!(
-        "node {} done: t {} pos_ned_m [{:.4}, {:.4}, {:.4}] yaw_deg {:.5} epochs_applied {} epochs_partial {} epochs_skipped {} dropped_inputs {} vehicle_frames {} vehicle_lost {} vehicle_rejected {} vehicle_other_dialect {} coop_frames {} coop_rejected {} peers {}",
-        e.platform,
-        e.t.0,
-        e.position_ned_m[0],
-        e.position_ned_m[1],
-        e.position_ned_m[2],
-        e.yaw_rad.to_degrees(),
-        st.epochs_applied,
-        st.epochs_partial,
-        st.epochs_skipped,
-        st.dropped_inputs(),
-        summary.vehicle_frames,
-        summary.vehicle_lost,
-        summary.vehicle_rejected,
-        summary.vehicle_other_dialect,
-        summary.coop_frames,
-        summary.coop_rejected,
-        summary.peers.len()
-    );
-    println!("node {} stats {:?}", e.platform, st);
     let tx = &summary.coop_tx;
     let epochs = (st.epochs_applied + st.epochs_partial + st.epochs_skipped) as f64;
     let shape = cooploc::protocol::budget::TeamShape {
@@ -474,6 +396,159 @@ pub fn run_cmd(args: Args) -> anyhow::Result<()> {
         budget,
         shape.epoch_hz
     );
+}
+
+/// The node's start state from the arguments: a scenario run's (`--init-from-run`), the command
+/// line's (`--init-ned` ...), or none (the vehicle gives it).
+fn initial_state(
+    args: &Args,
+    from_run: Option<(u64, u32)>,
+    from_cli: bool,
+    world: Option<&World>,
+) -> anyhow::Result<Option<(Option<TimeUs>, InsState)>> {
+    Ok(match (from_run, world) {
+        (Some((seed, run)), Some(world)) => Some(
+            cooploc::experiment::initial_state(world, seed, run, args.id)
+                .map(|(t0, s)| (Some(t0), s))
+                .with_context(|| format!("--init-from-run: platform {} is not in the scenario", args.id))?,
+        ),
+        (Some(_), None) => bail!("--init-from-run needs the --scenario of the run"),
+        (None, _) if !from_cli => None,
+        (None, _) => {
+            let rpy = &args.init_rpy_deg;
+            let state = InsState {
+                pos_ned_m: Vector3::from_column_slice(&args.init_ned),
+                vel_ned_m_s: Vector3::from_column_slice(&args.init_vel_ned),
+                att_frd_to_ned: UnitQuaternion::from_euler_angles(rpy[0].to_radians(), rpy[1].to_radians(), rpy[2].to_radians()),
+                accel_bias_frd_m_s2: Vector3::zeros(),
+                gyro_bias_frd_rad_s: Vector3::zeros(),
+                odometer_scale_error: 0.0,
+            };
+            Some((args.init_time_us.map(TimeUs), state))
+        }
+    })
+}
+
+/// The node's log (`--log`), with its header, the scenario and the vehicle profile attached.
+fn open_log(
+    args: &Args,
+    cfg: &NodeConfig,
+    initial: &Option<(Option<TimeUs>, InsState)>,
+    origin: Option<GeoOrigin>,
+    profile: &VehicleProfile,
+) -> anyhow::Result<Option<cooploc::node::runner::SharedRecorder>> {
+    Ok(match &args.log {
+        Some(path) => {
+            let options = RecorderOptions { geo_origin: origin, ..RecorderOptions::default() };
+            let mut rec = Recorder::create(path, options).with_context(|| format!("--log {}", path.display()))?;
+            let start = match &initial {
+                Some((t0, state)) => LogStart::Given { t0: *t0, state: *state },
+                None => LogStart::FromVehicle,
+            };
+            let meta = NodeLogHeader::new(cfg, start, origin).to_metadata();
+            rec.metadata(&metadata_name(args.id), meta)?;
+            if let Some(path) = &args.scenario {
+                let toml = std::fs::read(path).with_context(|| format!("reading {}", path.display()))?;
+                rec.attachment("scenario.toml", "application/toml", &toml)?;
+            }
+            rec.attachment(&vehicle_attachment_name(args.id), "application/toml", profile.to_toml().as_bytes())?;
+            rec.declare_link(Link::Vehicle(args.id as u8), args.vehicle.clone());
+            Some(std::sync::Arc::new(std::sync::Mutex::new(rec)))
+        }
+        None => None,
+    })
+}
+
+/// The cooperative link the arguments name: a serial radio, or UDP (multicast or not).
+fn coop_spec(args: &Args) -> anyhow::Result<CoopSpec> {
+    let coop = match &args.coop_serial {
+        Some(text) => CoopSpec::serial(text).map_err(|e| anyhow::anyhow!("--coop-serial {e}"))?,
+        None => {
+            let on = match args.multicast.as_str() {
+                "on" => Some(true),
+                // auto: a LAN (IPv4, not loopback) set-up without peers; IPv6 stays unicast
+                "auto" if args.coop_bind.is_ipv4() && !args.coop_bind.ip().is_loopback() && args.peers.is_empty() => Some(false),
+                _ => None,
+            };
+            if on.is_some() && !args.coop_bind.is_ipv4() {
+                bail!("--multicast: the cooperative socket must be IPv4 for multicast, not --coop-bind {}", args.coop_bind);
+            }
+            let multicast = on.map(|required| Multicast {
+                group: args.multicast_group,
+                ttl: args.multicast_ttl,
+                interface: args.multicast_interface,
+                required,
+            });
+            CoopSpec::Udp { bind: args.coop_bind, multicast, max_datagram: args.datagram_bytes }
+        }
+    };
+    if args.datagram_bytes > MAX_UDP_PAYLOAD {
+        bail!("--datagram-bytes {}: a UDP datagram carries at most {MAX_UDP_PAYLOAD} bytes", args.datagram_bytes);
+    }
+    if !args.multicast_group.ip().is_multicast() {
+        bail!("--multicast-group {}: not a multicast address (224.0.0.0/4)", args.multicast_group);
+    }
+    if args.multicast_ttl == 0 || args.multicast_ttl > 255 {
+        bail!("--multicast-ttl {}: 1..=255", args.multicast_ttl);
+    }
+    Ok(coop)
+}
+
+/// The ranging device on the companion (`--ranges`), its UDP socket bound now.
+fn range_source(args: &Args) -> anyhow::Result<Option<RangeSource>> {
+    Ok(match &args.ranges {
+        None => None,
+        Some(url) => Some(if let Some(rest) = url.strip_prefix("udpin:") {
+            let addr: SocketAddr = rest.parse().with_context(|| format!("--ranges {url}: expected udpin:HOST:PORT"))?;
+            let socket = std::net::UdpSocket::bind(addr).with_context(|| format!("--ranges {url}: binding"))?;
+            println!("node {} ranges udp {}", args.id, socket.local_addr()?);
+            RangeSource::Udp(std::sync::Arc::new(socket))
+        } else if let Some(rest) = url.strip_prefix("serial:") {
+            let (path, baud) = rest
+                .rsplit_once(':')
+                .and_then(|(p, b)| Some((p.to_string(), b.parse::<u32>().ok()?)))
+                .with_context(|| format!("--ranges {url}: expected serial:PATH:BAUD"))?;
+            RangeSource::Serial { path, baud }
+        } else {
+            bail!("--ranges {url}: expected udpin:HOST:PORT or serial:PATH:BAUD");
+        }),
+    })
+}
+
+/// What the node did, printed when it stops (one line per subject, `node ID subject ...`).
+fn print_summary(
+    args: &Args,
+    summary: &cooploc::node::runner::NodeSummary,
+    e: &cooploc::protocol::wire::EstimateReport,
+    profile: &VehicleProfile,
+    (budget_team, budget_dim, encoding): (usize, usize, cooploc::protocol::record::Encoding),
+) {
+    if let Some((t0, p)) = &summary.sim_state_init {
+        println!("node {} initialised from SIM_STATE: t {} pos_ned_m [{:.4}, {:.4}, {:.4}]", e.platform, t0.0, p[0], p[1], p[2]);
+    }
+    let st = &summary.stats;
+    println!(
+        "node {} done: t {} pos_ned_m [{:.4}, {:.4}, {:.4}] yaw_deg {:.5} epochs_applied {} epochs_partial {} epochs_skipped {} dropped_inputs {} vehicle_frames {} vehicle_lost {} vehicle_rejected {} vehicle_other_dialect {} coop_frames {} coop_rejected {} peers {}",
+        e.platform,
+        e.t.0,
+        e.position_ned_m[0],
+        e.position_ned_m[1],
+        e.position_ned_m[2],
+        e.yaw_rad.to_degrees(),
+        st.epochs_applied,
+        st.epochs_partial,
+        st.epochs_skipped,
+        st.dropped_inputs(),
+        summary.vehicle_frames,
+        summary.vehicle_lost,
+        summary.vehicle_rejected,
+        summary.vehicle_other_dialect,
+        summary.coop_frames,
+        summary.coop_rejected,
+        summary.peers.len()
+    );
+    println!("node {} stats {:?}", e.platform, st);
+    print_traffic(args, summary, e, (budget_team, budget_dim, encoding));
     let pc = &summary.peer_counters;
     println!(
         "node {} peers {} learned {} moved {} expired {} observers_refused {} resends {} resends_limited {}",
@@ -574,5 +649,4 @@ pub fn run_cmd(args: Args) -> anyhow::Result<()> {
             summary.timesync_refused
         ),
     }
-    Ok(())
 }
