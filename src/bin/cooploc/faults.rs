@@ -42,6 +42,11 @@ pub struct Args {
     /// cases named "5x real time").
     #[arg(long)]
     speed: Option<f64>,
+    /// Every case with cooperative datagrams delayed uniformly in LO-HI ms (reordered), until the
+    /// case's end of link faults (340 s of the paper scenario; a case without link faults gets
+    /// them until then too). Without it, each case's own delays.
+    #[arg(long, value_name = "LO-HI")]
+    delay_ms: Option<String>,
     /// Also write every case's summary as JSON here.
     #[arg(long)]
     json: Option<PathBuf>,
@@ -55,6 +60,15 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     if let Some(speed) = args.speed.filter(|s| !(s.is_finite() && *s > 0.0)) {
         bail!("--speed {speed}: must be a positive number (1 is real time)");
     }
+    let delay_ms = match &args.delay_ms {
+        Some(text) => Some(
+            text.split_once('-')
+                .and_then(|(lo, hi)| Some((lo.trim().parse::<u64>().ok()?, hi.trim().parse::<u64>().ok()?)))
+                .filter(|(lo, hi)| lo <= hi && *hi <= 60_000)
+                .with_context(|| format!("--delay-ms {text:?}: expected LO-HI in ms, LO <= HI <= 60000, e.g. 0-1500"))?,
+        ),
+        None => None,
+    };
     let world = World::new(&Scenario::from_path(&args.scenario)?)?;
     let duration_s = world.scenario().duration_s;
     let (cases, too_long): (Vec<_>, Vec<_>) = standard_cases()
@@ -76,6 +90,12 @@ pub fn run(args: Args) -> anyhow::Result<()> {
                 let faults = cooploc::experiment::faults::Faults {
                     packed: args.packed || case.faults.packed,
                     speed: args.speed.unwrap_or(case.faults.speed),
+                    delay_ms: delay_ms.unwrap_or(case.faults.delay_ms),
+                    links_until_s: if delay_ms.is_some() && case.faults.links_until_s == 0.0 {
+                        340.0
+                    } else {
+                        case.faults.links_until_s
+                    },
                     ..case.faults.clone()
                 };
                 run_case(&world, &faults, method, &args.schedule, args.seed, run, encoding)
@@ -85,7 +105,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         summaries.push(summarize(case.name, &runs));
     }
     println!(
-        "cooploc faults: {} cases x {} runs, method {}, encoding {}, schedule {}, seed {}{}{} ({:.1} s)",
+        "cooploc faults: {} cases x {} runs, method {}, encoding {}, schedule {}, seed {}{}{}{} ({:.1} s)",
         cases.len(),
         args.runs,
         method.short_name(),
@@ -94,6 +114,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         args.seed,
         if args.packed { ", packed datagrams" } else { "" },
         args.speed.map(|s| format!(", every case at {s}x real time")).unwrap_or_default(),
+        delay_ms.map(|(lo, hi)| format!(", every case with delays of {lo}-{hi} ms")).unwrap_or_default(),
         started.elapsed().as_secs_f64()
     );
     let base = summaries.iter().find(|s| s.name == "fault-free").map(|s| s.final_rms_m);
