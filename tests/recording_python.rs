@@ -7,9 +7,10 @@ mod common;
 use std::collections::BTreeMap;
 use std::process::Command;
 
-use cooploc::node::log::{CoopUpdateRecord, RangeRecord, record_update};
+use cooploc::node::log::{CoopUpdateRecord, RangeRecord};
 use cooploc::protocol::dialect::cooploc::{MavAutopilot, MavType};
 use cooploc::protocol::wire::{self, GeoOrigin};
+use cooploc::recording::record_update;
 use cooploc::recording::{
     Direction, LinkStatsRecord, PeerLinkStats, PositionEstimate, Recorder, RecorderOptions, TruthSample, read_log,
 };

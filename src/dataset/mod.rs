@@ -27,24 +27,7 @@ pub mod run;
 use crate::estimation::PlatformId;
 use crate::time::TimeUs;
 
-/// A motion command (MRCLAM: commanded forward and angular speed), in force from `t` until the
-/// next one (or until it goes stale).
-#[derive(Debug, Clone, Copy, PartialEq)]
-pub struct Command {
-    pub t: TimeUs,
-    pub speed_m_s: f64,
-    /// Yaw rate, rad/s, positive clockwise seen from above (NED).
-    pub yaw_rate_rad_s: f64,
-}
-
-/// What an observation saw.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, PartialOrd, Ord, Hash)]
-pub enum Target {
-    /// A teammate (its platform id).
-    Robot(PlatformId),
-    /// A landmark of known position (its subject number).
-    Landmark(u16),
-}
+pub use crate::estimation::inputs::{Command, Target};
 
 /// One camera observation: range and bearing of a target from the observer.
 #[derive(Debug, Clone, Copy, PartialEq)]

@@ -47,3 +47,22 @@ pub struct RangeSample {
     pub range_m: f64,
     pub sigma_m: f64,
 }
+
+/// A motion command (a robot's commanded forward and angular speed, as MRCLAM logs them), in
+/// force from `t` until the next one (or until it goes stale).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Command {
+    pub t: TimeUs,
+    pub speed_m_s: f64,
+    /// Yaw rate, rad/s, positive clockwise seen from above (NED).
+    pub yaw_rate_rad_s: f64,
+}
+
+/// What a camera observation saw (a data set's range and bearing).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, PartialOrd, Ord, Hash)]
+pub enum Target {
+    /// A teammate (its platform id).
+    Robot(PlatformId),
+    /// A landmark of known position (its subject number).
+    Landmark(u16),
+}

@@ -398,22 +398,6 @@ pub const COOP_UPDATE_SCHEMA: &str = r##"{
   "additionalProperties": false
 }"##;
 
-/// Records one cooperative update on `/vehicle_<update.vehicle>/internals` (the runner's call,
-/// and the tests').
-pub fn record_update<W: std::io::Write>(
-    rec: &mut crate::recording::Recorder<W>,
-    wall_ns: u64,
-    update: &CoopUpdateRecord,
-) -> Result<(), crate::recording::RecorderError> {
-    rec.json_message(
-        &crate::recording::topics::internals(update.vehicle),
-        COOP_UPDATE_SCHEMA_NAME,
-        COOP_UPDATE_SCHEMA,
-        wall_ns,
-        update,
-    )
-}
-
 #[cfg(test)]
 mod tests {
     use super::*;

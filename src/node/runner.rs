@@ -109,7 +109,7 @@ fn record(rec: &SharedRecorder, id: u16, record: Record) {
         Record::Event(event) => r.json_message(&events_topic(id), NODE_EVENT_SCHEMA_NAME, NODE_EVENT_SCHEMA, now, &event),
         Record::Frame { link, dir, bytes } => r.frame(link, dir, now, &bytes),
         Record::Estimate(e) => r.estimate(e.platform, now, &crate::view::foxglove::position_estimate(&e)),
-        Record::Update(u) => super::log::record_update(&mut r, now, &u),
+        Record::Update(u) => crate::recording::record_update(&mut r, now, &u),
     };
     let _ = r.maybe_flush(std::time::Instant::now());
 }

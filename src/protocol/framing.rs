@@ -219,6 +219,33 @@ fn x25_crc(data: &[u8], extra: u8) -> u16 {
 /// A MAVLink 2 frame (system 1, component 1, sequence `seq`) of message `id`, which the cooploc
 /// dialect does not know, with a 9-byte payload and the checksum its own dialect would give
 /// (CRC_EXTRA 0x5A): what an autopilot of another dialect sends. For tests.
+/// Which link a raw frame travelled on, and the system id of the process that saw it (logs
+/// name their frame channels by it: [`crate::recording::topics::frames`]).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, PartialOrd, Ord)]
+pub enum Link {
+    /// The link to the process's own vehicle (autopilot or simulator).
+    Vehicle(u8),
+    /// The cooperative network shared by the nodes and the ground station.
+    Coop(u8),
+}
+
+/// Whether the process received or sent a frame.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, PartialOrd, Ord)]
+pub enum Direction {
+    Rx,
+    Tx,
+}
+
+impl Direction {
+    /// `"rx"` or `"tx"`, as in the topics and the channel metadata.
+    pub fn as_str(self) -> &'static str {
+        match self {
+            Direction::Rx => "rx",
+            Direction::Tx => "tx",
+        }
+    }
+}
+
 #[cfg(test)]
 pub(crate) fn foreign_frame(seq: u8, id: u32) -> Vec<u8> {
     assert!(!known_message(id), "{id} is in the dialect");

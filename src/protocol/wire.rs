@@ -223,7 +223,7 @@ pub fn range_from_message(m: &COOPLOC_RANGE_DATA) -> Result<(u32, RangeSample), 
 pub struct RangeBearingReport {
     pub t: TimeUs,
     pub observer: PlatformId,
-    pub target: crate::dataset::Target,
+    pub target: crate::estimation::inputs::Target,
     pub range_m: f64,
     /// From the observer's heading, clockwise seen from above, rad.
     pub bearing_rad: f64,
@@ -233,7 +233,7 @@ pub struct RangeBearingReport {
 pub const MAX_RANGE_BEARING_M: f64 = 10_000.0;
 
 pub fn range_bearing_to_message(r: &RangeBearingReport) -> MavMessage {
-    use crate::dataset::Target;
+    use crate::estimation::inputs::Target;
     let (target, target_kind) = match r.target {
         Target::Robot(id) => (id, 0),
         Target::Landmark(id) => (id, 1),
@@ -251,7 +251,7 @@ pub fn range_bearing_to_message(r: &RangeBearingReport) -> MavMessage {
 /// A COOPLOC_RANGE_BEARING, checked: finite, a positive range under [`MAX_RANGE_BEARING_M`], a
 /// bearing within one turn, a known target kind, no platform observing itself.
 pub fn range_bearing_from_message(m: &COOPLOC_RANGE_BEARING_DATA) -> Result<RangeBearingReport, WireError> {
-    use crate::dataset::Target;
+    use crate::estimation::inputs::Target;
     const MSG: &str = "COOPLOC_RANGE_BEARING";
     let range_m = finite(MSG, "range", m.range)?;
     if !(range_m > 0.0 && range_m <= MAX_RANGE_BEARING_M) {
@@ -273,13 +273,13 @@ pub fn range_bearing_from_message(m: &COOPLOC_RANGE_BEARING_DATA) -> Result<Rang
 /// A motion command (forward speed and yaw rate, what a robot was told to do) as ODOMETRY:
 /// body-frame (BODY_FRD) velocity `vx` and `yawspeed` (z down: positive turning right),
 /// estimator type NAIVE (open loop), pose unknown (NaN).
-pub fn command_to_odometry(c: &crate::dataset::Command) -> MavMessage {
+pub fn command_to_odometry(c: &crate::estimation::inputs::Command) -> MavMessage {
     body_velocity_odometry(c.t, c.speed_m_s, c.yaw_rate_rad_s, [f32::NAN; 21], MavEstimatorType::MAV_ESTIMATOR_TYPE_NAIVE)
 }
 
 /// ODOMETRY as a motion command (see [`command_to_odometry`]), checked against the planar
 /// robot's limits.
-pub fn command_from_odometry(m: &ODOMETRY_DATA) -> Result<crate::dataset::Command, WireError> {
+pub fn command_from_odometry(m: &ODOMETRY_DATA) -> Result<crate::estimation::inputs::Command, WireError> {
     const MSG: &str = "ODOMETRY";
     if !matches!(m.child_frame_id, MavFrame::MAV_FRAME_BODY_FRD) {
         return Err(bad(MSG, "child_frame_id", format!("{:?}: a command is a body-frame (BODY_FRD) velocity", m.child_frame_id)));
@@ -292,7 +292,7 @@ pub fn command_from_odometry(m: &ODOMETRY_DATA) -> Result<crate::dataset::Comman
     if yaw_rate_rad_s.abs() > crate::estimation::planar::MAX_YAW_RATE_RAD_S {
         return Err(bad(MSG, "yawspeed", format!("{yaw_rate_rad_s} rad/s is not a wheeled robot's yaw rate")));
     }
-    Ok(crate::dataset::Command { t: TimeUs(m.time_usec), speed_m_s, yaw_rate_rad_s })
+    Ok(crate::estimation::inputs::Command { t: TimeUs(m.time_usec), speed_m_s, yaw_rate_rad_s })
 }
 
 /// The range as every receiver will see it (f32 on the wire): what the measuring node uses too.

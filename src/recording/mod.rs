@@ -68,7 +68,7 @@ mod reader;
 mod writer;
 
 pub use crate::view::foxglove::{PositionEstimate, TruthSample};
-pub use internals::{LinkStatsRecord, PeerLinkStats};
+pub use internals::{LinkStatsRecord, PeerLinkStats, record_update};
 
 /// A recorder shared by the processes of one log (the demo puts every node and the ground station
 /// in one file).
@@ -90,31 +90,7 @@ pub const DIALECT: &str = "cooploc";
 /// Name of the metadata record the recorder writes first.
 pub const LOG_METADATA_NAME: &str = "cooploc";
 
-/// Which link a raw frame travelled on, and the system id of the recording process.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, PartialOrd, Ord)]
-pub enum Link {
-    /// The link to the process's own vehicle (autopilot or simulator).
-    Vehicle(u8),
-    /// The cooperative network shared by the nodes and the ground station.
-    Coop(u8),
-}
-
-/// Whether the process received or sent a frame.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, PartialOrd, Ord)]
-pub enum Direction {
-    Rx,
-    Tx,
-}
-
-impl Direction {
-    /// `"rx"` or `"tx"`, as in the topics and the channel metadata.
-    pub fn as_str(self) -> &'static str {
-        match self {
-            Direction::Rx => "rx",
-            Direction::Tx => "tx",
-        }
-    }
-}
+pub use crate::protocol::framing::{Direction, Link};
 
 /// The topic names of the log, in one place.
 pub mod topics {

@@ -117,7 +117,7 @@ fn write_every_kind<W: Write>(rec: &mut Recorder<W>) -> Vec<(String, Vec<u8>)> {
     }
     rec.estimate(2, T0_NS + 10, &estimate()).unwrap();
     rec.truth(2, T0_NS + 11, &truth()).unwrap();
-    crate::node::log::record_update(rec, T0_NS + 12, &sample_update()).unwrap();
+    super::record_update(rec, T0_NS + 12, &sample_update()).unwrap();
     rec.link_stats(T0_NS + 13, &sample_stats()).unwrap();
     rec.metadata("config", BTreeMap::from([("sysid".to_string(), "2".to_string())])).unwrap();
     rec.attachment("scenario.toml", "application/toml", b"[world]\nvehicles = 3\n").unwrap();
