@@ -70,6 +70,22 @@ pub const LINK_STATS_SCHEMA: &str = r##"{
   "additionalProperties": false
 }"##;
 
+/// Records one cooperative update on `/vehicle_<update.vehicle>/internals` (the runner's call,
+/// and the tests').
+pub fn record_update<W: std::io::Write>(
+    rec: &mut super::Recorder<W>,
+    wall_ns: u64,
+    update: &crate::node::log::CoopUpdateRecord,
+) -> Result<(), super::RecorderError> {
+    rec.json_message(
+        &super::topics::internals(update.vehicle),
+        crate::node::log::COOP_UPDATE_SCHEMA_NAME,
+        crate::node::log::COOP_UPDATE_SCHEMA,
+        wall_ns,
+        update,
+    )
+}
+
 #[cfg(test)]
 pub(crate) mod tests {
     use super::*;
@@ -173,20 +189,4 @@ pub(crate) mod tests {
         let st = sample_stats();
         assert_eq!(serde_json::from_slice::<LinkStatsRecord>(&serde_json::to_vec(&st).unwrap()).unwrap(), st);
     }
-}
-
-/// Records one cooperative update on `/vehicle_<update.vehicle>/internals` (the runner's call,
-/// and the tests').
-pub fn record_update<W: std::io::Write>(
-    rec: &mut super::Recorder<W>,
-    wall_ns: u64,
-    update: &crate::node::log::CoopUpdateRecord,
-) -> Result<(), super::RecorderError> {
-    rec.json_message(
-        &super::topics::internals(update.vehicle),
-        crate::node::log::COOP_UPDATE_SCHEMA_NAME,
-        crate::node::log::COOP_UPDATE_SCHEMA,
-        wall_ns,
-        update,
-    )
 }
