@@ -139,9 +139,7 @@ struct NodeHeader {
     profile: crate::node::profile::VehicleProfile,
     /// None: the vehicle gave it (its Init event says which).
     origin: Option<GeoOrigin>,
-    /// A given start state and its time (None: taken at the first sample), or None: SIM_STATE
-    /// or the autopilot's estimate.
-    initial_state: Option<(Option<u64>, crate::estimation::ins::InsState)>,
+    start: LogStart,
 }
 
 fn node_header(log: &Log, world: Option<&World>, id: PlatformId) -> Result<NodeHeader, ReplayError> {
@@ -155,22 +153,19 @@ fn node_header(log: &Log, world: Option<&World>, id: PlatformId) -> Result<NodeH
     let profile = profile_of(log, world, id)?;
     // No latitude in the profile: the node took the vehicle's origin (its Init event says which).
     let model = profile.nav_model(profile.latitude().unwrap_or(0.0));
-    let initial_state = match header.start {
-        LogStart::Given { t0, state } => Some((t0.map(|t| t.0), state)),
-        LogStart::FromVehicle => None,
-    };
-    Ok(NodeHeader { method: header.method, cfg: header.config(model), profile, origin: header.origin, initial_state })
+    Ok(NodeHeader { method: header.method, cfg: header.config(model), profile, origin: header.origin, start: header.start })
 }
 
 /// The core a node made at its Init event: at `t0_us`, about the origin the vehicle gave or the
-/// log's, from the hand-over state, the given state or the last SIM_STATE.
+/// log's, from the hand-over state, the given state (`start`, unless refused) or the last
+/// SIM_STATE.
 fn core_at_init(
     h: &NodeHeader,
     init: (u64, Option<[f64; 3]>, Option<crate::node::log::StartState>),
-    initial_state: Option<&(Option<u64>, crate::estimation::ins::InsState)>,
+    start: &LogStart,
     last_sim_state: Option<&crate::protocol::dialect::cooploc::SIM_STATE_DATA>,
 ) -> Result<NodeCore, String> {
-    let (t0_us, from_vehicle, start) = init;
+    let (t0_us, from_vehicle, hand_over) = init;
     let mut cfg = h.cfg.clone();
     let origin = match (from_vehicle, h.origin) {
         (Some([lat_deg, lon_deg, alt_m]), _) => {
@@ -180,11 +175,11 @@ fn core_at_init(
         (None, Some(o)) => o,
         (None, None) => return Err("Init event without the vehicle's origin".into()),
     };
-    let state = match (initial_state, start) {
+    let state = match (start, hand_over) {
         // the hand-over start: the autopilot's estimate, as logged
-        (_, Some(start)) => start.state(),
-        (Some((_, state)), None) => *state,
-        (None, None) => {
+        (_, Some(hand_over)) => hand_over.state(),
+        (LogStart::Given { state, .. }, None) => *state,
+        (LogStart::FromVehicle, None) => {
             let s = last_sim_state.ok_or("Init event before any SIM_STATE")?;
             wire::ins_state_from_sim_state(s, &origin).map_err(|e| e.to_string())?
         }
@@ -197,11 +192,11 @@ fn replay_node(log: &Log, world: Option<&World>, id: PlatformId) -> Result<NodeR
     let h = node_header(log, world, id)?;
     let node_err = |e: String| ReplayError::Node(id, e);
     let (method, cfg, origin) = (h.method, &h.cfg, h.origin);
-    let mut initial_state = h.initial_state;
-    let mut core = match (&initial_state, origin) {
-        (Some((Some(t0), state)), Some(_)) => {
+    let mut start = h.start.clone();
+    let mut core = match (&start, origin) {
+        (LogStart::Given { t0: Some(t0), state }, Some(_)) => {
             let state = NavState::for_model(&cfg.model, *state);
-            Some(NodeCore::new(cfg.clone(), TimeUs(*t0), state).map_err(|e| node_err(e.to_string()))?)
+            Some(NodeCore::new(cfg.clone(), *t0, state).map_err(|e| node_err(e.to_string()))?)
         }
         _ => None,
     };
@@ -263,12 +258,12 @@ fn replay_node(log: &Log, world: Option<&World>, id: PlatformId) -> Result<NodeR
                 (NodeEvent::StartRefused { .. }, _) => {
                     // the given state was stale: the node waited for SIM_STATE (its Init event)
                     core = None;
-                    initial_state = None;
+                    start = LogStart::FromVehicle;
                     continue;
                 }
-                (NodeEvent::Init { t0_us, origin: from_vehicle, state: start }, None) => {
-                    let init = (t0_us, from_vehicle, start);
-                    core = Some(core_at_init(&h, init, initial_state.as_ref(), last_sim_state.as_ref()).map_err(node_err)?);
+                (NodeEvent::Init { t0_us, origin: from_vehicle, state: hand_over }, None) => {
+                    let init = (t0_us, from_vehicle, hand_over);
+                    core = Some(core_at_init(&h, init, &start, last_sim_state.as_ref()).map_err(node_err)?);
                     continue;
                 }
                 (NodeEvent::Poll { wall_us }, Some(c)) => c.poll(wall_us),

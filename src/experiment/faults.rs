@@ -123,6 +123,10 @@ impl Faults {
     }
 }
 
+/// When the standard cases' link faults end on the paper scenario (380 s), s: recovery can be
+/// seen before the end.
+pub const LINK_FAULTS_UNTIL_S: f64 = 340.0;
+
 /// A named case.
 #[derive(Debug, Clone, PartialEq, Serialize)]
 pub struct FaultCase {
@@ -137,7 +141,7 @@ pub fn standard_cases() -> Vec<FaultCase> {
         coop_loss,
         vehicle_loss,
         delay_ms,
-        links_until_s: 340.0,
+        links_until_s: LINK_FAULTS_UNTIL_S,
         ..Faults::default()
     };
     let node3 = |from_s, until_s| Some(Outage { node: 2, from_s, until_s });
@@ -309,22 +313,13 @@ impl Sim<'_> {
     }
 
     /// The datagrams one batch of frames travels in (see [`Faults::packed`]; the shell already
-    /// sends a record's first fragment alone).
+    /// sends a record's first fragment alone): the link's own packing.
     fn datagrams(&self, frames: Vec<Vec<u8>>) -> Vec<Vec<u8>> {
-        if !self.case.packed {
-            return frames;
-        }
-        let sizes: Vec<usize> = frames.iter().map(Vec::len).collect();
-        let starts = budget::packing(&sizes, budget::MAX_DATAGRAM);
-        let ends = starts.iter().skip(1).copied().chain([frames.len()]);
-        starts.iter().zip(ends).map(|(&a, b)| frames[a..b].concat()).collect()
+        if self.case.packed { budget::pack(&frames, budget::MAX_DATAGRAM) } else { frames }
     }
 
-    /// The nodes' clocks at vehicle time `now`: wall time (see [`Faults::speed`]) and a Unix
-    /// time that follows it.
     fn clock(&self, now: TimeUs) -> Now {
-        let wall_us = (now.0 as f64 / self.case.speed) as u64;
-        Now { wall_us, unix_ns: 1_700_000_000_000_000_000 + wall_us as i64 * 1000 }
+        clock(self.case, now)
     }
 
     /// Hands what arrived to node `k` at `now`: lost if it is dead, queued if it is frozen.
@@ -392,6 +387,13 @@ impl Sim<'_> {
     fn lose_vehicle_frame(&mut self, t: TimeUs) -> bool {
         self.links_active(t) && self.case.vehicle_loss > 0.0 && self.rng.random::<f64>() < self.case.vehicle_loss
     }
+}
+
+/// The nodes' clocks at vehicle time `now`: wall time (see [`Faults::speed`]) and a Unix time
+/// that follows it.
+fn clock(case: &Faults, now: TimeUs) -> Now {
+    let wall_us = (now.0 as f64 / case.speed) as u64;
+    Now { wall_us, unix_ns: 1_700_000_000_000_000_000 + wall_us as i64 * 1000 }
 }
 
 /// Damages a datagram as a radio or a bad cable would: one byte changed, or the end cut off.
@@ -512,8 +514,7 @@ impl Maker<'_> {
             unicast: false,
             record: false,
         };
-        let clock = Now { wall_us: (at.unwrap_or(TimeUs(0)).0 as f64 / self.case.speed) as u64, unix_ns: 0 };
-        let mut shell = NodeShell::new(NodeInit::Ready(Box::new(core)), config, clock)
+        let mut shell = NodeShell::new(NodeInit::Ready(Box::new(core)), config, clock(self.case, at.unwrap_or(TimeUs(0))))
             .map_err(|e| ExperimentError::Settings(format!("node shell: {e}")))?;
         shell.take_outputs(); // its HEARTBEAT to the vehicle
         Ok(shell)

@@ -91,11 +91,6 @@ pub fn save_signing_state(path: &std::path::Path, text: &str) -> std::io::Result
     std::fs::rename(&tmp, path)
 }
 
-/// The companion's clock, Unix time in ns.
-fn unix_now_ns() -> i64 {
-    std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).map_or(0, |d| d.as_nanos() as i64)
-}
-
 /// Receive buffer asked for the cooperative socket: a burst of state records (14 fragments per
 /// platform per epoch) must not overflow it while the node is busy (the kernel caps it at
 /// net.core.rmem_max).
@@ -185,7 +180,7 @@ pub async fn run(
     shutdown: impl std::future::Future<Output = ()>,
 ) -> Result<NodeSummary, NodeError> {
     let clock = std::time::Instant::now();
-    let now = move || Now { wall_us: clock.elapsed().as_micros() as u64, unix_ns: unix_now_ns() };
+    let now = move || Now { wall_us: clock.elapsed().as_micros() as u64, unix_ns: wall_now_ns() as i64 };
     let signing_resume_after = match (&links.team_key, &links.signing_state) {
         (Some(_), Some(path)) => load_signing_state(path)?,
         _ => 0,

@@ -263,18 +263,16 @@ pub struct NodeSummary {
 
 /// One sequence counter per link (MAVLink numbers each link on its own) and the signer.
 struct Sequences {
-    sysid: u32,
     coop: u8,
     vehicle: u8,
     /// Signs the cooperative frames, when the team has a key.
     signer: Option<Signer>,
 }
 
-impl Sequences {
-    fn next(seq: &mut u8, sysid: u32) -> MavHeader {
-        *seq = seq.wrapping_add(1);
-        MavHeader { system_id: sysid, component_id: wire::COMPANION_COMPID, sequence: *seq }
-    }
+/// The next header of a link whose counter is `seq`, from system `sysid`.
+fn next_header(seq: &mut u8, sysid: u8) -> MavHeader {
+    *seq = seq.wrapping_add(1);
+    MavHeader { system_id: u32::from(sysid), component_id: wire::COMPANION_COMPID, sequence: *seq }
 }
 
 /// The vehicle's frames counted: received, from another system, of another dialect, lost in
@@ -437,7 +435,7 @@ impl NodeShell {
             autopilot,
             clock,
             range_lines,
-            seqs: Sequences { sysid: u32::from(id), coop: 0, vehicle: 0, signer },
+            seqs: Sequences { coop: 0, vehicle: 0, signer },
             vehicle: VehicleCounts::default(),
             coop_frames: 0,
             coop_rejected: 0,
@@ -449,7 +447,7 @@ impl NodeShell {
             ending_at_us: None,
             out: Vec::new(),
         };
-        let header = Sequences::next(&mut shell.seqs.vehicle, shell.seqs.sysid);
+        let header = next_header(&mut shell.seqs.vehicle, shell.sysid);
         shell.out.push(ShellOutput::Vehicle { header, msg: heartbeat() });
         Ok(shell)
     }
@@ -492,7 +490,7 @@ impl NodeShell {
 
     /// Sends one message to the vehicle (and logs it).
     fn send_vehicle(&mut self, msg: MavMessage) {
-        let header = Sequences::next(&mut self.seqs.vehicle, self.seqs.sysid);
+        let header = next_header(&mut self.seqs.vehicle, self.sysid);
         if self.config.record {
             self.record(Record::Frame {
                 link: Link::Vehicle(self.sysid),
@@ -505,7 +503,7 @@ impl NodeShell {
 
     /// The next cooperative frame of `msg`, signed when the team has a key.
     fn coop_frame(&mut self, msg: &MavMessage, now: Now) -> Vec<u8> {
-        let header = Sequences::next(&mut self.seqs.coop, self.seqs.sysid);
+        let header = next_header(&mut self.seqs.coop, self.sysid);
         let frame = match &mut self.seqs.signer {
             Some(s) => s.frame(header, msg, now.unix_us()),
             None => wire::to_frame(header, msg),
@@ -588,7 +586,7 @@ impl NodeShell {
         if self.beats % 40 == 1 {
             // heartbeat at 1 Hz, timeouts and idle checks at 40 Hz
             let hb = heartbeat();
-            let header = Sequences::next(&mut self.seqs.vehicle, self.seqs.sysid);
+            let header = next_header(&mut self.seqs.vehicle, self.sysid);
             self.out.push(ShellOutput::Vehicle { header, msg: hb.clone() });
             let frame = self.coop_frame(&hb, now);
             self.peers.expire(now.wall_us);
@@ -1012,7 +1010,9 @@ impl NodeShell {
         for input in inputs {
             out.extend(core.handle(input));
         }
-        if vehicle_input {
+        // (the navigation solution only when something goes back to the vehicle: not on every
+        // IMU sample of a node that sends nothing back)
+        if vehicle_input && (self.autopilot.odometry.is_some() || self.autopilot.gps_input.is_some()) {
             let nav = core.navigation();
             let decoder = &self.decoder;
             let odo = self.autopilot.odometry.as_mut().and_then(|o| o.poll(&nav, |t| decoder.to_vehicle_time(t)));

@@ -92,7 +92,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
                     speed: args.speed.unwrap_or(case.faults.speed),
                     delay_ms: delay_ms.unwrap_or(case.faults.delay_ms),
                     links_until_s: if delay_ms.is_some() && case.faults.links_until_s == 0.0 {
-                        340.0
+                        cooploc::experiment::faults::LINK_FAULTS_UNTIL_S
                     } else {
                         case.faults.links_until_s
                     },
