@@ -260,7 +260,7 @@ pub fn run_cmd(args: Args) -> anyhow::Result<()> {
         vehicle_key,
         ranges,
     };
-    let rt = tokio::runtime::Builder::new_multi_thread().worker_threads(2).enable_all().build()?;
+    let rt = tokio::runtime::Builder::new_current_thread().enable_all().build()?;
     let runner_recorder = recorder.clone();
     let summary = rt.block_on(async move {
         let (tx, rx) = tokio::sync::oneshot::channel();
