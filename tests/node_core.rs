@@ -5,6 +5,7 @@
 
 use std::collections::VecDeque;
 
+use cooploc::estimation::nav::NavState;
 use cooploc::estimation::{ImuSample, Method, RangeSample};
 use cooploc::experiment::{initial_nav_state, initial_state, ins_settings, nav_model, run_filter};
 use cooploc::node::core::{NodeConfig, NodeCore, NodeInput, NodeOutput};
@@ -74,15 +75,46 @@ fn run_network_with(
     encoding: Encoding,
     late: usize,
 ) -> (Vec<NodeCore>, Vec<(TimeUs, Vec<RangeSample>)>) {
-    let mut nodes: Vec<NodeCore> = world
+    let nodes = start_nodes(world, method, seed, run, encoding, &|_, _| {});
+    drive_network(world, nodes, schedule, seed, run, speed, dead, net, late)
+}
+
+/// One node core per platform of `world`, each started from its initial state of (`seed`, `run`)
+/// after `alter` (given the platform's index) has changed it.
+fn start_nodes(
+    world: &World,
+    method: Method,
+    seed: u64,
+    run: u32,
+    encoding: Encoding,
+    alter: &dyn Fn(usize, &mut NavState),
+) -> Vec<NodeCore> {
+    world
         .platform_ids()
         .into_iter()
-        .map(|id| {
-            let (t0, state) = initial_nav_state(world, seed, run, id).unwrap();
+        .enumerate()
+        .map(|(k, id)| {
+            let (t0, mut state) = initial_nav_state(world, seed, run, id).unwrap();
+            alter(k, &mut state);
             let cfg = NodeConfig::for_model(id, method, nav_model(world, id), encoding, world.platform_ids());
             NodeCore::new(cfg, t0, state).unwrap()
         })
-        .collect();
+        .collect()
+}
+
+/// Drives `nodes` through the events of (`seed`, `run`) as [`run_network_with`] says.
+#[allow(clippy::too_many_arguments)]
+fn drive_network(
+    world: &World,
+    mut nodes: Vec<NodeCore>,
+    schedule: &str,
+    seed: u64,
+    run: u32,
+    speed: u64,
+    dead: Option<(usize, TimeUs)>,
+    net: &mut Network<'_>,
+    late: usize,
+) -> (Vec<NodeCore>, Vec<(TimeUs, Vec<RangeSample>)>) {
     let index = |id| world.platform_ids().iter().position(|&p| p == id).unwrap();
     let mut sent_ranges = Vec::new();
     let mut epoch = 0u32;
@@ -297,6 +329,47 @@ fn a_dead_node_costs_one_timeout_and_the_others_stay_in_agreement() {
         let dr_err = dr.platforms[k].final_error().pos_err_m;
         assert!(err < dr_err, "node {}: {err:.2} m, dead reckoning {dr_err:.2} m", node.id());
     }
+}
+
+/// A node whose start state is 60 m off while its covariance claims 0.1 m (a restart from a
+/// wrong position, a bad hand-over): the gate refuses every range to it, and without more it would
+/// keep the truth away for the whole run. After three epochs of that it widens its horizontal
+/// covariance by the misfit; the next ranges pass and bring it back among its teammates. The
+/// teammates, whose ranges among themselves pass, never widen theirs.
+#[test]
+fn a_node_whose_ranges_all_contradict_it_widens_and_comes_back() {
+    let world = World::new(&Scenario::from_toml_str(PAPER_TOML).unwrap()).unwrap();
+    let inputs = world.run_inputs(1, 0);
+    let clean = run_network(&world, Method::Decentralized, "1hz", 1, 0).0;
+    let nodes = start_nodes(&world, Method::Decentralized, 1, 0, Encoding::F64, &|k, s| {
+        if k == 2
+            && let NavState::Ins(ins) = s
+        {
+            ins.pos_ned_m.x += 60.0;
+        }
+    });
+    let (nodes, _) = drive_network(&world, nodes, "1hz", 1, 0, 20, None, &mut |_, _, _, _| true, 0);
+    let err = |k: usize, node: &NodeCore| {
+        (inputs.platforms[k].truth.last().unwrap().pos_ned_m - node.filter().position_ned_m()).xy().norm()
+    };
+    let st = &nodes[2].stats;
+    // Each widening follows three epochs whose ranges all contradicted it; the first may leave it
+    // on the wrong side of a teammate (two ranges, two solutions), hence a second at most.
+    assert!((1..=2).contains(&st.reinitialised), "{st:?}");
+    assert!(st.records_contradicted > 0 || st.ranges_gated > 0, "the wrong start was refused first: {st:?}");
+    // It sat out only the epochs before it widened (and one store transfer): without the rule
+    // it sits out the rest of the run.
+    assert!(st.epochs_applied >= 370, "{st:?}");
+    for (k, node) in nodes.iter().enumerate() {
+        if k < 2 {
+            assert_eq!(node.stats.reinitialised, 0, "node {} widened", node.id());
+            assert_eq!(node.stats.epochs_applied, 380, "node {}: {:?}", node.id(), node.stats);
+        }
+        let (e, e_clean) = (err(k, node), err(k, &clean[k]));
+        assert!(e < 2.0 * e_clean, "node {}: final error {e:.2} m, clean run {e_clean:.2} m", node.id());
+    }
+    // The clean run never widens: the rule does not touch a consistent team.
+    assert!(clean.iter().all(|n| n.stats.reinitialised == 0));
 }
 
 /// Messages from a platform outside the team, and IMU gaps, are counted; a gap the stream

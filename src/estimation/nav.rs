@@ -367,6 +367,12 @@ impl PlatformFilter for NavFilter {
             NavFilter::Planar(f) => f.set_track_psi(on),
         }
     }
+    fn add_noise(&mut self, q: &DMatrix<f64>) -> Result<(), EstimationError> {
+        match self {
+            NavFilter::Ins(f) => f.add_noise(q),
+            NavFilter::Planar(f) => f.add_noise(q),
+        }
+    }
 }
 
 #[cfg(test)]

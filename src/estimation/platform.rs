@@ -105,6 +105,13 @@ pub trait PlatformFilter {
     /// cross-covariances (dead reckoning, no-propagation, covariance intersection) may save the
     /// work; the default keeps it on.
     fn set_track_psi(&mut self, _on: bool) {}
+    /// Adds `q` (positive semi-definite, `dim x dim`) to the covariance, as process noise would:
+    /// `Psi` is left as it is, so the cross-covariances the team reconstructs from it stay
+    /// exact and only this platform's own uncertainty grows. On error nothing changes. Filters
+    /// that do not support it say so.
+    fn add_noise(&mut self, _q: &DMatrix<f64>) -> Result<(), EstimationError> {
+        Err(EstimationError::NotApplicable("this filter cannot add noise to its covariance"))
+    }
 
     /// The broadcast of paper Step 3.2.
     fn snapshot(&self, id: PlatformId) -> Snapshot {
@@ -131,6 +138,9 @@ impl<T: PlatformFilter + ?Sized> PlatformFilter for Box<T> {
     fn update_local(&mut self, meas: &LinearizedMeasurement) -> Result<UpdateDiagnostics, EstimationError> {
         (**self).update_local(meas)
     }
+    fn add_noise(&mut self, q: &DMatrix<f64>) -> Result<(), EstimationError> {
+        (**self).add_noise(q)
+    }
     fn apply_joint(&mut self, dx: &DVector<f64>, p: &DMatrix<f64>) -> Result<(), EstimationError> {
         (**self).apply_joint(dx, p)
     }
@@ -149,4 +159,18 @@ pub fn check_joint_writeback(n: usize, dx: &DVector<f64>, p: &DMatrix<f64>) -> R
     }
     super::kalman::check_finite(dx, "joint correction")?;
     super::kalman::check_finite(p, "joint posterior block")
+}
+
+/// Validates the argument of [`PlatformFilter::add_noise`] for a state of size `n`: square of
+/// that size, finite, symmetric positive semi-definite.
+pub fn check_noise(n: usize, q: &DMatrix<f64>) -> Result<(), EstimationError> {
+    if q.nrows() != n || q.ncols() != n {
+        return Err(EstimationError::DimensionMismatch { what: "added noise", expected: n, got: q.nrows() });
+    }
+    super::kalman::check_finite(q, "added noise")?;
+    let asymmetry = (q - q.transpose()).amax();
+    if asymmetry > 1e-12 * q.amax() || !super::kalman::is_psd(q, 1e-9) {
+        return Err(EstimationError::NotApplicable("added noise must be positive semi-definite"));
+    }
+    Ok(())
 }

@@ -14,7 +14,7 @@
 use nalgebra::{DMatrix, DVector, Matrix2, Matrix3, Matrix3x2, Vector3};
 use serde::{Deserialize, Serialize};
 
-use super::platform::{Geometry, Heading, PlatformFilter, check_joint_writeback};
+use super::platform::{Geometry, Heading, PlatformFilter, check_joint_writeback, check_noise};
 use super::{EstimationError, LinearizedMeasurement, UpdateDiagnostics, kalman};
 
 /// Wraps an angle to (-pi, pi].
@@ -156,6 +156,11 @@ impl PlatformFilter for PlanarCore {
             self.psi = Matrix3::from_column_slice(up.i_minus_kh.as_slice()) * self.psi;
         }
         Ok(up.diagnostics)
+    }
+    fn add_noise(&mut self, q: &DMatrix<f64>) -> Result<(), EstimationError> {
+        check_noise(3, q)?;
+        self.p += Matrix3::from_column_slice(q.as_slice());
+        Ok(())
     }
     fn apply_joint(&mut self, dx: &DVector<f64>, p: &DMatrix<f64>) -> Result<(), EstimationError> {
         check_joint_writeback(3, dx, p)?;

@@ -314,6 +314,9 @@ pub struct NodeStats {
     pub estimate_requests_refused: u64,
     /// Wall-clock jumps (the node was frozen) credited to the waiting epochs.
     pub freezes: u64,
+    /// Times our position covariance was widened because the gate refused every range that
+    /// involved us for [`REINIT_AFTER_EPOCHS`] epochs in a row (see [`reinit_widening`]).
+    pub reinitialised: u64,
     pub replayed_inputs: u64,
 }
 
@@ -531,6 +534,71 @@ fn choose_store(records: &[StateRecord]) -> Option<StoreChoice> {
     best
 }
 
+/// What a replay writes into the checkpoint it starts from.
+enum WriteBack<'a> {
+    Nothing,
+    /// Our block of a joint update (`Psi` restarts).
+    Joint(&'a Correction),
+    /// Noise added to our covariance (`Psi` goes on).
+    Noise(&'a nalgebra::DMatrix<f64>),
+}
+
+/// Epochs in a row whose gate refused every range involving a node before it widens its
+/// horizontal position covariance (see [`own_ranges_verdict`]).
+pub const REINIT_AFTER_EPOCHS: u32 = 3;
+
+/// What an epoch's gate did with the ranges that involve one platform.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub enum OwnRanges {
+    /// No range of the epoch involves it: no evidence either way.
+    NoneInvolveUs,
+    /// The gate let at least one of them through.
+    SomeAccepted,
+    /// The gate refused all of them; the largest misfit, `| |p_from - p_to| - range |` on the
+    /// records' positions, m.
+    AllRefused { residual_m: f64 },
+}
+
+/// Whether the gate of an epoch refused every range that involves `id` (`gated`: indices into
+/// `ranges`; `records`: the epoch's, for the positions). A platform whose every range is refused
+/// while its teammates' ranges among themselves pass is the one whose state is wrong: its
+/// covariance claims a position the ranges contradict far beyond it, and a gate that refuses them
+/// for ever keeps the truth away (issue 33, item 3). When that lasts [`REINIT_AFTER_EPOCHS`]
+/// epochs, the node widens its horizontal position covariance by the misfit
+/// ([`widen_horizontal`]), so that the next epochs' ranges pass the gate and pull it back.
+/// Every platform's verdict follows from the records alone; each node acts on its own only.
+pub fn own_ranges_verdict(id: PlatformId, records: &[StateRecord], ranges: &[RangeSample], gated: &[usize]) -> OwnRanges {
+    let position = |p: PlatformId| records.iter().find(|r| r.snapshot.id == p).map(|r| r.snapshot.geometry.position_ned_m);
+    let mut verdict = OwnRanges::NoneInvolveUs;
+    for (i, r) in ranges.iter().enumerate().filter(|(_, r)| r.from == id || r.to == id) {
+        if !gated.contains(&i) {
+            return OwnRanges::SomeAccepted;
+        }
+        let misfit = match (position(r.from), position(r.to)) {
+            (Some(a), Some(b)) => ((a - b).norm() - r.range_m).abs(),
+            _ => 0.0,
+        };
+        let largest = match verdict {
+            OwnRanges::AllRefused { residual_m } => residual_m.max(misfit),
+            _ => misfit,
+        };
+        verdict = OwnRanges::AllRefused { residual_m: largest };
+    }
+    verdict
+}
+
+/// Adds `residual_m^2` to the variances of the north and east position errors (`index`: the
+/// state's position indices). Adding a positive semi-definite term to one platform's own block
+/// leaves its cross-covariances with the team as they are and keeps the joint covariance
+/// positive semi-definite: the store stays exact, the platform only claims to know less.
+pub fn widen_horizontal(p: &mut nalgebra::DMatrix<f64>, index: &[Option<usize>; 3], residual_m: f64) {
+    for &i in index[..2].iter().flatten() {
+        if i < p.nrows() {
+            p[(i, i)] += residual_m * residual_m;
+        }
+    }
+}
+
 /// The node's state machine.
 #[derive(Debug)]
 pub struct NodeCore {
@@ -601,6 +669,8 @@ pub struct NodeCore {
     /// The epoch cadence the retry interval follows.
     cadence: Cadence,
     gate: Option<[f64; 3]>,
+    /// Epochs in a row, up to the last one applied, whose gate refused every range involving us.
+    contradicted_epochs: u32,
     last_event: Option<(u32, f64, u8, u8)>,
     pub stats: NodeStats,
 }
@@ -667,6 +737,7 @@ impl NodeCore {
             store_reassembler: Reassembler::new(16),
             cadence: Cadence::new(),
             gate,
+            contradicted_epochs: 0,
             last_event: None,
             stats: NodeStats::default(),
         })
@@ -965,15 +1036,17 @@ impl NodeCore {
     /// mark at `t`). Nothing changes when there is none or the replay fails.
     fn rebuild_from_before(&mut self, t: TimeUs) {
         let Some(pos) = self.history.iter().rposition(|(tc, _)| *tc < t) else { return };
-        let _ = self.replay_from(pos, None);
+        let _ = self.replay_from(pos, WriteBack::Nothing);
     }
 
     /// Restores checkpoint `pos`, applies `correction` to it, and replays every input after it,
     /// rebuilding the checkpoints on the way. On error nothing changes.
-    fn replay_from(&mut self, pos: usize, correction: Option<&Correction>) -> Result<(), EstimationError> {
+    fn replay_from(&mut self, pos: usize, write_back: WriteBack<'_>) -> Result<(), EstimationError> {
         let (tc, mut f) = self.history[pos].clone();
-        if let Some(c) = correction {
-            f.apply_joint(&c.dx, &c.p)?;
+        match write_back {
+            WriteBack::Nothing => {}
+            WriteBack::Joint(c) => f.apply_joint(&c.dx, &c.p)?,
+            WriteBack::Noise(q) => f.add_noise(q)?,
         }
         // What a failed replay puts back: the filter, the checkpoints it rebuilds (moved out,
         // not copied: a replay after an epoch rebuilds seconds of 200 Hz checkpoints), the
@@ -1572,8 +1645,12 @@ impl NodeCore {
     fn run_epoch(&mut self, epoch: u32, partial: bool, out: &mut Vec<NodeOutput>) {
         let Some(e) = self.epochs.get(&epoch) else { return };
         let t = e.t;
+        let ours = e.records.get(&self.cfg.id).cloned();
         let mut records = self.vetted(epoch); // sorted by platform id
         self.finish_epoch(epoch);
+        if let Some(ours) = ours.filter(|o| !records.iter().any(|r| r.snapshot.id == o.snapshot.id)) {
+            self.refused_own_record(t, ours, &records);
+        }
         if partial {
             self.stats.epochs_partial += 1;
         }
@@ -1632,9 +1709,14 @@ impl NodeCore {
                 }
             }
         }
-        if let Some((own, diag, gated)) = applied {
+        if let Some((mut own, diag, gated)) = applied {
             self.stats.ranges_gated += gated.len() as u64;
-            if self.replay_from_epoch(t, &own).is_err() {
+            if let Some(residual_m) = self.time_to_widen(own_ranges_verdict(self.cfg.id, &records, &ranges, &gated))
+                && let Some(ours) = records.iter().find(|r| r.snapshot.id == self.cfg.id)
+            {
+                widen_horizontal(&mut own.p, &ours.snapshot.geometry.position_index, residual_m);
+            }
+            if self.replay_from_epoch(t, WriteBack::Joint(&own)).is_err() {
                 // Our filter could not take its share: the store no longer matches it. Dropping
                 // the store makes the next epoch's digests differ, and the team heals.
                 self.cross.clear();
@@ -1655,6 +1737,54 @@ impl NodeCore {
         let digest = self.remember_run(epoch, participants.clone());
         if own_index.is_some() {
             self.send_status(epoch, t, participants, state, digest, out);
+        }
+    }
+
+    /// Counts an epoch's verdict on the ranges that involve us (see [`own_ranges_verdict`]);
+    /// the misfit to widen by when [`REINIT_AFTER_EPOCHS`] verdicts in a row said they all
+    /// contradict us.
+    fn time_to_widen(&mut self, verdict: OwnRanges) -> Option<f64> {
+        match verdict {
+            OwnRanges::NoneInvolveUs => None,
+            OwnRanges::SomeAccepted => {
+                self.contradicted_epochs = 0;
+                None
+            }
+            OwnRanges::AllRefused { residual_m } => {
+                self.contradicted_epochs += 1;
+                (self.contradicted_epochs >= REINIT_AFTER_EPOCHS).then(|| {
+                    self.contradicted_epochs = 0;
+                    self.stats.reinitialised += 1;
+                    residual_m
+                })
+            }
+        }
+    }
+
+    /// The vetting refused our own record of the epoch at `t` (the teammates' ranges contradict
+    /// where it says we are): we sit the epoch out. Every such epoch counts as one whose ranges
+    /// all contradict us; when it is time, our horizontal covariance is widened at `t` by the
+    /// misfit (noise added: our `Psi` goes on) and the filter replayed to the present, so that
+    /// our next record is believed and the ranges bring us back.
+    fn refused_own_record(&mut self, t: TimeUs, ours: StateRecord, accepted: &[StateRecord]) {
+        let id = self.cfg.id;
+        let mut all = accepted.to_vec();
+        all.push(ours);
+        let member = |p: PlatformId| all.iter().any(|r| r.snapshot.id == p);
+        let ranges: Vec<RangeSample> = all
+            .iter()
+            .flat_map(|r| r.ranges.iter())
+            .filter(|x| (x.from == id && member(x.to)) || (x.to == id && member(x.from)))
+            .copied()
+            .collect();
+        let every: Vec<usize> = (0..ranges.len()).collect();
+        let Some(residual_m) = self.time_to_widen(own_ranges_verdict(id, &all, &ranges, &every)) else { return };
+        let Some(ours) = all.last() else { return };
+        let n = ours.snapshot.covariance.nrows();
+        let mut q = nalgebra::DMatrix::zeros(n, n);
+        widen_horizontal(&mut q, &ours.snapshot.geometry.position_index, residual_m);
+        if self.replay_from_epoch(t, WriteBack::Noise(&q)).is_err() {
+            self.stats.epochs_failed += 1;
         }
     }
 
@@ -1871,11 +2001,11 @@ impl NodeCore {
 
     /// Restores the checkpoint at `t`, writes back the correction, and replays the inputs after
     /// `t`, rebuilding the checkpoints on the way.
-    fn replay_from_epoch(&mut self, t: TimeUs, own: &Correction) -> Result<(), EstimationError> {
+    fn replay_from_epoch(&mut self, t: TimeUs, write_back: WriteBack<'_>) -> Result<(), EstimationError> {
         let Some(pos) = self.history.iter().position(|(tc, _)| *tc == t) else {
             return Err(EstimationError::NotApplicable("no checkpoint at the epoch's time"));
         };
-        self.replay_from(pos, Some(own))
+        self.replay_from(pos, write_back)
     }
 
     /// The vehicle's stream has ended: closes the open instant and broadcasts what is due

@@ -1192,6 +1192,17 @@ impl PlatformFilter for InsFilter {
         Ok(())
     }
 
+    fn add_noise(&mut self, q: &DMatrix<f64>) -> Result<(), EstimationError> {
+        crate::estimation::platform::check_noise(ERROR_DIM, q)?;
+        self.flush()?;
+        let now = *self.p.get();
+        let spare = self.p.spare_mut();
+        *spare = now + Matrix16::from_column_slice(q.as_slice());
+        check_finite16(spare, "INS covariance after added noise")?;
+        self.p.commit();
+        Ok(())
+    }
+
     /// Off: `Psi` is no longer updated and stays at the identity.
     fn set_track_psi(&mut self, on: bool) {
         self.track_psi = on;

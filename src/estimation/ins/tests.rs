@@ -444,6 +444,34 @@ fn apply_joint_uses_reset_jacobian() {
     assert_eq!(f, snapshot);
 }
 
+/// Added noise grows the covariance by exactly `q` and leaves the state and `Psi` alone (the
+/// team's cross-covariances stay exact); a wrong-sized, non-finite, asymmetric or indefinite `q`
+/// is refused and changes nothing.
+#[test]
+fn add_noise_grows_the_covariance_and_keeps_psi() {
+    let mut rng = ChaCha8Rng::seed_from_u64(10);
+    let mut f = busy_filter(&mut rng);
+    let (p0, psi0, x0) = (f.covariance(), f.psi(), f.x);
+    let mut q = DMatrix::zeros(ERROR_DIM, ERROR_DIM);
+    q[(POS, POS)] = 3600.0;
+    q[(POS + 1, POS + 1)] = 3600.0;
+    f.add_noise(&q).unwrap();
+    assert!((f.covariance() - (&p0 + &q)).amax() < 1e-12 * 3600.0);
+    assert_eq!(f.psi(), psi0);
+    assert_eq!(f.x, x0);
+    let snapshot = f;
+    let mut asymmetric = q.clone();
+    asymmetric[(POS, POS + 1)] = 1.0;
+    let mut indefinite = q.clone();
+    indefinite[(POS, POS)] = -1.0;
+    let mut nan = q.clone();
+    nan[(POS, POS)] = f64::NAN;
+    for bad in [DMatrix::zeros(15, 15), asymmetric, indefinite, nan] {
+        assert!(f.add_noise(&bad).is_err());
+        assert_eq!(f, snapshot);
+    }
+}
+
 /// A local update folds `G (I - K H)` into `Psi` and resets the covariance with `G`.
 #[test]
 fn update_local_resets_with_g() {
