@@ -45,8 +45,10 @@ pub fn geodetic_to_ned(origin: &GeoOrigin, g: &Geodetic) -> Vector3<f64> {
     )
 }
 
+/// `lon` in [-180, 180): as it is when it is there already (adding and taking 180 back would
+/// cost a few nanometres of precision), else wrapped.
 fn wrap_lon_deg(lon: f64) -> f64 {
-    (lon + 180.0).rem_euclid(360.0) - 180.0
+    if (-180.0..180.0).contains(&lon) { lon } else { (lon + 180.0).rem_euclid(360.0) - 180.0 }
 }
 
 #[cfg(test)]

@@ -19,10 +19,14 @@ if [ ! -x "$venv/bin/python" ] || [ "$(cat "$stamp" 2>/dev/null)" != "$want" ]; 
 fi
 export COOPLOC_PYTHON="$PWD/$venv/bin/python"
 
-# The MAVProxy module (tools/mavproxy/README.md), linked into the virtualenv's MAVProxy so that
-# `module load cooploc` finds this checkout's copy.
+# The cooploc Python package (python/: PyO3, built by maturin), installed editable into the
+# virtualenv: `import cooploc`, and MAVProxy's `module load cooploc` (the MAVProxy module is
+# cooploc.mavproxy). A link that an older checkout left in MAVProxy's modules would be loaded
+# first: it goes.
+echo "==> building the cooploc Python package (maturin develop --release)"
+VIRTUAL_ENV="$PWD/$venv" "$venv/bin/maturin" develop --release --quiet -m python/Cargo.toml
 mavproxy_modules=$("$COOPLOC_PYTHON" -c 'import MAVProxy.modules, os; print(os.path.dirname(MAVProxy.modules.__file__))')
-ln -sf "$PWD/tools/mavproxy/mavproxy_cooploc.py" "$mavproxy_modules/mavproxy_cooploc.py"
+rm -f "$mavproxy_modules/mavproxy_cooploc.py"
 
 # Headless Chromium for the ground station's browser test (tests/gcs.rs), from Debian's packages.
 if ! command -v chromium > /dev/null 2>&1 && ! command -v chromium-browser > /dev/null 2>&1; then

@@ -684,7 +684,7 @@ fn a_node_keeps_its_signing_timestamp_across_restarts() {
     let _ = std::fs::remove_dir_all(&dir);
 }
 
-/// The MAVProxy module (`tools/mavproxy/mavproxy_cooploc.py`, `module load cooploc`) in the pinned
+/// The MAVProxy module (`python/cooploc/mavproxy.py`, `module load cooploc`) in the pinned
 /// MAVProxy, headless, against `cooploc sitl` and three nodes on loopback: it loads, its `cooploc
 /// status` lists the three vehicles with estimates equal field for field to the COOPLOC_ESTIMATE
 /// each node logged itself, `cooploc refresh` gets every node's acknowledgement, and MAVProxy still

@@ -21,7 +21,7 @@
 //! - a node's first report of an epoch counts, a repeat does not; its PARTIAL and FAILED
 //!   reports and its STORE_WANTED announcements count once per epoch.
 //!
-//! The MAVProxy module (`tools/mavproxy/mavproxy_cooploc.py`) applies the same rules. Memory
+//! The MAVProxy module (`python/cooploc/mavproxy.py`) applies the same rules. Memory
 //! is bounded: the last [`EPOCHS_KEPT`] epochs and [`MAX_NODES`] nodes, whatever a sender claims.
 
 use std::collections::{BTreeMap, BTreeSet};

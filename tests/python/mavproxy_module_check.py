@@ -42,7 +42,7 @@ import threading
 import time
 
 ROOT = os.path.normpath(os.path.join(os.path.dirname(os.path.abspath(__file__)), "..", ".."))
-MODULE_PATH = os.path.join(ROOT, "tools", "mavproxy", "mavproxy_cooploc.py")
+MODULE_PATH = os.path.join(ROOT, "python", "cooploc", "mavproxy.py")
 FIELDS = ("x", "y", "z", "vx", "vy", "vz", "yaw", "nis")
 
 results = []
@@ -860,17 +860,17 @@ def live_run(binary, cl, tmp, mdef, dialect):
             node_procs.append(p)
             nodes[vid] = p.wait_line(r"^node %d coop udp (\S+)" % vid, 30).group(1)
 
-        # MAVProxy: `module load cooploc` finds cooploc.py on PYTHONPATH (MAVProxy's loader tries
-        # MAVProxy.modules.mavproxy_NAME, then NAME): a link to the module under that name.
-        modpath = os.path.join(tmp, "modules")
-        os.makedirs(modpath)
-        os.symlink(MODULE_PATH, os.path.join(modpath, "cooploc.py"))
+        # MAVProxy: `module load cooploc` (its loader tries MAVProxy.modules.mavproxy_NAME, then
+        # NAME) finds the installed cooploc package, which provides init(mpstate): no copy or link
+        # of the module anywhere MAVProxy looks first.
+        import MAVProxy.modules
+        shadow = os.path.join(os.path.dirname(MAVProxy.modules.__file__), "mavproxy_cooploc.py")
+        check("no mavproxy_cooploc in MAVProxy's modules (the package is loaded)", not os.path.lexists(shadow), shadow)
         home = os.path.join(tmp, "home")
         os.makedirs(home)
         statusfile = os.path.join(tmp, "status.txt")
         tlog = os.path.join(tmp, "mav.tlog")
-        env = dict(os.environ, HOME=home, MDEF=mdef, MAVLINK20="1",
-                   PYTHONPATH=os.pathsep.join(filter(None, [modpath, os.environ.get("PYTHONPATH")])))
+        env = dict(os.environ, HOME=home, MDEF=mdef, MAVLINK20="1")
         env.pop("DISPLAY", None)
         cmd = [sys.executable, os.path.join(os.path.dirname(sys.executable), "mavproxy.py"), "--dialect", "cooploc"]
         cmd += ["--master=udpout:" + vehicles[v] for v in sorted(vehicles)]

@@ -113,12 +113,19 @@ except ImportError:  # pragma: no cover - exercised only without MAVProxy instal
     mp_settings = None
     _MPModule = object
 
+try:  # The cooploc Python package (python/ of the repository; tests/run-all.sh installs it).
+    import cooploc as _cooploc
+except ImportError as _e:  # pragma: no cover - a clear message instead of a NameError later
+    raise ImportError("the MAVProxy module needs the cooploc Python package: build and install it with "
+                      "`maturin develop --release -m python/Cargo.toml` in MAVProxy's environment "
+                      "(bash tests/run-all.sh does it for the test virtualenv): %s" % _e) from _e
+
 # ---- constants ------------------------------------------------------------------------------
 
-#: Chi-square quantile, 2 degrees of freedom, 95 %.
-CHI2_2DOF_95 = 5.991464547107979
-#: Equatorial radius of the flat-Earth conversion, m.
-EARTH_RADIUS_M = 6378137.0
+#: Chi-square quantile, 2 degrees of freedom, 95 % (the library's).
+CHI2_2DOF_95 = _cooploc.CHI2_2DOF_95
+#: Equatorial radius of the flat-Earth conversion, m (the library's).
+EARTH_RADIUS_M = _cooploc.EARTH_RADIUS_M
 #: Default NED origin (lat, lon in degrees, alt in m): the same as ``cooploc gcs``.
 DEFAULT_ORIGIN = (34.7, 0.0, 0.0)
 #: Component id of the cooploc companion nodes.
@@ -170,25 +177,9 @@ MAX_RANGE_BEARING_M = 10_000.0
 
 # ---- pure functions -------------------------------------------------------------------------
 
-def ellipse95(nn, ne, ee):
-    """The 95 % horizontal error ellipse of an N/E position covariance (m^2).
-
-    Returns ``(semi_major_m, semi_minor_m, bearing_deg)``: the semi-axes are
-    ``sqrt(CHI2_2DOF_95 * eigenvalue)``, the bearing is the major axis's direction from north
-    towards east, in (-90, 90]. None when an entry is not finite or the larger eigenvalue is
-    negative (a negative smaller one is clamped to 0, as ``cooploc gcs`` does).
-    """
-    if not all(math.isfinite(v) for v in (nn, ne, ee)):
-        return None
-    mean = 0.5 * (nn + ee)
-    radius = math.hypot(0.5 * (nn - ee), ne)
-    major, minor = mean + radius, max(mean - radius, 0.0)
-    if major < 0.0:
-        return None
-    angle = 0.5 * math.atan2(2.0 * ne, nn - ee)
-    if angle <= -math.pi / 2:
-        angle += math.pi
-    return (math.sqrt(CHI2_2DOF_95 * major), math.sqrt(CHI2_2DOF_95 * minor), math.degrees(angle))
+#: The 95 % horizontal error ellipse of an N/E covariance: ``(semi_major_m, semi_minor_m,
+#: bearing_deg)`` or None (``cooploc.ellipse95``: the library's, what every cooploc display draws).
+ellipse95 = _cooploc.ellipse95
 
 
 def ellipse_points_ne(north, east, semi_major, semi_minor, bearing_deg, segments=36):
@@ -208,12 +199,9 @@ def ellipse_points_ne(north, east, semi_major, semi_minor, bearing_deg, segments
 
 def ned_to_geo(north, east, down, origin=DEFAULT_ORIGIN):
     """Flat-Earth NED (m) about ``origin`` (lat, lon in degrees, alt in m) to (lat, lon, alt):
-    ``lat = lat0 + degrees(N / R)``, ``lon = lon0 + degrees(E / (R cos(radians(lat0))))``,
-    ``alt = alt0 - D``, R = 6378137 m."""
-    lat0, lon0, alt0 = origin
-    lat = lat0 + math.degrees(north / EARTH_RADIUS_M)
-    lon = lon0 + math.degrees(east / (EARTH_RADIUS_M * math.cos(math.radians(lat0))))
-    return (lat, lon, alt0 - down)
+    ``cooploc.ned_to_geo`` (the library's ``geodesy::ned_to_geodetic``), with this module's
+    default origin."""
+    return _cooploc.ned_to_geo(north, east, down, origin)
 
 
 def ellipse_polygon_latlon(north, east, ellipse, origin=DEFAULT_ORIGIN, segments=36):
@@ -547,47 +535,14 @@ def frame_header(msgbuf):
 # ---- error against truth (simulated vehicles) --------------------------------------------------
 
 def geo_to_ned(lat, lon, alt, origin=DEFAULT_ORIGIN):
-    """Inverse of :func:`ned_to_geo`: (lat, lon in degrees, alt in m) to flat-Earth NED (m) about
-    ``origin``: ``N = radians(lat - lat0) R``, ``E = radians(dlon) R cos(radians(lat0))``,
-    ``D = alt0 - alt``, the longitude difference ``dlon`` wrapped to [-180, 180) (the short way
-    round), R = 6378137 m (``geodetic_to_ned`` of src/protocol/wire.rs)."""
-    lat0, lon0, alt0 = origin
-    dlon = lon - lon0
-    if not -180.0 <= dlon < 180.0:  # wrapped only when needed: adding 180 costs ~3e-9 m of precision
-        dlon = (dlon + 180.0) % 360.0 - 180.0
-    return (math.radians(lat - lat0) * EARTH_RADIUS_M,
-            math.radians(dlon) * EARTH_RADIUS_M * math.cos(math.radians(lat0)),
-            alt0 - alt)
+    """Inverse of :func:`ned_to_geo`: ``cooploc.geo_to_ned`` (the library's
+    ``geodesy::geodetic_to_ned``), with this module's default origin."""
+    return _cooploc.geo_to_ned(lat, lon, alt, origin)
 
 
-def position_nees(error_ned, cov6):
-    """Position NEES ``e^T P^-1 e`` over N, E, D: ``error_ned`` = (eN, eE, eD) m, ``cov6`` the upper
-    triangle of P (NN, NE, ND, EE, ED, DD, m^2, COOPLOC_ESTIMATE.pos_covariance's order). Solved
-    by a Cholesky factorisation; None when P is not positive definite or the result is not
-    finite (``position_nees`` of src/estimation/consistency.rs)."""
-    try:
-        nn, ne, nd, ee, ed, dd = (float(c) for c in cov6)
-        e0, e1, e2 = (float(c) for c in error_ned)
-        if not nn > 0.0:
-            return None
-        l11 = math.sqrt(nn)
-        l21, l31 = ne / l11, nd / l11
-        d2 = ee - l21 * l21
-        if not d2 > 0.0:
-            return None
-        l22 = math.sqrt(d2)
-        l32 = (ed - l31 * l21) / l22
-        d3 = dd - l31 * l31 - l32 * l32
-        if not d3 > 0.0:
-            return None
-        l33 = math.sqrt(d3)
-        y1 = e0 / l11
-        y2 = (e1 - l21 * y1) / l22
-        y3 = (e2 - l31 * y1 - l32 * y2) / l33
-        v = y1 * y1 + y2 * y2 + y3 * y3
-    except (TypeError, ValueError, ZeroDivisionError, OverflowError):
-        return None
-    return v if math.isfinite(v) else None
+#: Position NEES over N, E, D from the error and the six covariance entries of the wire, or None
+#: unless P is positive definite (``cooploc.position_nees``: the library's).
+position_nees = _cooploc.position_nees
 
 
 def interpolate_truth(times, positions, t, max_gap_us=MAX_TRUTH_GAP_US):
@@ -763,7 +718,8 @@ class TruthTrack:
 
 def find_dialect_xml():
     """cooploc.xml: ``$MDEF/v1.0/cooploc.xml``, else the repository's ``dialects/cooploc.xml``
-    next to this file's ``tools/mavproxy`` (None if neither exists)."""
+    (this file is ``python/cooploc/mavproxy.py`` of the repository, installed editable by
+    ``tests/run-all.sh``; None if neither exists)."""
     candidates = []
     if os.environ.get("MDEF"):
         candidates.append(os.path.join(os.environ["MDEF"], "v1.0", "cooploc.xml"))

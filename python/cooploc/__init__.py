@@ -1,0 +1,55 @@
+"""cooploc for Python: the cooploc Rust library's functions, for ground stations, notebooks and
+researchers' scripts (issue 35).
+
+Everything here calls the library's own code (the same the node, the ground station and the logs
+use) through the native submodule ``cooploc._native``; nothing is re-implemented in Python. Bad
+input raises ``ValueError`` or ``TypeError``, never crashes the interpreter.
+
+So far (the first step of issue 35):
+
+- :func:`ellipse95`, :func:`position_nees`: the 95 % ellipse and the position NEES
+  (``estimation::consistency``);
+- :func:`geo_to_ned`, :func:`ned_to_geo`: the flat-Earth conversion every part of cooploc uses
+  (``geodesy``);
+- :func:`frames`: the MAVLink frames in a datagram or a stream's bytes (``protocol::framing``);
+- :func:`estimate_from_frame`: a COOPLOC_ESTIMATE frame, checked as the ground station checks it
+  (``protocol::wire``).
+
+The MAVProxy module is :mod:`cooploc.mavproxy`; MAVProxy's ``module load cooploc`` finds this
+package (its loader tries ``MAVProxy.modules.mavproxy_cooploc``, then ``cooploc``) and calls
+:func:`init`.
+"""
+
+from cooploc._native import (
+    CHI2_2DOF_95,
+    EARTH_RADIUS_M,
+    __version__,
+    ellipse95,
+    estimate_from_frame,
+    frames,
+    geo_to_ned,
+    ned_to_geo,
+    position_nees,
+)
+
+
+
+def init(mpstate):
+    """MAVProxy's entry point (``module load cooploc``): the module of :mod:`cooploc.mavproxy`."""
+    from cooploc import mavproxy
+
+    return mavproxy.init(mpstate)
+
+
+__all__ = [
+    "CHI2_2DOF_95",
+    "EARTH_RADIUS_M",
+    "__version__",
+    "ellipse95",
+    "estimate_from_frame",
+    "frames",
+    "geo_to_ned",
+    "init",
+    "ned_to_geo",
+    "position_nees",
+]

@@ -1,0 +1,28 @@
+"""Type stubs of cooploc._native (python/src/lib.rs)."""
+
+from typing import Optional, Sequence, Tuple
+
+__version__: str
+CHI2_2DOF_95: float
+EARTH_RADIUS_M: float
+
+Origin = Tuple[float, float, float]
+
+def ellipse95(nn: float, ne: float, ee: float) -> Optional[Tuple[float, float, float]]:
+    """(semi_major_m, semi_minor_m, bearing_deg) of the 95 % ellipse of [[nn, ne], [ne, ee]] (m^2);
+    None for a non-finite entry or a negative larger eigenvalue."""
+
+def position_nees(error_ned: Sequence[float], cov6: Sequence[float]) -> Optional[float]:
+    """e^T P^-1 e over N, E, D; cov6 = (NN, NE, ND, EE, ED, DD); None unless P is positive definite."""
+
+def geo_to_ned(lat: float, lon: float, alt: float, origin: Origin) -> Tuple[float, float, float]:
+    """(lat, lon in degrees, alt in m) to flat-Earth NED (m) about origin = (lat, lon, alt)."""
+
+def ned_to_geo(north: float, east: float, down: float, origin: Origin) -> Tuple[float, float, float]:
+    """Flat-Earth NED (m) about origin to (lat, lon, alt), the longitude wrapped to [-180, 180)."""
+
+def frames(data: bytes) -> list[Tuple[int, int, int, str]]:
+    """(sysid, compid, seq, message name) of every whole MAVLink frame with a valid CRC in data."""
+
+def estimate_from_frame(frame: bytes) -> dict:
+    """The checked COOPLOC_ESTIMATE of the first MAVLink 2 frame; ValueError names what is wrong."""

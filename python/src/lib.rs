@@ -1,0 +1,123 @@
+//! `cooploc._native`: the Rust library's functions for Python (issue 35). The pure-Python
+//! package `cooploc` (python/cooploc/) re-exports them; its type stubs are
+//! python/cooploc/_native.pyi. Every function here calls the library's own (the same code the
+//! node, the ground station and the logs use): nothing is re-implemented. Bad input raises a
+//! Python exception (`ValueError`, or `TypeError` from the argument conversion); nothing here
+//! panics on input.
+
+use cooploc::estimation::consistency;
+use cooploc::geodesy::{self, GeoOrigin, Geodetic};
+use cooploc::protocol::MavMessage;
+use cooploc::protocol::wire;
+use mavlink_core::Message as _;
+use nalgebra::{Matrix3, Vector3};
+use pyo3::exceptions::PyValueError;
+use pyo3::prelude::*;
+use pyo3::types::PyDict;
+
+/// The 95 % horizontal error ellipse of an N/E position covariance (m^2):
+/// `(semi_major_m, semi_minor_m, bearing_deg)`, the bearing of the major axis from north towards
+/// east in (-90, 90]; `None` for a non-finite entry or a negative larger eigenvalue
+/// (`estimation::consistency::ellipse95_axes`, what every display of cooploc draws).
+#[pyfunction]
+fn ellipse95(nn: f64, ne: f64, ee: f64) -> Option<(f64, f64, f64)> {
+    consistency::ellipse95_axes(nn, ne, ee).map(|(a, b, angle)| (a, b, angle.to_degrees()))
+}
+
+/// Position NEES `e^T P^-1 e` over N, E, D: `error_ned` (m), `cov6` the upper triangle of P
+/// (NN, NE, ND, EE, ED, DD, m^2: COOPLOC_ESTIMATE.pos_covariance's order). `None` unless P is
+/// positive definite and the result finite (`estimation::consistency::position_nees`).
+#[pyfunction]
+fn position_nees(error_ned: [f64; 3], cov6: [f64; 6]) -> Option<f64> {
+    let [nn, ne, nd, ee, ed, dd] = cov6;
+    let p = Matrix3::new(nn, ne, nd, ne, ee, ed, nd, ed, dd);
+    consistency::position_nees(&Vector3::from(error_ned), &p)
+}
+
+fn origin(o: [f64; 3]) -> PyResult<GeoOrigin> {
+    let [lat_deg, lon_deg, alt_m] = o;
+    if !(lat_deg.is_finite() && lon_deg.is_finite() && alt_m.is_finite()) || lat_deg.abs() >= 90.0 {
+        return Err(PyValueError::new_err(format!(
+            "origin {o:?}: (lat, lon, alt) must be finite, the latitude inside (-90, 90)"
+        )));
+    }
+    Ok(GeoOrigin { lat_deg, lon_deg, alt_m })
+}
+
+/// Latitude, longitude (degrees) and altitude (m) to the flat-Earth NED position (m) about
+/// `origin` = (lat, lon, alt) (any sequence of three numbers), the longitude difference taken the short way round
+/// (`geodesy::geodetic_to_ned`).
+#[pyfunction]
+fn geo_to_ned(lat: f64, lon: f64, alt: f64, origin: [f64; 3]) -> PyResult<(f64, f64, f64)> {
+    let p = geodesy::geodetic_to_ned(&self::origin(origin)?, &Geodetic { lat_deg: lat, lon_deg: lon, alt_m: alt });
+    Ok((p[0], p[1], p[2]))
+}
+
+/// Inverse of `geo_to_ned`: NED (m) about `origin` to (lat, lon, alt), the longitude wrapped to
+/// [-180, 180) (`geodesy::ned_to_geodetic`).
+#[pyfunction]
+fn ned_to_geo(north: f64, east: f64, down: f64, origin: [f64; 3]) -> PyResult<(f64, f64, f64)> {
+    let g = geodesy::ned_to_geodetic(&self::origin(origin)?, &Vector3::new(north, east, down));
+    Ok((g.lat_deg, g.lon_deg, g.alt_m))
+}
+
+/// Every whole MAVLink 1 or 2 frame with a valid CRC in `data` (a datagram, a stream's bytes),
+/// in order: `(sysid, compid, seq, name)`, `name` the message's name in the cooploc dialect
+/// (`"UNDECODED"` for a frame whose CRC is right but whose payload the dialect refuses). Bytes
+/// between frames are skipped, as the node's framer skips them (`protocol::framing`).
+#[pyfunction]
+fn frames(data: &[u8]) -> Vec<(u32, u8, u8, String)> {
+    cooploc::protocol::framing::frames(data)
+        .map(|f| {
+            let name = f.message.as_ref().map_or("UNDECODED", |m| m.message_name());
+            (f.header.system_id, f.header.component_id, f.header.sequence, name.to_string())
+        })
+        .collect()
+}
+
+/// The COOPLOC_ESTIMATE in the first MAVLink 2 frame of `frame`, checked as the ground station
+/// checks it (`protocol::wire::estimate_from_message`: finite fields, no negative variance, a
+/// known method) and its platform against the frame's system id, as a dict: `platform`, `t_us`,
+/// `epoch`, `method`, `position_ned_m`, `velocity_ned_m_s`, `yaw_rad`, `pos_covariance` (the six
+/// entries of the wire), `yaw_variance`, `nis`, `participants`, `ranges`. `ValueError` names what
+/// is wrong: no frame, another message, a field out of range.
+#[pyfunction]
+fn estimate_from_frame<'py>(py: Python<'py>, frame: &[u8]) -> PyResult<Bound<'py, PyDict>> {
+    let (header, msg) = wire::from_frame(frame).map_err(|e| PyValueError::new_err(e.to_string()))?;
+    let MavMessage::COOPLOC_ESTIMATE(m) = &msg else {
+        return Err(PyValueError::new_err(format!("{} is not a COOPLOC_ESTIMATE", msg.message_name())));
+    };
+    let e = wire::estimate_from_message(m).map_err(|e| PyValueError::new_err(e.to_string()))?;
+    if header.system_id != u32::from(e.platform) {
+        return Err(PyValueError::new_err(format!("COOPLOC_ESTIMATE.platform {} from system {}", e.platform, header.system_id)));
+    }
+    let c = &e.position_covariance_m2;
+    let d = PyDict::new(py);
+    d.set_item("platform", e.platform)?;
+    d.set_item("t_us", e.t.0)?;
+    d.set_item("epoch", e.epoch)?;
+    d.set_item("method", e.method.short_name())?;
+    d.set_item("position_ned_m", (e.position_ned_m[0], e.position_ned_m[1], e.position_ned_m[2]))?;
+    d.set_item("velocity_ned_m_s", (e.velocity_ned_m_s[0], e.velocity_ned_m_s[1], e.velocity_ned_m_s[2]))?;
+    d.set_item("yaw_rad", e.yaw_rad)?;
+    d.set_item("pos_covariance", [c[(0, 0)], c[(0, 1)], c[(0, 2)], c[(1, 1)], c[(1, 2)], c[(2, 2)]])?;
+    d.set_item("yaw_variance", e.yaw_variance_rad2)?;
+    d.set_item("nis", e.nis)?;
+    d.set_item("participants", e.participants)?;
+    d.set_item("ranges", e.ranges)?;
+    Ok(d)
+}
+
+#[pymodule]
+fn _native(m: &Bound<'_, PyModule>) -> PyResult<()> {
+    m.add("__version__", env!("CARGO_PKG_VERSION"))?;
+    m.add("CHI2_2DOF_95", consistency::CHI2_2DOF_95)?;
+    m.add("EARTH_RADIUS_M", geodesy::EARTH_RADIUS_M)?;
+    m.add_function(wrap_pyfunction!(ellipse95, m)?)?;
+    m.add_function(wrap_pyfunction!(position_nees, m)?)?;
+    m.add_function(wrap_pyfunction!(geo_to_ned, m)?)?;
+    m.add_function(wrap_pyfunction!(ned_to_geo, m)?)?;
+    m.add_function(wrap_pyfunction!(frames, m)?)?;
+    m.add_function(wrap_pyfunction!(estimate_from_frame, m)?)?;
+    Ok(())
+}

@@ -1,0 +1,89 @@
+"""The cooploc Python package (python/, issue 35) as a user meets it: installed in the test
+virtualenv by tests/run-all.sh, imported by name, each function against the library's result
+passed in by tests/python_package.rs, and bad input answered with a Python exception, never a
+crash. Argument: a JSON file written by the Rust test (frames as hex, expected values).
+Prints PASS/FAIL lines and exits 1 on any failure."""
+
+import json
+import math
+import os
+import sys
+
+failures = []
+
+
+def check(what, ok, detail=""):
+    print("%s %s%s" % ("PASS" if ok else "FAIL", what, "" if ok else ": %r" % (detail,)))
+    if not ok:
+        failures.append(what)
+
+
+def raises(exc, fn, *args, **kwargs):
+    try:
+        fn(*args, **kwargs)
+    except exc as e:
+        return str(e) or type(e).__name__
+    except Exception:  # the wrong exception is a failure too
+        return None
+    return None
+
+
+import cooploc  # noqa: E402  (after the helpers: an ImportError here is the first failure)
+
+spec = json.load(open(sys.argv[1]))
+
+check("version", cooploc.__version__ == spec["version"], cooploc.__version__)
+here = os.path.realpath(os.path.dirname(cooploc.__file__))
+check("the package is this checkout's python/cooploc", here == os.path.realpath(spec["package_dir"]), here)
+
+# The frames of a datagram: three frames with noise between them, as the node's framer reads it.
+data = bytes.fromhex(spec["datagram"])
+got = cooploc.frames(data)
+want = [tuple(f) for f in spec["datagram_frames"]]
+check("frames: every frame of a datagram with noise between them", got == want, (got, want))
+check("frames: nothing in garbage", cooploc.frames(b"\xfd\x00garbage" * 10) == [])
+check("frames: a datagram cut short loses its last frame only", cooploc.frames(data[:-1]) == want[:-1])
+
+# An estimate frame, checked as the ground station checks it.
+e = cooploc.estimate_from_frame(bytes.fromhex(spec["estimate_frame"]))
+x = spec["estimate"]
+check("estimate: platform, epoch, method", (e["platform"], e["epoch"], e["method"]) == (x["platform"], x["epoch"], x["method"]), e)
+check("estimate: position and covariance as the wire carries them (f32)",
+      all(abs(a - b) <= 1e-6 * max(1.0, abs(b)) for a, b in zip(e["position_ned_m"], x["position_ned_m"]))
+      and all(abs(a - b) <= 1e-6 * max(1.0, abs(b)) for a, b in zip(e["pos_covariance"], x["pos_covariance"])), e)
+for name in ("estimate_wrong_system", "estimate_nan", "estimate_negative_variance", "heartbeat_frame"):
+    msg = raises(ValueError, cooploc.estimate_from_frame, bytes.fromhex(spec[name]))
+    check("estimate: %s refused with ValueError" % name, msg is not None, msg)
+    print("     (%s)" % msg)
+damaged = bytearray(bytes.fromhex(spec["estimate_frame"]))
+damaged[12] ^= 0x40
+check("estimate: a damaged byte (CRC) refused", raises(ValueError, cooploc.estimate_from_frame, bytes(damaged)) is not None)
+check("estimate: a truncated frame refused", raises(ValueError, cooploc.estimate_from_frame, bytes(damaged[:20])) is not None)
+check("estimate: no bytes refused", raises(ValueError, cooploc.estimate_from_frame, b"") is not None)
+check("estimate: not bytes -> TypeError", raises(TypeError, cooploc.estimate_from_frame, 42) is not None)
+
+# The numbers of the library, as the Rust test computed them.
+a, b, bearing = cooploc.ellipse95(*spec["ellipse_in"])
+check("ellipse95 equals the library's", [a, b, bearing] == spec["ellipse_out"], (a, b, bearing))
+check("position_nees equals the library's", cooploc.position_nees(*spec["nees_in"]) == spec["nees_out"])
+check("geo_to_ned equals the library's", list(cooploc.geo_to_ned(*spec["geo_in"], spec["origin"])) == spec["geo_out"])
+check("ned_to_geo equals the library's", list(cooploc.ned_to_geo(*spec["ned_in"], spec["origin"])) == spec["ned_out"])
+
+# Wrong shapes and types: an exception, never a crash.
+check("position_nees: two error entries -> TypeError/ValueError",
+      raises((TypeError, ValueError), cooploc.position_nees, (1.0, 2.0), (1, 0, 0, 1, 0, 1)) is not None)
+check("position_nees: five covariance entries -> TypeError/ValueError",
+      raises((TypeError, ValueError), cooploc.position_nees, (1.0, 2.0, 0.0), (1, 0, 0, 1, 0)) is not None)
+check("position_nees: not positive definite -> None", cooploc.position_nees((1, 0, 0), (1, 2, 0, 1, 0, 1)) is None)
+check("ellipse95: a string -> TypeError", raises(TypeError, cooploc.ellipse95, "1", 0.0, 1.0) is not None)
+check("ellipse95: NaN -> None", cooploc.ellipse95(float("nan"), 0.0, 1.0) is None)
+check("geo_to_ned: an origin at the pole -> ValueError",
+      raises(ValueError, cooploc.geo_to_ned, 0.0, 0.0, 0.0, (90.0, 0.0, 0.0)) is not None)
+check("geo_to_ned: an origin of two numbers -> TypeError/ValueError",
+      raises((TypeError, ValueError), cooploc.geo_to_ned, 0.0, 0.0, 0.0, (34.7, 0.0)) is not None)
+check("geo_to_ned: NaN origin -> ValueError",
+      raises(ValueError, cooploc.geo_to_ned, 0.0, 0.0, 0.0, (math.nan, 0.0, 0.0)) is not None)
+check("MAVProxy's entry point is the package's", callable(getattr(cooploc, "init", None)))
+
+print("bindings_check: %d failed%s" % (len(failures), (": " + "; ".join(failures)) if failures else ""))
+sys.exit(1 if failures else 0)

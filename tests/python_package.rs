@@ -1,0 +1,118 @@
+//! The cooploc Python package (python/, issue 35), installed into the test virtualenv by
+//! tests/run-all.sh: tests/python/bindings_check.py imports it by name and checks each function
+//! against what the library computes here, and that bad input (a garbage or damaged frame, wrong
+//! shapes and types) raises a Python exception instead of crashing. Under CI=true a missing
+//! virtualenv or package fails the test.
+
+mod common;
+
+use std::process::Command;
+
+use cooploc::estimation::Method;
+use cooploc::estimation::consistency;
+use cooploc::geodesy::{self, GeoOrigin, Geodetic};
+use cooploc::protocol::dialect::cooploc::{MavAutopilot, MavType};
+use cooploc::protocol::wire::{self, EstimateReport};
+use cooploc::time::TimeUs;
+use mavlink_core::MavHeader;
+use nalgebra::{Matrix3, Vector3};
+use serde_json::json;
+
+fn header(system_id: u32, sequence: u8) -> MavHeader {
+    MavHeader { system_id, component_id: 191, sequence }
+}
+
+fn hex(bytes: &[u8]) -> String {
+    bytes.iter().map(|b| format!("{b:02x}")).collect()
+}
+
+fn estimate(platform: cooploc::estimation::PlatformId) -> EstimateReport {
+    EstimateReport {
+        platform,
+        t: TimeUs(12_345_678),
+        epoch: 17,
+        method: Method::Decentralized,
+        position_ned_m: Vector3::new(101.25, -42.5, 0.75),
+        velocity_ned_m_s: Vector3::new(9.5, 3.25, 0.0),
+        yaw_rad: 0.5,
+        position_covariance_m2: Matrix3::new(4.0, 0.5, 0.0, 0.5, 2.25, 0.0, 0.0, 0.0, 1.0),
+        yaw_variance_rad2: 1e-4,
+        nis: 1.5,
+        participants: 3,
+        ranges: 6,
+    }
+}
+
+fn frame(system_id: u32, sequence: u8, e: &EstimateReport) -> Vec<u8> {
+    wire::to_frame(header(system_id, sequence), &wire::estimate_to_message(e))
+}
+
+#[test]
+fn the_python_package_gives_the_library_s_results_and_refuses_bad_input() {
+    let Some(python) = common::python("the cooploc Python package") else { return };
+    let est = estimate(2);
+    let heartbeat =
+        wire::to_frame(header(2, 1), &wire::heartbeat(MavType::MAV_TYPE_ONBOARD_CONTROLLER, MavAutopilot::MAV_AUTOPILOT_INVALID));
+    let mut datagram = b"\x00noise".to_vec();
+    datagram.extend(frame(2, 0, &est));
+    datagram.extend(b"\xfd\x09more noise");
+    datagram.extend(&heartbeat);
+    datagram.extend(frame(3, 7, &estimate(3)));
+    let mut nan = estimate(2);
+    nan.position_ned_m[0] = f64::NAN;
+    let mut negative = estimate(2);
+    negative.position_covariance_m2[(0, 0)] = -1.0;
+
+    let (a, b, angle) = consistency::ellipse95_axes(4.0, 0.5, 2.25).unwrap();
+    let nees_in = ([1.0, -2.0, 0.5], [4.0, 1.0, 0.5, 3.0, -0.25, 2.0]);
+    let [nn, ne, nd, ee, ed, dd] = nees_in.1;
+    let nees = consistency::position_nees(&Vector3::from(nees_in.0), &Matrix3::new(nn, ne, nd, ne, ee, ed, nd, ed, dd)).unwrap();
+    let origin = GeoOrigin { lat_deg: 34.7, lon_deg: 179.99, alt_m: 12.0 };
+    let geo = Geodetic { lat_deg: 34.701, lon_deg: -179.995, alt_m: 15.5 };
+    let ned = geodesy::geodetic_to_ned(&origin, &geo);
+    let back = geodesy::ned_to_geodetic(&origin, &Vector3::new(1234.5, -987.25, -3.5));
+    let c = &est.position_covariance_m2;
+    let spec = json!({
+        "version": env!("CARGO_PKG_VERSION"),
+        "package_dir": concat!(env!("CARGO_MANIFEST_DIR"), "/python/cooploc"),
+        "datagram": hex(&datagram),
+        "datagram_frames": [[2, 191, 0, "COOPLOC_ESTIMATE"], [2, 191, 1, "HEARTBEAT"], [3, 191, 7, "COOPLOC_ESTIMATE"]],
+        "estimate_frame": hex(&frame(2, 0, &est)),
+        "estimate": {
+            "platform": 2, "epoch": 17, "method": Method::Decentralized.short_name(),
+            "position_ned_m": [est.position_ned_m[0], est.position_ned_m[1], est.position_ned_m[2]],
+            "pos_covariance": [c[(0, 0)], c[(0, 1)], c[(0, 2)], c[(1, 1)], c[(1, 2)], c[(2, 2)]],
+        },
+        "estimate_wrong_system": hex(&frame(3, 0, &est)),
+        "estimate_nan": hex(&frame(2, 0, &nan)),
+        "estimate_negative_variance": hex(&frame(2, 0, &negative)),
+        "heartbeat_frame": hex(&heartbeat),
+        "ellipse_in": [4.0, 0.5, 2.25],
+        "ellipse_out": [a, b, angle.to_degrees()],
+        "nees_in": [nees_in.0, nees_in.1],
+        "nees_out": nees,
+        "origin": [origin.lat_deg, origin.lon_deg, origin.alt_m],
+        "geo_in": [geo.lat_deg, geo.lon_deg, geo.alt_m],
+        "geo_out": [ned[0], ned[1], ned[2]],
+        "ned_in": [1234.5, -987.25, -3.5],
+        "ned_out": [back.lat_deg, back.lon_deg, back.alt_m],
+    });
+    let dir = tempfile_dir();
+    let path = dir.join("spec.json");
+    std::fs::write(&path, serde_json::to_vec(&spec).unwrap()).unwrap();
+    let out = Command::new(&python)
+        .arg(concat!(env!("CARGO_MANIFEST_DIR"), "/tests/python/bindings_check.py"))
+        .arg(&path)
+        .output()
+        .expect("running tests/python/bindings_check.py");
+    let text = format!("{}{}", String::from_utf8_lossy(&out.stdout), String::from_utf8_lossy(&out.stderr));
+    println!("{text}");
+    assert!(out.status.success(), "bindings_check.py failed (is the package installed? bash tests/run-all.sh):\n{text}");
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+fn tempfile_dir() -> std::path::PathBuf {
+    let dir = std::env::temp_dir().join(format!("cooploc-python-package-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    dir
+}
