@@ -314,8 +314,9 @@ pub struct NodeStats {
     pub estimate_requests_refused: u64,
     /// Wall-clock jumps (the node was frozen) credited to the waiting epochs.
     pub freezes: u64,
-    /// Times our position covariance was widened because the gate refused every range that
-    /// involved us for [`REINIT_AFTER_EPOCHS`] epochs in a row (see [`reinit_widening`]).
+    /// Times our horizontal position covariance was widened because, for [`REINIT_AFTER_EPOCHS`]
+    /// epochs in a row, the vetting refused our record or the gate refused every range that
+    /// involved us (see [`own_ranges_verdict`]).
     pub reinitialised: u64,
     pub replayed_inputs: u64,
 }
@@ -543,8 +544,9 @@ enum WriteBack<'a> {
     Noise(&'a nalgebra::DMatrix<f64>),
 }
 
-/// Epochs in a row whose gate refused every range involving a node before it widens its
-/// horizontal position covariance (see [`own_ranges_verdict`]).
+/// Epochs in a row whose ranges all contradict a node (its record refused by the vetting, or
+/// every range involving it refused by the gate) before it widens its horizontal position
+/// covariance (see [`own_ranges_verdict`]).
 pub const REINIT_AFTER_EPOCHS: u32 = 3;
 
 /// What an epoch's gate did with the ranges that involve one platform.
@@ -669,7 +671,8 @@ pub struct NodeCore {
     /// The epoch cadence the retry interval follows.
     cadence: Cadence,
     gate: Option<[f64; 3]>,
-    /// Epochs in a row, up to the last one applied, whose gate refused every range involving us.
+    /// Epochs in a row whose ranges all contradicted us: our record refused by the vetting, or
+    /// every range involving us refused by the gate.
     contradicted_epochs: u32,
     last_event: Option<(u32, f64, u8, u8)>,
     pub stats: NodeStats,
@@ -1039,8 +1042,9 @@ impl NodeCore {
         let _ = self.replay_from(pos, WriteBack::Nothing);
     }
 
-    /// Restores checkpoint `pos`, applies `correction` to it, and replays every input after it,
-    /// rebuilding the checkpoints on the way. On error nothing changes.
+    /// Restores checkpoint `pos`, writes `write_back` into it (a joint update's correction, or
+    /// noise), and replays every input after it, rebuilding the checkpoints on the way. On error
+    /// nothing changes.
     fn replay_from(&mut self, pos: usize, write_back: WriteBack<'_>) -> Result<(), EstimationError> {
         let (tc, mut f) = self.history[pos].clone();
         match write_back {
