@@ -71,8 +71,30 @@ fn the_python_package_gives_the_library_s_results_and_refuses_bad_input() {
     let geo = Geodetic { lat_deg: 34.701, lon_deg: -179.995, alt_m: 15.5 };
     let ned = geodesy::geodetic_to_ned(&origin, &geo);
     let back = geodesy::ned_to_geodetic(&origin, &Vector3::new(1234.5, -987.25, -3.5));
+    let epoch = |announcer, participants: Vec<u16>| {
+        let a = wire::EpochAnnouncement {
+            epoch: 9,
+            t: TimeUs(9_000_000),
+            announcer,
+            participants,
+            state: wire::EpochState::COOPLOC_EPOCH_STATE_APPLIED,
+            digest: 77,
+        };
+        hex(&wire::to_frame(header(2, 3), &wire::epoch_to_message(&a).unwrap()))
+    };
+    let range = |from, range_m| {
+        let r = cooploc::estimation::RangeSample { t: TimeUs(9_000_000), from, to: 1, range_m, sigma_m: 0.1 };
+        hex(&wire::to_frame(header(2, 4), &wire::range_to_message(&r, 9)))
+    };
     let c = &est.position_covariance_m2;
     let spec = json!({
+        "palette": cooploc::view::PALETTE.map(|[r, g, b]| format!("{r:02x}{g:02x}{b:02x}")),
+        "epoch_frame": epoch(2, vec![1, 2, 3]),
+        "epoch_twice": epoch(2, vec![1, 2, 2]),
+        "epoch_other_announcer": epoch(3, vec![1, 2, 3]),
+        "range_frame": range(2, 25.0),
+        "range_negative": range(2, -1.0),
+        "range_other_system": range(3, 25.0),
         "version": env!("CARGO_PKG_VERSION"),
         "package_dir": concat!(env!("CARGO_MANIFEST_DIR"), "/python/cooploc"),
         "datagram": hex(&datagram),

@@ -13,7 +13,9 @@ So far (the first step of issue 35):
   (``geodesy``);
 - :func:`frames`: the MAVLink frames in a datagram or a stream's bytes (``protocol::framing``);
 - :func:`estimate_from_frame`: a COOPLOC_ESTIMATE frame, checked as the ground station checks it
-  (``protocol::wire``).
+  (``protocol::wire``); :func:`check_frame`: any cooploc message's frame, checked as the node and
+  the ground station check it;
+- :data:`PALETTE`: the colour of each platform on every cooploc display (``view::PALETTE``).
 
 The MAVProxy module is :mod:`cooploc.mavproxy`; MAVProxy's ``module load cooploc`` finds this
 package (its loader tries ``MAVProxy.modules.mavproxy_cooploc``, then ``cooploc``) and calls
@@ -23,7 +25,9 @@ package (its loader tries ``MAVProxy.modules.mavproxy_cooploc``, then ``cooploc`
 from cooploc._native import (
     CHI2_2DOF_95,
     EARTH_RADIUS_M,
+    PALETTE,
     __version__,
+    check_frame,
     ellipse95,
     estimate_from_frame,
     frames,
@@ -44,7 +48,9 @@ def init(mpstate):
 __all__ = [
     "CHI2_2DOF_95",
     "EARTH_RADIUS_M",
+    "PALETTE",
     "__version__",
+    "check_frame",
     "ellipse95",
     "estimate_from_frame",
     "frames",

@@ -5,6 +5,7 @@ from typing import Optional, Sequence, Tuple
 __version__: str
 CHI2_2DOF_95: float
 EARTH_RADIUS_M: float
+PALETTE: list[str]
 
 Origin = Tuple[float, float, float]
 
@@ -23,6 +24,10 @@ def ned_to_geo(north: float, east: float, down: float, origin: Origin) -> Tuple[
 
 def frames(data: bytes) -> list[Tuple[int, int, int, str]]:
     """(sysid, compid, seq, message name) of every whole MAVLink frame with a valid CRC in data."""
+
+def check_frame(frame: bytes) -> Tuple[str, Optional[list[int]]]:
+    """(name, COOPLOC_EPOCH participants or None) of the first MAVLink 2 frame, checked as the node
+    checks it and against its system id; ValueError names what is wrong."""
 
 def estimate_from_frame(frame: bytes) -> dict:
     """The checked COOPLOC_ESTIMATE of the first MAVLink 2 frame; ValueError names what is wrong."""

@@ -144,9 +144,9 @@ RATE_WINDOW_S = 10.0
 #: Bounds of the tables.
 MAX_EPOCHS = 256
 MAX_VEHICLES = 64
-#: Colours of the platforms (index (id - 1) mod 10), shared by every cooploc display.
-PALETTE = ["1f77b4", "ff7f0e", "2ca02c", "d62728", "9467bd",
-           "8c564b", "e377c2", "7f7f7f", "bcbd22", "17becf"]
+#: Colours of the platforms (index (id - 1) mod 10), shared by every cooploc display: the
+#: library's ``view::PALETTE``.
+PALETTE = list(_cooploc.PALETTE)
 
 MSG_STATE_FRAGMENT = 61000
 MSG_RANGE = 61001
@@ -170,9 +170,6 @@ METHODS = {
 #: COOPLOC_EPOCH_STATE.
 EPOCH_COLLECTING, EPOCH_APPLIED, EPOCH_PARTIAL, EPOCH_FAILED, EPOCH_STORE_WANTED = range(5)
 REPORT_STATES = (EPOCH_APPLIED, EPOCH_PARTIAL, EPOCH_FAILED)
-MAX_PARTICIPANTS = 64
-FRAGMENT_DATA = 232
-MAX_RANGE_BEARING_M = 10_000.0
 
 
 # ---- pure functions -------------------------------------------------------------------------
@@ -458,69 +455,15 @@ def _finite(msg, name, value):
     return value
 
 
-def check_estimate(m, sysid):
-    """Checks a decoded COOPLOC_ESTIMATE from system ``sysid``; raises :class:`Rejected`."""
-    name = "COOPLOC_ESTIMATE"
-    for f in ("x", "y", "z", "vx", "vy", "vz", "yaw", "yaw_variance"):
-        _finite(name, f, getattr(m, f))
-    cov = list(m.pos_covariance)
-    if len(cov) != 6:
-        raise Rejected("%s.pos_covariance has %d entries" % (name, len(cov)))
-    for v in cov:
-        _finite(name, "pos_covariance", v)
-    if cov[0] < 0.0 or cov[3] < 0.0 or cov[5] < 0.0:
-        raise Rejected("%s.pos_covariance: negative variance" % name)
-    if m.yaw_variance < 0.0:
-        raise Rejected("%s.yaw_variance: negative" % name)
-    if m.method not in METHODS:
-        raise Rejected("%s.method %r unknown" % (name, m.method))
-    if m.platform != sysid:
-        raise Rejected("%s.platform %d from system %d" % (name, m.platform, sysid))
-
-
-def check_epoch(m, sysid):
-    """Checks a COOPLOC_EPOCH; returns its participants (the first ``count``)."""
-    if m.announcer != sysid:
-        raise Rejected("COOPLOC_EPOCH of platform %d sent by system %d" % (m.announcer, sysid))
-    n = m.count
-    if n > MAX_PARTICIPANTS:
-        raise Rejected("COOPLOC_EPOCH.count %d > %d" % (n, MAX_PARTICIPANTS))
-    participants = list(m.participants)[:n]
-    if len(set(participants)) != len(participants):
-        raise Rejected("COOPLOC_EPOCH.participants: a platform listed twice")
-    return participants
-
-
-def check_range(m, sysid):
-    name = "COOPLOC_RANGE"
-    if _finite(name, "distance", m.distance) < 0.0:
-        raise Rejected("%s.distance negative" % name)
-    if not _finite(name, "sigma", m.sigma) > 0.0:
-        raise Rejected("%s.sigma not positive" % name)
-    if m.from_platform == m.to_platform:
-        raise Rejected("%s.to_platform equals from_platform" % name)
-    if m.from_platform != sysid:
-        raise Rejected("%s from platform %d sent by system %d" % (name, m.from_platform, sysid))
-
-
-def check_range_bearing(m, sysid):
-    name = "COOPLOC_RANGE_BEARING"
-    r = _finite(name, "range", m.range)
-    if not 0.0 < r <= MAX_RANGE_BEARING_M:
-        raise Rejected("%s.range %r m out of (0, %g]" % (name, r, MAX_RANGE_BEARING_M))
-    if abs(_finite(name, "bearing", m.bearing)) > 2.0 * math.pi:
-        raise Rejected("%s.bearing more than one turn" % name)
-    if m.target_kind not in (0, 1) or (m.target_kind == 0 and m.target == m.observer):
-        raise Rejected("%s: bad target" % name)
-    if m.observer != sysid:
-        raise Rejected("%s of observer %d sent by system %d" % (name, m.observer, sysid))
-
-
-def check_fragment(m, sysid, name):
-    if not 1 <= m.data_len <= FRAGMENT_DATA:
-        raise Rejected("%s.data_len %d outside 1..%d" % (name, m.data_len, FRAGMENT_DATA))
-    if m.platform != sysid:
-        raise Rejected("%s of platform %d sent by system %d" % (name, m.platform, sysid))
+def check_message(m):
+    """Checks a cooploc message as the node and ``cooploc gcs`` check it, on its frame's bytes
+    (``cooploc.check_frame``: the library's ``protocol::wire`` checks, and that the platform it
+    speaks for is the sending system); raises :class:`Rejected` naming what is wrong. Returns the
+    participants of a COOPLOC_EPOCH (None for the other messages)."""
+    try:
+        return _cooploc.check_frame(bytes(m.get_msgbuf()))[1]
+    except ValueError as e:
+        raise Rejected(str(e)) from None
 
 
 def frame_header(msgbuf):
@@ -1003,31 +946,31 @@ class CooplocModule(_MPModule):
         now = time.monotonic()
         try:
             if mtype == "COOPLOC_ESTIMATE":
-                check_estimate(m, sysid)
+                check_message(m)
                 v = self._vehicle(sysid, now)
                 if v is not None:
                     self._estimate(v, m, now)
             elif mtype == "COOPLOC_EPOCH":
-                participants = check_epoch(m, sysid)
+                participants = check_message(m)
                 if self._vehicle(sysid, now) is not None:
                     self.epochs.add(m.epoch, m.announcer, m.state, m.digest, participants)
             elif mtype == "COOPLOC_RANGE":
-                check_range(m, sysid)
+                check_message(m)
                 v = self._vehicle(sysid, now)
                 if v is not None:
                     v.ranges += 1
             elif mtype == "COOPLOC_STATE_FRAGMENT":
-                check_fragment(m, sysid, mtype)
+                check_message(m)
                 v = self._vehicle(sysid, now)
                 if v is not None:
                     v.state_fragments += 1
             elif mtype == "COOPLOC_STORE_FRAGMENT":
-                check_fragment(m, sysid, mtype)
+                check_message(m)
                 v = self._vehicle(sysid, now)
                 if v is not None:
                     v.store_fragments += 1
             elif mtype == "COOPLOC_RANGE_BEARING":
-                check_range_bearing(m, sysid)
+                check_message(m)
                 v = self._vehicle(sysid, now)
                 if v is not None:
                     v.range_bearings += 1

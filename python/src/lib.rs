@@ -83,11 +83,11 @@ fn frames(data: &[u8]) -> Vec<(u32, u8, u8, String)> {
 /// is wrong: no frame, another message, a field out of range.
 #[pyfunction]
 fn estimate_from_frame<'py>(py: Python<'py>, frame: &[u8]) -> PyResult<Bound<'py, PyDict>> {
-    let (header, msg) = wire::from_frame(frame).map_err(|e| PyValueError::new_err(e.to_string()))?;
+    let (header, msg) = wire::from_frame(frame).map_err(refused)?;
     let MavMessage::COOPLOC_ESTIMATE(m) = &msg else {
         return Err(PyValueError::new_err(format!("{} is not a COOPLOC_ESTIMATE", msg.message_name())));
     };
-    let e = wire::estimate_from_message(m).map_err(|e| PyValueError::new_err(e.to_string()))?;
+    let e = wire::estimate_from_message(m).map_err(refused)?;
     if header.system_id != u32::from(e.platform) {
         return Err(PyValueError::new_err(format!("COOPLOC_ESTIMATE.platform {} from system {}", e.platform, header.system_id)));
     }
@@ -108,6 +108,60 @@ fn estimate_from_frame<'py>(py: Python<'py>, frame: &[u8]) -> PyResult<Bound<'py
     Ok(d)
 }
 
+fn refused(e: impl std::fmt::Display) -> PyErr {
+    PyValueError::new_err(e.to_string())
+}
+
+/// Checks the cooploc message in the first MAVLink 2 frame of `frame` as the node and the ground
+/// station check it (`protocol::wire`'s `*_from_message`: finite values, ranges of values, no
+/// platform listed twice, ...), and that the platform it speaks for is the frame's system id
+/// (an estimate's `platform`, an epoch's `announcer`, a range's `from_platform`, a fragment's
+/// `platform`, a range-and-bearing's `observer`). Returns `(name, participants)`: the message's
+/// name and, for COOPLOC_EPOCH, its participants (`None` otherwise). Messages outside the cooploc
+/// set are not checked. `ValueError` names what is wrong (no frame, a bad CRC, a payload the
+/// dialect refuses, a field out of range, another system's platform).
+#[pyfunction]
+fn check_frame(frame: &[u8]) -> PyResult<(String, Option<Vec<u16>>)> {
+    let (header, msg) = wire::from_frame(frame).map_err(refused)?;
+    let name = msg.message_name().to_string();
+    let speaks_for = |platform: u16| -> PyResult<()> {
+        if header.system_id == u32::from(platform) {
+            Ok(())
+        } else {
+            Err(PyValueError::new_err(format!("{name} of platform {platform} sent by system {}", header.system_id)))
+        }
+    };
+    let participants = match &msg {
+        MavMessage::COOPLOC_ESTIMATE(m) => {
+            speaks_for(wire::estimate_from_message(m).map_err(refused)?.platform)?;
+            None
+        }
+        MavMessage::COOPLOC_EPOCH(m) => {
+            let a = wire::epoch_from_message(m).map_err(refused)?;
+            speaks_for(a.announcer)?;
+            Some(a.participants)
+        }
+        MavMessage::COOPLOC_RANGE(m) => {
+            speaks_for(wire::range_from_message(m).map_err(refused)?.1.from)?;
+            None
+        }
+        MavMessage::COOPLOC_STATE_FRAGMENT(m) => {
+            speaks_for(wire::fragment_from_message(m).map_err(refused)?.platform)?;
+            None
+        }
+        MavMessage::COOPLOC_STORE_FRAGMENT(m) => {
+            speaks_for(wire::store_fragment_from_message(m).map_err(refused)?.platform)?;
+            None
+        }
+        MavMessage::COOPLOC_RANGE_BEARING(m) => {
+            speaks_for(wire::range_bearing_from_message(m).map_err(refused)?.observer)?;
+            None
+        }
+        _ => None,
+    };
+    Ok((name, participants))
+}
+
 #[pymodule]
 fn _native(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add("__version__", env!("CARGO_PKG_VERSION"))?;
@@ -119,5 +173,7 @@ fn _native(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_function(wrap_pyfunction!(ned_to_geo, m)?)?;
     m.add_function(wrap_pyfunction!(frames, m)?)?;
     m.add_function(wrap_pyfunction!(estimate_from_frame, m)?)?;
+    m.add_function(wrap_pyfunction!(check_frame, m)?)?;
+    m.add("PALETTE", cooploc::view::PALETTE.map(|[r, g, b]| format!("{r:02x}{g:02x}{b:02x}")))?;
     Ok(())
 }

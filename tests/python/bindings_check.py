@@ -62,6 +62,18 @@ check("estimate: a truncated frame refused", raises(ValueError, cooploc.estimate
 check("estimate: no bytes refused", raises(ValueError, cooploc.estimate_from_frame, b"") is not None)
 check("estimate: not bytes -> TypeError", raises(TypeError, cooploc.estimate_from_frame, 42) is not None)
 
+# Any cooploc message, checked as the node checks it.
+check("check_frame: an epoch and its participants",
+      cooploc.check_frame(bytes.fromhex(spec["epoch_frame"])) == ("COOPLOC_EPOCH", [1, 2, 3]))
+check("check_frame: a range", cooploc.check_frame(bytes.fromhex(spec["range_frame"])) == ("COOPLOC_RANGE", None))
+check("check_frame: a heartbeat is not checked", cooploc.check_frame(bytes.fromhex(spec["heartbeat_frame"])) == ("HEARTBEAT", None))
+for name in ("epoch_twice", "epoch_other_announcer", "range_negative", "range_other_system", "estimate_nan"):
+    msg = raises(ValueError, cooploc.check_frame, bytes.fromhex(spec[name]))
+    check("check_frame: %s refused with ValueError" % name, msg is not None, msg)
+    print("     (%s)" % msg)
+check("check_frame: garbage refused", raises(ValueError, cooploc.check_frame, b"\xfd" + bytes(40)) is not None)
+check("PALETTE is the library's", list(cooploc.PALETTE) == spec["palette"], cooploc.PALETTE)
+
 # The numbers of the library, as the Rust test computed them.
 a, b, bearing = cooploc.ellipse95(*spec["ellipse_in"])
 check("ellipse95 equals the library's", [a, b, bearing] == spec["ellipse_out"], (a, b, bearing))
