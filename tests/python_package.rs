@@ -120,6 +120,28 @@ fn the_python_package_gives_the_library_s_results_and_refuses_bad_input() {
         "ned_out": [back.lat_deg, back.lon_deg, back.alt_m],
     });
     let dir = tempfile_dir();
+    // A committed log, and its first 40 % (a writer killed mid-run), as the library reads them.
+    let log_path = concat!(env!("CARGO_MANIFEST_DIR"), "/logs/demo-dcl-30s.mcap");
+    let bytes = std::fs::read(log_path).unwrap();
+    let cut_path = dir.join("cut.mcap");
+    std::fs::write(&cut_path, &bytes[..bytes.len() * 2 / 5]).unwrap();
+    let summary = |path: &std::path::Path| {
+        let log = cooploc::recording::read_log(path).unwrap();
+        let internals: Vec<serde_json::Value> = log.topic("/vehicle_1/internals").map(|m| m.json().unwrap()).collect();
+        json!({
+            "path": path,
+            "messages": log.messages.len(),
+            "complete": log.is_complete(),
+            "coop_1_rx": log.topic("/coop/1/rx").count(),
+            "internals_epochs": internals.iter().map(|v| v["epoch"].clone()).collect::<Vec<_>>(),
+            "metadata": log.metadata.iter().map(|m| m.name.clone()).collect::<Vec<_>>(),
+        })
+    };
+    let mut spec = spec;
+    spec["log"] = summary(std::path::Path::new(log_path));
+    spec["cut_log"] = summary(&cut_path);
+    spec["not_a_log"] = json!(concat!(env!("CARGO_MANIFEST_DIR"), "/README.md"));
+    spec["no_file"] = json!(dir.join("absent.mcap"));
     let path = dir.join("spec.json");
     std::fs::write(&path, serde_json::to_vec(&spec).unwrap()).unwrap();
     let out = Command::new(&python)

@@ -15,6 +15,8 @@ So far (the first step of issue 35):
 - :func:`estimate_from_frame`: a COOPLOC_ESTIMATE frame, checked as the ground station checks it
   (``protocol::wire``); :func:`check_frame`: any cooploc message's frame, checked as the node and
   the ground station check it;
+- :func:`read_log`: a cooploc MCAP log (metadata, topics, messages; a cut or damaged log is read
+  up to the damage), as ``cooploc replay`` reads it (``recording::read_log``);
 - :data:`PALETTE`: the colour of each platform on every cooploc display (``view::PALETTE``).
 
 The MAVProxy module is :mod:`cooploc.mavproxy`; MAVProxy's ``module load cooploc`` finds this
@@ -34,6 +36,7 @@ from cooploc._native import (
     geo_to_ned,
     ned_to_geo,
     position_nees,
+    read_log,
 )
 
 
@@ -58,4 +61,5 @@ __all__ = [
     "init",
     "ned_to_geo",
     "position_nees",
+    "read_log",
 ]

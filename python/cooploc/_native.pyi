@@ -29,5 +29,10 @@ def check_frame(frame: bytes) -> Tuple[str, Optional[list[int]]]:
     """(name, COOPLOC_EPOCH participants or None) of the first MAVLink 2 frame, checked as the node
     checks it and against its system id; ValueError names what is wrong."""
 
+def read_log(path: str, topics: Optional[Sequence[str]] = None) -> dict:
+    """A cooploc MCAP log: end ("complete", "truncated", "corrupt: ..."), metadata, topics
+    {topic: (encoding, schema, count)}, messages [(topic, log_time_ns, data)] of the given topics.
+    OSError when it cannot be read, ValueError when it is not MCAP."""
+
 def estimate_from_frame(frame: bytes) -> dict:
     """The checked COOPLOC_ESTIMATE of the first MAVLink 2 frame; ValueError names what is wrong."""

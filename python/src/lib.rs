@@ -162,6 +162,60 @@ fn check_frame(frame: &[u8]) -> PyResult<(String, Option<Vec<u16>>)> {
     Ok((name, participants))
 }
 
+/// Reads a cooploc MCAP log (logs/README.md: its topics and encodings) as a dict:
+/// - `end`: `"complete"`, `"truncated"` (its writer was killed: everything up to the last complete
+///   chunk is there) or `"corrupt: REASON"` (everything before the damage is there);
+/// - `metadata`: `{name: {key: value}}` (the node's configuration, the scenario, ...);
+/// - `topics`: `{topic: (message_encoding, schema_name or None, messages in the log)}`;
+/// - `messages`: `[(topic, log_time_ns, data)]` in file order, only of the topics named in
+///   `topics` when given (all otherwise). `data` is the message's bytes: a MAVLink frame (see
+///   `frames`, `check_frame`), JSON (`json.loads`) or protobuf, as `topics` says.
+///
+/// `OSError` when the file cannot be opened or read, `ValueError` when it is not an MCAP file
+/// (`recording::read_log`, what `cooploc replay` reads).
+#[pyfunction]
+#[pyo3(signature = (path, topics = None))]
+fn read_log<'py>(py: Python<'py>, path: std::path::PathBuf, topics: Option<Vec<String>>) -> PyResult<Bound<'py, PyDict>> {
+    use cooploc::recording::{LogEnd, ReadError};
+    let log = cooploc::recording::read_log(&path).map_err(|e| match e {
+        ReadError::Open { .. } | ReadError::Io { .. } => pyo3::exceptions::PyOSError::new_err(e.to_string()),
+        _ => PyValueError::new_err(format!("{}: {e}", path.display())),
+    })?;
+    let d = PyDict::new(py);
+    d.set_item(
+        "end",
+        match &log.end {
+            LogEnd::Complete => "complete".to_string(),
+            LogEnd::Truncated => "truncated".to_string(),
+            LogEnd::Corrupt { reason } => format!("corrupt: {reason}"),
+        },
+    )?;
+    let metadata = PyDict::new(py);
+    for m in &log.metadata {
+        metadata.set_item(&m.name, m.entries.clone())?;
+    }
+    d.set_item("metadata", metadata)?;
+    let mut counts: std::collections::BTreeMap<&str, u64> = std::collections::BTreeMap::new();
+    for m in &log.messages {
+        *counts.entry(m.topic()).or_default() += 1;
+    }
+    let channels = PyDict::new(py);
+    for c in log.channels.values() {
+        let schema = c.schema.as_ref().map(|s| s.name.clone());
+        channels.set_item(&c.topic, (c.message_encoding.clone(), schema, counts.get(c.topic.as_str()).copied().unwrap_or(0)))?;
+    }
+    d.set_item("topics", channels)?;
+    let wanted = |t: &str| topics.as_ref().is_none_or(|ts| ts.iter().any(|x| x == t));
+    let messages: Vec<(String, u64, Bound<'py, pyo3::types::PyBytes>)> = log
+        .messages
+        .iter()
+        .filter(|m| wanted(m.topic()))
+        .map(|m| (m.topic().to_string(), m.log_time_ns, pyo3::types::PyBytes::new(py, &m.data)))
+        .collect();
+    d.set_item("messages", messages)?;
+    Ok(d)
+}
+
 #[pymodule]
 fn _native(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add("__version__", env!("CARGO_PKG_VERSION"))?;
@@ -174,6 +228,7 @@ fn _native(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_function(wrap_pyfunction!(frames, m)?)?;
     m.add_function(wrap_pyfunction!(estimate_from_frame, m)?)?;
     m.add_function(wrap_pyfunction!(check_frame, m)?)?;
+    m.add_function(wrap_pyfunction!(read_log, m)?)?;
     m.add("PALETTE", cooploc::view::PALETTE.map(|[r, g, b]| format!("{r:02x}{g:02x}{b:02x}")))?;
     Ok(())
 }

@@ -74,6 +74,25 @@ for name in ("epoch_twice", "epoch_other_announcer", "range_negative", "range_ot
 check("check_frame: garbage refused", raises(ValueError, cooploc.check_frame, b"\xfd" + bytes(40)) is not None)
 check("PALETTE is the library's", list(cooploc.PALETTE) == spec["palette"], cooploc.PALETTE)
 
+# Logs: a committed one, the same cut short (its writer killed), not a log, no file.
+for key, end in (("log", "complete"), ("cut_log", "truncated")):
+    want = spec[key]
+    d = cooploc.read_log(want["path"])
+    check("read_log %s: %d messages, end %s" % (key, want["messages"], d["end"]),
+          len(d["messages"]) == want["messages"] and (d["end"] == "complete") == want["complete"]
+          and (d["end"] == end or not want["complete"]), (len(d["messages"]), d["end"]))
+    check("read_log %s: topic counts and metadata" % key,
+          d["topics"].get("/coop/1/rx", (None, None, 0))[2] == want["coop_1_rx"]
+          and sorted(d["metadata"]) == sorted(want["metadata"]), (d["topics"].get("/coop/1/rx"), sorted(d["metadata"])))
+    only = cooploc.read_log(want["path"], topics=["/vehicle_1/internals"])["messages"]
+    epochs = [json.loads(data)["epoch"] for topic, _, data in only]
+    check("read_log %s: the internals of vehicle 1, JSON, in order" % key,
+          epochs == want["internals_epochs"] and all(t == "/vehicle_1/internals" for t, _, _ in only), epochs[:5])
+check("read_log: not MCAP -> ValueError", raises(ValueError, cooploc.read_log, spec["not_a_log"]) is not None)
+check("read_log: no file -> OSError", raises(OSError, cooploc.read_log, spec["no_file"]) is not None)
+check("read_log: topics not a list of str -> TypeError",
+      raises(TypeError, cooploc.read_log, spec["log"]["path"], topics=5) is not None)
+
 # The numbers of the library, as the Rust test computed them.
 a, b, bearing = cooploc.ellipse95(*spec["ellipse_in"])
 check("ellipse95 equals the library's", [a, b, bearing] == spec["ellipse_out"], (a, b, bearing))
