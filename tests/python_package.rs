@@ -140,6 +140,25 @@ fn the_python_package_gives_the_library_s_results_and_refuses_bad_input() {
     let mut spec = spec;
     spec["log"] = summary(std::path::Path::new(log_path));
     spec["cut_log"] = summary(&cut_path);
+    // The committed MRCLAM excerpt, decompressed, and the library's runs on it.
+    let mrclam_dir = dir.join("mrclam");
+    std::fs::create_dir_all(&mrclam_dir).unwrap();
+    for entry in std::fs::read_dir(concat!(env!("CARGO_MANIFEST_DIR"), "/tests/data/mrclam_ds6_120s")).unwrap() {
+        let path = entry.unwrap().path();
+        let Some(name) = path.file_name().and_then(|n| n.to_str()).and_then(|n| n.strip_suffix(".zst")) else { continue };
+        std::fs::write(mrclam_dir.join(name), zstd::decode_all(std::fs::File::open(&path).unwrap()).unwrap()).unwrap();
+    }
+    let ds = cooploc::dataset::mrclam::read_folder(&mrclam_dir).unwrap();
+    let settings = cooploc::dataset::run::Settings::new(cooploc::dataset::noise::NoiseModel::mrclam());
+    let mut runs = Vec::new();
+    for regime in ["no-landmarks", "full-map"] {
+        for method in ["dr", "dcl", "ci"] {
+            let r = cooploc::dataset::run::Regime::from_name(regime).unwrap();
+            let o = cooploc::dataset::run::run(&ds, &settings, r, Method::from_short_name(method).unwrap()).unwrap();
+            runs.push(json!([regime, method, o.pos_rmse_m, o.heading_rmse_deg, o.avg_nees, o.epochs, o.robots.len()]));
+        }
+    }
+    spec["mrclam"] = json!({ "dir": mrclam_dir, "runs": runs });
     spec["not_a_log"] = json!(concat!(env!("CARGO_MANIFEST_DIR"), "/README.md"));
     spec["no_file"] = json!(dir.join("absent.mcap"));
     let path = dir.join("spec.json");

@@ -17,6 +17,8 @@ So far (the first step of issue 35):
   the ground station check it;
 - :func:`read_log`: a cooploc MCAP log (metadata, topics, messages; a cut or damaged log is read
   up to the damage), as ``cooploc replay`` reads it (``recording::read_log``);
+- :func:`mrclam`: every method in every regime on a UTIAS MRCLAM data set, the figures of
+  ``cooploc dataset mrclam``'s table as dicts (``dataset::run::run``);
 - :data:`PALETTE`: the colour of each platform on every cooploc display (``view::PALETTE``).
 
 The MAVProxy module is :mod:`cooploc.mavproxy`; MAVProxy's ``module load cooploc`` finds this
@@ -34,6 +36,7 @@ from cooploc._native import (
     estimate_from_frame,
     frames,
     geo_to_ned,
+    mrclam,
     ned_to_geo,
     position_nees,
     read_log,
@@ -59,6 +62,7 @@ __all__ = [
     "frames",
     "geo_to_ned",
     "init",
+    "mrclam",
     "ned_to_geo",
     "position_nees",
     "read_log",

@@ -34,5 +34,9 @@ def read_log(path: str, topics: Optional[Sequence[str]] = None) -> dict:
     {topic: (encoding, schema, count)}, messages [(topic, log_time_ns, data)] of the given topics.
     OSError when it cannot be read, ValueError when it is not MCAP."""
 
+def mrclam(dir: str, methods: Sequence[str], regimes: Sequence[str], excerpt_s: Optional[float] = None) -> list[dict]:
+    """Every method in every regime on an MRCLAM data set folder: one dict per (regime, method)
+    with the table's figures of `cooploc dataset mrclam`. ValueError for unknown names or bad data."""
+
 def estimate_from_frame(frame: bytes) -> dict:
     """The checked COOPLOC_ESTIMATE of the first MAVLink 2 frame; ValueError names what is wrong."""

@@ -216,6 +216,85 @@ fn read_log<'py>(py: Python<'py>, path: std::path::PathBuf, topics: Option<Vec<S
     Ok(d)
 }
 
+/// Every `method` in every `regime` on a UTIAS MRCLAM data set folder (`dir`), as
+/// `cooploc dataset mrclam DIR --method .. --regime ..` runs them with the committed noise model
+/// (`dataset::run::run`, in parallel): one dict per (regime, method), in that order, with the
+/// table's figures (`pos_rmse_m`, `heading_rmse_deg`, `avg_nees`, `avg_nees_position`,
+/// `avg_nees_heading`, `in_bound_share`, `samples`, `masked`, `landmark_updates`,
+/// `landmark_gated`, `robot_updates`, `robot_gated`, `epochs`, `refused`) and `robots`, a list of
+/// `(id, pos_rmse_m, heading_rmse_deg, samples, masked)`. `excerpt_s`: only the data set's first
+/// seconds. Methods by their short names (`dr`, `naive`, `dcl`, `ci`, `central`), regimes
+/// `no-landmarks`, `map-blind`, `full-map`. `ValueError` for an unknown name or an unreadable
+/// data set (the message names the file and line). The GIL is released while it runs.
+#[pyfunction]
+#[pyo3(signature = (dir, methods, regimes, excerpt_s = None))]
+fn mrclam<'py>(
+    py: Python<'py>,
+    dir: std::path::PathBuf,
+    methods: Vec<String>,
+    regimes: Vec<String>,
+    excerpt_s: Option<f64>,
+) -> PyResult<Vec<Bound<'py, PyDict>>> {
+    use cooploc::dataset::run::{Regime, Settings, run};
+    use cooploc::estimation::Method;
+    use rayon::prelude::*;
+    let methods: Vec<Method> = methods
+        .iter()
+        .map(|m| Method::from_short_name(m).ok_or_else(|| PyValueError::new_err(format!("unknown method {m:?}"))))
+        .collect::<PyResult<_>>()?;
+    let regimes: Vec<Regime> = regimes
+        .iter()
+        .map(|r| Regime::from_name(r).ok_or_else(|| PyValueError::new_err(format!("unknown regime {r:?}"))))
+        .collect::<PyResult<_>>()?;
+    if excerpt_s.is_some_and(|s| !(s.is_finite() && s > 0.0)) {
+        return Err(PyValueError::new_err(format!("excerpt_s {excerpt_s:?}: expected a positive number of seconds")));
+    }
+    let outcomes = py
+        .detach(|| {
+            let mut ds = cooploc::dataset::mrclam::read_folder(&dir).map_err(|e| e.to_string())?;
+            if let Some(s) = excerpt_s {
+                ds = ds.excerpt(s);
+            }
+            let settings = Settings::new(cooploc::dataset::noise::NoiseModel::mrclam());
+            let pairs: Vec<(Regime, Method)> = regimes.iter().flat_map(|&r| methods.iter().map(move |&m| (r, m))).collect();
+            pairs.par_iter().map(|&(r, m)| run(&ds, &settings, r, m).map_err(|e| e.to_string())).collect::<Result<Vec<_>, _>>()
+        })
+        .map_err(PyValueError::new_err)?;
+    outcomes
+        .iter()
+        .map(|o| {
+            let d = PyDict::new(py);
+            d.set_item("regime", o.regime.name())?;
+            d.set_item("method", o.method.short_name())?;
+            for (k, v) in [
+                ("pos_rmse_m", o.pos_rmse_m),
+                ("heading_rmse_deg", o.heading_rmse_deg),
+                ("avg_nees", o.avg_nees),
+                ("avg_nees_position", o.avg_nees_position),
+                ("avg_nees_heading", o.avg_nees_heading),
+                ("in_bound_share", o.in_bound_share),
+            ] {
+                d.set_item(k, v)?;
+            }
+            for (k, v) in [
+                ("samples", o.samples),
+                ("masked", o.masked),
+                ("landmark_updates", o.landmark_updates),
+                ("landmark_gated", o.landmark_gated),
+                ("robot_updates", o.robot_updates),
+                ("robot_gated", o.robot_gated),
+                ("epochs", o.epochs),
+                ("refused", o.refused),
+            ] {
+                d.set_item(k, v)?;
+            }
+            let robots: Vec<_> = o.robots.iter().map(|r| (r.id, r.pos_rmse_m, r.heading_rmse_deg, r.samples, r.masked)).collect();
+            d.set_item("robots", robots)?;
+            Ok(d)
+        })
+        .collect()
+}
+
 #[pymodule]
 fn _native(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add("__version__", env!("CARGO_PKG_VERSION"))?;
@@ -229,6 +308,7 @@ fn _native(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_function(wrap_pyfunction!(estimate_from_frame, m)?)?;
     m.add_function(wrap_pyfunction!(check_frame, m)?)?;
     m.add_function(wrap_pyfunction!(read_log, m)?)?;
+    m.add_function(wrap_pyfunction!(mrclam, m)?)?;
     m.add("PALETTE", cooploc::view::PALETTE.map(|[r, g, b]| format!("{r:02x}{g:02x}{b:02x}")))?;
     Ok(())
 }

@@ -93,6 +93,17 @@ check("read_log: no file -> OSError", raises(OSError, cooploc.read_log, spec["no
 check("read_log: topics not a list of str -> TypeError",
       raises(TypeError, cooploc.read_log, spec["log"]["path"], topics=5) is not None)
 
+# The MRCLAM excerpt: every method in two regimes, the library's figures exactly.
+mr = spec["mrclam"]
+got = [[o["regime"], o["method"], o["pos_rmse_m"], o["heading_rmse_deg"], o["avg_nees"], o["epochs"], len(o["robots"])]
+       for o in cooploc.mrclam(mr["dir"], ["dr", "dcl", "ci"], ["no-landmarks", "full-map"])]
+check("mrclam: the table's figures equal the library's run, in (regime, method) order", got == mr["runs"], (got, mr["runs"]))
+check("mrclam: an unknown method -> ValueError", raises(ValueError, cooploc.mrclam, mr["dir"], ["kalman"], ["full-map"]) is not None)
+check("mrclam: an unknown regime -> ValueError", raises(ValueError, cooploc.mrclam, mr["dir"], ["dr"], ["moon"]) is not None)
+check("mrclam: no data set there -> ValueError", raises(ValueError, cooploc.mrclam, spec["no_file"], ["dr"], ["full-map"]) is not None)
+check("mrclam: a negative excerpt -> ValueError",
+      raises(ValueError, cooploc.mrclam, mr["dir"], ["dr"], ["full-map"], excerpt_s=-1.0) is not None)
+
 # The numbers of the library, as the Rust test computed them.
 a, b, bearing = cooploc.ellipse95(*spec["ellipse_in"])
 check("ellipse95 equals the library's", [a, b, bearing] == spec["ellipse_out"], (a, b, bearing))
