@@ -119,7 +119,7 @@ fn the_python_package_gives_the_library_s_results_and_refuses_bad_input() {
         "ned_in": [1234.5, -987.25, -3.5],
         "ned_out": [back.lat_deg, back.lon_deg, back.alt_m],
     });
-    let dir = tempfile_dir();
+    let dir = tempfile_dir("bindings");
     // A committed log, and its first 40 % (a writer killed mid-run), as the library reads them.
     let log_path = concat!(env!("CARGO_MANIFEST_DIR"), "/logs/demo-dcl-30s.mcap");
     let bytes = std::fs::read(log_path).unwrap();
@@ -141,13 +141,7 @@ fn the_python_package_gives_the_library_s_results_and_refuses_bad_input() {
     spec["log"] = summary(std::path::Path::new(log_path));
     spec["cut_log"] = summary(&cut_path);
     // The committed MRCLAM excerpt, decompressed, and the library's runs on it.
-    let mrclam_dir = dir.join("mrclam");
-    std::fs::create_dir_all(&mrclam_dir).unwrap();
-    for entry in std::fs::read_dir(concat!(env!("CARGO_MANIFEST_DIR"), "/tests/data/mrclam_ds6_120s")).unwrap() {
-        let path = entry.unwrap().path();
-        let Some(name) = path.file_name().and_then(|n| n.to_str()).and_then(|n| n.strip_suffix(".zst")) else { continue };
-        std::fs::write(mrclam_dir.join(name), zstd::decode_all(std::fs::File::open(&path).unwrap()).unwrap()).unwrap();
-    }
+    let mrclam_dir = mrclam_excerpt(&dir);
     let ds = cooploc::dataset::mrclam::read_folder(&mrclam_dir).unwrap();
     let settings = cooploc::dataset::run::Settings::new(cooploc::dataset::noise::NoiseModel::mrclam());
     let mut runs = Vec::new();
@@ -174,8 +168,57 @@ fn the_python_package_gives_the_library_s_results_and_refuses_bad_input() {
     let _ = std::fs::remove_dir_all(&dir);
 }
 
-fn tempfile_dir() -> std::path::PathBuf {
-    let dir = std::env::temp_dir().join(format!("cooploc-python-package-{}", std::process::id()));
+/// The committed MRCLAM excerpt (tests/data/mrclam_ds6_120s), decompressed into `dir`/mrclam.
+fn mrclam_excerpt(dir: &std::path::Path) -> std::path::PathBuf {
+    let mrclam_dir = dir.join("mrclam");
+    std::fs::create_dir_all(&mrclam_dir).unwrap();
+    for entry in std::fs::read_dir(concat!(env!("CARGO_MANIFEST_DIR"), "/tests/data/mrclam_ds6_120s")).unwrap() {
+        let path = entry.unwrap().path();
+        let Some(name) = path.file_name().and_then(|n| n.to_str()).and_then(|n| n.strip_suffix(".zst")) else { continue };
+        std::fs::write(mrclam_dir.join(name), zstd::decode_all(std::fs::File::open(&path).unwrap()).unwrap()).unwrap();
+    }
+    mrclam_dir
+}
+
+/// The examples of examples/python run as a user runs them: the data set table prints the
+/// library's figures for every method and regime (here on the committed excerpt), and the
+/// paper's figure (3 runs) is written as a PNG.
+#[test]
+fn the_python_examples_print_the_library_s_table_and_draw_the_paper_s_figure() {
+    let Some(python) = common::python("the Python examples") else { return };
+    let dir = tempfile_dir("examples");
+    let mrclam_dir = mrclam_excerpt(&dir);
+    let example = |name: &str, args: &[&std::ffi::OsStr]| {
+        let out = Command::new(&python)
+            .arg(format!("{}/examples/python/{name}", env!("CARGO_MANIFEST_DIR")))
+            .args(args)
+            .output()
+            .expect("running a Python example");
+        let text = format!("{}{}", String::from_utf8_lossy(&out.stdout), String::from_utf8_lossy(&out.stderr));
+        assert!(out.status.success(), "{name} failed:\n{text}");
+        text
+    };
+    let table = example("dataset6_table.py", &[mrclam_dir.as_os_str()]);
+    let ds = cooploc::dataset::mrclam::read_folder(&mrclam_dir).unwrap();
+    let settings = cooploc::dataset::run::Settings::new(cooploc::dataset::noise::NoiseModel::mrclam());
+    for regime in cooploc::dataset::run::Regime::ALL {
+        for method in ["dr", "naive", "dcl", "ci", "centralized"] {
+            let o = cooploc::dataset::run::run(&ds, &settings, regime, Method::from_short_name(method).unwrap()).unwrap();
+            let row =
+                format!("{:<13}{:<12}{:>7.3}{:>9.2}{:>9.2}", regime.name(), method, o.pos_rmse_m, o.heading_rmse_deg, o.avg_nees);
+            assert!(table.lines().any(|l| l.starts_with(&row)), "no row {row:?} in:\n{table}");
+        }
+    }
+    let png = dir.join("figure.png");
+    let printed = example("paper_figure.py", &[png.as_os_str(), std::ffi::OsStr::new("3")]);
+    let bytes = std::fs::read(&png).unwrap_or_default();
+    assert!(bytes.starts_with(b"\x89PNG") && bytes.len() > 20_000, "no figure written:\n{printed}");
+    assert!(printed.contains("decentralized") && printed.contains("dead-reckoning"), "{printed}");
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+fn tempfile_dir(tag: &str) -> std::path::PathBuf {
+    let dir = std::env::temp_dir().join(format!("cooploc-python-package-{tag}-{}", std::process::id()));
     std::fs::create_dir_all(&dir).unwrap();
     dir
 }

@@ -19,12 +19,16 @@ So far (the first step of issue 35):
   up to the damage), as ``cooploc replay`` reads it (``recording::read_log``);
 - :func:`mrclam`: every method in every regime on a UTIAS MRCLAM data set, the figures of
   ``cooploc dataset mrclam``'s table as dicts (``dataset::run::run``);
+- :func:`experiment`: the Monte Carlo of ``cooploc experiment``, its summary and RMS curves
+  (``experiment::run_experiment``, ``experiment::report``);
 - :data:`PALETTE`: the colour of each platform on every cooploc display (``view::PALETTE``).
 
 The MAVProxy module is :mod:`cooploc.mavproxy`; MAVProxy's ``module load cooploc`` finds this
 package (its loader tries ``MAVProxy.modules.mavproxy_cooploc``, then ``cooploc``) and calls
 :func:`init`.
 """
+
+import json as _json
 
 from cooploc._native import (
     CHI2_2DOF_95,
@@ -34,6 +38,7 @@ from cooploc._native import (
     check_frame,
     ellipse95,
     estimate_from_frame,
+    experiment_json,
     frames,
     geo_to_ned,
     mrclam,
@@ -42,6 +47,17 @@ from cooploc._native import (
     read_log,
 )
 
+
+
+def experiment(scenario, runs, methods, schedules=None, seed=1):
+    """The Monte Carlo of ``cooploc experiment`` on ``scenario`` (a scenario file, e.g.
+    ``sitl/scenarios/paper.toml``): ``runs`` runs of ``methods`` (short names: ``dr``, ``naive``,
+    ``dcl``, ``ci``, ``centralized``) over ``schedules`` (all of the scenario's when None). One dict
+    per schedule: the summary ``cooploc experiment`` prints (``methods``: per method and platform
+    the final errors and NEES; ``reductions``; ``nees_band``) and ``curves``: per method and
+    platform, ``t_s``, ``pos_rms_m`` and ``heading_rms_deg`` over the runs (the paper's figures).
+    ``ValueError`` for a bad scenario, name or count."""
+    return _json.loads(experiment_json(str(scenario), runs, list(methods), schedules, seed))
 
 
 def init(mpstate):
@@ -59,6 +75,7 @@ __all__ = [
     "check_frame",
     "ellipse95",
     "estimate_from_frame",
+    "experiment",
     "frames",
     "geo_to_ned",
     "init",

@@ -38,5 +38,8 @@ def mrclam(dir: str, methods: Sequence[str], regimes: Sequence[str], excerpt_s: 
     """Every method in every regime on an MRCLAM data set folder: one dict per (regime, method)
     with the table's figures of `cooploc dataset mrclam`. ValueError for unknown names or bad data."""
 
+def experiment_json(scenario: str, runs: int, methods: Sequence[str], schedules: Optional[Sequence[str]] = None, seed: int = 1) -> str:
+    """The Monte Carlo of `cooploc experiment` as JSON (see cooploc.experiment)."""
+
 def estimate_from_frame(frame: bytes) -> dict:
     """The checked COOPLOC_ESTIMATE of the first MAVLink 2 frame; ValueError names what is wrong."""
