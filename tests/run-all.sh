@@ -25,6 +25,9 @@ export COOPLOC_PYTHON="$PWD/$venv/bin/python"
 # first: it goes.
 echo "==> building the cooploc Python package (maturin develop --release)"
 VIRTUAL_ENV="$PWD/$venv" "$venv/bin/maturin" develop --release --quiet -m python/Cargo.toml
+# Its crate is not a default member of the workspace, so .ci/run's clippy does not see it.
+echo "==> cargo clippy -p cooploc-py --all-targets -- -D warnings"
+cargo clippy --quiet -p cooploc-py --all-targets -- -D warnings
 mavproxy_modules=$("$COOPLOC_PYTHON" -c 'import MAVProxy.modules, os; print(os.path.dirname(MAVProxy.modules.__file__))')
 rm -f "$mavproxy_modules/mavproxy_cooploc.py"
 

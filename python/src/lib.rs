@@ -108,6 +108,17 @@ fn estimate_from_frame<'py>(py: Python<'py>, frame: &[u8]) -> PyResult<Bound<'py
     Ok(d)
 }
 
+/// Methods by their short names (`estimation::Method::short_name`); `ValueError` names an
+/// unknown one.
+fn parse_methods(names: &[String]) -> PyResult<Vec<cooploc::estimation::Method>> {
+    names
+        .iter()
+        .map(|m| {
+            cooploc::estimation::Method::from_short_name(m).ok_or_else(|| PyValueError::new_err(format!("unknown method {m:?}")))
+        })
+        .collect()
+}
+
 fn refused(e: impl std::fmt::Display) -> PyErr {
     PyValueError::new_err(e.to_string())
 }
@@ -238,10 +249,7 @@ fn mrclam<'py>(
     use cooploc::dataset::run::{Regime, Settings, run};
     use cooploc::estimation::Method;
     use rayon::prelude::*;
-    let methods: Vec<Method> = methods
-        .iter()
-        .map(|m| Method::from_short_name(m).ok_or_else(|| PyValueError::new_err(format!("unknown method {m:?}"))))
-        .collect::<PyResult<_>>()?;
+    let methods = parse_methods(&methods)?;
     let regimes: Vec<Regime> = regimes
         .iter()
         .map(|r| Regime::from_name(r).ok_or_else(|| PyValueError::new_err(format!("unknown regime {r:?}"))))
@@ -312,12 +320,8 @@ fn experiment_json(
     schedules: Option<Vec<String>>,
     seed: u64,
 ) -> PyResult<String> {
-    use cooploc::estimation::Method;
     use cooploc::experiment::{ExperimentSpec, InputSource, report, run_experiment};
-    let methods: Vec<Method> = methods
-        .iter()
-        .map(|m| Method::from_short_name(m).ok_or_else(|| PyValueError::new_err(format!("unknown method {m:?}"))))
-        .collect::<PyResult<_>>()?;
+    let methods = parse_methods(&methods)?;
     py.detach(|| {
         let scenario = cooploc::sitl::scenario::Scenario::from_path(&scenario).map_err(|e| e.to_string())?;
         let world = cooploc::sitl::world::World::new(&scenario).map_err(|e| e.to_string())?;
