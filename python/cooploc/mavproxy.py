@@ -156,6 +156,10 @@ MSG_STORE_FRAGMENT = 61004
 MSG_RANGE_BEARING = 61005
 COOPLOC_MESSAGE_IDS = frozenset(range(61000, 61006))
 
+#: The cooploc messages the module only counts, and the VehicleView counter of each.
+COUNTED = {"COOPLOC_RANGE": "ranges", "COOPLOC_STATE_FRAGMENT": "state_fragments",
+           "COOPLOC_STORE_FRAGMENT": "store_fragments", "COOPLOC_RANGE_BEARING": "range_bearings"}
+
 MAV_CMD_REQUEST_MESSAGE = 512
 MAVLINK_IFLAG_SIGNED = 1
 
@@ -941,39 +945,20 @@ class CooplocModule(_MPModule):
         if compid == TRUTH_COMPID and mtype in ("SIM_STATE", "HIGHRES_IMU", "ODOMETRY"):
             self._truth_message(m, mtype, sysid)
             return
-        if not mtype.startswith("COOPLOC_"):
+        if mtype not in ("COOPLOC_ESTIMATE", "COOPLOC_EPOCH") and mtype not in COUNTED:
             return
         now = time.monotonic()
         try:
+            participants = check_message(m)
+            v = self._vehicle(sysid, now)
+            if v is None:
+                return
             if mtype == "COOPLOC_ESTIMATE":
-                check_message(m)
-                v = self._vehicle(sysid, now)
-                if v is not None:
-                    self._estimate(v, m, now)
+                self._estimate(v, m, now)
             elif mtype == "COOPLOC_EPOCH":
-                participants = check_message(m)
-                if self._vehicle(sysid, now) is not None:
-                    self.epochs.add(m.epoch, m.announcer, m.state, m.digest, participants)
-            elif mtype == "COOPLOC_RANGE":
-                check_message(m)
-                v = self._vehicle(sysid, now)
-                if v is not None:
-                    v.ranges += 1
-            elif mtype == "COOPLOC_STATE_FRAGMENT":
-                check_message(m)
-                v = self._vehicle(sysid, now)
-                if v is not None:
-                    v.state_fragments += 1
-            elif mtype == "COOPLOC_STORE_FRAGMENT":
-                check_message(m)
-                v = self._vehicle(sysid, now)
-                if v is not None:
-                    v.store_fragments += 1
-            elif mtype == "COOPLOC_RANGE_BEARING":
-                check_message(m)
-                v = self._vehicle(sysid, now)
-                if v is not None:
-                    v.range_bearings += 1
+                self.epochs.add(m.epoch, m.announcer, m.state, m.digest, participants)
+            else:
+                setattr(v, COUNTED[mtype], getattr(v, COUNTED[mtype]) + 1)
         except Rejected as r:
             self._reject(sysid, str(r))
 

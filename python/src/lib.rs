@@ -88,9 +88,7 @@ fn estimate_from_frame<'py>(py: Python<'py>, frame: &[u8]) -> PyResult<Bound<'py
         return Err(PyValueError::new_err(format!("{} is not a COOPLOC_ESTIMATE", msg.message_name())));
     };
     let e = wire::estimate_from_message(m).map_err(refused)?;
-    if header.system_id != u32::from(e.platform) {
-        return Err(PyValueError::new_err(format!("COOPLOC_ESTIMATE.platform {} from system {}", e.platform, header.system_id)));
-    }
+    speaks_for(&header, "COOPLOC_ESTIMATE", e.platform)?;
     let c = &e.position_covariance_m2;
     let d = PyDict::new(py);
     d.set_item("platform", e.platform)?;
@@ -119,6 +117,15 @@ fn parse_methods(names: &[String]) -> PyResult<Vec<cooploc::estimation::Method>>
         .collect()
 }
 
+/// `ValueError` unless the platform message `name` speaks for is the frame's sender.
+fn speaks_for(header: &mavlink_core::MavHeader, name: &str, platform: u16) -> PyResult<()> {
+    if header.system_id == u32::from(platform) {
+        Ok(())
+    } else {
+        Err(PyValueError::new_err(format!("{name} of platform {platform} sent by system {}", header.system_id)))
+    }
+}
+
 fn refused(e: impl std::fmt::Display) -> PyErr {
     PyValueError::new_err(e.to_string())
 }
@@ -134,14 +141,8 @@ fn refused(e: impl std::fmt::Display) -> PyErr {
 #[pyfunction]
 fn check_frame(frame: &[u8]) -> PyResult<(String, Option<Vec<u16>>)> {
     let (header, msg) = wire::from_frame(frame).map_err(refused)?;
-    let name = msg.message_name().to_string();
-    let speaks_for = |platform: u16| -> PyResult<()> {
-        if header.system_id == u32::from(platform) {
-            Ok(())
-        } else {
-            Err(PyValueError::new_err(format!("{name} of platform {platform} sent by system {}", header.system_id)))
-        }
-    };
+    let name = msg.message_name();
+    let speaks_for = |platform| speaks_for(&header, name, platform);
     let participants = match &msg {
         MavMessage::COOPLOC_ESTIMATE(m) => {
             speaks_for(wire::estimate_from_message(m).map_err(refused)?.platform)?;
@@ -170,7 +171,7 @@ fn check_frame(frame: &[u8]) -> PyResult<(String, Option<Vec<u16>>)> {
         }
         _ => None,
     };
-    Ok((name, participants))
+    Ok((name.to_string(), participants))
 }
 
 /// Reads a cooploc MCAP log (logs/README.md: its topics and encodings) as a dict:
@@ -246,9 +247,7 @@ fn mrclam<'py>(
     regimes: Vec<String>,
     excerpt_s: Option<f64>,
 ) -> PyResult<Vec<Bound<'py, PyDict>>> {
-    use cooploc::dataset::run::{Regime, Settings, run};
-    use cooploc::estimation::Method;
-    use rayon::prelude::*;
+    use cooploc::dataset::run::{Regime, Settings, run_all};
     let methods = parse_methods(&methods)?;
     let regimes: Vec<Regime> = regimes
         .iter()
@@ -264,13 +263,12 @@ fn mrclam<'py>(
                 ds = ds.excerpt(s);
             }
             let settings = Settings::new(cooploc::dataset::noise::NoiseModel::mrclam());
-            let pairs: Vec<(Regime, Method)> = regimes.iter().flat_map(|&r| methods.iter().map(move |&m| (r, m))).collect();
-            pairs.par_iter().map(|&(r, m)| run(&ds, &settings, r, m).map_err(|e| e.to_string())).collect::<Result<Vec<_>, _>>()
+            run_all(&ds, &settings, &regimes, &methods).map_err(|e| e.to_string())
         })
         .map_err(PyValueError::new_err)?;
     outcomes
         .iter()
-        .map(|o| {
+        .map(|(o, _)| {
             let d = PyDict::new(py);
             d.set_item("regime", o.regime.name())?;
             d.set_item("method", o.method.short_name())?;

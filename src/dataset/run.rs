@@ -514,6 +514,26 @@ fn apply_landmarks(
     applied
 }
 
+/// Every method of `methods` in every regime of `regimes` (regime-major order), in parallel
+/// (rayon), each with the seconds it took: what `cooploc dataset mrclam` prints and the Python
+/// package's `mrclam` returns.
+pub fn run_all(
+    ds: &Dataset,
+    settings: &Settings,
+    regimes: &[Regime],
+    methods: &[Method],
+) -> Result<Vec<(Outcome, f64)>, RunError> {
+    use rayon::prelude::*;
+    let pairs: Vec<(Regime, Method)> = regimes.iter().flat_map(|&r| methods.iter().map(move |&m| (r, m))).collect();
+    pairs
+        .par_iter()
+        .map(|&(r, m)| {
+            let t = std::time::Instant::now();
+            run(ds, settings, r, m).map(|o| (o, t.elapsed().as_secs_f64()))
+        })
+        .collect()
+}
+
 /// Runs `method` over the data set in `regime` (see the module documentation).
 pub fn run(ds: &Dataset, settings: &Settings, regime: Regime, method: Method) -> Result<Outcome, RunError> {
     let noise = &settings.noise;

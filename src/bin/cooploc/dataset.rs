@@ -6,10 +6,9 @@ use std::time::Instant;
 
 use anyhow::{Context, bail};
 use cooploc::dataset::noise::{self, NoiseModel};
-use cooploc::dataset::run::{Outcome, Regime, Settings, broadcast_bytes, nees_band, run};
+use cooploc::dataset::run::{Outcome, Regime, Settings, broadcast_bytes, nees_band, run, run_all};
 use cooploc::dataset::{Dataset, log, mrclam};
 use cooploc::estimation::{Method, PlatformId};
-use rayon::prelude::*;
 
 #[derive(clap::Args)]
 pub struct Args {
@@ -299,14 +298,7 @@ pub fn evaluate(
     methods: &[Method],
 ) -> anyhow::Result<Vec<(Outcome, f64)>> {
     let t = Instant::now();
-    let pairs: Vec<(Regime, Method)> = regimes.iter().flat_map(|&r| methods.iter().map(move |&m| (r, m))).collect();
-    let results: Vec<(Outcome, f64)> = pairs
-        .par_iter()
-        .map(|&(r, m)| {
-            let t = Instant::now();
-            run(ds, settings, r, m).map(|o| (o, t.elapsed().as_secs_f64()))
-        })
-        .collect::<Result<_, _>>()?;
+    let results = run_all(ds, settings, regimes, methods)?;
     let (lo, hi) = nees_band(ds.robots.len());
     let span = ds.t_end.secs_since(ds.t0);
     println!(
