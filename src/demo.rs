@@ -208,6 +208,7 @@ pub async fn run_demo(cfg: DemoConfig, ready: impl FnOnce(&DemoAddresses)) -> Re
             profile: crate::node::profile::VehicleProfile::from_scenario_platform(&scenario, id),
             team_key: Some(team_key.clone()),
             signing_state: None,
+            state_file: None,
             vehicle_key: None,
             ranges: None,
         };

@@ -261,6 +261,14 @@ fn replay_node(log: &Log, world: Option<&World>, id: PlatformId) -> Result<NodeR
                     start = LogStart::FromVehicle;
                     continue;
                 }
+                (NodeEvent::Restored { state, .. }, _) => {
+                    // the node started from its saved state: the core as it made it
+                    let mut cfg = cfg.clone();
+                    cfg.model.set_latitude(state.origin[0]);
+                    let (t0, nav, p) = (TimeUs(state.t_us), state.nav_state(), state.covariance_matrix());
+                    core = Some(NodeCore::restored(cfg, t0, nav, &p).map_err(|e| node_err(e.to_string()))?);
+                    continue;
+                }
                 (NodeEvent::Init { t0_us, origin: from_vehicle, state: hand_over }, None) => {
                     let init = (t0_us, from_vehicle, hand_over);
                     core = Some(core_at_init(&h, init, &start, last_sim_state.as_ref()).map_err(node_err)?);

@@ -2,7 +2,8 @@
 //! each reproduces its recorded estimates bit for bit and its golden summary; the centralized
 //! method on a log's inputs gives the experiment's numbers for that seed and run; the Python
 //! `mcap` reader finds the documented channels and schemas; a node killed with SIGKILL leaves a
-//! log that replays up to its last flush.
+//! log that replays up to its last flush; a node restarted with its state file restores it, and
+//! its log replays.
 
 mod common;
 
@@ -129,62 +130,138 @@ fn a_node_that_refused_a_stale_start_state_leaves_a_log_that_replays() {
     assert!(refused, "no StartRefused event in the log");
 }
 
+/// A node with `--state-file` is killed with SIGKILL and started again at once with the same
+/// arguments (a start state for the scenario's start, by then stale), the simulator sending no
+/// SIM_STATE, as a real vehicle sends none: the second node restores the state the first one
+/// saved (its log holds the Restored event), the restored position is within 3 sigma of the
+/// simulator's truth, and its log replays: every IMU sample logged after the restore reaches
+/// the replayed filter.
+#[test]
+fn a_node_restarted_with_its_state_file_restores_it_and_its_log_replays() {
+    use cooploc::node::runner::NodeEvent;
+    let dir = std::env::temp_dir().join(format!("cooploc-restore-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    let (state_file, log_path) = (dir.join("node1.state"), dir.join("node.mcap"));
+    let state_arg = state_file.display().to_string();
+    let args = ["--init-from-run", "1:0", "--state-file", &state_arg];
+    let (mut sitl, vehicle) = SitlVehicle::start("0");
+    let mut first = node_command(&vehicle, None, &args).spawn().unwrap();
+    std::thread::sleep(std::time::Duration::from_millis(3000));
+    first.kill().unwrap();
+    first.wait().unwrap();
+    let saved = cooploc::node::saved::SavedState::parse(&std::fs::read_to_string(&state_file).unwrap()).unwrap();
+    let mut second = node_command(&vehicle, Some(&log_path), &args).spawn().unwrap();
+    std::thread::sleep(std::time::Duration::from_millis(3500));
+    second.kill().unwrap();
+    second.wait().unwrap();
+    sitl.stop();
+    let log = read_log(&log_path).unwrap();
+    let (restored, age_us) = log
+        .topic("/vehicle_1/node/events")
+        .find_map(|m| match m.json::<NodeEvent>() {
+            Ok(NodeEvent::Restored { state, age_us }) => Some((state, age_us)),
+            _ => None,
+        })
+        .expect("the second node restored its saved state");
+    assert!(restored.t_us >= saved.t_us, "restored at {} us, saved at {} us", restored.t_us, saved.t_us);
+    let world = cooploc::sitl::World::new(&cooploc::sitl::Scenario::from_toml_str(cooploc::sitl::PAPER_TOML).unwrap()).unwrap();
+    let truth = world.trajectory(1).unwrap().truth_at(cooploc::time::TimeUs(restored.t_us)).pos_ned_m;
+    let p = restored.covariance_matrix();
+    let sigma = (p[(0, 0)] + p[(1, 1)]).sqrt();
+    let err = (restored.nav_state().position_ned_m() - truth).xy().norm();
+    eprintln!(
+        "restored {:.2} s after it was saved: {err:.2} m from the truth, horizontal sigma {sigma:.2} m",
+        age_us as f64 / 1e6
+    );
+    assert!(err <= 3.0 * sigma, "restored {err:.2} m from the truth, 3 sigma {:.2} m", 3.0 * sigma);
+    assert!(age_us <= cooploc::node::saved::MAX_RESTORE_AGE_US);
+    let replays = replay_nodes(&log).unwrap();
+    let imu_logged = imu_logged_after(&log, restored.t_us);
+    eprintln!("IMU samples logged after the restore {imu_logged}, replayed {}", replays[0].imu_replayed);
+    assert!(imu_logged > 1000);
+    assert_eq!(replays[0].imu_replayed, imu_logged);
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+/// `cooploc sitl` serving the paper scenario at 5x, SIM_STATE at `sim_state_hz`: the child and
+/// vehicle 1's address.
+struct SitlVehicle(std::process::Child);
+
+impl SitlVehicle {
+    fn start(sim_state_hz: &str) -> (SitlVehicle, String) {
+        use std::io::{BufRead, BufReader};
+        use std::process::{Command, Stdio};
+        let mut sitl = Command::new(env!("CARGO_BIN_EXE_cooploc"))
+            .current_dir(env!("CARGO_MANIFEST_DIR"))
+            .args(["sitl", "sitl/scenarios/paper.toml", "--speed", "5", "--base-port", "0", "--sim-state-hz", sim_state_hz])
+            .stdout(Stdio::piped())
+            .stderr(Stdio::null())
+            .spawn()
+            .unwrap();
+        let mut lines = BufReader::new(sitl.stdout.take().unwrap()).lines();
+        let vehicle = loop {
+            let line = lines.next().expect("sitl output").unwrap();
+            if line.starts_with("vehicle 1 ") {
+                break line.split_whitespace().last().unwrap().to_string();
+            }
+        };
+        // (read on to its end: a closed pipe would end the simulator at its next line)
+        std::thread::spawn(move || lines.for_each(drop));
+        (SitlVehicle(sitl), vehicle)
+    }
+
+    fn stop(&mut self) {
+        let _ = self.0.kill();
+        let _ = self.0.wait();
+    }
+}
+
+impl Drop for SitlVehicle {
+    fn drop(&mut self) {
+        self.stop();
+    }
+}
+
+/// One dr node of platform 1 on `vehicle`, with a log at `log` and `extra` arguments.
+fn node_command(vehicle: &str, log: Option<&Path>, extra: &[&str]) -> std::process::Command {
+    let mut node = std::process::Command::new(env!("CARGO_BIN_EXE_cooploc"));
+    node.current_dir(env!("CARGO_MANIFEST_DIR"));
+    node.args(["node", "--scenario", "sitl/scenarios/paper.toml", "--id", "1", "--vehicle", &format!("udpout:{vehicle}")]);
+    node.args(["--method", "dr", "--team", "1"]);
+    if let Some(log) = log {
+        node.arg("--log").arg(log);
+    }
+    node.args(common::team_key_args()).args(extra);
+    node.stdout(std::process::Stdio::null()).stderr(std::process::Stdio::null());
+    node
+}
+
+/// Vehicle 1's IMU samples in `log` after `t_us`.
+fn imu_logged_after(log: &cooploc::recording::Log, t_us: u64) -> u64 {
+    log.topic("/vehicle_1/mavlink/rx")
+        .filter(|m| match cooploc::protocol::wire::from_any_frame(&m.data) {
+            Ok((_, cooploc::protocol::MavMessage::HIGHRES_IMU(i))) => i.time_usec > t_us,
+            _ => false,
+        })
+        .count() as u64
+}
+
 /// Runs `cooploc sitl` at 5x, starts one dr node `wait_s` later with `extra` arguments and a log,
 /// kills it with SIGKILL 3.5 s later, and replays the log: the log it leaves has no summary,
 /// holds its traffic up to about a second before the kill, and every IMU sample logged after
 /// the initialisation reaches the replayed filter. The log, read.
 fn killed_node_log_replays(tag: &str, extra: &[&str], wait_s: f64) -> cooploc::recording::Log {
-    use std::io::{BufRead, BufReader};
-    use std::process::{Command, Stdio};
     let dir = std::env::temp_dir().join(format!("cooploc-{tag}-{}", std::process::id()));
     std::fs::create_dir_all(&dir).unwrap();
     let log_path = dir.join("node.mcap");
-    let bin = env!("CARGO_BIN_EXE_cooploc");
-    let root = env!("CARGO_MANIFEST_DIR");
-    let mut sitl = Command::new(bin)
-        .current_dir(root)
-        .args(["sitl", "sitl/scenarios/paper.toml", "--speed", "5", "--base-port", "0", "--sim-state-hz", "5"])
-        .stdout(Stdio::piped())
-        .stderr(Stdio::null())
-        .spawn()
-        .unwrap();
-    let mut lines = BufReader::new(sitl.stdout.take().unwrap()).lines();
-    let vehicle = loop {
-        let line = lines.next().expect("sitl output").unwrap();
-        if line.starts_with("vehicle 1 ") {
-            break line.split_whitespace().last().unwrap().to_string();
-        }
-    };
+    let (mut sitl, vehicle) = SitlVehicle::start("5");
     std::thread::sleep(std::time::Duration::from_secs_f64(wait_s));
-    let mut node = Command::new(bin)
-        .current_dir(root)
-        .args([
-            "node",
-            "--scenario",
-            "sitl/scenarios/paper.toml",
-            "--id",
-            "1",
-            "--vehicle",
-            &format!("udpout:{vehicle}"),
-            "--method",
-            "dr",
-            "--team",
-            "1",
-            "--log",
-        ])
-        .arg(&log_path)
-        .args(common::team_key_args())
-        .args(extra)
-        .stdout(Stdio::null())
-        .stderr(Stdio::null())
-        .spawn()
-        .unwrap();
+    let mut node = node_command(&vehicle, Some(&log_path), extra).spawn().unwrap();
     std::thread::sleep(std::time::Duration::from_millis(3500));
     node.kill().unwrap(); // SIGKILL
     let killed_at_ns = cooploc::recording::wall_now_ns();
     node.wait().unwrap();
-    let _ = sitl.kill();
-    let _ = sitl.wait();
+    sitl.stop();
     let log = read_log(&log_path).unwrap();
     assert!(!log.is_complete(), "a killed recorder leaves no summary");
     let last_ns = log.messages.iter().map(|m| m.log_time_ns).max().expect("messages before the kill");
@@ -200,13 +277,7 @@ fn killed_node_log_replays(tag: &str, extra: &[&str], wait_s: f64) -> cooploc::r
             _ => None,
         })
         .expect("the node initialised");
-    let imu_logged = log
-        .topic("/vehicle_1/mavlink/rx")
-        .filter(|m| match cooploc::protocol::wire::from_any_frame(&m.data) {
-            Ok((_, cooploc::protocol::MavMessage::HIGHRES_IMU(i))) => i.time_usec > t0,
-            _ => false,
-        })
-        .count() as u64;
+    let imu_logged = imu_logged_after(&log, t0);
     eprintln!("IMU samples logged after the initialisation {imu_logged}, replayed {}", replays[0].imu_replayed);
     assert!(imu_logged > 1000);
     assert_eq!(replays[0].imu_replayed, imu_logged);

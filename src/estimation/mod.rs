@@ -13,6 +13,7 @@
 //! | [`coop`] | the paper's cooperative joint update and the cross-covariance store (Eq. 10) |
 //! | [`dense`] | the joint update's rank-m downdate, symmetric and vectorised, rounded as nalgebra rounds it |
 //! | [`ci`] | covariance-intersection baseline |
+//! | [`coast`] | a state carried across a gap with nothing measured (a node restarted from its saved state) |
 //! | [`team`] | a team under one [`Method`]: dead reckoning, no-propagation, decentralized, centralized, CI |
 //! | [`consistency`] | NEES and chi-square bands |
 //!
@@ -20,6 +21,7 @@
 //! FRD (forward, right, down). Yaw is from north, clockwise seen from above. Time is [`TimeUs`](crate::time::TimeUs).
 
 pub mod ci;
+pub mod coast;
 pub mod commanded;
 pub mod consistency;
 pub mod coop;

@@ -513,6 +513,8 @@ impl Maker<'_> {
             ranges: false,
             unicast: false,
             record: false,
+            restore: None,
+            save_state: false,
         };
         let mut shell = NodeShell::new(NodeInit::Ready(Box::new(core)), config, clock(self.case, at.unwrap_or(TimeUs(0))))
             .map_err(|e| ExperimentError::Settings(format!("node shell: {e}")))?;

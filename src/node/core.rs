@@ -746,6 +746,23 @@ impl NodeCore {
         })
     }
 
+    /// A node whose filter starts at `t0` from `initial` with the error covariance `p` (a state
+    /// restored from disk, [`super::saved`]) instead of the model's initial one.
+    pub fn restored(cfg: NodeConfig, t0: TimeUs, initial: NavState, p: &nalgebra::DMatrix<f64>) -> Result<Self, NodeConfigError> {
+        let mut core = Self::new(cfg, t0, initial)?;
+        let dim = core.filter.dim();
+        if p.nrows() != dim || p.ncols() != dim {
+            return Err(EstimationError::DimensionMismatch { what: "restored covariance", expected: dim, got: p.nrows() }.into());
+        }
+        if !crate::estimation::kalman::is_psd(p, 1e-9) {
+            return Err(EstimationError::NotApplicable("a restored covariance must be positive semi-definite").into());
+        }
+        // A write-back of no correction: the covariance replaced, Psi the identity (as at a start).
+        core.filter.apply_joint(&nalgebra::DVector::zeros(dim), p)?;
+        core.history = VecDeque::from([(t0, Box::new(core.filter.clone()))]);
+        Ok(core)
+    }
+
     pub fn id(&self) -> PlatformId {
         self.cfg.id
     }

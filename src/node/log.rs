@@ -27,7 +27,7 @@ pub fn events_topic(id: PlatformId) -> String {
 /// Schema name of [`NodeEvent`] records.
 pub const NODE_EVENT_SCHEMA_NAME: &str = "cooploc.NodeEvent";
 /// JSON schema of [`NodeEvent`].
-pub const NODE_EVENT_SCHEMA: &str = r#"{"type":"object","title":"cooploc.NodeEvent","properties":{"kind":{"type":"string","enum":["poll","end_of_input","run_pending","init"]},"wall_us":{"type":"integer"},"t0_us":{"type":"integer"},"origin":{"type":"array","items":{"type":"number"},"description":"latitude, longitude (deg) and altitude (m) of the origin, when it came from the vehicle"},"state":{"type":"object","description":"the start state, when it came from the autopilot's estimate: pos_ned_m, vel_ned_m_s, att_frd_to_ned (w, x, y, z)"}},"required":["kind"]}"#;
+pub const NODE_EVENT_SCHEMA: &str = r#"{"type":"object","title":"cooploc.NodeEvent","properties":{"kind":{"type":"string","enum":["poll","end_of_input","run_pending","init","clock","start_refused","restored","range"]},"wall_us":{"type":"integer"},"t0_us":{"type":"integer"},"origin":{"type":"array","items":{"type":"number"},"description":"latitude, longitude (deg) and altitude (m) of the origin, when it came from the vehicle"},"state":{"type":"object","description":"init: the start state, when it came from the autopilot's estimate: pos_ned_m, vel_ned_m_s, att_frd_to_ned (w, x, y, z); restored: the saved state the node started from (platform, t_us, origin, nominal, covariance)"}},"required":["kind"]}"#;
 
 /// A start state in the node's log (the hand-over start's, which replay cannot rebuild from the
 /// frames alone without the decoder's clock).
@@ -91,6 +91,13 @@ pub enum NodeEvent {
     StartRefused {
         given_t0_us: u64,
         vehicle_t_us: u64,
+    },
+    /// The node started from the state it had saved (`cooploc node --state-file`), `age_us`
+    /// older than the vehicle's first sample and carried across that gap: `state` is what the
+    /// core was made from at its time (`state.t_us`).
+    Restored {
+        state: super::saved::SavedState,
+        age_us: u64,
     },
     /// A range from the ranging device beside the vehicle link (`cooploc node --ranges`), as the
     /// core took it.

@@ -68,6 +68,11 @@ pub struct Links {
     /// [`SIGNING_STATE_EVERY`] and at the end): a node whose clock is behind after a reboot
     /// still signs above every timestamp it used, so its peers do not take it for a replay.
     pub signing_state: Option<std::path::PathBuf>,
+    /// Where the navigation state is kept across restarts ([`super::saved`]): read at start (a
+    /// state at most [`super::saved::MAX_RESTORE_AGE_US`] older than the vehicle's first sample
+    /// is restored), written every [`super::saved::SAVE_EVERY_US`] of the team clock and at the
+    /// end, whole or not at all.
+    pub state_file: Option<std::path::PathBuf>,
     /// The vehicle link's signing key (the autopilot's), when its port is signed.
     pub vehicle_key: Option<TeamKey>,
     /// A ranging device on the companion ([`super::ranging`]), besides the vehicle link.
@@ -84,11 +89,29 @@ pub fn load_signing_state(path: &std::path::Path) -> Result<u64, NodeError> {
     }
 }
 
-/// Writes a signing state file whole or not at all (a temporary file renamed over it).
-pub fn save_signing_state(path: &std::path::Path, text: &str) -> std::io::Result<()> {
-    let tmp = path.with_extension("tmp");
+/// Writes a file whole or not at all (a temporary file beside it, renamed over it): the signing
+/// state, the navigation state.
+pub fn save_whole(path: &std::path::Path, text: &str) -> std::io::Result<()> {
+    let mut tmp = path.as_os_str().to_owned();
+    tmp.push(".tmp");
     std::fs::write(&tmp, text)?;
     std::fs::rename(&tmp, path)
+}
+
+/// Reads a navigation state file: None when it does not exist yet, or when it cannot be used
+/// (said on stdout and in the trace, with the reason: a node with a damaged state file still
+/// starts, as it would without one).
+pub fn load_nav_state(path: &std::path::Path, id: crate::estimation::PlatformId) -> Option<super::saved::SavedState> {
+    let said = |why: String| {
+        println!("node {id} state file {} not used: {why}", path.display());
+        tracing::warn!(path = %path.display(), why, "state file not used");
+        None
+    };
+    match std::fs::read_to_string(path) {
+        Ok(text) => super::saved::SavedState::parse(&text).or_else(|why| said(why).ok_or(())).ok(),
+        Err(e) if e.kind() == std::io::ErrorKind::NotFound => None,
+        Err(e) => said(e.to_string()),
+    }
 }
 
 /// Receive buffer asked for the cooperative socket: a burst of state records (14 fragments per
@@ -115,6 +138,7 @@ struct Io<'a> {
     coop: &'a CoopLink,
     recorder: &'a Option<SharedRecorder>,
     signing_state: Option<&'a std::path::Path>,
+    state_file: Option<&'a std::path::Path>,
 }
 
 impl Io<'_> {
@@ -133,15 +157,24 @@ impl Io<'_> {
                     }
                 }
                 ShellOutput::SigningState(text) => self.save(&text),
+                ShellOutput::NavState(text) => self.save_nav(&text),
             }
         }
     }
 
     fn save(&self, text: &str) {
         if let Some(path) = self.signing_state
-            && let Err(e) = save_signing_state(path, text)
+            && let Err(e) = save_whole(path, text)
         {
             tracing::warn!(path = %path.display(), error = %e, "could not save the signing state");
+        }
+    }
+
+    fn save_nav(&self, text: &str) {
+        if let Some(path) = self.state_file
+            && let Err(e) = save_whole(path, text)
+        {
+            tracing::warn!(path = %path.display(), error = %e, "could not save the navigation state");
         }
     }
 }
@@ -195,6 +228,14 @@ pub async fn run(
         ranges: links.ranges.is_some(),
         unicast: matches!(links.coop, CoopSpec::Udp { .. }),
         record: recorder.is_some(),
+        restore: None,
+        save_state: links.state_file.is_some(),
+    };
+    let mut config = config;
+    config.restore = match (&links.state_file, &init) {
+        (Some(path), NodeInit::Given { core, .. } | NodeInit::Ready(core)) => load_nav_state(path, core.id()),
+        (Some(path), NodeInit::Pending { config, .. }) => load_nav_state(path, config.id),
+        (None, _) => None,
     };
     let mut shell = NodeShell::new(init, config, now())?;
     let id = shell.id();
@@ -214,7 +255,13 @@ pub async fn run(
         None => None,
     };
     let (reader, mut vrx) = spawn_vehicle_reader(vehicle.clone());
-    let io = Io { vehicle: &vehicle, coop: &coop, recorder: &recorder, signing_state: links.signing_state.as_deref() };
+    let io = Io {
+        vehicle: &vehicle,
+        coop: &coop,
+        recorder: &recorder,
+        signing_state: links.signing_state.as_deref(),
+        state_file: links.state_file.as_deref(),
+    };
     let mut tick = tokio::time::interval(TICK);
     let mut buf = vec![0u8; 65_536];
     tokio::pin!(shutdown);
@@ -251,10 +298,42 @@ pub async fn run(
     if let Some(state) = shell.signing_state() {
         io.save(&state);
     }
+    if let Some(state) = shell.nav_state() {
+        io.save_nav(&state);
+    }
     Ok(shell.summary(LinkFacts {
         coop_noise_bytes: coop.noise_bytes(),
         coop_dropped: coop.dropped(),
         vehicle_signing: vehicle.signing_counters(),
         wall_s: clock.elapsed().as_secs_f64(),
     }))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A missing state file is a first start; a damaged one is not used (the node starts as
+    /// without it); a good one reads back; a save leaves no temporary file behind.
+    #[test]
+    fn state_files_are_read_whole_or_not_used() {
+        let dir = std::env::temp_dir().join(format!("cooploc-runner-state-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let path = dir.join("node.state");
+        assert_eq!(load_nav_state(&path, 3), None);
+        std::fs::write(&path, "{\"format\":1,").unwrap();
+        assert_eq!(load_nav_state(&path, 3), None);
+        let origin = crate::geodesy::GeoOrigin { lat_deg: 34.7, lon_deg: 0.0, alt_m: 0.0 };
+        let model = crate::estimation::nav::NavModel::Planar {
+            config: crate::estimation::planar::PlanarConfig::from_sample_sigmas(0.05, 0.01, 20.0),
+            initial_sigma: crate::estimation::planar::PlanarSigma { pos_m: 0.5, yaw_rad: 0.02 },
+        };
+        let state = crate::estimation::planar::PlanarState { pos_ned_m: nalgebra::Vector3::new(3.0, 4.0, 0.0), yaw_rad: 0.1 };
+        let filter = crate::estimation::nav::NavFilter::new(model, crate::time::TimeUs(7_000_000), state.into()).unwrap();
+        let saved = super::super::saved::SavedState::of(3, &origin, &filter);
+        save_whole(&path, &saved.to_text()).unwrap();
+        assert_eq!(load_nav_state(&path, 3), Some(saved));
+        assert!(!dir.join("node.state.tmp").exists());
+        let _ = std::fs::remove_dir_all(&dir);
+    }
 }

@@ -33,8 +33,10 @@ use super::inputs::{ClockSource, InputCounters, VehicleEvent, VehicleInputs};
 use super::log::{CoopUpdateRecord, NodeEvent};
 use super::peers::{Heard, PeerCounters, PeerTable};
 use super::profile::{TeamClock, VehicleProfile};
+use super::saved::{SAVE_EVERY_US, SavedState};
 use super::vehicle_link::Received;
 use crate::estimation::PlatformId;
+use crate::estimation::coast::CoastBounds;
 use crate::estimation::ins::InsState;
 use crate::estimation::nav::NavState;
 use crate::protocol::MavMessage;
@@ -124,6 +126,12 @@ pub struct ShellConfig {
     pub unicast: bool,
     /// A log is kept: the shell gives [`ShellOutput::Record`]s.
     pub record: bool,
+    /// The state the node saved before (its state file, read and checked): restored at the
+    /// vehicle's first sample when plausible ([`super::saved`]).
+    pub restore: Option<SavedState>,
+    /// Keep the navigation state: the shell gives [`ShellOutput::NavState`] every
+    /// [`SAVE_EVERY_US`] of the team clock.
+    pub save_state: bool,
 }
 
 /// The two clocks of the companion, read by the runner at each call.
@@ -169,6 +177,8 @@ pub enum ShellOutput {
     Record(Record),
     /// Keep this signing state (the text of the signing state file).
     SigningState(String),
+    /// Keep this navigation state (the text of the state file, [`super::saved`]).
+    NavState(String),
 }
 
 /// What the node put on the cooperative network.
@@ -336,6 +346,12 @@ pub struct NodeShell {
     pending: Option<Pending>,
     /// A given start state, checked against the vehicle's first sample: (origin, its time).
     given_start: Option<(wire::GeoOrigin, TimeUs)>,
+    /// The saved state, until the first sample decides whether it is restored.
+    restore: Option<SavedState>,
+    /// The origin of the filter's NED frame, once the node has its state.
+    nav_origin: Option<wire::GeoOrigin>,
+    /// When the navigation state was last given to be saved (team clock).
+    saved_at: Option<TimeUs>,
     handover: Option<Handover>,
     hand_over_state: Option<InsState>,
     last_imu_t: Option<TimeUs>,
@@ -376,6 +392,8 @@ impl NodeShell {
             NodeInit::Given { core, origin } => Some((*origin, core.filter().time())),
             _ => None,
         };
+        let nav_origin = given_start.map(|(o, _)| o);
+        let restore = config.restore.clone();
         let (id, core, pending) = match init {
             NodeInit::Ready(core) | NodeInit::Given { core, .. } => (core.id(), Some(*core), None),
             NodeInit::Pending { config, origin, state, from_autopilot } => {
@@ -427,6 +445,9 @@ impl NodeShell {
             core,
             pending,
             given_start,
+            restore,
+            nav_origin,
+            saved_at: None,
             handover,
             hand_over_state: None,
             last_imu_t: None,
@@ -783,8 +804,10 @@ impl NodeShell {
         tracing::info!(platform = self.id, t0 = %t0, pos = ?made.filter().position_ned_m(), lat_deg = origin.lat_deg, "initialised");
         let o = self.autopilot.origin_from_vehicle.map(|o| [o.lat_deg, o.lon_deg, o.alt_m]);
         let start = self.hand_over_state.as_ref().map(super::log::StartState::of);
+        let origin = *origin;
         self.event(NodeEvent::Init { t0_us: t0.0, origin: o, state: start });
         self.core = Some(made);
+        self.nav_origin = Some(origin);
         self.pending = None;
         Ok(())
     }
@@ -821,8 +844,9 @@ impl NodeShell {
         for event in events {
             match event {
                 VehicleEvent::Input(input) => {
+                    let restored = self.check_restore(&input);
                     self.check_given_start(&input);
-                    if self.core.is_none() {
+                    if self.core.is_none() || restored {
                         self.last_imu_t = input.drive_time().or(self.last_imu_t);
                         self.before_init += 1;
                     } else {
@@ -835,6 +859,66 @@ impl NodeShell {
             }
         }
         inputs
+    }
+
+    /// The saved state against the vehicle's first sample (once the origin is known): restored
+    /// when it is for this platform, model and origin, newer than a given start state, and at
+    /// most [`super::saved::MAX_RESTORE_AGE_US`] old; refused with its reason otherwise. True when the core
+    /// was made from it at this sample's time (the sample itself then only marks the start).
+    fn check_restore(&mut self, input: &NodeInput) -> bool {
+        let id = self.id;
+        let Some(t1) = input.drive_time() else { return false };
+        if self.restore.is_none() {
+            return false;
+        }
+        let (origin, config) = match (&self.given_start, &self.pending, &self.core) {
+            (Some((origin, _)), _, Some(core)) => (*origin, core.config().clone()),
+            (None, Some(Pending { origin: Some(origin), from_autopilot: false, config, .. }), _) => (*origin, config.clone()),
+            // (the vehicle's origin is not known yet: decided at a later sample)
+            (None, Some(Pending { origin: None, from_autopilot: false, .. }), _) => return false,
+            // a node made ready by its caller, or one that starts at the autopilot's hand-over
+            _ => {
+                self.restore = None;
+                return false;
+            }
+        };
+        let Some(saved) = self.restore.take() else { return false };
+        if let Some((_, t0)) = self.given_start
+            && t0.0 >= saved.t_us
+            && t1.0 <= t0.0.saturating_add(STALE_START_US)
+        {
+            println!("node {id} saved state of t {} not used: the given start state (t {t0}) is newer", saved.t_us);
+            return false;
+        }
+        let refused = |why: String| {
+            println!("node {id} saved state refused: {why}");
+            tracing::warn!(platform = id, why, "saved state refused");
+            false
+        };
+        let (state, p) = match saved.restore_at(id, &config.model, &origin, t1, &CoastBounds::LAND) {
+            Ok(restored) => restored,
+            Err(why) => return refused(why),
+        };
+        let core = match NodeCore::restored(config, t1, state, &p) {
+            Ok(core) => core,
+            Err(e) => return refused(e.to_string()),
+        };
+        let age_us = t1.0 - saved.t_us;
+        let sigma = (p[(0, 0)] + p[(1, 1)]).sqrt();
+        println!(
+            "node {id} restored from its saved state of t {} ({:.1} s before the vehicle's first sample): pos_ned_m {:?}, horizontal sigma {sigma:.2} m",
+            saved.t_us,
+            age_us as f64 / 1e6,
+            core.filter().position_ned_m().as_slice()
+        );
+        tracing::info!(platform = id, age_s = age_us as f64 / 1e6, sigma_m = sigma, "restored from the saved state");
+        let state = SavedState::of(id, &origin, core.filter());
+        self.event(NodeEvent::Restored { state, age_us });
+        self.core = Some(core);
+        self.nav_origin = Some(origin);
+        self.given_start = None;
+        self.pending = None;
+        true
     }
 
     /// A given start state against the vehicle's first sample: refused when stale.
@@ -1022,6 +1106,27 @@ impl NodeShell {
             }
         }
         self.core_outputs(out, now);
+        self.maybe_save_state();
+    }
+
+    /// Gives the navigation state to be saved, every [`SAVE_EVERY_US`] of the team clock.
+    fn maybe_save_state(&mut self) {
+        if !self.config.save_state {
+            return;
+        }
+        let (Some(core), Some(origin)) = (&self.core, &self.nav_origin) else { return };
+        let t = core.filter().time();
+        if self.saved_at.is_some_and(|at| t.0 < at.0.saturating_add(SAVE_EVERY_US)) {
+            return;
+        }
+        self.saved_at = Some(t);
+        self.out.push(ShellOutput::NavState(SavedState::of(self.id, origin, core.filter()).to_text()));
+    }
+
+    /// The navigation state to keep at the end (None: not kept, or no state yet).
+    pub fn nav_state(&self) -> Option<String> {
+        let (Some(core), Some(origin)) = (&self.core, &self.nav_origin) else { return None };
+        self.config.save_state.then(|| SavedState::of(self.id, origin, core.filter()).to_text())
     }
 
     /// What the node did, with what the links know.
@@ -1103,6 +1208,8 @@ mod tests {
             ranges: false,
             unicast: true,
             record: true,
+            restore: None,
+            save_state: false,
         };
         NodeShell::new(NodeInit::Ready(Box::new(core)), config, at(0)).unwrap()
     }
@@ -1158,6 +1265,8 @@ mod tests {
             ranges: false,
             unicast: true,
             record: false,
+            restore: None,
+            save_state: false,
         };
         let init = NodeInit::Pending { config: Box::new(cfg), origin: None, state: None, from_autopilot: false };
         let err = NodeShell::new(init, config, at(0)).err().expect("platform 300 refused");

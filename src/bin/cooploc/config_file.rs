@@ -12,7 +12,7 @@ use std::path::{Path, PathBuf};
 use anyhow::{Context, bail};
 
 /// Options whose values are paths (resolved against the config file's folder).
-const PATH_KEYS: [&str; 6] = ["vehicle-config", "team-key", "vehicle-key", "signing-state", "scenario", "log"];
+const PATH_KEYS: [&str; 7] = ["vehicle-config", "team-key", "vehicle-key", "signing-state", "state-file", "scenario", "log"];
 
 /// `argv` with `--config FILE` (or `--config=FILE`) of subcommand `sub` replaced by the file's
 /// options; other command lines come back unchanged.

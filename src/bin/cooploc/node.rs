@@ -93,6 +93,15 @@ pub struct Args {
     /// replay. Only with --team-key.
     #[arg(long, value_name = "FILE", requires = "team_key")]
     signing_state: Option<PathBuf>,
+    /// Keep the navigation state in this file (written every second of the team clock and at
+    /// the end, whole or not at all), so that a node restarted with the same arguments starts
+    /// where its vehicle was: at the vehicle's first sample, a state saved by this platform
+    /// about this origin at most 30 s before is restored, moved on at its velocity and its
+    /// covariance grown by what a land vehicle can do meanwhile; it wins over a start state
+    /// that is older or stale. Anything else in the file is refused with the reason and the
+    /// node starts as without it.
+    #[arg(long, value_name = "FILE")]
+    state_file: Option<PathBuf>,
     /// Sign the vehicle link with this key (the same file format as --team-key; MAVProxy's
     /// `signing setup PASSPHRASE` on the autopilot's port): for an autopilot that refuses
     /// unsigned frames. Every frame to the vehicle is signed, only signed frames are taken.
@@ -257,6 +266,7 @@ pub fn run_cmd(args: Args) -> anyhow::Result<()> {
         profile: profile.clone(),
         team_key,
         signing_state: args.signing_state.clone(),
+        state_file: args.state_file.clone(),
         vehicle_key,
         ranges,
     };
