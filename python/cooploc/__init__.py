@@ -21,6 +21,8 @@ So far (the first step of issue 35):
   ``cooploc dataset mrclam``'s table as dicts (``dataset::run::run``);
 - :func:`experiment`: the Monte Carlo of ``cooploc experiment``, its summary and RMS curves
   (``experiment::run_experiment``, ``experiment::report``);
+- :class:`SequenceTracker`: frames lost, late and repeated by their MAVLink sequence numbers, the
+  one rule of the node, the ground station and the MAVProxy module (``protocol::sequence``);
 - :data:`PALETTE`: the colour of each platform on every cooploc display (``view::PALETTE``).
 
 The MAVProxy module is :mod:`cooploc.mavproxy`; MAVProxy's ``module load cooploc`` finds this
@@ -33,7 +35,9 @@ import json as _json
 from cooploc._native import (
     CHI2_2DOF_95,
     EARTH_RADIUS_M,
+    MAX_REORDER,
     PALETTE,
+    SequenceTracker,
     __version__,
     check_frame,
     ellipse95,
@@ -70,7 +74,9 @@ def init(mpstate):
 __all__ = [
     "CHI2_2DOF_95",
     "EARTH_RADIUS_M",
+    "MAX_REORDER",
     "PALETTE",
+    "SequenceTracker",
     "__version__",
     "check_frame",
     "ellipse95",

@@ -6,6 +6,7 @@ __version__: str
 CHI2_2DOF_95: float
 EARTH_RADIUS_M: float
 PALETTE: list[str]
+MAX_REORDER: int
 
 Origin = Tuple[float, float, float]
 
@@ -43,3 +44,17 @@ def experiment_json(scenario: str, runs: int, methods: Sequence[str], schedules:
 
 def estimate_from_frame(frame: bytes) -> dict:
     """The checked COOPLOC_ESTIMATE of the first MAVLink 2 frame; ValueError names what is wrong."""
+
+class SequenceTracker:
+    """Frames received, lost, late and repeated from one MAVLink sender on one link
+    (``protocol::sequence``: the one rule of the node, the ground station and this package)."""
+
+    received: int
+    lost: int
+    late: int
+    repeats: int
+    restarts: int
+    last: Optional[int]
+    def __init__(self) -> None: ...
+    def observe(self, seq: int) -> None: ...
+    def loss_fraction(self) -> Optional[float]: ...

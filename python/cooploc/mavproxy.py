@@ -27,7 +27,8 @@ Per vehicle
   semi-axes ``sqrt(5.991464547107979 * eigenvalue)`` (chi-square, 2 dof, 95 %), the bearing of
   the major axis from north towards east in (-90, 90] degrees (as ``cooploc gcs`` gives it).
 - Link loss from the MAVLink sequence numbers of the node's frames (source (id, 191)), per
-  MAVProxy link: ``lost / (received + lost)`` in %; estimate rate (estimates a second) and the
+  MAVProxy link, by the library's one rule (``cooploc.SequenceTracker``: a late frame takes its
+  loss back, a repeat or a restarted sender is no loss): ``lost / (received + lost)`` in %; estimate rate (estimates a second) and the
   node's bytes a second (frame bytes from (id, 191), a frame seen on two links counted once), both
   over the last 10 s of receive time; whether its frames are signed (MAVLink 2 ``incompat_flags``
   bit 0; pymavlink's ``get_signed()`` is only true for a signature it checked with its own key).
@@ -224,11 +225,6 @@ def method_name(value):
     return METHODS.get(value)
 
 
-def seq_gap(last, seq):
-    """Frames lost between sequence numbers ``last`` and ``seq`` (uint8, wrapping at 255)."""
-    return (seq - last - 1) % 256
-
-
 def fmt_float(v):
     """``repr`` of a float, '-' for NaN (what ``cooploc status`` prints for decoded fields)."""
     return "-" if isinstance(v, float) and math.isnan(v) else repr(v)
@@ -251,27 +247,6 @@ class RecentFrames:
         self.order.append(key)
         self.keys.add(key)
         return False
-
-
-class SeqLoss:
-    """Frames received and lost (sequence gaps) of one source on one link."""
-
-    __slots__ = ("last", "received", "lost")
-
-    def __init__(self):
-        self.last = None
-        self.received = 0
-        self.lost = 0
-
-    def observe(self, seq):
-        if self.last is not None:
-            self.lost += seq_gap(self.last, seq)
-        self.last = seq
-        self.received += 1
-
-    def loss_pct(self):
-        total = self.received + self.lost
-        return 100.0 * self.lost / total if total else 0.0
 
 
 class RateWindow:
@@ -714,7 +689,7 @@ class VehicleView:
         self.signed_rate = RateWindow()
         self.unsigned_rate = RateWindow()
         self.recent_frames = RecentFrames(128)
-        self.loss = {}              # MAVProxy link number -> SeqLoss of (id, 191)
+        self.loss = {}              # MAVProxy link number -> cooploc.SequenceTracker of (id, 191)
         self.hb_time = None
         self.hb_type = None
         self.estimates = 0
@@ -743,7 +718,7 @@ class VehicleView:
     def loss_text(self):
         if not self.loss:
             return "-"
-        return ",".join("%d:%.2f" % (link, self.loss[link].loss_pct()) for link in sorted(self.loss))
+        return ",".join("%d:%.2f" % (link, 100.0 * (self.loss[link].loss_fraction() or 0.0)) for link in sorted(self.loss))
 
 
 class CooplocModule(_MPModule):
@@ -886,7 +861,7 @@ class CooplocModule(_MPModule):
             link = getattr(master, "linknum", 0)
             loss = v.loss.get(link)
             if loss is None:
-                loss = v.loss[link] = SeqLoss()
+                loss = v.loss[link] = _cooploc.SequenceTracker()
             loss.observe(seq)
             if not v.seen_frame(hash(bytes(buf))):
                 v.bytes_rate.add(now, len(buf))

@@ -340,6 +340,75 @@ fn experiment_json(
     .map_err(PyValueError::new_err)
 }
 
+/// Frames received, lost, late and repeated from one MAVLink sender on one link, by their
+/// sequence numbers (`protocol::sequence::SequenceTracker`: the one rule of the node, the ground
+/// station and the MAVProxy module). `observe(seq)` takes each frame's number (0..=255).
+#[pyclass(name = "SequenceTracker", module = "cooploc._native")]
+#[derive(Default)]
+struct PySequenceTracker(cooploc::protocol::sequence::SequenceTracker);
+
+#[pymethods]
+impl PySequenceTracker {
+    #[new]
+    fn new() -> Self {
+        Self::default()
+    }
+
+    /// One frame's sequence number; `ValueError` outside 0..=255.
+    fn observe(&mut self, seq: i64) -> PyResult<()> {
+        let seq = u8::try_from(seq).map_err(|_| PyValueError::new_err(format!("sequence number {seq} outside 0..=255")))?;
+        self.0.observe(seq);
+        Ok(())
+    }
+
+    #[getter]
+    fn received(&self) -> u64 {
+        self.0.received
+    }
+
+    #[getter]
+    fn lost(&self) -> u64 {
+        self.0.lost
+    }
+
+    /// Frames that came after a later one (their loss taken back).
+    #[getter]
+    fn late(&self) -> u64 {
+        self.0.late
+    }
+
+    /// The same number twice in a row.
+    #[getter]
+    fn repeats(&self) -> u64 {
+        self.0.repeats
+    }
+
+    /// Jumps back beyond the reordering window: the sender started its numbers again.
+    #[getter]
+    fn restarts(&self) -> u64 {
+        self.0.restarts
+    }
+
+    /// The last number followed (None before the first frame).
+    #[getter]
+    fn last(&self) -> Option<u8> {
+        self.0.last()
+    }
+
+    /// Lost / (received + lost); None before two frames.
+    fn loss_fraction(&self) -> Option<f64> {
+        self.0.loss_fraction()
+    }
+
+    fn __repr__(&self) -> String {
+        let t = &self.0;
+        format!(
+            "SequenceTracker(received={}, lost={}, late={}, repeats={}, restarts={})",
+            t.received, t.lost, t.late, t.repeats, t.restarts
+        )
+    }
+}
+
 #[pymodule]
 fn _native(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add("__version__", env!("CARGO_PKG_VERSION"))?;
@@ -355,6 +424,8 @@ fn _native(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_function(wrap_pyfunction!(read_log, m)?)?;
     m.add_function(wrap_pyfunction!(mrclam, m)?)?;
     m.add_function(wrap_pyfunction!(experiment_json, m)?)?;
+    m.add_class::<PySequenceTracker>()?;
+    m.add("MAX_REORDER", cooploc::protocol::sequence::MAX_REORDER)?;
     m.add("PALETTE", cooploc::view::PALETTE.map(|[r, g, b]| format!("{r:02x}{g:02x}{b:02x}")))?;
     Ok(())
 }

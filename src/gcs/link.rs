@@ -37,39 +37,7 @@ pub struct SourceKey {
     pub compid: u8,
 }
 
-/// Loss from MAVLink sequence numbers (one counter per sender and component, wrapping at 256).
-///
-/// A frame whose sequence number is `d` ahead of the expected one (`d` in 1..128, modulo 256)
-/// means `d` frames were lost. A number behind the expected one (`d` in 128..256) is a
-/// duplicate, a reordered frame or a restarted sender: counted as out of order, no loss, and the
-/// tracker follows the new number.
-#[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
-pub struct SequenceTracker {
-    last: Option<u8>,
-    pub received: u64,
-    pub lost: u64,
-    pub out_of_order: u64,
-}
-
-impl SequenceTracker {
-    pub fn observe(&mut self, seq: u8) {
-        self.received += 1;
-        if let Some(last) = self.last {
-            let gap = seq.wrapping_sub(last.wrapping_add(1));
-            if gap < 128 {
-                self.lost += u64::from(gap);
-            } else {
-                self.out_of_order += 1;
-            }
-        }
-        self.last = Some(seq);
-    }
-
-    /// Lost / (received + lost); `None` before two frames.
-    pub fn loss_fraction(&self) -> Option<f64> {
-        (self.received >= 2).then(|| self.lost as f64 / (self.received + self.lost) as f64)
-    }
-}
+pub use crate::protocol::sequence::SequenceTracker;
 
 /// Bytes received over the last `window_ns`.
 #[derive(Debug, Clone)]
@@ -168,49 +136,6 @@ impl LinkStats {
 #[cfg(test)]
 mod tests {
     use super::*;
-
-    fn track(seqs: &[u8]) -> SequenceTracker {
-        let mut t = SequenceTracker::default();
-        seqs.iter().for_each(|&s| t.observe(s));
-        t
-    }
-
-    #[test]
-    fn no_gap_no_loss() {
-        let t = track(&[7, 8, 9, 10]);
-        assert_eq!((t.received, t.lost, t.out_of_order), (4, 0, 0));
-        assert_eq!(t.loss_fraction(), Some(0.0));
-        assert_eq!(track(&[3]).loss_fraction(), None);
-    }
-
-    #[test]
-    fn gaps_count_the_missing_frames() {
-        // 10 received, 11..=13 and 15 missing: 4 lost of 10 + 4.
-        let t = track(&[10, 14, 16]);
-        assert_eq!((t.received, t.lost), (3, 4));
-        assert!((t.loss_fraction().unwrap() - 4.0 / 7.0).abs() < 1e-12);
-    }
-
-    #[test]
-    fn wraparound_is_not_loss() {
-        let t = track(&[253, 254, 255, 0, 1]);
-        assert_eq!((t.lost, t.out_of_order), (0, 0));
-        // 254 then 2: 255, 0, 1 lost across the wrap.
-        let t = track(&[254, 2]);
-        assert_eq!(t.lost, 3);
-    }
-
-    #[test]
-    fn duplicates_and_reordering_are_not_loss() {
-        // 5, 7 (6 lost), 6 (late: out of order), 7 (duplicate), 8.
-        let t = track(&[5, 7, 6, 7, 8]);
-        assert_eq!(t.received, 5);
-        assert_eq!(t.out_of_order, 1, "6 after 7 is behind");
-        // 7 after 6 is expected, 8 after 7 too: the only loss counted is the first gap.
-        assert_eq!(t.lost, 1);
-        let t = track(&[9, 9]);
-        assert_eq!((t.lost, t.out_of_order), (0, 1));
-    }
 
     #[test]
     fn rate_over_the_window() {

@@ -635,7 +635,8 @@ impl GcsState {
                 bytes: s.bytes,
                 bytes_per_s: s.rate.bytes_per_s(now, s.first_heard),
                 lost: s.seq.lost,
-                out_of_order: s.seq.out_of_order,
+                late: s.seq.late,
+                restarts: s.seq.restarts,
                 loss_pct: s.seq.loss_fraction().map(|f| f * 100.0),
                 last_heard_s_ago: since(s.last_heard),
                 messages: s.messages.iter().map(|(k, v)| (k.to_string(), *v)).collect(),
@@ -883,7 +884,10 @@ pub struct LinkJson {
     pub bytes: u64,
     pub bytes_per_s: f64,
     pub lost: u64,
-    pub out_of_order: u64,
+    /// Frames that came after a later one, and restarts of the sender's numbering
+    /// ([`crate::protocol::sequence`]).
+    pub late: u64,
+    pub restarts: u64,
     pub loss_pct: Option<f64>,
     pub last_heard_s_ago: f64,
     pub messages: BTreeMap<String, u64>,
@@ -1046,7 +1050,7 @@ mod tests {
         let el = last.ellipse.unwrap();
         assert!(close(el.semi_major_m, (CHI2_2DOF_95 * 4.0).sqrt(), 1e-6) && close(el.major_bearing_deg, 0.0, 1e-9));
         let l1 = &gcs.links[&SourceKey { link: Link::Coop, sysid: 1, compid: NODE_COMPID }];
-        assert_eq!((l1.packets, l1.seq.lost, l1.seq.out_of_order), (8, 2, 0));
+        assert_eq!((l1.packets, l1.seq.lost, l1.seq.late), (8, 2, 0));
         assert!(close(l1.seq.loss_fraction().unwrap(), 0.2, 1e-12));
         assert_eq!(l1.last_addr, Some(addr(5001)));
         let l2 = &gcs.links[&SourceKey { link: Link::Coop, sysid: 2, compid: NODE_COMPID }];

@@ -285,31 +285,14 @@ fn next_header(seq: &mut u8, sysid: u8) -> MavHeader {
     MavHeader { system_id: u32::from(sysid), component_id: wire::COMPANION_COMPID, sequence: *seq }
 }
 
-/// The vehicle's frames counted: received, from another system, of another dialect, lost in
-/// sequence gaps.
+/// The vehicle's frames counted: received, from another system, of another dialect, and the
+/// autopilot's sequence numbers ([`crate::protocol::sequence`]: the loss, late frames).
 #[derive(Debug, Clone, Copy, Default)]
 struct VehicleCounts {
     frames: u64,
     rejected: u64,
     other_dialect: u64,
-    lost: u64,
-    last_seq: Option<u8>,
-}
-
-impl VehicleCounts {
-    /// A gap is loss; a frame from behind the last one (reordered on the way) was counted lost
-    /// in its gap and is not.
-    fn sequence(&mut self, seq: u8) {
-        match self.last_seq.map(|last| seq.wrapping_sub(last)) {
-            None => self.last_seq = Some(seq),
-            Some(0) => {}
-            Some(ahead) if ahead < 128 => {
-                self.lost += u64::from(ahead - 1);
-                self.last_seq = Some(seq);
-            }
-            Some(_) => self.lost = self.lost.saturating_sub(1),
-        }
-    }
+    seq: crate::protocol::sequence::SequenceTracker,
 }
 
 /// The team clock's state: TIMESYNC and what the node last said about the clock.
@@ -698,7 +681,7 @@ impl NodeShell {
             return Ok(());
         }
         if header.component_id == 1 {
-            self.vehicle.sequence(header.sequence);
+            self.vehicle.seq.observe(header.sequence);
         }
         // A message of the autopilot's own dialect: its sequence number counted above, nothing
         // for the node in it.
@@ -1142,7 +1125,7 @@ impl NodeShell {
             vehicle_frames: self.vehicle.frames,
             vehicle_rejected: self.vehicle.rejected,
             vehicle_other_dialect: self.vehicle.other_dialect,
-            vehicle_lost: self.vehicle.lost,
+            vehicle_lost: self.vehicle.seq.lost,
             coop_frames: self.coop_frames,
             coop_rejected: self.coop_rejected,
             coop_noise_bytes: links.coop_noise_bytes,

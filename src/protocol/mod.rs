@@ -7,6 +7,8 @@
 //!   16-bit correlation-form matrices.
 //! - [`fragment`]: cutting records into COOPLOC_STATE_FRAGMENT payloads and reassembling them.
 //! - [`budget`]: the bytes a team sends, per node and in all, and what links carry them.
+//! - [`sequence`]: loss from MAVLink sequence numbers, the one rule of the node, the ground
+//!   station and the MAVProxy module.
 //! - [`wire`]: conversions between generated messages and the core's types (units, packing).
 
 pub mod budget;
@@ -15,6 +17,7 @@ pub mod coop;
 pub mod fragment;
 pub mod framing;
 pub mod record;
+pub mod sequence;
 pub mod signing;
 pub mod wire;
 

@@ -127,5 +127,15 @@ check("geo_to_ned: NaN origin -> ValueError",
       raises(ValueError, cooploc.geo_to_ned, 0.0, 0.0, 0.0, (math.nan, 0.0, 0.0)) is not None)
 check("MAVProxy's entry point is the package's", callable(getattr(cooploc, "init", None)))
 
+# The one sequence rule: numbers outside a byte refused, nothing counted for them.
+t = cooploc.SequenceTracker()
+for q in (10, 13, 12, 14, 14):
+    t.observe(q)
+check("SequenceTracker: gap, late, repeat", (t.received, t.lost, t.late, t.repeats, t.last) == (5, 1, 1, 1, 14), t)
+check("SequenceTracker: 256 -> ValueError", raises(ValueError, t.observe, 256) is not None)
+check("SequenceTracker: -1 -> ValueError", raises(ValueError, t.observe, -1) is not None)
+check("SequenceTracker: a string -> TypeError", raises(TypeError, t.observe, "7") is not None)
+check("SequenceTracker: refused numbers count nothing", t.received == 5, t)
+
 print("bindings_check: %d failed%s" % (len(failures), (": " + "; ".join(failures)) if failures else ""))
 sys.exit(1 if failures else 0)

@@ -102,13 +102,19 @@ def pure_checks(cl):
           and close(alt, 15.0), (lat, lon, alt))
     check("default origin 34.7 0 0", tuple(cl.DEFAULT_ORIGIN) == (34.7, 0.0, 0.0), cl.DEFAULT_ORIGIN)
 
-    # Sequence loss across the wrap: 250..255, 0, (1 lost), 2, 3; then 3 -> 7 (4, 5, 6 lost).
-    s = cl.SeqLoss()
+    # Sequence loss, the library's one rule (cooploc.SequenceTracker, protocol::sequence): across
+    # the wrap 250..255, 0, (1 lost), 2, 3; then 3 -> 7 (4, 5, 6 lost); 5 late (its loss taken
+    # back); 7 again (a repeat); 200 -> a restarted sender (followed, nothing lost).
+    s = cl._cooploc.SequenceTracker()
     for q in (250, 251, 252, 253, 254, 255, 0, 2, 3, 7):
         s.observe(q)
-    check("sequence loss with wrap at 255", s.received == 10 and s.lost == 4 and close(s.loss_pct(), 400 / 14),
+    check("sequence loss with wrap at 255", s.received == 10 and s.lost == 4 and close(s.loss_fraction(), 4 / 14),
           (s.received, s.lost))
-    check("seq_gap", cl.seq_gap(255, 0) == 0 and cl.seq_gap(254, 1) == 2 and cl.seq_gap(10, 10) == 255)
+    for q in (5, 7, 200, 201):
+        s.observe(q)
+    check("late, repeated and restarted senders are not loss", (s.lost, s.late, s.repeats, s.restarts, s.last)
+          == (3, 1, 1, 1, 201), s)
+    check("no sequence rule of the module's own", not hasattr(cl, "SeqLoss") and not hasattr(cl, "seq_gap"))
 
     # Epoch reports: agree, disagree (3's digest), disagree (2's participants), agree.
     t = cl.EpochTracker()
@@ -475,7 +481,8 @@ def module_checks(cl, dialect):
     send(2, estimate(d, 4_000_000, 2))
     kv = dict(w.split("=", 1) for w in mod.vehicle_line(v, now()).split()[3:])
     check("stand-in: sequence gaps are link loss", v.loss[0].lost == 3 and v.loss[1].lost == 0
-          and kv["loss_pct"] == "0:%.2f,1:0.00" % (300.0 / (v.loss[0].received + 3)), (kv["loss_pct"], v.loss[0].lost))
+          and kv["loss_pct"] == "0:%.2f,1:0.00" % (300.0 / (v.loss[0].received + 3))
+          and type(v.loss[0]).__module__.startswith("cooploc"), (kv["loss_pct"], v.loss[0].lost))
     # Heartbeat, ack, ranges, fragments.
     send(2, d.MAVLink_heartbeat_message(18, 8, 0, 0, 4, 3))
     send(2, d.MAVLink_command_ack_message(512, 0, 0, 0, 255, 0))

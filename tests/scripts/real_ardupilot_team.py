@@ -29,8 +29,14 @@ final. It builds nothing: it runs the `ardurover` binary it is given.
   keeps no location at rest, and AUTO then never starts its mission); with GNSS lost it turns
   off the VisOdom arming check (the nodes send no ODOMETRY before the hand-over).
 
+- `--restart-node K --restart-at-s S`: node K is killed (SIGKILL) S seconds into the mission and
+  started again at once with the same command line, as a supervisor would; every node keeps its
+  navigation state (`state_file = "node.state"`), so the restarted one restores it. The driver
+  prints the restarted rover's EKF3 error around the restart.
+
 usage: real_ardupilot_team.py --ardurover PATH --setup nognss|gnss-lost --method dcl|dr|alone
        [--defaults rover.parm] [--cooploc PATH] [--out DIR] [--seed N] [--json FILE]
+       [--restart-node K --restart-at-s S]
 """
 
 import argparse
@@ -269,7 +275,11 @@ def main():
     ap.add_argument("--seed", type=int, default=1, help="seed of the range noise")
     ap.add_argument("--json", default=None, help="write the result here too")
     ap.add_argument("--timeout-s", type=float, default=420.0, help="give up on the mission after this long")
+    ap.add_argument("--restart-node", type=int, default=None, help="kill this node (1..3) and start it again")
+    ap.add_argument("--restart-at-s", type=float, default=60.0, help="... this long into the mission")
     args = ap.parse_args()
+    if args.restart_node is not None and (args.method == "alone" or not 1 <= args.restart_node <= 3):
+        sys.exit("error: --restart-node needs cooploc nodes (--method dcl or dr) and a node 1..3")
 
     root = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
     ardurover = os.path.abspath(args.ardurover)
@@ -317,7 +327,7 @@ def main():
                     f.write('id = %d\nvehicle = "tcpout:127.0.0.1:%d"\nvehicle_config = "%s"\nteam = [1, 2, 3]\n'
                             'method = "%s"\ncoop_bind = "127.0.0.1:%d"\npeer = [%s]\nteam_key = "%s"\n'
                             'ranges = "udpin:127.0.0.1:%d"\nrange_grace_ms = 300\n'
-                            'log = "node.mcap"\nidle_exit_s = 3.0\n'
+                            'log = "node.mcap"\nidle_exit_s = 3.0\nstate_file = "node.state"\n'
                             % (i + 1, 5760 + 10 * i, profile, args.method, coop_ports[i], peers, key, range_ports[i]))
                     if args.setup == "nognss":
                         # a known start pose (surveyed, as the paper's platforms start)
@@ -402,6 +412,8 @@ def main():
         gnss_off = args.setup == "nognss"
         epochs = 0
         done_at = None
+        restart_at = start + args.restart_at_s if args.restart_node is not None else None
+        restarted_at = None
         next_epoch = math.floor(time.time()) + 1
         while True:
             now = time.time()
@@ -425,6 +437,15 @@ def main():
                             line = "RANGE,%d,%d,%.3f,%.2f,%d\n" % (t, j + 1, d, RANGE_SIGMA_M, t * 1_000_000)
                             dev.sendto(line.encode(), ("127.0.0.1", range_ports[i]))
                     epochs += 1
+            if restart_at is not None and now >= restart_at:
+                k = args.restart_node - 1
+                old = nodes_started[k]
+                old.kill()  # SIGKILL: no summary, no last save
+                old.wait()
+                d = os.path.join(out, "r%d" % (k + 1))
+                nodes_started[k] = spawn([cooploc, "node", "--config", "node.toml"], d, "node%d-restarted.out" % (k + 1))
+                rovers[k].say("node killed and restarted")
+                restarted_at, restart_at = now, None
             finished = [rv.armed is False or ("Mission Complete" in " ".join(rv.texts)) for rv in rovers]
             if all(finished) and done_at is None:
                 done_at = now
@@ -457,6 +478,21 @@ def main():
                    % (args.setup, args.method, path, rms, result["rovers"][-1]["final_m"], len(errs)))
         all_errs = [r["rms_m"] for r in result["rovers"]]
         result["team_rms_m"] = math.sqrt(sum(x * x for x in all_errs) / len(all_errs))
+        if restarted_at is not None:
+            rv = rovers[args.restart_node - 1]
+            with rv.lock:
+                ekf = list(rv.ekf)
+            windows = [("30 s before", restarted_at - 30, restarted_at), ("10 s after", restarted_at, restarted_at + 10),
+                       ("10-60 s after", restarted_at + 10, restarted_at + 60), ("10 s after to the end", restarted_at + 10, end)]
+            result["restart"] = {"node": args.restart_node, "at_s": restarted_at - start}
+            for name, a, b in windows:
+                errs = [math.hypot(n - p[0], e - p[1]) for (t, n, e) in ekf if a <= t <= b
+                        for p in [rv.truth_at(t)] if p is not None]
+                worst = max(errs) if errs else float("nan")
+                rms = math.sqrt(sum(x * x for x in errs) / len(errs)) if errs else float("nan")
+                result["restart"][name] = {"rms_m": rms, "worst_m": worst, "samples": len(errs)}
+                print("rover %d, node restarted at %.0f s, %s: EKF3 error RMS %.2f m, worst %.2f m (%d samples)"
+                      % (args.restart_node, restarted_at - start, name, rms, worst, len(errs)), flush=True)
         print("team RMS %.2f m (%s, %s)" % (result["team_rms_m"], args.setup, args.method), flush=True)
         for rv in rovers:
             rv.stop = True
