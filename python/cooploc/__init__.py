@@ -21,6 +21,8 @@ So far (the first step of issue 35):
   ``cooploc dataset mrclam``'s table as dicts (``dataset::run::run``);
 - :func:`experiment`: the Monte Carlo of ``cooploc experiment``, its summary and RMS curves
   (``experiment::run_experiment``, ``experiment::report``);
+- :class:`EpochTally`: disagreements and heals from COOPLOC_EPOCH reports, the rules of every
+  cooploc display (``view::health``);
 - :class:`SequenceTracker`: frames lost, late and repeated by their MAVLink sequence numbers, the
   one rule of the node, the ground station and the MAVProxy module (``protocol::sequence``);
 - :data:`PALETTE`: the colour of each platform on every cooploc display (``view::PALETTE``).
@@ -36,6 +38,7 @@ from cooploc._native import (
     CHI2_2DOF_95,
     EARTH_RADIUS_M,
     MAX_REORDER,
+    EpochTally,
     PALETTE,
     SequenceTracker,
     __version__,
@@ -75,6 +78,7 @@ __all__ = [
     "CHI2_2DOF_95",
     "EARTH_RADIUS_M",
     "MAX_REORDER",
+    "EpochTally",
     "PALETTE",
     "SequenceTracker",
     "__version__",

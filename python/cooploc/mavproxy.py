@@ -56,28 +56,16 @@ Error against the truth (simulated vehicles), as ``cooploc gcs`` computes it
   before the truth covers their time: the last 64 per vehicle wait, and are resolved when it
   does. Shown: the error and NEES of the newest resolved estimate, and that estimate's time.
 
-Agreement (COOPLOC_EPOCH), the same rules as ``cooploc gcs``
------------------------------------------------------------
-- A *report* is a COOPLOC_EPOCH in state APPLIED (1), PARTIAL (2) or FAILED (3), keyed by
-  (epoch, announcer); the first one per key counts, repeats (other links, resends) are ignored.
-  Its pair is (digest, participants), participants being the first ``count`` entries in the
-  order sent.
-- An epoch with two or more reports *disagrees* when two of its pairs differ. The team counter
-  ``disagreements`` counts each epoch once, when it first disagrees.
-- Per vehicle, ``disagreements`` counts the epochs where its report differs from the majority:
-  the most common pair, a tie going to the pair reported by the lowest announcer id (evaluated
-  on the reports held: an epoch's count may change while its reports come in).
-- ``heals``: an epoch that disagrees for the first time sets ``unhealed`` and remembers the
-  latest such epoch id; when a report leaves an epoch with two or more reports all agreeing,
-  ``unhealed`` is set and that epoch's id is greater than the remembered one, the team counts a
-  heal and clears ``unhealed``. Per vehicle, ``heals`` counts the healing epochs its report
-  agreed with (its report there when the heal was counted, or a later agreeing one).
-  Reports are judged as they arrive: a heal whose epoch a late report shows disagreeing is
-  withdrawn.
-- Per vehicle: ``partial`` and ``failed`` reports, ``store_wanted`` (STORE_WANTED (4)
-  announcements, one per (epoch, announcer)), COOPLOC_STORE_FRAGMENT frames received.
-- Bounded: the last 256 epochs (by arrival of their first announcement) and 64 vehicles; what a
-  hostile sender adds beyond is refused and counted.
+Agreement (COOPLOC_EPOCH): ``cooploc.EpochTally``, the library's (``view::health``)
+-----------------------------------------------------------------------------------
+The rules of ``cooploc gcs``, its page and its Foxglove channels, by the same code: a report is a
+COOPLOC_EPOCH in state APPLIED, PARTIAL or FAILED, the first per (epoch, announcer) counting; an
+epoch with two or more reports disagrees when two of its (digest, participants) differ (counted
+once: ``disagreements``); per vehicle, ``disagreements`` is the epochs its report is outvoted at
+(the majority judged again as reports come in, a tie going to the lowest id); a heal is an
+agreeing epoch after the latest disagreeing one (withdrawn if a late report disagrees), counted
+for the team and per vehicle that reported it; ``partial``, ``failed``, ``store_wanted`` per
+vehicle. Bounded: the last 256 epochs and 64 vehicles.
 
 Commands
 --------
@@ -143,7 +131,6 @@ MAX_TRUTH_GAP_US = 1_000_000
 #: Window of the rates, s.
 RATE_WINDOW_S = 10.0
 #: Bounds of the tables.
-MAX_EPOCHS = 256
 MAX_VEHICLES = 64
 #: Colours of the platforms (index (id - 1) mod 10), shared by every cooploc display: the
 #: library's ``view::PALETTE``.
@@ -174,7 +161,6 @@ METHODS = {
 }
 #: COOPLOC_EPOCH_STATE.
 EPOCH_COLLECTING, EPOCH_APPLIED, EPOCH_PARTIAL, EPOCH_FAILED, EPOCH_STORE_WANTED = range(5)
-REPORT_STATES = (EPOCH_APPLIED, EPOCH_PARTIAL, EPOCH_FAILED)
 
 
 # ---- pure functions -------------------------------------------------------------------------
@@ -284,142 +270,6 @@ class RateWindow:
             return 0.0
         span = min(self.window_s, max(1.0, now - self.first))
         return self.total(now) / span
-
-
-def majority_pair(reports):
-    """The majority pair of ``reports`` ({announcer: pair}): the most common, a tie going to the
-    pair of the lowest announcer id."""
-    counts = {}
-    lowest = {}
-    for announcer, pair in reports.items():
-        counts[pair] = counts.get(pair, 0) + 1
-        lowest[pair] = min(lowest.get(pair, announcer), announcer)
-    return max(counts, key=lambda p: (counts[p], -lowest[p]))
-
-
-def differing_announcers(reports):
-    """Announcers whose pair differs from the majority (none with fewer than two reports)."""
-    if len(reports) < 2:
-        return []
-    majority = majority_pair(reports)
-    return sorted(a for a, p in reports.items() if p != majority)
-
-
-class _Epoch:
-    __slots__ = ("reports", "wanted", "disagreed", "healed")
-
-    def __init__(self):
-        self.reports = {}      # announcer -> (digest, participants tuple)
-        self.wanted = set()    # announcers that asked for a store (STORE_WANTED)
-        self.disagreed = False
-        self.healed = False    # this epoch counted a heal
-
-
-class AnnouncerCounts:
-    """Per-announcer figures of :class:`EpochTracker`."""
-
-    __slots__ = ("reports", "partial", "failed", "store_wanted", "heals", "differs_evicted")
-
-    def __init__(self):
-        self.reports = 0
-        self.partial = 0
-        self.failed = 0
-        self.store_wanted = 0
-        self.heals = 0
-        self.differs_evicted = 0
-
-
-class EpochTracker:
-    """Disagreements and heals over COOPLOC_EPOCH reports (the rules in the module docstring)."""
-
-    def __init__(self, max_epochs=MAX_EPOCHS, max_announcers=MAX_VEHICLES):
-        self.max_epochs = max_epochs
-        self.max_announcers = max_announcers
-        self.epochs = collections.OrderedDict()  # epoch id -> _Epoch, in order of arrival
-        self.per = {}                            # announcer -> AnnouncerCounts
-        self.disagreements = 0
-        self.heals = 0
-        self.unhealed = False
-        self.unhealed_epoch = None
-        self.latest_epoch = None
-        self.duplicates = 0
-        self.refused = 0
-
-    def add(self, epoch, announcer, state, digest, participants):
-        """One COOPLOC_EPOCH announcement; returns what it was ('report', 'store_wanted',
-        'duplicate', 'ignored' for COLLECTING or an unknown state, 'refused' beyond the caps)."""
-        if state not in REPORT_STATES and state != EPOCH_STORE_WANTED:
-            return "ignored"
-        counts = self.per.get(announcer)
-        if counts is None:
-            if len(self.per) >= self.max_announcers:
-                self.refused += 1
-                return "refused"
-            counts = self.per[announcer] = AnnouncerCounts()
-        e = self.epochs.get(epoch)
-        if e is None:
-            e = self.epochs[epoch] = _Epoch()
-            while len(self.epochs) > self.max_epochs:
-                self._evict()
-        if self.latest_epoch is None or epoch > self.latest_epoch:
-            self.latest_epoch = epoch
-        if state == EPOCH_STORE_WANTED:
-            if announcer in e.wanted:
-                self.duplicates += 1
-                return "duplicate"
-            e.wanted.add(announcer)
-            counts.store_wanted += 1
-            return "store_wanted"
-        if announcer in e.reports:
-            self.duplicates += 1
-            return "duplicate"
-        e.reports[announcer] = (int(digest), tuple(participants))
-        counts.reports += 1
-        if state == EPOCH_PARTIAL:
-            counts.partial += 1
-        elif state == EPOCH_FAILED:
-            counts.failed += 1
-        if len(e.reports) >= 2:
-            if len(set(e.reports.values())) > 1:
-                if not e.disagreed:
-                    e.disagreed = True
-                    self.disagreements += 1
-                    if e.healed:
-                        # Its first reports agreed and were taken for a heal; a late one says
-                        # otherwise: the heal is withdrawn (as cooploc gcs does).
-                        e.healed = False
-                        self.heals -= 1
-                        for a in e.reports:
-                            if a != announcer:
-                                self.per[a].heals -= 1
-                    if not self.unhealed or epoch > self.unhealed_epoch:
-                        self.unhealed_epoch = epoch
-                    self.unhealed = True
-            elif e.healed:
-                counts.heals += 1  # one more announcer agrees with the healing epoch
-            elif self.unhealed and epoch > self.unhealed_epoch:
-                self.heals += 1
-                self.unhealed = False
-                e.healed = True
-                for a in e.reports:
-                    self.per[a].heals += 1
-        return "report"
-
-    def _evict(self):
-        _, e = self.epochs.popitem(last=False)
-        for a in differing_announcers(e.reports):
-            self.per[a].differs_evicted += 1
-
-    def differs(self, announcer):
-        """Epochs where ``announcer``'s report differs from the majority."""
-        counts = self.per.get(announcer)
-        if counts is None:
-            return 0
-        held = sum(1 for e in self.epochs.values() if announcer in differing_announcers(e.reports))
-        return counts.differs_evicted + held
-
-    def counts(self, announcer):
-        return self.per.get(announcer) or AnnouncerCounts()
 
 
 # ---- validation of decoded messages ---------------------------------------------------------
@@ -728,7 +578,7 @@ class CooplocModule(_MPModule):
         super(CooplocModule, self).__init__(mpstate, "cooploc", "cooperative localization (cooploc) team view",
                                             public=True, multi_vehicle=True)
         self.vehicles = {}
-        self.epochs = EpochTracker()
+        self.epochs = _cooploc.EpochTally()  # the library's rules (view::health)
         self.origin = DEFAULT_ORIGIN
         self.vehicles_refused = 0
         self.truths = {}             # system id -> TruthTrack (simulated vehicles' truth, errors)
@@ -1018,7 +868,7 @@ class CooplocModule(_MPModule):
 
     def summary(self):
         return "cooploc: %d vehicles, epoch %s, disagreements %d, heals %d" % (
-            len(self.vehicles), "-" if self.epochs.latest_epoch is None else self.epochs.latest_epoch,
+            len(self.vehicles), "-" if self.epochs.last_epoch is None else self.epochs.last_epoch,
             self.epochs.disagreements, self.epochs.heals)
 
     def _write_statusfile(self):
@@ -1045,18 +895,18 @@ class CooplocModule(_MPModule):
         else:
             items += ["semi_major_95=%.3f" % v.ellipse[0], "semi_minor_95=%.3f" % v.ellipse[1],
                       "bearing_95_deg=%.1f" % v.ellipse[2]]
-        c = self.epochs.counts(v.id)
+        c = self.epochs.node(v.id)
         items += [
             "loss_pct=%s" % v.loss_text(),
             "rate_hz=%.2f" % v.est_rate.rate(now),
             "bytes_per_s=%.0f" % v.bytes_rate.rate(now),
             "signed=%s" % v.signed_text(now),
-            "disagreements=%d" % self.epochs.differs(v.id),
-            "heals=%d" % c.heals,
-            "reports=%d" % c.reports,
-            "partial=%d" % c.partial,
-            "failed=%d" % c.failed,
-            "store_wanted=%d" % c.store_wanted,
+            "disagreements=%d" % c["outvoted"],
+            "heals=%d" % c["heals"],
+            "reports=%d" % c["reports"],
+            "partial=%d" % c["partial"],
+            "failed=%d" % c["failed"],
+            "store_wanted=%d" % c["store_wanted"],
             "store_fragments=%d" % v.store_fragments,
             "state_fragments=%d" % v.state_fragments,
             "range_msgs=%d" % v.ranges,
@@ -1085,8 +935,8 @@ class CooplocModule(_MPModule):
         return ("cooploc team vehicles=%d epoch=%s disagreements=%d heals=%d unhealed=%d epochs_held=%d "
                 "duplicate_reports=%d vehicles_refused=%d rejected_unknown=%d undecoded=%d refresh_sent=%d "
                 "origin=%r,%r,%r errors=%d last_rejected=%r last_error=%r" % (
-                    len(self.vehicles), "-" if t.latest_epoch is None else t.latest_epoch, t.disagreements,
-                    t.heals, int(t.unhealed), len(t.epochs), t.duplicates, self.vehicles_refused + t.refused,
+                    len(self.vehicles), "-" if t.last_epoch is None else t.last_epoch, t.disagreements,
+                    t.heals, int(t.unhealed_since is not None), t.epochs_held, t.repeats, self.vehicles_refused + t.dropped,
                     self.rejected_unknown, self.undecoded, self.refresh_sent, self.origin[0], self.origin[1],
                     self.origin[2], self.errors, self.last_rejected, self.last_error))
 
@@ -1119,7 +969,7 @@ class CooplocModule(_MPModule):
                          "-" if latest is None else "%.2f" % latest[1],
                          "-" if latest is None or latest[2] is None else "%.2f" % latest[2],
                          "-" if e is None else str(e.participants), v.loss_text(), "%.2f" % v.est_rate.rate(now),
-                         "%.0f" % v.bytes_rate.rate(now), v.signed_text(now), str(self.epochs.differs(k))))
+                         "%.0f" % v.bytes_rate.rate(now), v.signed_text(now), str(self.epochs.node(k)["outvoted"])))
         widths = [max(len(r[i]) for r in rows) for i in range(len(rows[0]))]
         lines = ["  ".join(c.ljust(w) for c, w in zip(r, widths)).rstrip() for r in rows]
         lines.append(self.summary())

@@ -409,6 +409,96 @@ impl PySequenceTracker {
     }
 }
 
+/// Disagreements and heals of a team from its COOPLOC_EPOCH reports (`view::health::EpochTally`:
+/// the rules of the ground station, its page and Foxglove channels). `add(epoch, announcer,
+/// state, digest, participants)` takes one report whose announcer was checked against its
+/// sender; it answers `"report"`, `"store_wanted"`, `"repeat"`, `"ignored"` (COLLECTING, or a
+/// state that is none of COOPLOC_EPOCH_STATE) or `"dropped"` (beyond the bounds).
+#[pyclass(name = "EpochTally", module = "cooploc._native")]
+#[derive(Default)]
+struct PyEpochTally(cooploc::view::health::EpochTally);
+
+#[pymethods]
+impl PyEpochTally {
+    #[new]
+    fn new() -> Self {
+        Self::default()
+    }
+
+    fn add(&mut self, epoch: u32, announcer: u16, state: i64, digest: u64, participants: Vec<u16>) -> &'static str {
+        use cooploc::protocol::wire::EpochState;
+        let state = match state {
+            1 => EpochState::COOPLOC_EPOCH_STATE_APPLIED,
+            2 => EpochState::COOPLOC_EPOCH_STATE_PARTIAL,
+            3 => EpochState::COOPLOC_EPOCH_STATE_FAILED,
+            4 => EpochState::COOPLOC_EPOCH_STATE_STORE_WANTED,
+            _ => return "ignored",
+        };
+        let a = wire::EpochAnnouncement { epoch, t: cooploc::time::TimeUs(0), announcer, participants, state, digest };
+        self.0.on_epoch(&a).name()
+    }
+
+    #[getter]
+    fn disagreements(&self) -> u64 {
+        self.0.disagreements
+    }
+
+    #[getter]
+    fn heals(&self) -> u64 {
+        self.0.heals
+    }
+
+    /// The latest disagreeing epoch not yet followed by an agreeing one (None: in agreement).
+    #[getter]
+    fn unhealed_since(&self) -> Option<u32> {
+        self.0.unhealed_since
+    }
+
+    #[getter]
+    fn last_epoch(&self) -> Option<u32> {
+        self.0.last_epoch
+    }
+
+    #[getter]
+    fn dropped(&self) -> u64 {
+        self.0.dropped
+    }
+
+    #[getter]
+    fn repeats(&self) -> u64 {
+        self.0.repeats
+    }
+
+    #[getter]
+    fn epochs_held(&self) -> usize {
+        self.0.epochs_held()
+    }
+
+    /// The nodes counted, by platform id.
+    #[getter]
+    fn nodes(&self) -> Vec<u16> {
+        self.0.nodes.keys().copied().collect()
+    }
+
+    /// One node's counts: `reports`, `outvoted`, `heals`, `partial`, `failed`, `store_wanted`
+    /// (all 0 for a node not heard).
+    fn node<'py>(&self, py: Python<'py>, announcer: u16) -> PyResult<Bound<'py, PyDict>> {
+        let c = self.0.nodes.get(&announcer).copied().unwrap_or_default();
+        let d = PyDict::new(py);
+        for (k, v) in [
+            ("reports", c.reports),
+            ("outvoted", c.outvoted),
+            ("heals", c.heals),
+            ("partial", c.partial),
+            ("failed", c.failed),
+            ("store_wanted", c.store_wanted),
+        ] {
+            d.set_item(k, v)?;
+        }
+        Ok(d)
+    }
+}
+
 #[pymodule]
 fn _native(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add("__version__", env!("CARGO_PKG_VERSION"))?;
@@ -425,6 +515,7 @@ fn _native(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_function(wrap_pyfunction!(mrclam, m)?)?;
     m.add_function(wrap_pyfunction!(experiment_json, m)?)?;
     m.add_class::<PySequenceTracker>()?;
+    m.add_class::<PyEpochTally>()?;
     m.add("MAX_REORDER", cooploc::protocol::sequence::MAX_REORDER)?;
     m.add("PALETTE", cooploc::view::PALETTE.map(|[r, g, b]| format!("{r:02x}{g:02x}{b:02x}")))?;
     Ok(())

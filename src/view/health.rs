@@ -39,8 +39,15 @@ pub const MAX_NODES: usize = 64;
 /// What one node's reports and announcements added up to.
 #[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Serialize)]
 pub struct NodeEpochCounts {
-    /// Epochs at which its report differed from the majority's.
+    /// Its reports (first of each epoch).
+    pub reports: u64,
+    /// Epochs at which its report differs from the majority's (the majority judged again as
+    /// reports arrive: a node outvoted by the first two reports and joined by the later ones is
+    /// no longer counted).
     pub outvoted: u64,
+    /// Heals its reports took part in: it reported the agreeing epoch that ended a disagreement
+    /// (withdrawn with the heal).
+    pub heals: u64,
     /// Epochs it ran without some expected member (PARTIAL).
     pub partial: u64,
     /// Joint updates it refused (FAILED).
@@ -71,6 +78,35 @@ pub struct EpochTally {
     pub nodes: BTreeMap<PlatformId, NodeEpochCounts>,
     /// Reports dropped: a node beyond [`MAX_NODES`], or an epoch older than every kept one.
     pub dropped: u64,
+    /// Reports repeated (a retransmission; the first counts).
+    pub repeats: u64,
+}
+
+/// What [`EpochTally::on_epoch`] made of one COOPLOC_EPOCH.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum EpochOutcome {
+    /// A report (APPLIED, PARTIAL, FAILED), counted and judged.
+    Report,
+    /// A STORE_WANTED announcement, counted once per node and epoch.
+    StoreWanted,
+    /// A report or announcement seen before.
+    Repeat,
+    /// COLLECTING: not a report.
+    Ignored,
+    /// Beyond the bounds ([`MAX_NODES`], an epoch older than every kept one).
+    Dropped,
+}
+
+impl EpochOutcome {
+    pub fn name(self) -> &'static str {
+        match self {
+            EpochOutcome::Report => "report",
+            EpochOutcome::StoreWanted => "store_wanted",
+            EpochOutcome::Repeat => "repeat",
+            EpochOutcome::Ignored => "ignored",
+            EpochOutcome::Dropped => "dropped",
+        }
+    }
 }
 
 impl EpochTally {
@@ -79,36 +115,41 @@ impl EpochTally {
     }
 
     /// Takes one validated COOPLOC_EPOCH (its announcer already checked against its sender).
-    pub fn on_epoch(&mut self, a: &EpochAnnouncement) {
+    pub fn on_epoch(&mut self, a: &EpochAnnouncement) -> EpochOutcome {
         if !self.nodes.contains_key(&a.announcer) && self.nodes.len() >= MAX_NODES {
             self.dropped += 1;
-            return;
+            return EpochOutcome::Dropped;
         }
         match a.state {
-            EpochState::COOPLOC_EPOCH_STATE_COLLECTING => return,
+            EpochState::COOPLOC_EPOCH_STATE_COLLECTING => return EpochOutcome::Ignored,
             EpochState::COOPLOC_EPOCH_STATE_STORE_WANTED => {
-                if self.wanted.entry(a.epoch).or_default().insert(a.announcer) {
+                let first = self.wanted.entry(a.epoch).or_default().insert(a.announcer);
+                if first {
                     self.nodes.entry(a.announcer).or_default().store_wanted += 1;
+                } else {
+                    self.repeats += 1;
                 }
                 while self.wanted.len() > EPOCHS_KEPT {
                     self.wanted.pop_first();
                 }
-                return;
+                return if first { EpochOutcome::StoreWanted } else { EpochOutcome::Repeat };
             }
             _ => {}
         }
         if self.reports.get(&a.epoch).is_some_and(|r| r.contains_key(&a.announcer)) {
-            return; // a repeat (a retransmission): the first report counts
+            self.repeats += 1;
+            return EpochOutcome::Repeat; // a retransmission: the first report counts
         }
         if self.reports.len() >= EPOCHS_KEPT
             && !self.reports.contains_key(&a.epoch)
             && self.reports.keys().next().is_some_and(|&oldest| a.epoch < oldest)
         {
             self.dropped += 1;
-            return;
+            return EpochOutcome::Dropped;
         }
         self.reports.entry(a.epoch).or_default().insert(a.announcer, (a.digest, a.participants.clone()));
         let counts = self.nodes.entry(a.announcer).or_default();
+        counts.reports += 1;
         match a.state {
             EpochState::COOPLOC_EPOCH_STATE_PARTIAL => counts.partial += 1,
             EpochState::COOPLOC_EPOCH_STATE_FAILED => counts.failed += 1,
@@ -121,10 +162,25 @@ impl EpochTally {
             }
         }
         self.last_epoch = self.last_epoch.max(Some(a.epoch));
-        self.judge(a.epoch);
+        self.judge(a.epoch, a.announcer);
+        EpochOutcome::Report
     }
 
-    fn judge(&mut self, epoch: u32) {
+    /// Epochs whose reports are held (at most [`EPOCHS_KEPT`]).
+    pub fn epochs_held(&self) -> usize {
+        self.reports.len()
+    }
+
+    fn add_heals(&mut self, epoch: u32, delta: i64, except: Option<PlatformId>) {
+        let Some(reports) = self.reports.get(&epoch) else { return };
+        for id in reports.keys().filter(|id| Some(**id) != except) {
+            if let Some(c) = self.nodes.get_mut(id) {
+                c.heals = c.heals.saturating_add_signed(delta);
+            }
+        }
+    }
+
+    fn judge(&mut self, epoch: u32, announcer: PlatformId) {
         let Some(reports) = self.reports.get(&epoch) else { return };
         if reports.len() < 2 {
             return;
@@ -136,6 +192,11 @@ impl EpochTally {
                 self.heals += 1;
                 self.unhealed_since = None;
                 self.last_heal = Some(epoch);
+                self.add_heals(epoch, 1, None);
+            } else if self.last_heal == Some(epoch)
+                && let Some(c) = self.nodes.get_mut(&announcer)
+            {
+                c.heals += 1; // one more node agrees with the healing epoch
             }
             return;
         }
@@ -147,12 +208,14 @@ impl EpochTally {
         if self.last_heal == Some(epoch) {
             self.heals -= 1;
             self.last_heal = None;
+            self.add_heals(epoch, -1, Some(announcer));
         }
         if self.unhealed_since.is_none_or(|d| epoch > d) {
             self.unhealed_since = Some(epoch);
         }
+        let Some(reports) = self.reports.get(&epoch) else { return };
         // The majority's report; reports iterate by platform id, so the first of the most
-        // common ones is the lowest id's.
+        // common ones is the lowest id's. Judged again at every report of the epoch.
         let mut votes: Vec<(&Report, usize)> = Vec::new();
         for r in reports.values() {
             match votes.iter_mut().find(|(v, _)| *v == r) {
@@ -162,15 +225,19 @@ impl EpochTally {
         }
         let most = votes.iter().map(|(_, n)| *n).max().unwrap_or(0);
         let Some(&(majority, _)) = votes.iter().find(|(_, n)| *n == most) else { return };
-        let minority: Vec<PlatformId> = reports.iter().filter(|(_, r)| *r != majority).map(|(id, _)| *id).collect();
+        let minority: BTreeSet<PlatformId> = reports.iter().filter(|(_, r)| *r != majority).map(|(id, _)| *id).collect();
         let counted = self.outvoted.entry(epoch).or_default();
-        for id in minority {
-            if counted.insert(id)
-                && let Some(c) = self.nodes.get_mut(&id)
-            {
+        for id in counted.difference(&minority) {
+            if let Some(c) = self.nodes.get_mut(id) {
+                c.outvoted -= 1;
+            }
+        }
+        for id in minority.difference(counted) {
+            if let Some(c) = self.nodes.get_mut(id) {
                 c.outvoted += 1;
             }
         }
+        *counted = minority;
     }
 }
 
@@ -306,6 +373,43 @@ mod tests {
             t.on_epoch(&report(20_000, id, 1, &[1]));
         }
         assert_eq!(t.nodes.len(), MAX_NODES);
+    }
+
+    /// The majority is judged again as reports arrive; heals are counted per node and withdrawn
+    /// with the heal; repeats and the outcome of each message are told.
+    #[test]
+    fn the_majority_is_judged_again_and_heals_are_counted_per_node() {
+        let mut t = EpochTally::new();
+        assert_eq!(t.on_epoch(&report(1, 5, 1, &[4, 5, 6])), EpochOutcome::Report);
+        t.on_epoch(&report(1, 4, 2, &[4, 5, 6]));
+        assert_eq!((t.nodes[&4].outvoted, t.nodes[&5].outvoted), (0, 1), "a tie: the lowest id's");
+        t.on_epoch(&report(1, 6, 1, &[4, 5, 6]));
+        assert_eq!((t.nodes[&4].outvoted, t.nodes[&5].outvoted, t.nodes[&6].outvoted), (1, 0, 0));
+        assert_eq!(t.on_epoch(&report(1, 6, 1, &[4, 5, 6])), EpochOutcome::Repeat);
+        assert_eq!(t.repeats, 1);
+        // epoch 2 agrees: a heal, one per reporting node; a third agreeing report adds one more
+        t.on_epoch(&report(2, 4, 3, &[4, 5, 6]));
+        t.on_epoch(&report(2, 5, 3, &[4, 5, 6]));
+        assert_eq!((t.heals, t.nodes[&4].heals, t.nodes[&5].heals, t.nodes[&6].heals), (1, 1, 1, 0));
+        t.on_epoch(&report(2, 6, 3, &[4, 5, 6]));
+        assert_eq!(t.nodes[&6].heals, 1);
+        assert_eq!(t.nodes[&4].reports, 2);
+        // a later disagreeing report withdraws the heal from everyone who had it
+        let mut late = EpochTally::new();
+        for id in 1..=3 {
+            late.on_epoch(&report(1, id, 7, &[1, 2, 3]));
+        }
+        late.on_epoch(&report(2, 1, 8, &[1, 2, 3]));
+        late.on_epoch(&report(2, 3, 9, &[1, 2, 3]));
+        late.on_epoch(&report(3, 1, 8, &[1, 2, 3]));
+        late.on_epoch(&report(3, 2, 8, &[1, 2, 3]));
+        assert_eq!((late.heals, late.nodes[&1].heals, late.nodes[&2].heals), (1, 1, 1));
+        late.on_epoch(&report(3, 3, 9, &[1, 2, 3]));
+        assert_eq!((late.heals, late.nodes[&1].heals, late.nodes[&2].heals, late.nodes[&3].heals), (0, 0, 0, 0));
+        assert_eq!(late.unhealed_since, Some(3));
+        let mut collecting = report(4, 1, 1, &[1]);
+        collecting.state = EpochState::COOPLOC_EPOCH_STATE_COLLECTING;
+        assert_eq!(late.on_epoch(&collecting), EpochOutcome::Ignored);
     }
 
     #[test]

@@ -116,9 +116,13 @@ def pure_checks(cl):
           == (3, 1, 1, 1, 201), s)
     check("no sequence rule of the module's own", not hasattr(cl, "SeqLoss") and not hasattr(cl, "seq_gap"))
 
-    # Epoch reports: agree, disagree (3's digest), disagree (2's participants), agree.
-    t = cl.EpochTracker()
+    # Epoch reports, by the library's tally (cooploc.EpochTally, view::health): agree, disagree
+    # (3's digest), disagree (2's participants), agree.
+    check("no tally of the module's own", not hasattr(cl, "EpochTracker") and not hasattr(cl, "majority_pair"))
+    T = cl._cooploc.EpochTally
+    t = T()
     A = cl.EPOCH_APPLIED
+    out = lambda tally, a: tally.node(a)["outvoted"]  # noqa: E731
     for a in (1, 2, 3):
         t.add(1, a, A, 7, [1, 2, 3])
     for a, d in ((1, 8), (2, 8), (3, 9)):
@@ -128,55 +132,54 @@ def pure_checks(cl):
     for a in (1, 2, 3):
         t.add(4, a, A, 11, [1, 2, 3])
     check("agree, disagree, disagree, agree: disagreements 2, heals 1",
-          t.disagreements == 2 and t.heals == 1 and not t.unhealed, (t.disagreements, t.heals))
+          t.disagreements == 2 and t.heals == 1 and t.unhealed_since is None, (t.disagreements, t.heals))
     check("per vehicle: who differed from the majority",
-          (t.differs(1), t.differs(2), t.differs(3)) == (0, 1, 1), (t.differs(1), t.differs(2), t.differs(3)))
-    check("per vehicle: heals, partial", [t.counts(a).heals for a in (1, 2, 3)] == [1, 1, 1]
-          and t.counts(2).partial == 1 and t.counts(1).partial == 0)
-    check("repeat report ignored", t.add(4, 1, A, 99, [1]) == "duplicate" and t.disagreements == 2)
+          (out(t, 1), out(t, 2), out(t, 3)) == (0, 1, 1), (out(t, 1), out(t, 2), out(t, 3)))
+    check("per vehicle: heals, partial", [t.node(a)["heals"] for a in (1, 2, 3)] == [1, 1, 1]
+          and t.node(2)["partial"] == 1 and t.node(1)["partial"] == 0)
+    check("repeat report ignored", t.add(4, 1, A, 99, [1]) == "repeat" and t.disagreements == 2 and t.repeats == 1)
     check("collecting is not a report", t.add(5, 1, cl.EPOCH_COLLECTING, 1, [1]) == "ignored")
+    check("an unknown state is not a report", t.add(5, 1, 9, 1, [1]) == "ignored")
     t.add(5, 2, cl.EPOCH_STORE_WANTED, 1, [1, 3])
     t.add(5, 2, cl.EPOCH_STORE_WANTED, 1, [1, 3])
-    check("store wanted counted once per epoch", t.counts(2).store_wanted == 1)
+    check("store wanted counted once per epoch", t.node(2)["store_wanted"] == 1)
     # Tie of two: the lowest announcer's pair is the majority.
-    t2 = cl.EpochTracker()
+    t2 = T()
     t2.add(1, 5, A, 1, [4, 5])
     t2.add(1, 4, A, 2, [4, 5])
-    check("tie goes to the lowest announcer", (t2.differs(4), t2.differs(5)) == (0, 1) and t2.disagreements == 1)
+    check("tie goes to the lowest announcer", (out(t2, 4), out(t2, 5)) == (0, 1) and t2.disagreements == 1)
     t2.add(1, 6, A, 1, [4, 5])
-    check("majority re-evaluated", (t2.differs(4), t2.differs(5), t2.differs(6)) == (1, 0, 0))
+    check("majority re-evaluated", (out(t2, 4), out(t2, 5), out(t2, 6)) == (1, 0, 0))
     # No heal by an epoch that is not after the disagreement.
-    t3 = cl.EpochTracker()
+    t3 = T()
     for a, d in ((1, 1), (2, 2)):
         t3.add(10, a, A, d, [1, 2])
     for a in (1, 2):
         t3.add(9, a, A, 5, [1, 2])
-    check("an earlier agreeing epoch does not heal", t3.heals == 0 and t3.unhealed)
+    check("an earlier agreeing epoch does not heal", t3.heals == 0 and t3.unhealed_since == 10)
     # A heal taken from the first reports of an epoch is withdrawn when a late one disagrees
     # (the same sequence as src/view/health.rs's test).
-    t5 = cl.EpochTracker()
+    t5 = T()
     for a in (1, 2, 3):
         t5.add(1, a, A, 7, [1, 2, 3])
     for ep in (2, 3):
         for a, d in ((1, 8), (2, 8), (3, 9)):
             t5.add(ep, a, A, d, [1, 2, 3])
     check("a late disagreeing report withdraws the heal",
-          (t5.disagreements, t5.heals, t5.unhealed, t5.unhealed_epoch) == (2, 0, True, 3),
-          (t5.disagreements, t5.heals, t5.unhealed, t5.unhealed_epoch))
+          (t5.disagreements, t5.heals, t5.unhealed_since) == (2, 0, 3), (t5.disagreements, t5.heals, t5.unhealed_since))
     for a in (1, 2, 3):
         t5.add(4, a, A, 10, [1, 2, 3])
-    check("then the next agreeing epoch heals", (t5.heals, t5.unhealed) == (1, False), (t5.heals, t5.unhealed))
+    check("then the next agreeing epoch heals", (t5.heals, t5.unhealed_since) == (1, None), (t5.heals, t5.unhealed_since))
     # Bounded tables.
-    t4 = cl.EpochTracker()
+    t4 = T()
     for ep in range(300):
         t4.add(ep, 1, A, ep, [1, 2])
         t4.add(ep, 2, A, ep + (ep % 2), [1, 2])
-    held = len(t4.epochs)
-    check("at most 256 epochs, evicted ones still counted", held == 256 and t4.differs(2) == 150
-          and t4.disagreements == 150, (held, t4.differs(2)))
+    check("at most 256 epochs, evicted ones still counted", t4.epochs_held == 256 and out(t4, 2) == 150
+          and t4.disagreements == 150, (t4.epochs_held, out(t4, 2)))
     for a in range(100, 200):
         t4.add(1000, a, A, 0, [a])
-    check("at most 64 announcers", len(t4.per) == 64 and t4.refused == 100 - 62, (len(t4.per), t4.refused))
+    check("at most 64 announcers", len(t4.nodes) == 64 and t4.dropped == 100 - 62, (len(t4.nodes), t4.dropped))
 
     check("method names", cl.method_name(2) == "decentralized" and cl.method_name(4) == "covariance_intersection")
     check("palette by platform", cl.colour_rgb(1) == (0x1f, 0x77, 0xb4) and cl.colour_rgb(11) == cl.colour_rgb(1)
@@ -508,7 +511,8 @@ def module_checks(cl, dialect):
     send(1, d.MAVLink_cooploc_epoch_message(5_000_000, 5, 2, 3, [1, 2, 3] + [0] * 61, 1, 1))  # announcer 2 from 1
     team = mod.team_line()
     check("stand-in: team disagreements 2, heals 1 from COOPLOC_EPOCH",
-          "disagreements=2 heals=1" in team and mod.epochs.differs(3) == 1 and mod.epochs.differs(2) == 1
+          "disagreements=2 heals=1" in team and mod.epochs.node(3)["outvoted"] == 1 and mod.epochs.node(2)["outvoted"] == 1
+          and type(mod.epochs).__module__ == "cooploc._native"
           and mod.vehicles[1].rejected == 1, team)
     # Commands.
     _, out = quiet(mod.cmd_cooploc, ["refresh", "0"])
