@@ -23,6 +23,8 @@ So far (the first step of issue 35):
   (``experiment::run_experiment``, ``experiment::report``);
 - :class:`EpochTally`: disagreements and heals from COOPLOC_EPOCH reports, the rules of every
   cooploc display (``view::health``);
+- :class:`RateWindow`: amounts a second over a sliding window, bounded at any rate (the ground
+  station's, ``gcs::link``);
 - :class:`SequenceTracker`: frames lost, late and repeated by their MAVLink sequence numbers, the
   one rule of the node, the ground station and the MAVProxy module (``protocol::sequence``);
 - :data:`PALETTE`: the colour of each platform on every cooploc display (``view::PALETTE``).
@@ -39,6 +41,7 @@ from cooploc._native import (
     EARTH_RADIUS_M,
     MAX_REORDER,
     EpochTally,
+    RateWindow,
     PALETTE,
     SequenceTracker,
     __version__,
@@ -79,6 +82,7 @@ __all__ = [
     "EARTH_RADIUS_M",
     "MAX_REORDER",
     "EpochTally",
+    "RateWindow",
     "PALETTE",
     "SequenceTracker",
     "__version__",

@@ -235,43 +235,6 @@ class RecentFrames:
         return False
 
 
-class RateWindow:
-    """Amounts over the last ``window_s`` seconds, in buckets (bounded memory at any rate)."""
-
-    def __init__(self, window_s=RATE_WINDOW_S, bucket_s=0.25):
-        self.window_s = window_s
-        self.bucket_s = bucket_s
-        self.buckets = collections.deque()  # [bucket index, amount]
-        self.first = None
-
-    def add(self, now, amount=1.0):
-        if self.first is None:
-            self.first = now
-        i = int(now // self.bucket_s)
-        if self.buckets and self.buckets[-1][0] == i:
-            self.buckets[-1][1] += amount
-        else:
-            self.buckets.append([i, amount])
-        self._prune(now)
-
-    def _prune(self, now):
-        oldest = int((now - self.window_s) // self.bucket_s)
-        while self.buckets and self.buckets[0][0] <= oldest:
-            self.buckets.popleft()
-
-    def total(self, now):
-        self._prune(now)
-        return sum(a for _, a in self.buckets)
-
-    def rate(self, now):
-        """Amount a second over the window (over the time since the first amount, at least 1 s,
-        while that is shorter than the window)."""
-        if self.first is None:
-            return 0.0
-        span = min(self.window_s, max(1.0, now - self.first))
-        return self.total(now) / span
-
-
 # ---- validation of decoded messages ---------------------------------------------------------
 
 class Rejected(Exception):
@@ -534,10 +497,10 @@ class VehicleView:
         self.est = None             # the latest COOPLOC_ESTIMATE (pymavlink message)
         self.est_payload = None
         self.ellipse = None
-        self.est_rate = RateWindow()
-        self.bytes_rate = RateWindow()
-        self.signed_rate = RateWindow()
-        self.unsigned_rate = RateWindow()
+        self.est_rate = _cooploc.RateWindow(RATE_WINDOW_S)  # the ground station's (gcs::link)
+        self.bytes_rate = _cooploc.RateWindow(RATE_WINDOW_S)
+        self.signed_rate = _cooploc.RateWindow(RATE_WINDOW_S)
+        self.unsigned_rate = _cooploc.RateWindow(RATE_WINDOW_S)
         self.recent_frames = RecentFrames(128)
         self.loss = {}              # MAVProxy link number -> cooploc.SequenceTracker of (id, 191)
         self.hb_time = None

@@ -499,6 +499,54 @@ impl PyEpochTally {
     }
 }
 
+/// Amounts (bytes, frames, estimates) over the last `window_s` seconds, in buckets of a fortieth
+/// of the window: bounded memory at any rate (`gcs::link::RateWindow`, the ground station's).
+/// Times are seconds of any monotonic clock (`time.monotonic()`), at or after 0.
+#[pyclass(name = "RateWindow", module = "cooploc._native")]
+struct PyRateWindow(cooploc::gcs::link::RateWindow);
+
+fn wall_ns(now_s: f64) -> PyResult<cooploc::gcs::WallNs> {
+    if !(now_s.is_finite() && (0.0..1.8e10).contains(&now_s)) {
+        return Err(PyValueError::new_err(format!("time {now_s} s: a finite, non-negative clock reading")));
+    }
+    Ok(cooploc::gcs::WallNs((now_s * 1e9) as u64))
+}
+
+#[pymethods]
+impl PyRateWindow {
+    #[new]
+    #[pyo3(signature = (window_s = 10.0))]
+    fn new(window_s: f64) -> PyResult<Self> {
+        if !(window_s.is_finite() && window_s > 0.0 && window_s <= 86_400.0) {
+            return Err(PyValueError::new_err(format!("window {window_s} s: in (0, 86400]")));
+        }
+        Ok(Self(cooploc::gcs::link::RateWindow::new((window_s * 1e9) as u64)))
+    }
+
+    /// `amount` (>= 0) received at `now_s`.
+    #[pyo3(signature = (now_s, amount = 1))]
+    fn add(&mut self, now_s: f64, amount: u64) -> PyResult<()> {
+        self.0.push(wall_ns(now_s)?, amount);
+        Ok(())
+    }
+
+    /// The amount over the window ending at `now_s`.
+    fn total(&self, now_s: f64) -> PyResult<u64> {
+        Ok(self.0.total(wall_ns(now_s)?))
+    }
+
+    /// Amount per second over the window ending at `now_s`, over the time since `since_s` (the
+    /// first amount's time when None) when that is shorter, at least 0.1 s; 0 before any amount.
+    #[pyo3(signature = (now_s, since_s = None))]
+    fn rate(&self, now_s: f64, since_s: Option<f64>) -> PyResult<f64> {
+        let now = wall_ns(now_s)?;
+        Ok(match since_s {
+            Some(since) => self.0.bytes_per_s(now, wall_ns(since)?),
+            None => self.0.per_s(now),
+        })
+    }
+}
+
 #[pymodule]
 fn _native(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add("__version__", env!("CARGO_PKG_VERSION"))?;
@@ -516,6 +564,7 @@ fn _native(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_function(wrap_pyfunction!(experiment_json, m)?)?;
     m.add_class::<PySequenceTracker>()?;
     m.add_class::<PyEpochTally>()?;
+    m.add_class::<PyRateWindow>()?;
     m.add("MAX_REORDER", cooploc::protocol::sequence::MAX_REORDER)?;
     m.add("PALETTE", cooploc::view::PALETTE.map(|[r, g, b]| format!("{r:02x}{g:02x}{b:02x}")))?;
     Ok(())

@@ -39,41 +39,73 @@ pub struct SourceKey {
 
 pub use crate::protocol::sequence::SequenceTracker;
 
-/// Bytes received over the last `window_ns`.
+/// Amounts (bytes, frames, estimates) received over the last `window_ns`, in buckets of a
+/// fortieth of the window: memory bounded at any rate (at most 41 buckets), whatever a sender
+/// floods. The ground station's rates and the MAVProxy module's (`cooploc.RateWindow`).
 #[derive(Debug, Clone)]
 pub struct RateWindow {
     window_ns: u64,
-    samples: VecDeque<(WallNs, u64)>,
-    sum: u64,
+    bucket_ns: u64,
+    /// (bucket index: receive time / bucket_ns, amount), oldest first.
+    buckets: VecDeque<(u64, u64)>,
+    first: Option<WallNs>,
 }
+
+/// Buckets a window is cut into.
+const RATE_BUCKETS: u64 = 40;
 
 impl RateWindow {
     pub fn new(window_ns: u64) -> Self {
-        RateWindow { window_ns: window_ns.max(1), samples: VecDeque::new(), sum: 0 }
+        let window_ns = window_ns.max(RATE_BUCKETS);
+        RateWindow { window_ns, bucket_ns: window_ns / RATE_BUCKETS, buckets: VecDeque::new(), first: None }
     }
 
-    pub fn push(&mut self, rx: WallNs, bytes: u64) {
-        self.samples.push_back((rx, bytes));
-        self.sum += bytes;
+    pub fn push(&mut self, rx: WallNs, amount: u64) {
+        self.first.get_or_insert(rx);
+        let i = rx.0 / self.bucket_ns;
+        match self.buckets.back_mut() {
+            Some((last, sum)) if *last == i => *sum = sum.saturating_add(amount),
+            // (a receive time before the last bucket's joins it: the window only moves forward)
+            Some((last, sum)) if *last > i => *sum = sum.saturating_add(amount),
+            _ => self.buckets.push_back((i, amount)),
+        }
         self.prune(rx);
     }
 
+    /// Whether bucket `i` ended before the window that ends at `now`.
+    fn gone(&self, i: u64, now: WallNs) -> bool {
+        (i + 1).saturating_mul(self.bucket_ns) <= now.0.saturating_sub(self.window_ns)
+    }
+
     fn prune(&mut self, now: WallNs) {
-        while let Some(&(t, b)) = self.samples.front() {
-            if now.0.saturating_sub(t.0) <= self.window_ns {
+        while let Some(&(i, _)) = self.buckets.front() {
+            if !self.gone(i, now) {
                 break;
             }
-            self.samples.pop_front();
-            self.sum -= b;
+            self.buckets.pop_front();
         }
     }
 
-    /// Bytes per second over the window ending at `now` (over the time since `since` when that is
-    /// shorter, so that a new source does not read low).
+    /// The amount over the window ending at `now` (to a bucket).
+    pub fn total(&self, now: WallNs) -> u64 {
+        self.buckets.iter().filter(|(i, _)| !self.gone(*i, now)).map(|(_, a)| a).sum()
+    }
+
+    /// Amount per second over the window ending at `now` (over the time since `since` when that
+    /// is shorter, at least 0.1 s, so that a new source does not read low).
     pub fn bytes_per_s(&self, now: WallNs, since: WallNs) -> f64 {
-        let sum: u64 = self.samples.iter().filter(|(t, _)| now.0.saturating_sub(t.0) <= self.window_ns).map(|(_, b)| b).sum();
         let span_ns = self.window_ns.min(now.0.saturating_sub(since.0)).max(1_000_000_000 / 10);
-        sum as f64 / (span_ns as f64 * 1e-9)
+        self.total(now) as f64 / (span_ns as f64 * 1e-9)
+    }
+
+    /// [`Self::bytes_per_s`] since the first amount (0 before it).
+    pub fn per_s(&self, now: WallNs) -> f64 {
+        self.first.map_or(0.0, |first| self.bytes_per_s(now, first))
+    }
+
+    /// Buckets held (bounded by the window, not by the rate).
+    pub fn buckets(&self) -> usize {
+        self.buckets.len()
     }
 }
 
@@ -155,5 +187,17 @@ mod tests {
         }
         let r = w.bytes_per_s(s(10.5), s(10.0));
         assert!((r - 1000.0).abs() < 1e-6, "{r}");
+    }
+
+    #[test]
+    fn a_flood_holds_a_bounded_number_of_buckets() {
+        let mut w = RateWindow::new(10_000_000_000);
+        for i in 0..1_000_000u64 {
+            w.push(WallNs(i * 20_000), 1); // 50,000 a second for 20 s
+        }
+        assert!(w.buckets() <= 41, "{}", w.buckets());
+        let r = w.per_s(WallNs(20_000_000_000));
+        assert!((r - 50_000.0).abs() < 50_000.0 / 40.0 + 1.0, "{r}");
+        assert_eq!(RateWindow::new(1_000).per_s(WallNs(5)), 0.0);
     }
 }

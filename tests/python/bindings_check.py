@@ -137,5 +137,16 @@ check("SequenceTracker: -1 -> ValueError", raises(ValueError, t.observe, -1) is 
 check("SequenceTracker: a string -> TypeError", raises(TypeError, t.observe, "7") is not None)
 check("SequenceTracker: refused numbers count nothing", t.received == 5, t)
 
+# The ground station's rate window: per second over the window, bounded at any rate.
+w = cooploc.RateWindow(2.0)
+for i in range(50):
+    w.add(100.0 + i * 0.1, 100)  # 1000 a second for 5 s
+check("RateWindow: the rate over its window", abs(w.rate(104.9) - 1000.0) <= 1000.0 / 40 + 50, w.rate(104.9))
+check("RateWindow: nothing once silent", w.total(120.0) == 0 and w.rate(120.0) == 0.0)
+check("RateWindow: a NaN time -> ValueError", raises(ValueError, w.add, float("nan")) is not None)
+check("RateWindow: a negative amount -> OverflowError/TypeError/ValueError",
+      raises((OverflowError, TypeError, ValueError), w.add, 1.0, -5) is not None)
+check("RateWindow: a zero window -> ValueError", raises(ValueError, cooploc.RateWindow, 0.0) is not None)
+
 print("bindings_check: %d failed%s" % (len(failures), (": " + "; ".join(failures)) if failures else ""))
 sys.exit(1 if failures else 0)
