@@ -25,6 +25,9 @@ So far (the first step of issue 35):
   cooploc display (``view::health``);
 - :class:`RateWindow`: amounts a second over a sliding window, bounded at any rate (the ground
   station's, ``gcs::link``);
+- :class:`TruthTrack`, :func:`sim_state_from_frame`: a simulated vehicle's truth (SIM_STATE,
+  checked and converted) and its estimates' errors and NEES against it, the ground station's rules
+  (``gcs::truth``);
 - :class:`SequenceTracker`: frames lost, late and repeated by their MAVLink sequence numbers, the
   one rule of the node, the ground station and the MAVProxy module (``protocol::sequence``);
 - :data:`PALETTE`: the colour of each platform on every cooploc display (``view::PALETTE``).
@@ -40,10 +43,11 @@ from cooploc._native import (
     CHI2_2DOF_95,
     EARTH_RADIUS_M,
     MAX_REORDER,
+    PALETTE,
     EpochTally,
     RateWindow,
-    PALETTE,
     SequenceTracker,
+    TruthTrack,
     __version__,
     check_frame,
     ellipse95,
@@ -55,8 +59,8 @@ from cooploc._native import (
     ned_to_geo,
     position_nees,
     read_log,
+    sim_state_from_frame,
 )
-
 
 
 def experiment(scenario, runs, methods, schedules=None, seed=1):
@@ -85,6 +89,7 @@ __all__ = [
     "RateWindow",
     "PALETTE",
     "SequenceTracker",
+    "TruthTrack",
     "__version__",
     "check_frame",
     "ellipse95",
@@ -97,4 +102,5 @@ __all__ = [
     "ned_to_geo",
     "position_nees",
     "read_log",
+    "sim_state_from_frame",
 ]

@@ -36,11 +36,13 @@ Per vehicle
   ``platform`` (an epoch whose ``announcer``, a range whose ``from_platform``, ...) is not the
   sending system, is counted in ``rejected`` and dropped.
 
-Error against the truth (simulated vehicles), as ``cooploc gcs`` computes it
-----------------------------------------------------------------------------
+Error against the truth (simulated vehicles): ``cooploc.TruthTrack``, ``cooploc gcs``'s code
+----------------------------------------------------------------------------------------------
+(``gcs::truth``; the SIM_STATE check and conversion ``cooploc.sim_state_from_frame``)
+
 - Truth: SIM_STATE from (id, 1), its position (``lat_int``/``lon_int`` in 1e-7 degrees when
   non-zero, else ``lat``/``lon``; ``alt``) converted to the team's NED frame about the origin
-  (``cooploc origin``) by the inverse of the flat-Earth conversion (:func:`geo_to_ned`: the
+  (``cooploc origin``) by the inverse of the flat-Earth conversion (``cooploc.geo_to_ned``: the
   longitude difference wrapped to [-180, 180), R = 6378137 m). A non-finite field, a latitude
   outside [-90, 90] or a quaternion whose norm is not 1 is counted in ``rejected``.
 - SIM_STATE has no time: a sample takes the ``time_usec`` of the next HIGHRES_IMU or ODOMETRY of
@@ -85,7 +87,6 @@ heading) and its 95 % ellipse, in the colour every cooploc display gives it
 (:data:`PALETTE`, index ``(id - 1) mod 10``).
 """
 
-import bisect
 import collections
 import math
 import os
@@ -185,18 +186,11 @@ def ellipse_points_ne(north, east, semi_major, semi_minor, bearing_deg, segments
     return points
 
 
-def ned_to_geo(north, east, down, origin=DEFAULT_ORIGIN):
-    """Flat-Earth NED (m) about ``origin`` (lat, lon in degrees, alt in m) to (lat, lon, alt):
-    ``cooploc.ned_to_geo`` (the library's ``geodesy::ned_to_geodetic``), with this module's
-    default origin."""
-    return _cooploc.ned_to_geo(north, east, down, origin)
-
-
 def ellipse_polygon_latlon(north, east, ellipse, origin=DEFAULT_ORIGIN, segments=36):
     """The 95 % ellipse ``(semi_major, semi_minor, bearing_deg)`` about (north, east) as a closed
     list of (lat, lon), for the map."""
     a, b, bearing = ellipse
-    return [ned_to_geo(n, e, 0.0, origin)[:2]
+    return [_cooploc.ned_to_geo(n, e, 0.0, origin)[:2]
             for n, e in ellipse_points_ne(north, east, a, b, bearing, segments)]
 
 
@@ -241,12 +235,6 @@ class Rejected(Exception):
     """A message that fails the checks (counted, dropped)."""
 
 
-def _finite(msg, name, value):
-    if not math.isfinite(value):
-        raise Rejected("%s.%s is not finite (%r)" % (msg, name, value))
-    return value
-
-
 def check_message(m):
     """Checks a cooploc message as the node and ``cooploc gcs`` check it, on its frame's bytes
     (``cooploc.check_frame``: the library's ``protocol::wire`` checks, and that the platform it
@@ -267,186 +255,11 @@ def frame_header(msgbuf):
     return None
 
 
-# ---- error against truth (simulated vehicles) --------------------------------------------------
-
-def geo_to_ned(lat, lon, alt, origin=DEFAULT_ORIGIN):
-    """Inverse of :func:`ned_to_geo`: ``cooploc.geo_to_ned`` (the library's
-    ``geodesy::geodetic_to_ned``), with this module's default origin."""
-    return _cooploc.geo_to_ned(lat, lon, alt, origin)
-
+# ---- error against truth (simulated vehicles): cooploc.TruthTrack, the ground station's -------
 
 #: Position NEES over N, E, D from the error and the six covariance entries of the wire, or None
 #: unless P is positive definite (``cooploc.position_nees``: the library's).
 position_nees = _cooploc.position_nees
-
-
-def interpolate_truth(times, positions, t, max_gap_us=MAX_TRUTH_GAP_US):
-    """The truth position at ``t`` (us): linear between the bracketing samples of ``times``
-    (ascending, us) / ``positions`` ((N, E, D) each), at most ``max_gap_us`` apart; a sample at
-    exactly ``t`` as it is; None outside the samples' span (``truth_at`` of src/gcs/state.rs)."""
-    i = bisect.bisect_left(times, t)
-    if i >= len(times):
-        return None
-    ta = times[i]
-    if ta == t:
-        return tuple(positions[i])
-    if i == 0:
-        return None
-    tb = times[i - 1]
-    if ta - tb > max_gap_us:
-        return None
-    f = (t - tb) / (ta - tb)
-    b, a = positions[i - 1], positions[i]
-    return tuple(b[k] + (a[k] - b[k]) * f for k in range(3))
-
-
-def sim_state_ned(m, origin=DEFAULT_ORIGIN):
-    """A SIM_STATE's position in the team's NED frame about ``origin``; raises :class:`Rejected`
-    as ``sim_state_from_message`` of src/protocol/wire.rs does: the 1e-7 degree integers when
-    non-zero (MAVLink's rule), else the float fields; a non-finite number, a latitude outside
-    [-90, 90] or an attitude quaternion whose norm is not 1 (within 1e-3) is refused."""
-    name = "SIM_STATE"
-    lat_int = int(getattr(m, "lat_int", 0) or 0)
-    lon_int = int(getattr(m, "lon_int", 0) or 0)
-    lat = lat_int * 1e-7 if lat_int != 0 else _finite(name, "lat", m.lat)
-    lon = lon_int * 1e-7 if lon_int != 0 else _finite(name, "lon", m.lon)
-    if not -90.0 <= lat <= 90.0:
-        raise Rejected("%s.lat_int: %r deg outside [-90, 90]" % (name, lat))
-    alt = _finite(name, "alt", m.alt)
-    for f in ("vn", "ve", "vd", "yaw"):
-        _finite(name, f, getattr(m, f))
-    q = [_finite(name, f, getattr(m, f)) for f in ("q1", "q2", "q3", "q4")]
-    norm = math.sqrt(sum(c * c for c in q))
-    if not abs(norm - 1.0) < 1e-3:
-        raise Rejected("%s.q1: attitude quaternion norm %r is not 1" % (name, norm))
-    return geo_to_ned(lat, lon, alt, origin)
-
-
-class TruthTrack:
-    """The truth of one simulated vehicle and the error of its estimates against it (the rules of
-    ``cooploc gcs``, src/gcs/state.rs):
-
-    - :meth:`sim_state` (a SIM_STATE's NED position, no time) waits for the vehicle time of the
-      next timed frame, :meth:`timed` (HIGHRES_IMU / ODOMETRY ``time_usec``); a sample still
-      waiting when the next SIM_STATE comes is placed at the last known time (dropped, counted
-      in ``untimed``, when no time is known yet).
-    - Timed samples are kept in time order (the last ``history``): a time more than
-      ``restart_us`` before the last is a restarted simulator (the history starts over,
-      ``restarts``), a smaller step back or an equal time is dropped (``stale``).
-    - :meth:`estimate` holds an estimate (time, NED position, covariance upper triangle) until
-      the truth covers its time (the last ``pending_max``; older ones are dropped, counted in
-      ``dropped``), then computes its horizontal error and NEES against the truth interpolated
-      at that time (``unavailable`` when no truth brackets it within ``max_gap_us``).
-    - ``latest``: (estimate time, horizontal error m, NEES or None) of the newest estimate with
-      an error.
-    """
-
-    def __init__(self, history=TRUTH_HISTORY, pending_max=PENDING_ESTIMATES, max_gap_us=MAX_TRUTH_GAP_US,
-                 restart_us=RESTART_US):
-        self.history = max(2, int(history))
-        self.max_gap_us = max_gap_us
-        self.restart_us = restart_us
-        self.times = collections.deque()      # vehicle time, us, ascending
-        self.positions = collections.deque()  # (N, E, D), m
-        self.waiting = None                   # a SIM_STATE's position waiting for its time
-        self.last_time = None                 # the last timed frame's time_usec
-        self.estimates = collections.deque(maxlen=max(1, int(pending_max)))  # (t, (N, E, D), cov6)
-        self.latest = None
-        self.samples = 0
-        self.stale = 0
-        self.restarts = 0
-        self.untimed = 0
-        self.unavailable = 0
-        self.dropped = 0
-        self.recent = RecentFrames(64)
-
-    def seen_frame(self, key):
-        """True if this frame (its bytes' hash) was seen lately (the same frame on another link)."""
-        return self.recent.seen(key)
-
-    def sim_state(self, ned):
-        """A SIM_STATE's position; returns the errors it resolved (see :meth:`resolve`)."""
-        out = []
-        if self.waiting is not None:
-            if self.last_time is None:
-                self.untimed += 1
-            else:
-                out = self._add(self.last_time, self.waiting)
-        self.waiting = tuple(ned)
-        return out
-
-    def timed(self, t):
-        """The vehicle time of a timed frame (HIGHRES_IMU, ODOMETRY); stamps the waiting sample."""
-        self.last_time = t
-        if self.waiting is None:
-            return []
-        ned, self.waiting = self.waiting, None
-        return self._add(t, ned)
-
-    def _add(self, t, ned):
-        if self.times:
-            last = self.times[-1]
-            if t < last and last - t > self.restart_us:
-                self.restarts += 1
-                self.times.clear()
-                self.positions.clear()
-            elif t <= last:
-                self.stale += 1
-                return []
-        self.times.append(t)
-        self.positions.append(ned)
-        while len(self.times) > self.history:
-            self.times.popleft()
-            self.positions.popleft()
-        self.samples += 1
-        return self.resolve()
-
-    def truth_at(self, t):
-        return interpolate_truth(self.times, self.positions, t, self.max_gap_us)
-
-    def estimate(self, t, ned, cov6):
-        """An accepted estimate; returns the errors resolved (this one if the truth covers it)."""
-        if len(self.estimates) == self.estimates.maxlen:
-            self.dropped += 1
-        self.estimates.append((t, tuple(ned), tuple(cov6)))
-        return self.resolve()
-
-    def reset_truth(self):
-        """Forgets the truth samples (the origin changed) and the latest error."""
-        self.times.clear()
-        self.positions.clear()
-        self.waiting = None
-        self.latest = None
-
-    def restart_estimates(self):
-        """The node restarted: its held estimates and its latest error are forgotten."""
-        self.estimates.clear()
-        self.latest = None
-
-    def resolve(self):
-        """Errors of the held estimates the truth now covers, in time order: a list of
-        (t, horizontal error m, NEES or None, truth (N, E, D))."""
-        if not self.times or not self.estimates:
-            return []
-        end = self.times[-1]
-        out, keep = [], []
-        for t, ned, cov in self.estimates:
-            if t > end:
-                keep.append((t, ned, cov))
-                continue
-            truth = self.truth_at(t)
-            if truth is None:
-                self.unavailable += 1
-                continue
-            e = (truth[0] - ned[0], truth[1] - ned[1], truth[2] - ned[2])
-            out.append((t, math.hypot(e[0], e[1]), position_nees(e, cov), truth))
-        if len(keep) != len(self.estimates):
-            self.estimates.clear()
-            self.estimates.extend(keep)
-        for r in out:
-            if self.latest is None or r[0] >= self.latest[0]:
-                self.latest = r[:3]
-        return out
 
 
 # ---- the dialect when MAVProxy runs another one -----------------------------------------------
@@ -544,7 +357,8 @@ class CooplocModule(_MPModule):
         self.epochs = _cooploc.EpochTally()  # the library's rules (view::health)
         self.origin = DEFAULT_ORIGIN
         self.vehicles_refused = 0
-        self.truths = {}             # system id -> TruthTrack (simulated vehicles' truth, errors)
+        self.truths = {}             # system id -> cooploc.TruthTrack (the ground station's rules)
+        self.truth_frames = {}       # system id -> RecentFrames of its truth link (a frame on two links once)
         self.last_rejected = None
         self.rejected_unknown = 0    # rejected messages of systems without a place in the table
         self.undecoded = 0           # cooploc frames no bindings could decode
@@ -758,16 +572,17 @@ class CooplocModule(_MPModule):
             if len(self.truths) >= MAX_VEHICLES:
                 self.vehicles_refused += 1
                 return None
-            track = self.truths[sysid] = TruthTrack()
+            track = self.truths[sysid] = _cooploc.TruthTrack(TRUTH_HISTORY, PENDING_ESTIMATES, MAX_TRUTH_GAP_US, RESTART_US)
+            self.truth_frames[sysid] = RecentFrames(64)
         return track
 
     def _truth_message(self, m, mtype, sysid):
         """SIM_STATE, HIGHRES_IMU or ODOMETRY of the simulated vehicle (sysid, 1): the truth and
         the clock that stamps it."""
         if mtype == "SIM_STATE":
-            try:
-                ned = sim_state_ned(m, self.origin)
-            except Rejected as r:
+            try:  # the ground station's check and conversion (protocol::wire)
+                ned = _cooploc.sim_state_from_frame(bytes(m.get_msgbuf() or b""), self.origin)
+            except ValueError as r:
                 self._reject(sysid, str(r))
                 return
         else:
@@ -776,7 +591,7 @@ class CooplocModule(_MPModule):
                 self._reject(sysid, "%s.time_usec %r" % (mtype, t))
                 return
         track = self._truth(sysid)
-        if track is None or track.seen_frame(hash(bytes(m.get_msgbuf() or b""))):
+        if track is None or self.truth_frames[sysid].seen(hash(bytes(m.get_msgbuf() or b""))):
             return
         resolved = track.sim_state(ned) if mtype == "SIM_STATE" else track.timed(t)
         v = self.vehicles.get(sysid)
@@ -1090,7 +905,7 @@ class CooplocModule(_MPModule):
             if e is None:
                 continue
             rgb = colour_rgb(vid)
-            lat, lon, _ = ned_to_geo(e.x, e.y, e.z, self.origin)
+            lat, lon, _ = _cooploc.ned_to_geo(e.x, e.y, e.z, self.origin)
             key = "cooploc_%d" % vid
             yaw_deg = math.degrees(e.yaw)
             if not v.map_drawn:

@@ -547,6 +547,187 @@ impl PyRateWindow {
     }
 }
 
+/// A SIM_STATE frame's truth in the team's NED frame about `origin`: `(north, east, down)` m,
+/// checked as the ground station checks it (`protocol::wire::sim_state_from_message`: the 1e-7
+/// degree integers when non-zero, else the float fields; a non-finite field, a latitude outside
+/// [-90, 90] or a quaternion whose norm is not 1 is refused with `ValueError`, as is a frame that
+/// is no SIM_STATE).
+#[pyfunction]
+fn sim_state_from_frame(frame: &[u8], origin: [f64; 3]) -> PyResult<(f64, f64, f64)> {
+    let origin = self::origin(origin)?;
+    let (_, msg) = wire::from_frame(frame).map_err(refused)?;
+    let MavMessage::SIM_STATE(m) = &msg else {
+        return Err(PyValueError::new_err(format!("{} is not a SIM_STATE", msg.message_name())));
+    };
+    let p = wire::sim_state_from_message(m, &origin).map_err(refused)?.pos_ned_m;
+    Ok((p[0], p[1], p[2]))
+}
+
+type Resolved = (u64, f64, Option<f64>, (f64, f64, f64));
+
+/// The truth of one simulated vehicle and its estimates' errors against it: the ground station's
+/// rules (`gcs::truth::TruthTrack`). `sim_state(ned)` takes a SIM_STATE's position (it waits
+/// for the time of the next timed frame), `timed(t_us)` the time of a HIGHRES_IMU or ODOMETRY;
+/// `estimate(t_us, ned, cov6)` an estimate (cov6: NN, NE, ND, EE, ED, DD), held until the truth
+/// covers its time (the last `pending_max`). Each returns the errors it resolved, in time order:
+/// `(t_us, horizontal error m, NEES or None, truth (N, E, D))`.
+#[pyclass(name = "TruthTrack", module = "cooploc._native")]
+struct PyTruthTrack {
+    track: cooploc::gcs::truth::TruthTrack,
+    pending: std::collections::VecDeque<(u64, Vector3<f64>, Matrix3<f64>)>,
+    pending_max: usize,
+    latest: Option<(u64, f64, Option<f64>)>,
+    unavailable: u64,
+    dropped: u64,
+}
+
+impl PyTruthTrack {
+    fn resolve(&mut self) -> Vec<Resolved> {
+        use cooploc::gcs::truth::ErrorState;
+        let mut out = Vec::new();
+        let track = &self.track;
+        let unavailable = &mut self.unavailable;
+        self.pending.retain(|(t, pos, cov)| match track.judge(cooploc::time::TimeUs(*t), pos, cov) {
+            ErrorState::Pending => true,
+            ErrorState::Unavailable => {
+                *unavailable += 1;
+                false
+            }
+            ErrorState::Known(e) => {
+                let p = e.truth_ned_m;
+                out.push((*t, e.horizontal_m, e.nees, (p[0], p[1], p[2])));
+                false
+            }
+        });
+        out.sort_by_key(|r| r.0);
+        if let Some(&(t, err, nees, _)) = out.last()
+            && self.latest.is_none_or(|(lt, _, _)| t >= lt)
+        {
+            self.latest = Some((t, err, nees));
+        }
+        out
+    }
+}
+
+fn ned(p: (f64, f64, f64)) -> PyResult<Vector3<f64>> {
+    let v = Vector3::new(p.0, p.1, p.2);
+    if v.iter().all(|x| x.is_finite()) { Ok(v) } else { Err(PyValueError::new_err(format!("position {p:?} is not finite"))) }
+}
+
+#[pymethods]
+impl PyTruthTrack {
+    #[new]
+    #[pyo3(signature = (history = 4096, pending_max = 64, max_gap_us = 1_000_000, restart_us = 5_000_000))]
+    fn new(history: usize, pending_max: usize, max_gap_us: u64, restart_us: u64) -> Self {
+        PyTruthTrack {
+            track: cooploc::gcs::truth::TruthTrack::new(history, restart_us, max_gap_us),
+            pending: std::collections::VecDeque::new(),
+            pending_max: pending_max.max(1),
+            latest: None,
+            unavailable: 0,
+            dropped: 0,
+        }
+    }
+
+    fn sim_state(&mut self, ned: (f64, f64, f64)) -> PyResult<Vec<Resolved>> {
+        let point = cooploc::gcs::TruthPoint {
+            t: None,
+            rx: cooploc::gcs::WallNs(0),
+            pos_ned_m: self::ned(ned)?,
+            vel_ned_m_s: Vector3::zeros(),
+            yaw_rad: 0.0,
+        };
+        let placed = self.track.sim_state(point);
+        Ok(if matches!(placed, Some(cooploc::gcs::truth::Placed::Timed { .. })) { self.resolve() } else { Vec::new() })
+    }
+
+    fn timed(&mut self, t_us: u64) -> Vec<Resolved> {
+        let placed = self.track.timed(cooploc::time::TimeUs(t_us));
+        if matches!(placed, Some(cooploc::gcs::truth::Placed::Timed { .. })) { self.resolve() } else { Vec::new() }
+    }
+
+    fn estimate(&mut self, t_us: u64, ned: (f64, f64, f64), cov6: [f64; 6]) -> PyResult<Vec<Resolved>> {
+        let [nn, ne, nd, ee, ed, dd] = cov6;
+        let cov = Matrix3::new(nn, ne, nd, ne, ee, ed, nd, ed, dd);
+        if self.pending.len() == self.pending_max {
+            self.pending.pop_front();
+            self.dropped += 1;
+        }
+        self.pending.push_back((t_us, self::ned(ned)?, cov));
+        Ok(self.resolve())
+    }
+
+    /// The truth at `t_us`, interpolated; None outside its span or across a gap.
+    fn truth_at(&self, t_us: u64) -> Option<(f64, f64, f64)> {
+        self.track.truth_at(cooploc::time::TimeUs(t_us)).map(|p| (p[0], p[1], p[2]))
+    }
+
+    /// Forgets the truth (the origin changed) and the latest error.
+    fn reset_truth(&mut self) {
+        self.track.reset();
+        self.latest = None;
+    }
+
+    /// The node restarted: its held estimates and its latest error are forgotten.
+    fn restart_estimates(&mut self) {
+        self.pending.clear();
+        self.latest = None;
+    }
+
+    /// `(t_us, horizontal error m, NEES or None)` of the newest estimate with an error.
+    #[getter]
+    fn latest(&self) -> Option<(u64, f64, Option<f64>)> {
+        self.latest
+    }
+
+    /// The timed samples' times, us, ascending.
+    #[getter]
+    fn times(&self) -> Vec<u64> {
+        self.track.samples().iter().filter_map(|p| p.t.map(|t| t.0)).collect()
+    }
+
+    #[getter]
+    fn positions(&self) -> Vec<(f64, f64, f64)> {
+        self.track.samples().iter().map(|p| (p.pos_ned_m[0], p.pos_ned_m[1], p.pos_ned_m[2])).collect()
+    }
+
+    /// Estimates waiting for the truth.
+    #[getter]
+    fn pending(&self) -> usize {
+        self.pending.len()
+    }
+
+    #[getter]
+    fn samples(&self) -> u64 {
+        self.track.counts.samples
+    }
+
+    #[getter]
+    fn stale(&self) -> u64 {
+        self.track.counts.stale
+    }
+
+    #[getter]
+    fn restarts(&self) -> u64 {
+        self.track.counts.restarts
+    }
+
+    #[getter]
+    fn untimed(&self) -> u64 {
+        self.track.counts.untimed
+    }
+
+    #[getter]
+    fn unavailable(&self) -> u64 {
+        self.unavailable
+    }
+
+    #[getter]
+    fn dropped(&self) -> u64 {
+        self.dropped
+    }
+}
+
 #[pymodule]
 fn _native(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add("__version__", env!("CARGO_PKG_VERSION"))?;
@@ -565,6 +746,8 @@ fn _native(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_class::<PySequenceTracker>()?;
     m.add_class::<PyEpochTally>()?;
     m.add_class::<PyRateWindow>()?;
+    m.add_class::<PyTruthTrack>()?;
+    m.add_function(wrap_pyfunction!(sim_state_from_frame, m)?)?;
     m.add("MAX_REORDER", cooploc::protocol::sequence::MAX_REORDER)?;
     m.add("PALETTE", cooploc::view::PALETTE.map(|[r, g, b]| format!("{r:02x}{g:02x}{b:02x}")))?;
     Ok(())

@@ -23,6 +23,7 @@ pub mod link;
 pub mod log;
 pub mod runner;
 pub mod state;
+pub mod truth;
 
 use std::net::SocketAddr;
 

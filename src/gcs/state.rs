@@ -32,6 +32,8 @@ use nalgebra::{Matrix2, Vector3};
 use serde::Serialize;
 
 use super::link::{LinkStats, RateWindow, SourceKey};
+pub use super::truth::{ErrorState, TruthError};
+use super::truth::{Placed, TruthTrack};
 use super::{GCS_COMPID, GCS_SYSID, GcsEvent, Link, TruthPoint, WallNs};
 use crate::estimation::PlatformId;
 use crate::protocol::MavMessage;
@@ -46,17 +48,6 @@ pub use crate::estimation::consistency::{CHI2_2DOF_95, Ellipse95, ellipse95, pos
 
 /// Window of the estimate rate, ns.
 pub const ESTIMATE_RATE_WINDOW_NS: u64 = 10_000_000_000;
-
-/// An estimate's error against the truth at its time.
-#[derive(Debug, Clone, Copy, PartialEq)]
-pub struct TruthError {
-    /// The truth interpolated at the estimate's time, NED.
-    pub truth_ned_m: Vector3<f64>,
-    /// Horizontal (N, E) distance, m.
-    pub horizontal_m: f64,
-    /// Position NEES over N, E, D (`None`: covariance not positive definite).
-    pub nees: Option<f64>,
-}
 
 /// Tuning of the ground station's memory and checks.
 #[derive(Debug, Clone, PartialEq)]
@@ -145,15 +136,6 @@ pub struct EstimatePoint {
     pub error: ErrorState,
 }
 
-#[derive(Debug, Clone, Copy, PartialEq)]
-pub enum ErrorState {
-    /// The truth does not cover the estimate's time yet.
-    Pending,
-    Known(TruthError),
-    /// No truth at that time (before the truth began, or across a gap).
-    Unavailable,
-}
-
 /// Per-vehicle counters.
 #[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Serialize)]
 pub struct VehicleCounts {
@@ -179,12 +161,8 @@ pub struct Vehicle {
     /// Has a truth link (`--vehicle`).
     pub has_link: bool,
     pub estimates: VecDeque<EstimatePoint>,
-    /// Truth samples with a vehicle time, in time order.
-    pub truth: VecDeque<TruthPoint>,
-    /// Truth samples without a time (a link with no timed frames), for the map only.
-    pub truth_untimed: VecDeque<TruthPoint>,
-    pending_truth: Option<TruthPoint>,
-    last_link_time: Option<TimeUs>,
+    /// Its truth (SIM_STATE stamped by the link's timed frames): [`super::truth`].
+    pub truth: TruthTrack,
     /// When the first estimate came, and the estimates received over the rate window (one
     /// "byte" each).
     estimate_rate: Option<(WallNs, RateWindow)>,
@@ -192,15 +170,12 @@ pub struct Vehicle {
 }
 
 impl Vehicle {
-    fn new(id: PlatformId) -> Self {
+    fn new(id: PlatformId, config: &GcsConfig) -> Self {
         Vehicle {
             id,
             has_link: false,
             estimates: VecDeque::new(),
-            truth: VecDeque::new(),
-            truth_untimed: VecDeque::new(),
-            pending_truth: None,
-            last_link_time: None,
+            truth: TruthTrack::new(config.truth_history, config.restart_us, config.max_truth_gap_us),
             estimate_rate: None,
             counts: VehicleCounts::default(),
         }
@@ -210,10 +185,10 @@ impl Vehicle {
         self.estimates.back()
     }
 
-    /// The truth position at `t`, interpolated linearly between the bracketing samples (at most
-    /// `max_gap_us` apart); `None` outside the truth's span.
-    pub fn truth_at(&self, t: TimeUs, max_gap_us: u64) -> Option<Vector3<f64>> {
-        truth_at(&self.truth, t, max_gap_us)
+    /// The truth position at `t`, interpolated linearly between the bracketing samples;
+    /// `None` outside the truth's span.
+    pub fn truth_at(&self, t: TimeUs) -> Option<Vector3<f64>> {
+        self.truth.truth_at(t)
     }
 }
 
@@ -244,7 +219,7 @@ impl GcsState {
     pub fn new(config: GcsConfig) -> Self {
         let mut vehicles = BTreeMap::new();
         for &id in &config.vehicles {
-            let mut v = Vehicle::new(id);
+            let mut v = Vehicle::new(id, &config);
             v.has_link = true;
             vehicles.insert(id, v);
         }
@@ -313,7 +288,8 @@ impl GcsState {
             self.counters.vehicles_refused += 1;
             return false;
         }
-        self.vehicles.insert(id, Vehicle::new(id));
+        let v = Vehicle::new(id, &self.config);
+        self.vehicles.insert(id, v);
         true
     }
 
@@ -323,7 +299,8 @@ impl GcsState {
     }
 
     fn vehicle(&mut self, id: PlatformId) -> &mut Vehicle {
-        self.vehicles.entry(id).or_insert_with(|| Vehicle::new(id))
+        let config = &self.config;
+        self.vehicles.entry(id).or_insert_with(|| Vehicle::new(id, config))
     }
 
     /// A datagram from the cooperative network.
@@ -448,7 +425,7 @@ impl GcsState {
     }
 
     fn on_estimate(&mut self, rx: WallNs, report: EstimateReport, events: &mut Vec<GcsEvent>) {
-        let (history, restart_us, max_gap) = (self.config.estimate_history, self.config.restart_us, self.config.max_truth_gap_us);
+        let (history, restart_us) = (self.config.estimate_history, self.config.restart_us);
         if !self.admit(report.platform) {
             return;
         }
@@ -475,7 +452,7 @@ impl GcsState {
         while v.estimates.len() > history.max(1) {
             v.estimates.pop_front();
         }
-        resolve_errors(v, rx, max_gap, events);
+        resolve_errors(v, rx, events);
     }
 
     fn on_vehicle_message(&mut self, rx: WallNs, id: PlatformId, sysid: u32, message: MavMessage, events: &mut Vec<GcsEvent>) {
@@ -509,60 +486,38 @@ impl GcsState {
                     yaw_rad: truth.yaw_rad,
                 };
                 // A sample still waiting for its time is placed at the last known time.
-                if let Some(mut pending) = v.pending_truth.take() {
-                    pending.t = v.last_link_time;
-                    self.add_truth(rx, id, pending, events);
-                }
-                self.vehicle(id).pending_truth = Some(point);
+                let placed = self.vehicle(id).truth.sim_state(point);
+                self.placed(rx, id, placed, events);
                 None
             }
             _ => None,
         };
         if let Some(t) = timed {
-            let v = self.vehicle(id);
-            v.last_link_time = Some(t);
-            if let Some(mut pending) = v.pending_truth.take() {
-                pending.t = Some(t);
-                self.add_truth(rx, id, pending, events);
-            }
+            let placed = self.vehicle(id).truth.timed(t);
+            self.placed(rx, id, placed, events);
         }
     }
 
-    fn add_truth(&mut self, rx: WallNs, id: PlatformId, point: TruthPoint, events: &mut Vec<GcsEvent>) {
-        let (history, restart_us, max_gap) = (self.config.truth_history, self.config.restart_us, self.config.max_truth_gap_us);
+    /// Counts what became of a truth sample, says so, and resolves the errors it allows.
+    fn placed(&mut self, rx: WallNs, id: PlatformId, placed: Option<Placed>, events: &mut Vec<GcsEvent>) {
         let v = self.vehicle(id);
-        let Some(t) = point.t else {
-            v.counts.truth_samples += 1;
-            v.truth_untimed.push_back(point);
-            while v.truth_untimed.len() > history.max(1) {
-                v.truth_untimed.pop_front();
-            }
-            events.push(GcsEvent::Truth { rx, vehicle: id, point });
-            return;
-        };
-        if let Some(last) = v.truth.back().and_then(|p| p.t) {
-            if t < last {
-                if last.0 - t.0 > restart_us {
-                    v.counts.restarts += 1;
-                    v.truth.clear();
-                } else {
-                    v.counts.stale_truth += 1;
-                    self.counters.ignored += 1;
-                    return;
-                }
-            } else if t == last {
+        match placed {
+            None => {}
+            Some(Placed::Stale) => {
                 v.counts.stale_truth += 1;
                 self.counters.ignored += 1;
-                return;
+            }
+            Some(Placed::Untimed(point)) => {
+                v.counts.truth_samples += 1;
+                events.push(GcsEvent::Truth { rx, vehicle: id, point });
+            }
+            Some(Placed::Timed { point, restarted }) => {
+                v.counts.truth_samples += 1;
+                v.counts.restarts += u64::from(restarted);
+                events.push(GcsEvent::Truth { rx, vehicle: id, point });
+                resolve_errors(v, rx, events);
             }
         }
-        v.counts.truth_samples += 1;
-        v.truth.push_back(point);
-        while v.truth.len() > history.max(2) {
-            v.truth.pop_front();
-        }
-        events.push(GcsEvent::Truth { rx, vehicle: id, point });
-        resolve_errors(v, rx, max_gap, events);
     }
 
     /// The team's health now: disagreements and healing from the epoch reports, and per node
@@ -664,52 +619,31 @@ impl GcsState {
 }
 
 /// Computes the errors of the newest estimates that the truth now covers.
-fn resolve_errors(v: &mut Vehicle, rx: WallNs, max_gap_us: u64, events: &mut Vec<GcsEvent>) {
-    let Some(truth_end) = v.truth.back().and_then(|p| p.t) else { return };
+fn resolve_errors(v: &mut Vehicle, rx: WallNs, events: &mut Vec<GcsEvent>) {
+    if v.truth.end().is_none() {
+        return;
+    }
+    let start = v.truth.start();
     let mut found = Vec::new();
     for e in v.estimates.iter_mut().rev() {
         if !matches!(e.error, ErrorState::Pending) {
             break;
         }
         let t = e.report.t;
-        if t > truth_end {
-            continue;
-        }
-        let Some(truth) = truth_at(&v.truth, t, max_gap_us) else {
-            e.error = ErrorState::Unavailable;
-            if v.truth.front().and_then(|p| p.t).is_some_and(|t0| t < t0) {
-                break; // older estimates are before the truth too
+        e.error = v.truth.judge(t, &e.report.position_ned_m, &e.report.position_covariance_m2);
+        match e.error {
+            ErrorState::Pending => continue,
+            ErrorState::Known(error) => found.push((t, error)),
+            ErrorState::Unavailable => {
+                if start.is_some_and(|t0| t < t0) {
+                    break; // older estimates are before the truth too
+                }
             }
-            continue;
-        };
-        let diff = truth - e.report.position_ned_m;
-        let error = TruthError {
-            truth_ned_m: truth,
-            horizontal_m: diff.fixed_rows::<2>(0).norm(),
-            nees: position_nees(&diff, &e.report.position_covariance_m2),
-        };
-        e.error = ErrorState::Known(error);
-        found.push((t, error));
+        }
     }
     for (t, error) in found.into_iter().rev() {
         events.push(GcsEvent::Error { rx, vehicle: v.id, t, error });
     }
-}
-
-fn truth_at(truth: &VecDeque<TruthPoint>, t: TimeUs, max_gap_us: u64) -> Option<Vector3<f64>> {
-    let idx = truth.partition_point(|p| p.t.is_some_and(|pt| pt < t));
-    let after = truth.get(idx)?;
-    let ta = after.t?;
-    if ta == t {
-        return Some(after.pos_ned_m);
-    }
-    let before = truth.get(idx.checked_sub(1)?)?;
-    let tb = before.t?;
-    if ta.0 - tb.0 > max_gap_us {
-        return None;
-    }
-    let f = (t.0 - tb.0) as f64 / (ta.0 - tb.0) as f64;
-    Some(before.pos_ned_m + (after.pos_ned_m - before.pos_ned_m) * f)
 }
 
 /// At most `max` items of `items`, evenly spaced, the last one always included.
@@ -761,7 +695,7 @@ fn vehicle_json(v: &Vehicle, now: WallNs, max_points: usize) -> VehicleJson {
         })
         .collect();
     let sigma = v.estimates.iter().filter_map(|e| e.ellipse.map(|el| [e.report.t.as_secs_f64(), el.semi_major_m])).collect();
-    let truth_src = if v.truth.is_empty() { &v.truth_untimed } else { &v.truth };
+    let truth_src = if v.truth.samples().is_empty() { v.truth.untimed() } else { v.truth.samples() };
     let truth_track =
         truth_src.iter().map(|p| [p.t.map_or(f64::NAN, |t| t.as_secs_f64()), p.pos_ned_m[0], p.pos_ned_m[1]]).collect();
     let truth = truth_src.back().map(|p| TruthJson {
@@ -1094,7 +1028,7 @@ mod tests {
         // Truth at 1.0 s: (100, 200, 0); at 1.1 s: (101, 202, 0). SIM_STATE comes just before
         // the IMU sample of its time, which stamps it.
         link(&mut gcs, 0, &sim_state(&origin, Vector3::new(100.0, 200.0, 0.0)));
-        assert!(gcs.vehicles[&3].truth.is_empty(), "no time yet");
+        assert!(gcs.vehicles[&3].truth.samples().is_empty(), "no time yet");
         link(&mut gcs, 1, &imu(1_000_000));
         // An estimate at 1.05 s arrives before the truth covers it: error pending.
         let cov = Matrix3::from_diagonal(&Vector3::new(4.0, 1.0, 1.0));
@@ -1126,10 +1060,9 @@ mod tests {
         assert!(v.has_link && v.error.is_some() && v.errors.len() == 1 && v.truth_track.len() == 2);
         assert_eq!(gcs.vehicles[&3].counts.link_imu_frames, 3);
         // Outside the truth's span: no error; across a gap longer than max_truth_gap_us: none.
-        assert!(gcs.vehicles[&3].truth_at(TimeUs(900_000), 1_000_000).is_none());
-        assert!(gcs.vehicles[&3].truth_at(TimeUs(1_200_000), 1_000_000).is_none());
-        assert!(gcs.vehicles[&3].truth_at(TimeUs(1_050_000), 50_000).is_none());
-        assert!(gcs.vehicles[&3].truth_at(TimeUs(1_100_000), 0).is_some(), "an exact sample needs no bracket");
+        // (gaps: gcs::truth's tests)
+        assert!(gcs.vehicles[&3].truth_at(TimeUs(900_000)).is_none());
+        assert!(gcs.vehicles[&3].truth_at(TimeUs(1_200_000)).is_none());
     }
 
     #[test]

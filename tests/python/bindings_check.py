@@ -148,5 +148,16 @@ check("RateWindow: a negative amount -> OverflowError/TypeError/ValueError",
       raises((OverflowError, TypeError, ValueError), w.add, 1.0, -5) is not None)
 check("RateWindow: a zero window -> ValueError", raises(ValueError, cooploc.RateWindow, 0.0) is not None)
 
+# The ground station's truth track: bad input is an exception, never a crash.
+tt = cooploc.TruthTrack()
+check("TruthTrack: a NaN position -> ValueError", raises(ValueError, tt.sim_state, (float("nan"), 0.0, 0.0)) is not None)
+check("TruthTrack: two coordinates -> TypeError/ValueError", raises((TypeError, ValueError), tt.sim_state, (1.0, 2.0)) is not None)
+check("TruthTrack: five covariance entries -> TypeError/ValueError",
+      raises((TypeError, ValueError), tt.estimate, 1, (0.0, 0.0, 0.0), (1, 0, 0, 1, 0)) is not None)
+check("TruthTrack: a negative time -> OverflowError/TypeError/ValueError",
+      raises((OverflowError, TypeError, ValueError), tt.timed, -1) is not None)
+check("sim_state_from_frame: garbage -> ValueError", raises(ValueError, cooploc.sim_state_from_frame, b"\xfd" + bytes(30), (34.7, 0.0, 0.0)) is not None)
+check("sim_state_from_frame: no bytes -> ValueError", raises(ValueError, cooploc.sim_state_from_frame, b"", (34.7, 0.0, 0.0)) is not None)
+
 print("bindings_check: %d failed%s" % (len(failures), (": " + "; ".join(failures)) if failures else ""))
 sys.exit(1 if failures else 0)

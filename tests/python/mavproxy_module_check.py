@@ -35,6 +35,7 @@ import queue
 import re
 import shutil
 import signal
+import struct
 import subprocess
 import sys
 import tempfile
@@ -95,7 +96,7 @@ def pure_checks(cl):
           and close(poly[0][0], 34.7 + math.degrees(3 * math.cos(b) / 6378137.0), 1e-12), poly[0])
 
     # Origin: lat = lat0 + deg(N / R), lon = lon0 + deg(E / (R cos lat0)), alt = alt0 - D.
-    lat, lon, alt = cl.ned_to_geo(1000.0, -2000.0, -5.0, (34.7, 1.5, 10.0))
+    lat, lon, alt = cl._cooploc.ned_to_geo(1000.0, -2000.0, -5.0, (34.7, 1.5, 10.0))
     R = 6378137.0
     check("origin conversion", close(lat, 34.7 + math.degrees(1000.0 / R), 1e-12)
           and close(lon, 1.5 + math.degrees(-2000.0 / (R * math.cos(math.radians(34.7)))), 1e-12)
@@ -198,24 +199,29 @@ def truth_pure_checks(cl):
         worst = 0.0
         for origin in origins:
             for ned in ((0.0, 0.0, 0.0), (1000.0, -2000.0, -5.0), (-3000.0, 2500.0, 12.5), (250.0, 1500.0, 0.0)):
-                back = cl.geo_to_ned(*cl.ned_to_geo(*ned, origin), origin=origin)
+                back = cl._cooploc.geo_to_ned(*cl._cooploc.ned_to_geo(*ned, origin), origin)
                 worst = max(worst, max(abs(a - b) for a, b in zip(back, ned)))
         return worst
     w = worst_round_trip(((34.7, 0.0, 0.0), (34.7, 1.5, 10.0), (-45.0, -2.0, -3.0)))
     check("truth: geo_to_ned inverts ned_to_geo to 1e-9 m", w <= 1e-9, w)
     w = worst_round_trip(((-45.0, 179.99, -3.0), (60.0, -179.995, 0.0)))
     check("truth: geo_to_ned inverts ned_to_geo across the antimeridian (1e-8 m)", w <= 1e-8, w)
-    n, e, d = cl.geo_to_ned(34.7 + math.degrees(100.0 / 6378137.0), -179.99, 5.0, (34.7, 179.99, 2.0))
+    n, e, d = cl._cooploc.geo_to_ned(34.7 + math.degrees(100.0 / 6378137.0), -179.99, 5.0, (34.7, 179.99, 2.0))
     check("truth: longitude difference the short way round", close(n, 100.0, 1e-6) and close(d, -3.0)
           and close(e, math.radians(0.02) * 6378137.0 * math.cos(math.radians(34.7)), 1e-6), (n, e, d))
-    # Interpolation between two samples; a sample's own time; outside the span; across a gap.
-    times, pos = [1_000_000, 2_000_000, 4_000_000], [(0.0, 0.0, 0.0), (10.0, -4.0, 2.0), (0.0, 0.0, 0.0)]
-    p = cl.interpolate_truth(times, pos, 1_250_000)
+    # Interpolation between two samples; a sample's own time; outside the span; across a gap
+    # (cooploc.TruthTrack: the ground station's gcs::truth).
+    T = cl._cooploc.TruthTrack
+    it = T()
+    for n, tt in ((0.0, 1_000_000), (10.0, 2_000_000), (0.0, 4_000_000)):
+        it.sim_state((n, -0.4 * n, 0.2 * n))
+        it.timed(tt)
+    p = it.truth_at(1_250_000)
     check("truth: linear interpolation between two samples", p and all(close(a, b) for a, b in zip(p, (2.5, -1.0, 0.5))), p)
     check("truth: a sample's own time, none outside the span or across a gap over 1 s",
-          cl.interpolate_truth(times, pos, 2_000_000) == (10.0, -4.0, 2.0)
-          and cl.interpolate_truth(times, pos, 999_999) is None and cl.interpolate_truth(times, pos, 4_000_001) is None
-          and cl.interpolate_truth(times, pos, 3_000_000) is None and cl.interpolate_truth([], [], 1) is None)
+          it.truth_at(2_000_000) == (10.0, -4.0, 2.0)
+          and it.truth_at(999_999) is None and it.truth_at(4_000_001) is None
+          and it.truth_at(3_000_000) is None and T().truth_at(1) is None)
     # NEES.
     nees = cl.position_nees((1.0, 2.0, 0.0), (1.0, 0.0, 0.0, 4.0, 0.0, 1.0))
     check("truth: NEES of e = (1, 2, 0), P = diag(1, 4, 1) is 2", nees is not None and close(nees, 2.0), nees)
@@ -239,7 +245,7 @@ def truth_pure_checks(cl):
           and cl.position_nees((float("nan"), 0.0, 0.0), (1.0, 0.0, 0.0, 1.0, 0.0, 1.0)) is None)
     # Stamping: a SIM_STATE takes the time of the next timed frame; one still waiting when the
     # next SIM_STATE comes is placed at the last known time; none known: dropped.
-    t = cl.TruthTrack()
+    t = T()
     t.sim_state((1.0, 0.0, 0.0))
     t.sim_state((2.0, 0.0, 0.0))          # the first: no time known yet
     t.timed(1_000_000)                     # stamps the second
@@ -262,50 +268,57 @@ def truth_pure_checks(cl):
     check("truth: a step back is stale, more than 5 s back a restart",
           list(t.times) == [1_000] and t.restarts == 1 and t.stale == 2, (list(t.times), t.restarts, t.stale))
     # Estimates before the truth covers them wait, then resolve.
-    t = cl.TruthTrack()
+    t = T()
     cov = (1.0, 0.0, 0.0, 4.0, 0.0, 1.0)
     t.sim_state((0.0, 0.0, 0.0))
     t.timed(1_000_000)
     r0 = t.estimate(500_000, (0.0, 0.0, 0.0), cov)       # before the truth: unavailable
     r1 = t.estimate(1_500_000, (0.0, -2.0, 0.0), cov)    # waits
     r2 = t.estimate(1_800_000, (0.0, 0.0, 0.0), cov)     # waits
-    pending = len(t.estimates)
+    pending = t.pending
     t.sim_state((2.0, 0.0, 0.0))
     r3 = t.timed(2_000_000)
     check("truth: estimates wait for the truth, then resolve (error, NEES)",
           r0 == [] and r1 == [] and r2 == [] and pending == 2 and t.unavailable == 1 and len(r3) == 2
           and r3[0][0] == 1_500_000 and close(r3[0][1], math.sqrt(5.0)) and close(r3[0][2], 2.0)
-          and t.latest[0] == 1_800_000 and close(t.latest[1], 1.6) and close(t.latest[2], 2.56) and not t.estimates,
+          and t.latest[0] == 1_800_000 and close(t.latest[1], 1.6) and close(t.latest[2], 2.56) and t.pending == 0,
           (r0, r1, r2, r3, t.latest))
-    t2 = cl.TruthTrack(pending_max=4)
+    t2 = T(pending_max=4)
     for k in range(10):
         t2.estimate(k, (0.0, 0.0, 0.0), cov)
-    check("truth: pending estimates bounded", len(t2.estimates) == 4 and t2.dropped == 6, len(t2.estimates))
+    check("truth: pending estimates bounded", t2.pending == 4 and t2.dropped == 6, t2.pending)
 
-    # SIM_STATE validation and the integer fields.
-    class Sim:
-        def __init__(self, **kw):
-            f = dict(q1=1.0, q2=0.0, q3=0.0, q4=0.0, lat=34.7, lon=0.0, alt=0.0, vn=0.0, ve=0.0, vd=0.0, yaw=0.0,
-                     lat_int=0, lon_int=0)
-            f.update(kw)
-            self.__dict__.update(f)
+    # SIM_STATE validation and the integer fields: cooploc.sim_state_from_frame, on the frame's
+    # bytes (protocol::wire's check, the ground station's).
+    from pymavlink.dialects.v20 import common as cd
+    packer = cd.MAVLink(None, srcSystem=3, srcComponent=1)
+
+    def sim(**kw):
+        f = dict(q1=1.0, q2=0.0, q3=0.0, q4=0.0, roll=0.0, pitch=0.0, yaw=0.0, xacc=0.0, yacc=0.0, zacc=0.0,
+                 xgyro=0.0, ygyro=0.0, zgyro=0.0, lat=34.7, lon=0.0, alt=0.0, std_dev_horz=0.0, std_dev_vert=0.0,
+                 vn=0.0, ve=0.0, vd=0.0, lat_int=0, lon_int=0)
+        f.update(kw)
+        return bytes(cd.MAVLink_sim_state_message(**f).pack(packer))
     o = (34.7, 0.0, 0.0)
-    a = cl.sim_state_ned(Sim(lat=10.0, lon=10.0, alt=3.0, lat_int=347_000_100, lon_int=-200), o)
-    b = cl.sim_state_ned(Sim(lat=34.70001, lon=-0.00002, alt=3.0), o)
+    f32 = lambda x: struct.unpack("<f", struct.pack("<f", x))[0]  # noqa: E731 (SIM_STATE's float fields)
+    a = cl._cooploc.sim_state_from_frame(sim(lat=10.0, lon=10.0, alt=3.0, lat_int=347_000_100, lon_int=-200), o)
+    b = cl._cooploc.sim_state_from_frame(sim(lat=34.70001, lon=-0.00002, alt=3.0), o)
     check("truth: SIM_STATE lat_int/lon_int preferred when non-zero, else lat/lon",
           close(a[0], math.radians(347_000_100 * 1e-7 - 34.7) * 6378137.0, 1e-6)
           and close(a[1], math.radians(-200 * 1e-7) * 6378137.0 * math.cos(math.radians(34.7)), 1e-6)
-          and a[2] == -3.0 and close(b[0], math.radians(0.00001) * 6378137.0, 1e-6), (a, b))
-    bad = [Sim(lat=float("nan")), Sim(lat_int=910_000_000), Sim(lat=-90.5), Sim(alt=float("inf")),
-           Sim(vn=float("nan")), Sim(q1=0.5), Sim(lon=float("inf"))]
+          and a[2] == -3.0 and close(b[0], math.radians(f32(34.70001) - 34.7) * 6378137.0, 1e-6), (a, b))
+    bad = [sim(lat=float("nan")), sim(lat_int=910_000_000), sim(lat=-90.5), sim(alt=float("inf")),
+           sim(vn=float("nan")), sim(q1=0.5), sim(lon=float("inf")), b"\xfd\x00garbage"]
     refused = 0
-    for m in bad:
+    for frame in bad:
         try:
-            cl.sim_state_ned(m, o)
-        except cl.Rejected:
+            cl._cooploc.sim_state_from_frame(frame, o)
+        except ValueError:
             refused += 1
     check("truth: SIM_STATE with a non-finite field, |lat| > 90 or a bad quaternion refused",
           refused == len(bad), "%d of %d refused" % (refused, len(bad)))
+    check("no truth rules of the module's own", not any(hasattr(cl, n) for n in (
+        "TruthTrack", "interpolate_truth", "sim_state_ned", "geo_to_ned", "ned_to_geo", "RateWindow")))
 
 
 # ---- 2. the module in a stand-in MAVProxy (no process, no wx) --------------------------------
@@ -556,7 +569,7 @@ def module_checks(cl, dialect):
     ok = icon is not None and poly is not None and mod.errors == 0
     if ok:
         est = mod.vehicles[2].est
-        lat0, lon0, _ = cl.ned_to_geo(est.x, est.y, est.z, mod.origin)
+        lat0, lon0, _ = cl._cooploc.ned_to_geo(est.x, est.y, est.z, mod.origin)
         k = 20.0 * 111_320.0  # about 20 px a metre
 
         def pix(latlon):
@@ -652,9 +665,9 @@ def truth_module_checks(cl, d, mod, links, error_graph):
     # The truth 3 m north and 4 m east of the estimate (in degE7 steps: the exact truth is what
     # the integers give), at 4.5 s and 5.5 s.
     lat0, lon0, alt0 = mod.origin
-    lat, lon, alt = cl.ned_to_geo(1.5 + 3.0, -2.25 + 4.0, 0.125, mod.origin)
+    lat, lon, alt = cl._cooploc.ned_to_geo(1.5 + 3.0, -2.25 + 4.0, 0.125, mod.origin)
     lat_int, lon_int = int(round(lat * 1e7)), int(round(lon * 1e7))
-    truth = cl.geo_to_ned(lat_int * 1e-7, lon_int * 1e-7, 9.875, mod.origin)
+    truth = cl._cooploc.geo_to_ned(lat_int * 1e-7, lon_int * 1e-7, 9.875, mod.origin)
     rejected = v.rejected
     send(sim_state(lat_int, lon_int, 9.875), on=(0, 1))   # on two links: one sample
     before = mod.vehicles[2].est.time_usec, mod.truths[2].latest
@@ -685,7 +698,7 @@ def truth_module_checks(cl, d, mod, links, error_graph):
     send_est = lambda m: links[0].deliver(mod, bytes(m.pack(mod_senders[2])))  # noqa: E731
     mod_senders = {2: d.MAVLink(None, srcSystem=2, srcComponent=191)}
     send_est(estimate(d, 6_000_000, 2, x=1.5, y=-2.25, pos_covariance=[1.0, 2.0, 0.0, 1.0, 0.0, 1.0]))
-    waiting = len(track.estimates)
+    waiting = track.pending
     send(sim_state(lat_int, lon_int, 9.875))
     send(imu(6_500_000))
     kv = dict(w.split("=", 1) for w in mod.vehicle_line(v, now()).split()[3:])
