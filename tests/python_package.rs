@@ -153,6 +153,25 @@ fn the_python_package_gives_the_library_s_results_and_refuses_bad_input() {
         }
     }
     spec["mrclam"] = json!({ "dir": mrclam_dir, "runs": runs });
+    // The committed log replayed, and three methods run on its inputs, as the library does it.
+    let log = cooploc::recording::read_log(std::path::Path::new(log_path)).unwrap();
+    let replays: Vec<serde_json::Value> = cooploc::replay::replay_nodes(&log)
+        .unwrap()
+        .iter()
+        .map(|n| json!([n.id, n.matches(), n.imu_replayed, n.recorded.len(), n.recorded.last().map(|e| e.position_ned_m[0])]))
+        .collect();
+    let methods = [Method::DeadReckoning, Method::Decentralized, Method::CovarianceIntersection];
+    let compared: Vec<serde_json::Value> = cooploc::replay::compare_methods(&log, &methods)
+        .unwrap()
+        .iter()
+        .flat_map(|r| {
+            r.platforms.iter().map(move |p| {
+                let f = p.final_error();
+                json!([r.method.short_name(), p.id, p.trace.len(), f.pos_err_m, f.heading_err_deg, p.final_nees])
+            })
+        })
+        .collect();
+    spec["replay"] = json!({ "nodes": replays, "compared": compared });
     spec["not_a_log"] = json!(concat!(env!("CARGO_MANIFEST_DIR"), "/README.md"));
     spec["no_file"] = json!(dir.join("absent.mcap"));
     let path = dir.join("spec.json");

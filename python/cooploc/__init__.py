@@ -17,6 +17,9 @@ So far (the first step of issue 35):
   the ground station check it;
 - :func:`read_log`: a cooploc MCAP log (metadata, topics, messages; a cut or damaged log is read
   up to the damage), as ``cooploc replay`` reads it (``recording::read_log``);
+- :func:`replay`: every node of a log replayed, its recorded and replayed estimates as numpy
+  arrays (``replay::replay_nodes``); :func:`compare_methods`: any method run offline on a log's
+  inputs, its errors at every truth sample as numpy arrays (``replay::compare_methods``);
 - :func:`mrclam`: every method in every regime on a UTIAS MRCLAM data set, the figures of
   ``cooploc dataset mrclam``'s table as dicts (``dataset::run::run``);
 - :func:`experiment`: the Monte Carlo of ``cooploc experiment``, its summary and RMS curves
@@ -50,6 +53,7 @@ from cooploc._native import (
     TruthTrack,
     __version__,
     check_frame,
+    compare_methods,
     ellipse95,
     estimate_from_frame,
     experiment_json,
@@ -59,6 +63,7 @@ from cooploc._native import (
     ned_to_geo,
     position_nees,
     read_log,
+    replay,
     sim_state_from_frame,
 )
 
@@ -92,6 +97,7 @@ __all__ = [
     "TruthTrack",
     "__version__",
     "check_frame",
+    "compare_methods",
     "ellipse95",
     "estimate_from_frame",
     "experiment",
@@ -102,5 +108,6 @@ __all__ = [
     "ned_to_geo",
     "position_nees",
     "read_log",
+    "replay",
     "sim_state_from_frame",
 ]

@@ -11,6 +11,7 @@ use cooploc::protocol::MavMessage;
 use cooploc::protocol::wire;
 use mavlink_core::Message as _;
 use nalgebra::{Matrix3, Vector3};
+use numpy::PyArrayMethods as _;
 use pyo3::exceptions::PyValueError;
 use pyo3::prelude::*;
 use pyo3::types::PyDict;
@@ -188,11 +189,8 @@ fn check_frame(frame: &[u8]) -> PyResult<(String, Option<Vec<u16>>)> {
 #[pyfunction]
 #[pyo3(signature = (path, topics = None))]
 fn read_log<'py>(py: Python<'py>, path: std::path::PathBuf, topics: Option<Vec<String>>) -> PyResult<Bound<'py, PyDict>> {
-    use cooploc::recording::{LogEnd, ReadError};
-    let log = cooploc::recording::read_log(&path).map_err(|e| match e {
-        ReadError::Open { .. } | ReadError::Io { .. } => pyo3::exceptions::PyOSError::new_err(e.to_string()),
-        _ => PyValueError::new_err(format!("{}: {e}", path.display())),
-    })?;
+    use cooploc::recording::LogEnd;
+    let log = open_log(&path)?;
     let d = PyDict::new(py);
     d.set_item(
         "end",
@@ -728,6 +726,97 @@ impl PyTruthTrack {
     }
 }
 
+fn open_log(path: &std::path::Path) -> PyResult<cooploc::recording::Log> {
+    use cooploc::recording::ReadError;
+    cooploc::recording::read_log(path).map_err(|e| match e {
+        ReadError::Open { .. } | ReadError::Io { .. } => pyo3::exceptions::PyOSError::new_err(e.to_string()),
+        _ => PyValueError::new_err(format!("{}: {e}", path.display())),
+    })
+}
+
+/// Estimates as numpy arrays: `t_s` (n), `epoch` (n), `position_ned_m` (n, 3),
+/// `velocity_ned_m_s` (n, 3), `yaw_rad` (n), `position_covariance_m2` (n, 3, 3), `nis` (n).
+fn estimate_arrays<'py>(py: Python<'py>, es: &[wire::EstimateReport]) -> PyResult<Bound<'py, PyDict>> {
+    use numpy::{IntoPyArray, PyArray2, PyArray3};
+    let n = es.len();
+    let d = PyDict::new(py);
+    d.set_item("t_s", es.iter().map(|e| e.t.as_secs_f64()).collect::<Vec<_>>().into_pyarray(py))?;
+    d.set_item("epoch", es.iter().map(|e| e.epoch).collect::<Vec<_>>().into_pyarray(py))?;
+    let rows3 = |f: &dyn Fn(&wire::EstimateReport) -> Vector3<f64>| -> PyResult<Bound<'py, PyArray2<f64>>> {
+        let flat: Vec<f64> = es.iter().flat_map(|e| f(e).iter().copied().collect::<Vec<_>>()).collect();
+        flat.into_pyarray(py).reshape([n, 3])
+    };
+    d.set_item("position_ned_m", rows3(&|e| e.position_ned_m)?)?;
+    d.set_item("velocity_ned_m_s", rows3(&|e| e.velocity_ned_m_s)?)?;
+    d.set_item("yaw_rad", es.iter().map(|e| e.yaw_rad).collect::<Vec<_>>().into_pyarray(py))?;
+    let cov: Vec<f64> =
+        es.iter().flat_map(|e| e.position_covariance_m2.transpose().iter().copied().collect::<Vec<_>>()).collect();
+    let cov: Bound<'py, PyArray3<f64>> = cov.into_pyarray(py).reshape([n, 3, 3])?;
+    d.set_item("position_covariance_m2", cov)?;
+    d.set_item("nis", es.iter().map(|e| e.nis).collect::<Vec<_>>().into_pyarray(py))?;
+    Ok(d)
+}
+
+/// Replays every node of a cooploc log (`replay::replay_nodes`, what `cooploc replay` runs: each
+/// node's core fed the frames and events it logged): per platform id a dict with `method`, the
+/// estimates it `recorded` (what it sent) and those the replay `replayed`, as numpy arrays
+/// (`t_s`, `epoch`, `position_ned_m` (n, 3), `velocity_ned_m_s` (n, 3), `yaw_rad`,
+/// `position_covariance_m2` (n, 3, 3), `nis`), `identical` (every estimate equal, bit for bit)
+/// and `imu_replayed`. `OSError` for a file that cannot be read, `ValueError` for one that is not
+/// a cooploc log or that replay refuses (the message says why). The GIL is released while it runs.
+#[pyfunction]
+fn replay<'py>(py: Python<'py>, path: std::path::PathBuf) -> PyResult<Bound<'py, PyDict>> {
+    let log = open_log(&path)?;
+    let nodes = py.detach(|| cooploc::replay::replay_nodes(&log)).map_err(|e| PyValueError::new_err(e.to_string()))?;
+    let out = PyDict::new(py);
+    for n in &nodes {
+        let d = PyDict::new(py);
+        d.set_item("method", n.method.short_name())?;
+        d.set_item("recorded", estimate_arrays(py, &n.recorded)?)?;
+        d.set_item("replayed", estimate_arrays(py, &n.replayed)?)?;
+        d.set_item("identical", n.matches())?;
+        d.set_item("imu_replayed", n.imu_replayed)?;
+        out.set_item(n.id, d)?;
+    }
+    Ok(out)
+}
+
+/// Every method of `methods` (short names) run offline on the inputs a cooploc log's vehicles
+/// sent (`replay::compare_methods`, what `cooploc replay --compare` runs; the log needs its
+/// `cooploc.run` metadata, as `cooploc demo` writes it): per method, per platform id, numpy
+/// arrays at every truth sample, `t_s`, `pos_err_m`, `pos_err_ne_m` (n, 2), `heading_err_deg`,
+/// `track_ne_m` (n, 2), and the run's `final_nees` with its `nees_states`. Errors as
+/// [`replay`]; `ValueError` names an unknown method. The GIL is released while it runs.
+#[pyfunction]
+fn compare_methods<'py>(py: Python<'py>, path: std::path::PathBuf, methods: Vec<String>) -> PyResult<Bound<'py, PyDict>> {
+    use numpy::IntoPyArray;
+    let methods = parse_methods(&methods)?;
+    let log = open_log(&path)?;
+    let runs =
+        py.detach(|| cooploc::replay::compare_methods(&log, &methods)).map_err(|e| PyValueError::new_err(e.to_string()))?;
+    let out = PyDict::new(py);
+    for run in &runs {
+        let per = PyDict::new(py);
+        for p in &run.platforms {
+            let n = p.trace.len();
+            let d = PyDict::new(py);
+            d.set_item("t_s", p.trace.iter().map(|e| e.t_s).collect::<Vec<_>>().into_pyarray(py))?;
+            d.set_item("pos_err_m", p.trace.iter().map(|e| e.pos_err_m).collect::<Vec<_>>().into_pyarray(py))?;
+            let ne: Vec<f64> = p.trace.iter().flat_map(|e| e.pos_err_ne_m).collect();
+            d.set_item("pos_err_ne_m", ne.into_pyarray(py).reshape([n, 2])?)?;
+            d.set_item("heading_err_deg", p.trace.iter().map(|e| e.heading_err_deg).collect::<Vec<_>>().into_pyarray(py))?;
+            let track: Vec<f64> = p.track_ne_m.iter().flatten().copied().collect();
+            let m = p.track_ne_m.len();
+            d.set_item("track_ne_m", track.into_pyarray(py).reshape([m, 2])?)?;
+            d.set_item("final_nees", p.final_nees)?;
+            d.set_item("nees_states", p.nees_states)?;
+            per.set_item(p.id, d)?;
+        }
+        out.set_item(run.method.short_name(), per)?;
+    }
+    Ok(out)
+}
+
 #[pymodule]
 fn _native(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add("__version__", env!("CARGO_PKG_VERSION"))?;
@@ -748,6 +837,8 @@ fn _native(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_class::<PyRateWindow>()?;
     m.add_class::<PyTruthTrack>()?;
     m.add_function(wrap_pyfunction!(sim_state_from_frame, m)?)?;
+    m.add_function(wrap_pyfunction!(replay, m)?)?;
+    m.add_function(wrap_pyfunction!(compare_methods, m)?)?;
     m.add("MAX_REORDER", cooploc::protocol::sequence::MAX_REORDER)?;
     m.add("PALETTE", cooploc::view::PALETTE.map(|[r, g, b]| format!("{r:02x}{g:02x}{b:02x}")))?;
     Ok(())

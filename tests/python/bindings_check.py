@@ -148,6 +148,30 @@ check("RateWindow: a negative amount -> OverflowError/TypeError/ValueError",
       raises((OverflowError, TypeError, ValueError), w.add, 1.0, -5) is not None)
 check("RateWindow: a zero window -> ValueError", raises(ValueError, cooploc.RateWindow, 0.0) is not None)
 
+# A committed log replayed, and three methods run on its inputs: numpy arrays, the library's figures.
+import numpy as np  # noqa: E402
+rp = cooploc.replay(spec["log"]["path"])
+for nid, same, imu, count, last_n in spec["replay"]["nodes"]:
+    node = rp[nid]
+    rec = node["recorded"]
+    check("replay: node %d as the library replays it" % nid, node["identical"] == same and node["imu_replayed"] == imu
+          and isinstance(rec["position_ned_m"], np.ndarray) and rec["position_ned_m"].shape == (count, 3)
+          and rec["position_covariance_m2"].shape == (count, 3, 3) and rec["t_s"].shape == (count,)
+          and float(rec["position_ned_m"][-1, 0]) == last_n, (node["identical"], node["imu_replayed"], rec["position_ned_m"].shape))
+    check("replay: node %d's covariances are symmetric" % nid,
+          np.array_equal(rec["position_covariance_m2"], np.transpose(rec["position_covariance_m2"], (0, 2, 1))))
+cm = cooploc.compare_methods(spec["log"]["path"], ["dr", "dcl", "ci"])
+for method, pid, n, err, heading, nees in spec["replay"]["compared"]:
+    d = cm[method][pid]
+    check("compare_methods: %s platform %d as the library runs it" % (method, pid),
+          d["t_s"].shape == (n,) and d["pos_err_ne_m"].shape == (n, 2) and float(d["pos_err_m"][-1]) == err
+          and float(d["heading_err_deg"][-1]) == heading and d["final_nees"] == nees,
+          (d["t_s"].shape, float(d["pos_err_m"][-1]), err))
+check("compare_methods: an unknown method -> ValueError",
+      raises(ValueError, cooploc.compare_methods, spec["log"]["path"], ["kalman"]) is not None)
+check("replay: not a log -> ValueError", raises(ValueError, cooploc.replay, spec["not_a_log"]) is not None)
+check("replay: no file -> OSError", raises(OSError, cooploc.replay, spec["no_file"]) is not None)
+
 # The ground station's truth track: bad input is an exception, never a crash.
 tt = cooploc.TruthTrack()
 check("TruthTrack: a NaN position -> ValueError", raises(ValueError, tt.sim_state, (float("nan"), 0.0, 0.0)) is not None)
