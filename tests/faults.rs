@@ -93,7 +93,12 @@ fn every_fault_case_stays_consistent_detects_and_heals() {
     // make the stores diverge in every run. A node that was away (dead, not yet started, out of
     // radio range) applied nothing meanwhile: the others' store is valid for it, it is left out
     // once and takes their store, and the team goes on with the exact method, without a heal.
-    for name in ["node 3 killed, back after 20 s", "node 3 joins at 100 s", "node 3 leaves for 60 s"] {
+    for name in [
+        "node 3 killed, back after 20 s",
+        "node 3 killed, restarted at once from its saved state",
+        "node 3 joins at 100 s",
+        "node 3 leaves for 60 s",
+    ] {
         let s = all.iter().find(|s| s.name == name).unwrap();
         if s.runs_diverged != RUNS as usize || s.stores_adopted < u64::from(RUNS) || s.heals > 0 {
             problems.push(format!("{name}: expected a divergence and a store adopted in every run, and no heal ({s:?})"));

@@ -16,7 +16,9 @@
 //! - node 3 killed at 30% of the run and restarted at once by its supervisor with the same
 //!   arguments (a start state for the scenario's start time, and `--state-file`), the simulator
 //!   sending no SIM_STATE (as a real vehicle has none): it restores the state it saved, carried
-//!   across the gap, and is back within 2x of its clean error within 10 epochs.
+//!   across the gap, and is back within 2x of its clean error within 10 epochs; the team's cost,
+//!   as a ratio to its clean run, within 20% of the harness's same restart
+//!   (`node 3 killed, restarted at once from its saved state`, packed, 5x).
 //!
 //! The clean run is the reference: every node starts from the experiment's initial state at the
 //! scenario's start, so without loss the processes run exactly what `cooploc experiment` runs.
@@ -253,13 +255,18 @@ fn run_team(loss: f64, attack: Attack, signed: bool, restart: bool) -> Outcome {
 /// The harness's team RMS for `loss` at 5x with packed datagrams, and the fault-free one, over
 /// the same seed and run as the processes (one run each, the link faults to the end).
 fn harness_ratio(loss: f64) -> f64 {
+    harness_case_ratio(Faults { coop_loss: loss, links_until_s: 1e9, ..Faults::default() })
+}
+
+/// The harness's team RMS for `faults` at 5x with packed datagrams, against its fault-free run,
+/// over the same seed and run as the processes.
+fn harness_case_ratio(faults: Faults) -> f64 {
     let world = World::new(&Scenario::from_toml_str(PAPER_TOML).unwrap()).unwrap();
     let rms = |faults: &Faults| {
         let out = run_case(&world, faults, Method::Decentralized, "1hz", SEED, 0, Encoding::F64).unwrap();
         (out.nodes.iter().map(|n| n.final_err_m.powi(2)).sum::<f64>() / out.nodes.len() as f64).sqrt()
     };
-    let lossy = Faults { coop_loss: loss, links_until_s: 1e9, packed: true, speed: SPEED, ..Faults::default() };
-    rms(&lossy) / rms(&Faults { speed: SPEED, ..Faults::default() })
+    rms(&Faults { packed: true, speed: SPEED, ..faults }) / rms(&Faults { speed: SPEED, ..Faults::default() })
 }
 
 /// The teams of `cases` (loss, attack, signed) run side by side (each takes a fifth of a core).
@@ -397,6 +404,19 @@ fn a_node_restarted_with_its_first_arguments_restores_the_state_it_saved() {
     for (e, err) in &late {
         assert!(*err <= 2.0 * clean_rms, "node 3 at epoch {e}: {err:.2} m, more than twice its clean RMS {clean_rms:.2} m");
     }
+    // The same restart in the harness (node 3 down 0.3 s at 114 s, restored from the state it
+    // saved): the two teams' ratios to their own clean runs within 20% of each other.
+    let restore = Faults {
+        kill: Some(cooploc::experiment::faults::Outage { node: 2, from_s: 114.0, until_s: 114.3 }),
+        restore: true,
+        ..Faults::default()
+    };
+    let (processes, harness) = (restarted.rms() / clean.rms(), harness_case_ratio(restore));
+    eprintln!("restart from the saved state: processes {processes:.3}x their clean run, harness {harness:.3}x");
+    assert!(
+        (processes / harness - 1.0).abs() <= 0.2,
+        "the processes' restart costs {processes:.3}x, the harness's {harness:.3}x: more than 20% apart"
+    );
     for k in 0..2 {
         assert!(
             restarted.finals[k] <= 2.0 * clean.finals[k],

@@ -61,8 +61,12 @@ pub struct Faults {
     pub drop_imu_at_epoch: Option<(usize, u32)>,
     /// The node is frozen (SIGSTOP): what it would have received waits in its sockets.
     pub stall: Option<Outage>,
-    /// The node is dead: what is sent to it is lost; it restarts from an independent fix.
+    /// The node is dead: what is sent to it is lost; it restarts from an independent fix, or
+    /// with `restore` from the state it saved (`cooploc node --state-file`).
     pub kill: Option<Outage>,
+    /// A killed node restarts from the state it last saved (every second of vehicle time, as
+    /// the node writes it), carried across the gap ([`crate::node::saved`]), not from a fix.
+    pub restore: bool,
     /// The node starts only at this time, s.
     pub join: Option<(usize, f64)>,
     /// What a node sends at one step travels as the runner sends it on UDP: a record's first
@@ -90,6 +94,7 @@ impl Default for Faults {
             drop_imu_at_epoch: None,
             stall: None,
             kill: None,
+            restore: false,
             join: None,
             packed: false,
             leave: None,
@@ -176,6 +181,10 @@ pub fn standard_cases() -> Vec<FaultCase> {
         FaultCase { name: "node 3 stalled 3 s", faults: Faults { stall: node3(150.0, 153.0), ..Faults::default() } },
         FaultCase { name: "node 3 stalled 10 s", faults: Faults { stall: node3(150.0, 160.0), ..Faults::default() } },
         FaultCase { name: "node 3 killed, back after 20 s", faults: Faults { kill: node3(114.0, 134.0), ..Faults::default() } },
+        FaultCase {
+            name: "node 3 killed, restarted at once from its saved state",
+            faults: Faults { kill: node3(114.0, 114.3), restore: true, ..Faults::default() },
+        },
         FaultCase { name: "node 3 joins at 100 s", faults: Faults { join: Some((2, 100.0)), ..Faults::default() } },
         FaultCase { name: "node 3 leaves for 60 s", faults: Faults { leave: node3(150.0, 210.0), ..Faults::default() } },
         FaultCase {
@@ -230,6 +239,8 @@ struct Node {
     /// Epoch -> store digest, recorded when the node resolves it.
     digests: BTreeMap<u32, u64>,
     last_seen: Option<u32>,
+    /// The state it last saved (with `restore`).
+    saved: Option<crate::node::saved::SavedState>,
 }
 
 impl Node {
@@ -474,8 +485,12 @@ fn team_nees(world: &World, ids: &[PlatformId], cores: &[&NodeCore]) -> f64 {
     crate::estimation::consistency::nees(&e, &p).unwrap_or(f64::INFINITY)
 }
 
+/// The origin of the harness's NED frame for saved states (any fixed one: the states are saved
+/// and restored about it).
+const HARNESS_ORIGIN: crate::geodesy::GeoOrigin = crate::geodesy::GeoOrigin { lat_deg: 0.0, lon_deg: 0.0, alt_m: 0.0 };
+
 /// Makes the nodes of a run: a core from the run's initial estimate (or an independent fix at a
-/// restart or a late join), inside the shell a process would run.
+/// restart or a late join, or the state it saved), inside the shell a process would run.
 struct Maker<'a> {
     world: &'a World,
     case: &'a Faults,
@@ -487,16 +502,33 @@ struct Maker<'a> {
 }
 
 impl Maker<'_> {
-    fn shell(&self, id: PlatformId, at: Option<TimeUs>) -> Result<NodeShell, ExperimentError> {
-        let init = match at {
-            None => self.world.initial_estimate(self.seed, self.run, id)?,
-            Some(t) => self.world.estimate_at(self.seed, self.run, id, t, 1)?,
-        };
-        let (t0, state) = state_from(init)?;
+    fn shell(
+        &self,
+        id: PlatformId,
+        at: Option<TimeUs>,
+        saved: Option<&crate::node::saved::SavedState>,
+    ) -> Result<NodeShell, ExperimentError> {
         let model = nav_model(self.world, id);
         let cfg = NodeConfig::for_model(id, self.method, model, self.encoding, self.ids.clone());
-        let core = NodeCore::new(cfg, t0, NavState::for_model(&model, state))
-            .map_err(|e| ExperimentError::Settings(format!("node {id}: {e}")))?;
+        let restored = match (saved, at) {
+            (Some(saved), Some(t)) => saved
+                .restore_at(id, &model, &HARNESS_ORIGIN, t, &crate::estimation::coast::CoastBounds::LAND)
+                .ok()
+                .map(|(state, p)| (t, state, p)),
+            _ => None,
+        };
+        let core = match restored {
+            Some((t, state, p)) => NodeCore::restored(cfg, t, state, &p),
+            None => {
+                let init = match at {
+                    None => self.world.initial_estimate(self.seed, self.run, id)?,
+                    Some(t) => self.world.estimate_at(self.seed, self.run, id, t, 1)?,
+                };
+                let (t0, state) = state_from(init)?;
+                NodeCore::new(cfg, t0, NavState::for_model(&model, state))
+            }
+        }
+        .map_err(|e| ExperimentError::Settings(format!("node {id}: {e}")))?;
         // What the team sees of the autopilot is not measured here, so nothing goes back to it
         // (no ODOMETRY, GPS_INPUT or LOCAL_POSITION_NED).
         let mut profile = VehicleProfile::from_scenario_platform(self.world.scenario(), id);
@@ -539,8 +571,8 @@ pub fn run_case(
     let mut nodes = Vec::new();
     for (k, &id) in ids.iter().enumerate() {
         let late = case.join.is_some_and(|(n, _)| n == k);
-        let shell = if late { None } else { Some(maker.shell(id, None)?) };
-        nodes.push(Node { shell, backlog: Vec::new(), digests: BTreeMap::new(), last_seen: None });
+        let shell = if late { None } else { Some(maker.shell(id, None, None)?) };
+        nodes.push(Node { shell, backlog: Vec::new(), digests: BTreeMap::new(), last_seen: None, saved: None });
     }
     let epoch_times: Vec<TimeUs> = world.ranges(schedule, seed, run)?.into_iter().map(|(t, _)| t).collect();
     let dropped_imu = case.drop_imu_at_epoch.and_then(|(k, e)| Some((k, *epoch_times.get((e as usize).checked_sub(1)?)?)));
@@ -570,7 +602,8 @@ pub fn run_case(
             let join = case.join.is_some_and(|(n, t)| n == k && sim.nodes[k].shell.is_none() && now.as_secs_f64() >= t);
             if restart || join {
                 restarted |= restart;
-                sim.nodes[k].shell = Some(maker.shell(id, Some(now))?);
+                let saved = if restart && case.restore { sim.nodes[k].saved.as_ref() } else { None };
+                sim.nodes[k].shell = Some(maker.shell(id, Some(now), saved)?);
                 sim.nodes[k].last_seen = None;
             }
             if !sim.stalled(k, now) && !sim.nodes[k].backlog.is_empty() {
@@ -591,6 +624,13 @@ pub fn run_case(
         }
         if now.0 >= next_second * 1_000_000 {
             next_second += 1;
+            if case.restore {
+                for node in sim.nodes.iter_mut() {
+                    if let Some(core) = node.core() {
+                        node.saved = Some(crate::node::saved::SavedState::of(core.id(), &HARNESS_ORIGIN, core.filter()));
+                    }
+                }
+            }
             if fault_end.0 > 0 && now >= fault_end {
                 for k in 0..ids.len() {
                     if at_fault_end[k].is_none()
