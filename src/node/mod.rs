@@ -10,6 +10,7 @@
 //! | [`peers`] | where the cooperative traffic goes: given peers, team members, a few ground stations, bounded and expiring |
 //! | [`cadence`] | the retry interval, following the team's epoch cadence in wall time |
 //! | [`shell`] | the node between its sockets and its core, sans-io: datagrams and vehicle frames split, checked and decoded, the start, the ticks, what goes back; bytes and clock readings in, ordered outputs out |
+//! | [`files`] | the files a node keeps across restarts (signing timestamp, navigation state), written whole or not at all |
 //! | [`saved`] | the node's last navigation state on disk (`--state-file`): what a restarted node starts from |
 //! | [`runner`] | the tokio runner that owns the sockets and the clock and carries out the shell's outputs |
 //! | [`error`] | what can stop a node (`NodeError`): links that do not open, settings, a vehicle that goes away |
@@ -23,6 +24,7 @@ pub mod cadence;
 pub mod coop_link;
 pub mod core;
 pub mod error;
+pub mod files;
 pub mod handover;
 pub mod inputs;
 pub mod log;
