@@ -264,7 +264,7 @@ pub async fn run(
     if let Some(state) = shell.signing_state() {
         io.save(&state);
     }
-    if let Some(state) = shell.nav_state() {
+    if let Some(state) = shell.nav_state(now()) {
         io.save_nav(&state);
     }
     Ok(shell.summary(LinkFacts {

@@ -53,6 +53,10 @@ pub struct SavedState {
     pub nominal: SavedNominal,
     /// The error covariance, row by row (`n x n`: 16 for the INS, 3 for the planar robot).
     pub covariance: Vec<f64>,
+    /// When it was written, by the companion's Unix clock, us (absent in files of older nodes):
+    /// a team clock that is the autopilot's boot clock cannot tell a file of the boot before.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub written_unix_us: Option<u64>,
 }
 
 impl SavedState {
@@ -70,7 +74,29 @@ impl SavedState {
             origin: [origin.lat_deg, origin.lon_deg, origin.alt_m],
             nominal,
             covariance: p.transpose().as_slice().to_vec(),
+            written_unix_us: None,
         }
+    }
+
+    /// The same, written at `unix_us` by the companion's clock (0: the clock is not set).
+    pub fn written_at(self, unix_us: u64) -> SavedState {
+        SavedState { written_unix_us: (unix_us > 0).then_some(unix_us), ..self }
+    }
+
+    /// Why a file written by the companion's clock more than [`MAX_RESTORE_AGE_US`] before
+    /// `now_unix_us` is not restored; None when it is younger, or when either time is unknown or
+    /// the clock is behind the file's (a companion without a real-time clock after a reboot: the
+    /// team clock's check alone decides then).
+    pub fn wall_age_refusal(&self, now_unix_us: u64) -> Option<String> {
+        let written = self.written_unix_us?;
+        let age = now_unix_us.checked_sub(written)?;
+        (now_unix_us > 0 && age > MAX_RESTORE_AGE_US).then(|| {
+            format!(
+                "written {:.1} s ago by the companion's clock (at most {:.0} s): the vehicle has gone on since",
+                age as f64 / 1e6,
+                MAX_RESTORE_AGE_US as f64 / 1e6
+            )
+        })
     }
 
     /// The file's text.
@@ -271,6 +297,20 @@ mod tests {
         };
         let e = saved.restore_at(3, &planar, &ORIGIN, TimeUs(50_000_000), &CoastBounds::LAND).unwrap_err();
         assert!(e.contains("planar"), "{e}");
+    }
+
+    #[test]
+    fn a_file_written_long_ago_by_the_companions_clock_is_refused() {
+        let saved = SavedState::of(3, &ORIGIN, &filter()).written_at(1_000_000_000_000_000);
+        assert_eq!(SavedState::parse(&saved.to_text()).unwrap(), saved);
+        assert_eq!(saved.wall_age_refusal(1_000_000_000_000_000 + MAX_RESTORE_AGE_US), None);
+        let why = saved.wall_age_refusal(1_000_000_000_000_000 + MAX_RESTORE_AGE_US + 1).unwrap();
+        assert!(why.contains("companion's clock"), "{why}");
+        // a clock behind the file's, an unset clock, a file of an older node: not judged
+        assert_eq!(saved.wall_age_refusal(5), None);
+        assert_eq!(saved.wall_age_refusal(0), None);
+        assert_eq!(SavedState::of(3, &ORIGIN, &filter()).wall_age_refusal(u64::MAX), None);
+        assert_eq!(SavedState::of(3, &ORIGIN, &filter()).written_at(0).written_unix_us, None);
     }
 
     #[test]

@@ -702,7 +702,7 @@ impl NodeShell {
         if matches!(msg, MavMessage::SIM_STATE(_)) {
             return Ok(());
         }
-        let inputs = self.decode(&msg);
+        let inputs = self.decode(&msg, now);
         self.feed(inputs, now);
         Ok(())
     }
@@ -796,7 +796,7 @@ impl NodeShell {
     }
 
     /// Decodes a vehicle message into the core's inputs (none before the node has its state).
-    fn decode(&mut self, msg: &MavMessage) -> Vec<NodeInput> {
+    fn decode(&mut self, msg: &MavMessage, now: Now) -> Vec<NodeInput> {
         let id = self.id;
         let mut inputs = Vec::new();
         let events = self.decoder.decode(msg);
@@ -827,7 +827,7 @@ impl NodeShell {
         for event in events {
             match event {
                 VehicleEvent::Input(input) => {
-                    let restored = self.check_restore(&input);
+                    let restored = self.check_restore(&input, now);
                     self.check_given_start(&input);
                     if self.core.is_none() || restored {
                         self.last_imu_t = input.drive_time().or(self.last_imu_t);
@@ -848,7 +848,7 @@ impl NodeShell {
     /// when it is for this platform, model and origin, newer than a given start state, and at
     /// most [`super::saved::MAX_RESTORE_AGE_US`] old; refused with its reason otherwise. True when the core
     /// was made from it at this sample's time (the sample itself then only marks the start).
-    fn check_restore(&mut self, input: &NodeInput) -> bool {
+    fn check_restore(&mut self, input: &NodeInput, now: Now) -> bool {
         let id = self.id;
         let Some(t1) = input.drive_time() else { return false };
         if self.restore.is_none() {
@@ -878,6 +878,9 @@ impl NodeShell {
             tracing::warn!(platform = id, why, "saved state refused");
             false
         };
+        if let Some(why) = saved.wall_age_refusal(now.unix_us()) {
+            return refused(why);
+        }
         let (state, p) = match saved.restore_at(id, &config.model, &origin, t1, &CoastBounds::LAND) {
             Ok(restored) => restored,
             Err(why) => return refused(why),
@@ -1089,11 +1092,11 @@ impl NodeShell {
             }
         }
         self.core_outputs(out, now);
-        self.maybe_save_state();
+        self.maybe_save_state(now);
     }
 
     /// Gives the navigation state to be saved, every [`SAVE_EVERY_US`] of the team clock.
-    fn maybe_save_state(&mut self) {
+    fn maybe_save_state(&mut self, now: Now) {
         if !self.config.save_state {
             return;
         }
@@ -1103,13 +1106,14 @@ impl NodeShell {
             return;
         }
         self.saved_at = Some(t);
-        self.out.push(ShellOutput::NavState(SavedState::of(self.id, origin, core.filter()).to_text()));
+        let saved = SavedState::of(self.id, origin, core.filter()).written_at(now.unix_us());
+        self.out.push(ShellOutput::NavState(saved.to_text()));
     }
 
-    /// The navigation state to keep at the end (None: not kept, or no state yet).
-    pub fn nav_state(&self) -> Option<String> {
+    /// The navigation state to keep at the end, written `now` (None: not kept, or no state yet).
+    pub fn nav_state(&self, now: Now) -> Option<String> {
         let (Some(core), Some(origin)) = (&self.core, &self.nav_origin) else { return None };
-        self.config.save_state.then(|| SavedState::of(self.id, origin, core.filter()).to_text())
+        self.config.save_state.then(|| SavedState::of(self.id, origin, core.filter()).written_at(now.unix_us()).to_text())
     }
 
     /// What the node did, with what the links know.
