@@ -417,14 +417,7 @@ mod tests {
             config: PlanarConfig::from_sample_sigmas(0.05, 0.01, 20.0),
             initial_sigma: PlanarSigma { pos_m: 1.0, yaw_rad: 0.01 },
         };
-        let sigma = crate::estimation::ins::InsInitialSigma {
-            pos_ned_m: Vector3::repeat(1.0),
-            vel_ned_m_s: Vector3::repeat(0.1),
-            att_ned_rad: Vector3::repeat(0.01),
-            accel_bias_frd_m_s2: Vector3::repeat(0.01),
-            gyro_bias_frd_rad_s: Vector3::repeat(1e-4),
-            odometer_scale: 0.01,
-        };
+        let sigma = crate::estimation::ins::InsInitialSigma::for_tests();
         let ins = NavModel::Ins { config: InsConfig::default(), initial_sigma: sigma };
         let at_rest = InsState::at_rest(UnitQuaternion::from_euler_angles(0.0, 0.0, 0.3));
         let make = |model: &NavModel, t: u64| NavFilter::new(*model, TimeUs(t), NavState::for_model(model, at_rest)).unwrap();

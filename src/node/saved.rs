@@ -232,15 +232,7 @@ mod tests {
     const ORIGIN: GeoOrigin = GeoOrigin { lat_deg: 34.7, lon_deg: 113.6, alt_m: 100.0 };
 
     fn model() -> NavModel {
-        let initial_sigma = InsInitialSigma {
-            pos_ned_m: Vector3::repeat(1.0),
-            vel_ned_m_s: Vector3::repeat(0.1),
-            att_ned_rad: Vector3::repeat(0.01),
-            accel_bias_frd_m_s2: Vector3::repeat(0.01),
-            gyro_bias_frd_rad_s: Vector3::repeat(1e-4),
-            odometer_scale: 0.01,
-        };
-        NavModel::Ins { config: InsConfig::default(), initial_sigma }
+        NavModel::Ins { config: InsConfig::default(), initial_sigma: InsInitialSigma::for_tests() }
     }
 
     fn filter() -> NavFilter {

@@ -334,6 +334,20 @@ pub struct InsInitialSigma {
 }
 
 impl InsInitialSigma {
+    /// 1 m, 0.1 m/s, 0.01 rad, 0.01 m/s^2, 1e-4 rad/s and 0.01 on every axis: a start for tests
+    /// that need one, not a vehicle's.
+    #[cfg(test)]
+    pub(crate) fn for_tests() -> Self {
+        InsInitialSigma {
+            pos_ned_m: Vector3::repeat(1.0),
+            vel_ned_m_s: Vector3::repeat(0.1),
+            att_ned_rad: Vector3::repeat(0.01),
+            accel_bias_frd_m_s2: Vector3::repeat(0.01),
+            gyro_bias_frd_rad_s: Vector3::repeat(1e-4),
+            odometer_scale: 0.01,
+        }
+    }
+
     /// The diagonal covariance these sigmas describe; fails on a negative or non-finite sigma.
     pub fn covariance(&self) -> Result<Matrix16, EstimationError> {
         let mut sigma = Vector16::zeros();
