@@ -24,6 +24,9 @@ So far (the first step of issue 35):
   ``cooploc dataset mrclam``'s table as dicts (``dataset::run::run``);
 - :func:`experiment`: the Monte Carlo of ``cooploc experiment``, its summary and RMS curves
   (``experiment::run_experiment``, ``experiment::report``);
+- :class:`PlanarTeam`: a team of planar robots under one method (``dr``, ``naive``, ``dcl``, ``ci``,
+  ``centralized``), stepped from numpy arrays of wheel speeds, yaw rates and ranges
+  (``estimation::team``, ``estimation::planar``);
 - :class:`EpochTally`: disagreements and heals from COOPLOC_EPOCH reports, the rules of every
   cooploc display (``view::health``);
 - :class:`RateWindow`: amounts a second over a sliding window, bounded at any rate (the ground
@@ -48,6 +51,7 @@ from cooploc._native import (
     MAX_REORDER,
     PALETTE,
     EpochTally,
+    PlanarTeam,
     RateWindow,
     SequenceTracker,
     TruthTrack,
@@ -91,6 +95,7 @@ __all__ = [
     "EARTH_RADIUS_M",
     "MAX_REORDER",
     "EpochTally",
+    "PlanarTeam",
     "RateWindow",
     "PALETTE",
     "SequenceTracker",

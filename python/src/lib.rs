@@ -817,6 +817,189 @@ fn compare_methods<'py>(py: Python<'py>, path: std::path::PathBuf, methods: Vec<
     Ok(out)
 }
 
+/// A team of planar robots (N, E, yaw; wheel odometry as speed and yaw rate) under one method,
+/// stepped from numpy arrays: the estimation core for experiments on one's own data
+/// (`estimation::team::Team` of `estimation::planar::PlanarFilter`, what the nodes and
+/// `cooploc dataset` run). `poses` is an (n, 3) array of the robots' initial [north m, east m,
+/// yaw rad], `ids` their platform ids (1..=n when None). The wheel noise is given per sample
+/// at `rate_hz`. Every input is checked: a wrong shape, a non-finite value, time going
+/// backwards or an unknown id raises `ValueError` and leaves the team as it was.
+#[pyclass(name = "PlanarTeam", module = "cooploc._native")]
+struct PyPlanarTeam {
+    team: cooploc::estimation::team::Team<cooploc::estimation::planar::PlanarFilter>,
+    ids: Vec<u16>,
+}
+
+fn estimation_error(e: cooploc::estimation::EstimationError) -> PyErr {
+    PyValueError::new_err(e.to_string())
+}
+
+fn time_us(t_s: f64) -> PyResult<cooploc::time::TimeUs> {
+    if !(t_s.is_finite() && (0.0..1.8e10).contains(&t_s)) {
+        return Err(PyValueError::new_err(format!("time {t_s} s: finite, at or after 0")));
+    }
+    Ok(cooploc::time::TimeUs((t_s * 1e6).round() as u64))
+}
+
+#[pymethods]
+impl PyPlanarTeam {
+    #[new]
+    #[pyo3(signature = (method, poses, ids = None, t0_s = 0.0, pos_sigma_m = 0.1, yaw_sigma_rad = 0.01,
+                        speed_sigma_m_s = 0.05, yaw_rate_sigma_rad_s = 0.01, rate_hz = 10.0))]
+    #[allow(clippy::too_many_arguments)]
+    fn new(
+        method: &str,
+        poses: numpy::PyReadonlyArray2<'_, f64>,
+        ids: Option<Vec<u16>>,
+        t0_s: f64,
+        pos_sigma_m: f64,
+        yaw_sigma_rad: f64,
+        speed_sigma_m_s: f64,
+        yaw_rate_sigma_rad_s: f64,
+        rate_hz: f64,
+    ) -> PyResult<Self> {
+        use cooploc::estimation::planar::{PlanarConfig, PlanarFilter, PlanarSigma, PlanarState};
+        let method = parse_methods(&[method.to_string()])?[0];
+        let poses = poses.as_array();
+        if poses.ncols() != 3 || poses.nrows() == 0 {
+            return Err(PyValueError::new_err(format!("poses of shape {:?}: (n, 3) expected, n >= 1", poses.shape())));
+        }
+        let n = poses.nrows();
+        let ids = ids.unwrap_or_else(|| (1..=n as u16).collect());
+        if ids.len() != n {
+            return Err(PyValueError::new_err(format!("{} ids for {n} poses", ids.len())));
+        }
+        if !(rate_hz.is_finite() && rate_hz > 0.0) {
+            return Err(PyValueError::new_err(format!("rate_hz {rate_hz}: positive")));
+        }
+        let config = PlanarConfig::from_sample_sigmas(speed_sigma_m_s, yaw_rate_sigma_rad_s, rate_hz);
+        let sigma = PlanarSigma { pos_m: pos_sigma_m, yaw_rad: yaw_sigma_rad };
+        let t0 = time_us(t0_s)?;
+        let mut members = Vec::with_capacity(n);
+        for (k, &id) in ids.iter().enumerate() {
+            let row = poses.row(k);
+            let state = PlanarState { pos_ned_m: Vector3::new(row[0], row[1], 0.0), yaw_rad: row[2] };
+            if !row.iter().all(|v| v.is_finite()) {
+                return Err(PyValueError::new_err(format!("pose {k} is not finite")));
+            }
+            members.push((id, PlanarFilter::new(config, t0, state, sigma).map_err(estimation_error)?));
+        }
+        let team = cooploc::estimation::team::Team::new(method, members).map_err(estimation_error)?;
+        Ok(PyPlanarTeam { team, ids })
+    }
+
+    /// Every robot's wheel sample over the interval ending at `t_s`: `speed` (m/s) and
+    /// `yaw_rate` (rad/s, clockwise seen from above), (n,) arrays in the order of `ids`.
+    fn propagate(
+        &mut self,
+        t_s: f64,
+        speed: numpy::PyReadonlyArray1<'_, f64>,
+        yaw_rate: numpy::PyReadonlyArray1<'_, f64>,
+    ) -> PyResult<()> {
+        use cooploc::estimation::WheelSample;
+        let t = time_us(t_s)?;
+        let (speed, yaw_rate) = (speed.as_array(), yaw_rate.as_array());
+        let n = self.ids.len();
+        if speed.len() != n || yaw_rate.len() != n {
+            return Err(PyValueError::new_err(format!(
+                "speed of {} and yaw_rate of {} values for {n} robots",
+                speed.len(),
+                yaw_rate.len()
+            )));
+        }
+        if !speed.iter().chain(yaw_rate.iter()).all(|v| v.is_finite()) {
+            return Err(PyValueError::new_err("a speed or yaw rate is not finite"));
+        }
+        // every robot stepped on a copy first, so that an error leaves the team as it was
+        let mut stepped = Vec::with_capacity(n);
+        for (k, &id) in self.ids.iter().enumerate() {
+            let mut f = self.team.filter(id).expect("a member").clone();
+            let sample = WheelSample { t, speed_m_s: speed[k], yaw_rate_rad_s: yaw_rate[k] };
+            f.propagate(&sample).map_err(|e| PyValueError::new_err(format!("robot {id}: {e}")))?;
+            stepped.push(f);
+        }
+        for (&id, f) in self.ids.iter().zip(stepped) {
+            *self.team.filter_mut(id).expect("a member") = f;
+        }
+        Ok(())
+    }
+
+    /// One epoch of horizontal ranges between robots: `pairs` an (m, 2) integer array of
+    /// (from, to) platform ids, `ranges` (m,) in metres, each with standard deviation `sigma_m`.
+    /// Returns the joint update's NIS (None for dead reckoning and covariance intersection).
+    fn ranges(
+        &mut self,
+        pairs: numpy::PyReadonlyArray2<'_, i64>,
+        ranges: numpy::PyReadonlyArray1<'_, f64>,
+        sigma_m: f64,
+    ) -> PyResult<Option<f64>> {
+        use cooploc::estimation::CoopMeasurement;
+        let (pairs, ranges) = (pairs.as_array(), ranges.as_array());
+        if pairs.ncols() != 2 || pairs.nrows() != ranges.len() {
+            return Err(PyValueError::new_err(format!(
+                "pairs of shape {:?} and {} ranges: (m, 2) and (m,) expected",
+                pairs.shape(),
+                ranges.len()
+            )));
+        }
+        if !(sigma_m.is_finite() && sigma_m > 0.0) {
+            return Err(PyValueError::new_err(format!("sigma_m {sigma_m}: positive")));
+        }
+        let id = |v: i64| -> PyResult<u16> {
+            u16::try_from(v)
+                .ok()
+                .filter(|id| self.ids.contains(id))
+                .ok_or_else(|| PyValueError::new_err(format!("platform {v} is not in the team {:?}", self.ids)))
+        };
+        let mut measurements = Vec::with_capacity(ranges.len());
+        for (k, &range_m) in ranges.iter().enumerate() {
+            let (from, to) = (id(pairs[(k, 0)])?, id(pairs[(k, 1)])?);
+            if from == to || !(range_m.is_finite() && range_m >= 0.0) {
+                return Err(PyValueError::new_err(format!("range {k}: {from} to {to}, {range_m} m")));
+            }
+            measurements.push(CoopMeasurement::PlanarRange { from, to, range_m, sigma_m });
+        }
+        let d = self.team.cooperative_event(&measurements).map_err(estimation_error)?;
+        Ok(d.map(|d| d.nis))
+    }
+
+    /// The robots' poses, an (n, 3) array of [north m, east m, yaw rad] in the order of `ids`.
+    fn poses<'py>(&self, py: Python<'py>) -> PyResult<Bound<'py, numpy::PyArray2<f64>>> {
+        use numpy::IntoPyArray;
+        let flat: Vec<f64> = self
+            .ids
+            .iter()
+            .flat_map(|&id| {
+                let s = self.team.filter(id).expect("a member").state();
+                [s.pos_ned_m[0], s.pos_ned_m[1], s.yaw_rad]
+            })
+            .collect();
+        flat.into_pyarray(py).reshape([self.ids.len(), 3])
+    }
+
+    /// Each robot's error covariance, an (n, 3, 3) array over [north, east, yaw].
+    fn covariances<'py>(&self, py: Python<'py>) -> PyResult<Bound<'py, numpy::PyArray3<f64>>> {
+        use cooploc::estimation::PlatformFilter;
+        use numpy::IntoPyArray;
+        let flat: Vec<f64> = self
+            .ids
+            .iter()
+            .flat_map(|&id| self.team.filter(id).expect("a member").covariance().transpose().as_slice().to_vec())
+            .collect();
+        flat.into_pyarray(py).reshape([self.ids.len(), 3, 3])
+    }
+
+    #[getter]
+    fn ids(&self) -> Vec<u16> {
+        self.ids.clone()
+    }
+
+    #[getter]
+    fn method(&self) -> &'static str {
+        self.team.method().short_name()
+    }
+}
+
 #[pymodule]
 fn _native(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add("__version__", env!("CARGO_PKG_VERSION"))?;
@@ -836,6 +1019,7 @@ fn _native(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_class::<PyEpochTally>()?;
     m.add_class::<PyRateWindow>()?;
     m.add_class::<PyTruthTrack>()?;
+    m.add_class::<PyPlanarTeam>()?;
     m.add_function(wrap_pyfunction!(sim_state_from_frame, m)?)?;
     m.add_function(wrap_pyfunction!(replay, m)?)?;
     m.add_function(wrap_pyfunction!(compare_methods, m)?)?;

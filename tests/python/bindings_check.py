@@ -172,6 +172,108 @@ check("compare_methods: an unknown method -> ValueError",
 check("replay: not a log -> ValueError", raises(ValueError, cooploc.replay, spec["not_a_log"]) is not None)
 check("replay: no file -> OSError", raises(OSError, cooploc.replay, spec["no_file"]) is not None)
 
+# A team of planar robots stepped from numpy: the paper's decentralized method (each robot's own
+# filter, Psi and the store of Eq. 10) against a joint EKF over the whole team written here in
+# numpy, on the same wheel samples and ranges: equal to rounding. The naive method (no
+# cross-covariances) is not, so the reference can tell.
+def wrap(a):
+    return (a + math.pi) % (2 * math.pi) - math.pi
+
+def joint_ekf_vs_team(method="dcl", seed=3, seconds=20.0, rate=10.0):
+    rng = np.random.default_rng(seed)
+    n = 3
+    truth = np.array([[0.0, 0.0, 0.3], [20.0, 5.0, 1.2], [-10.0, 15.0, -0.7]])
+    est0 = truth + np.column_stack([rng.normal(0, 0.1, n), rng.normal(0, 0.1, n), rng.normal(0, 0.01, n)])
+    ss, ws, ps, ys = 0.05, 0.01, 0.1, 0.01
+    team = cooploc.PlanarTeam(method, est0, pos_sigma_m=ps, yaw_sigma_rad=ys, speed_sigma_m_s=ss, yaw_rate_sigma_rad_s=ws, rate_hz=rate)
+    x = est0.copy()
+    P = np.diag(np.tile([ps**2, ps**2, ys**2], n))
+    sn2 = (ss * math.sqrt(1 / rate)) ** 2
+    wn2 = (ws * math.sqrt(1 / rate)) ** 2
+    dt = 1.0 / rate
+    steps = int(seconds * rate)
+    nis = []
+    for k in range(1, steps + 1):
+        t = k * dt
+        v_true = np.array([1.0, 1.5, 0.8])
+        w_true = np.array([0.05 * math.sin(0.3 * t), -0.04, 0.03 * math.cos(0.2 * t)])
+        for i in range(n):
+            truth[i, 0] += v_true[i] * math.cos(truth[i, 2]) * dt
+            truth[i, 1] += v_true[i] * math.sin(truth[i, 2]) * dt
+            truth[i, 2] = wrap(truth[i, 2] + w_true[i] * dt)
+        v = v_true + rng.normal(0, ss, n)
+        w = w_true + rng.normal(0, ws, n)
+        team.propagate(t, v, w)
+        Phi = np.eye(3 * n)
+        Q = np.zeros((3 * n, 3 * n))
+        for i in range(n):
+            s_, c_ = math.sin(x[i, 2] + 0.5 * w[i] * dt), math.cos(x[i, 2] + 0.5 * w[i] * dt)
+            b = 3 * i
+            Phi[b, b + 2] = -v[i] * s_ * dt
+            Phi[b + 1, b + 2] = v[i] * c_ * dt
+            G = np.array([[c_ * dt, -v[i] * s_ * dt * dt / 2], [s_ * dt, v[i] * c_ * dt * dt / 2], [0.0, dt]])
+            Q[b:b + 3, b:b + 3] = G @ np.diag([sn2 / dt, wn2 / dt]) @ G.T
+            x[i] += [v[i] * c_ * dt, v[i] * s_ * dt, w[i] * dt]
+            x[i, 2] = wrap(x[i, 2])
+        P = Phi @ P @ Phi.T + Q
+        P = 0.5 * (P + P.T)
+        if k % int(rate) == 0:
+            pairs, z = [], []
+            for i in range(n):
+                for j in range(i + 1, n):
+                    pairs.append((i + 1, j + 1))
+                    z.append(math.hypot(*(truth[i, :2] - truth[j, :2])) + rng.normal(0, 0.1))
+            got = team.ranges(np.array(pairs, dtype=np.int64), np.array(z), 0.1)
+            H = np.zeros((len(z), 3 * n))
+            r = np.zeros(len(z))
+            for m, ((a, b), zm) in enumerate(zip(pairs, z)):
+                i, j = a - 1, b - 1
+                d = x[i, :2] - x[j, :2]
+                h = math.hypot(*d)
+                H[m, 3 * i:3 * i + 2] = d / h
+                H[m, 3 * j:3 * j + 2] = -d / h
+                r[m] = zm - h
+            R = 0.01 * np.eye(len(z))
+            S = H @ P @ H.T + R
+            K = P @ H.T @ np.linalg.inv(S)
+            dx = K @ r
+            x += dx.reshape(n, 3)
+            x[:, 2] = [wrap(a) for a in x[:, 2]]
+            IKH = np.eye(3 * n) - K @ H
+            P = IKH @ P @ IKH.T + K @ R @ K.T
+            P = 0.5 * (P + P.T)
+            nis.append((got, float(r @ np.linalg.solve(S, r))))
+    poses, covs = team.poses(), team.covariances()
+    blocks = np.array([P[3 * i:3 * i + 3, 3 * i:3 * i + 3] for i in range(n)])
+    dpose = np.abs(poses - x)
+    dpose[:, 2] = [abs(wrap(a)) for a in (poses[:, 2] - x[:, 2])]
+    nis_diff = max((abs(a - b) / b for a, b in nis if a is not None), default=float("nan"))
+    return float(dpose.max()), float(np.abs(covs - blocks).max() / np.abs(blocks).max()), nis_diff
+
+
+pose_d, cov_d, nis_d = joint_ekf_vs_team("dcl")
+check("PlanarTeam dcl equals a joint EKF over the team (poses, covariances, NIS to 1e-9)",
+      pose_d < 1e-9 and cov_d < 1e-9 and nis_d < 1e-9, (pose_d, cov_d, nis_d))
+pose_n, cov_n, _ = joint_ekf_vs_team("naive")
+check("PlanarTeam naive does not (the reference tells them apart)", pose_n > 0.01 and cov_n > 0.01, (pose_n, cov_n))
+team = cooploc.PlanarTeam("dcl", np.zeros((2, 3)))
+before = team.poses()
+check("PlanarTeam: poses of shape (n, 2) -> ValueError", raises(ValueError, cooploc.PlanarTeam, "dcl", np.zeros((2, 2))) is not None)
+check("PlanarTeam: an unknown method -> ValueError", raises(ValueError, cooploc.PlanarTeam, "kalman", np.zeros((2, 3))) is not None)
+check("PlanarTeam: three speeds for two robots -> ValueError",
+      raises(ValueError, team.propagate, 0.1, np.ones(3), np.zeros(3)) is not None)
+check("PlanarTeam: a NaN speed -> ValueError", raises(ValueError, team.propagate, 0.1, np.array([1.0, float("nan")]), np.zeros(2)) is not None)
+check("PlanarTeam: a gap longer than the model's -> ValueError, nothing stepped",
+      raises(ValueError, team.propagate, 100.0, np.ones(2), np.zeros(2)) is not None and np.array_equal(team.poses(), before))
+check("PlanarTeam: a range to a stranger -> ValueError",
+      raises(ValueError, team.ranges, np.array([[1, 7]]), np.array([3.0]), 0.1) is not None)
+check("PlanarTeam: pairs and ranges of different lengths -> ValueError",
+      raises(ValueError, team.ranges, np.array([[1, 2]]), np.array([3.0, 4.0]), 0.1) is not None)
+check("PlanarTeam: pairs of floats -> TypeError/ValueError",
+      raises((TypeError, ValueError), team.ranges, np.array([[1.0, 2.0]]), np.array([3.0]), 0.1) is not None)
+team.propagate(0.1, np.array([1.0, 1.0]), np.zeros(2))
+check("PlanarTeam: time going back -> ValueError", raises(ValueError, team.propagate, 0.05, np.ones(2), np.zeros(2)) is not None)
+
 # The ground station's truth track: bad input is an exception, never a crash.
 tt = cooploc.TruthTrack()
 check("TruthTrack: a NaN position -> ValueError", raises(ValueError, tt.sim_state, (float("nan"), 0.0, 0.0)) is not None)
