@@ -859,9 +859,17 @@ impl NodeShell {
             (None, Some(Pending { origin: Some(origin), from_autopilot: false, config, .. }), _) => (*origin, config.clone()),
             // (the vehicle's origin is not known yet: decided at a later sample)
             (None, Some(Pending { origin: None, from_autopilot: false, .. }), _) => return false,
-            // a node made ready by its caller, or one that starts at the autopilot's hand-over
+            // a node made ready by its caller, one that starts at the autopilot's hand-over, or
+            // one its vehicle's SIM_STATE started before its first sample
             _ => {
-                self.restore = None;
+                if self.restore.take().is_some() {
+                    let why = if self.core.is_some() {
+                        "the node had its state before the vehicle's first sample"
+                    } else {
+                        "the node starts from the autopilot's estimate when its GNSS goes"
+                    };
+                    println!("node {id} saved state not used: {why}");
+                }
                 return false;
             }
         };
