@@ -367,9 +367,27 @@ fn a_forged_record_and_a_relabelled_replay_change_nothing() {
 /// 10 epochs, to the end; its teammates are not hurt.
 #[test]
 fn a_node_restarted_with_its_first_arguments_restores_the_state_it_saved() {
+    restart_case(0.0);
+}
+
+/// The same restart with 30% of the cooperative datagrams lost (`cargo test --release --test
+/// processes -- --ignored --nocapture`, about 80 s; not in CI, where the other process cases
+/// already load the 2-core machine). It does not hold yet: in its one run node 3 restored a
+/// state 0.5 s old and was within twice its clean RMS from 10 epochs on (worst 2.42 m), but the
+/// team ended at 0.794x its clean run where the harness's same case says 1.085x: 27% apart,
+/// beyond the 20% the other cases keep (issue 33).
+#[test]
+#[ignore]
+fn a_node_restarted_on_a_lossy_network_restores_the_state_it_saved() {
+    restart_case(0.3);
+}
+
+/// Node 3 killed and restarted with its first arguments on a network losing `loss` of the
+/// datagrams, against the clean (loss-free, no restart) team.
+fn restart_case(loss: f64) {
     let (clean, restarted) = std::thread::scope(|s| {
         let clean = s.spawn(|| run_team(0.0, Attack::None, true, false));
-        let restarted = s.spawn(|| run_team(0.0, Attack::None, true, true));
+        let restarted = s.spawn(|| run_team(loss, Attack::None, true, true));
         (clean.join().unwrap(), restarted.join().unwrap())
     });
     print("clean", &clean);
@@ -409,6 +427,8 @@ fn a_node_restarted_with_its_first_arguments_restores_the_state_it_saved() {
     let restore = Faults {
         kill: Some(cooploc::experiment::faults::Outage { node: 2, from_s: 114.0, until_s: 114.3 }),
         restore: true,
+        coop_loss: loss,
+        links_until_s: 1e9,
         ..Faults::default()
     };
     let (processes, harness) = (restarted.rms() / clean.rms(), harness_case_ratio(restore));

@@ -503,11 +503,17 @@ impl PyEpochTally {
 #[pyclass(name = "RateWindow", module = "cooploc._native")]
 struct PyRateWindow(cooploc::gcs::link::RateWindow);
 
-fn wall_ns(now_s: f64) -> PyResult<cooploc::gcs::WallNs> {
-    if !(now_s.is_finite() && (0.0..1.8e10).contains(&now_s)) {
-        return Err(PyValueError::new_err(format!("time {now_s} s: a finite, non-negative clock reading")));
+/// A time in seconds as the package takes them: finite, at or after 0, before year 2540.
+fn seconds(t_s: f64) -> PyResult<f64> {
+    if t_s.is_finite() && (0.0..1.8e10).contains(&t_s) {
+        Ok(t_s)
+    } else {
+        Err(PyValueError::new_err(format!("time {t_s} s: a finite, non-negative clock reading")))
     }
-    Ok(cooploc::gcs::WallNs((now_s * 1e9) as u64))
+}
+
+fn wall_ns(now_s: f64) -> PyResult<cooploc::gcs::WallNs> {
+    Ok(cooploc::gcs::WallNs((seconds(now_s)? * 1e9) as u64))
 }
 
 #[pymethods]
@@ -835,10 +841,7 @@ fn estimation_error(e: cooploc::estimation::EstimationError) -> PyErr {
 }
 
 fn time_us(t_s: f64) -> PyResult<cooploc::time::TimeUs> {
-    if !(t_s.is_finite() && (0.0..1.8e10).contains(&t_s)) {
-        return Err(PyValueError::new_err(format!("time {t_s} s: finite, at or after 0")));
-    }
-    Ok(cooploc::time::TimeUs((t_s * 1e6).round() as u64))
+    Ok(cooploc::time::TimeUs((seconds(t_s)? * 1e6).round() as u64))
 }
 
 #[pymethods]

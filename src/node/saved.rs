@@ -132,10 +132,7 @@ impl SavedState {
         if !numbers.iter().all(|v| v.is_finite()) {
             return Err("a state value is not finite".into());
         }
-        let position = match &s.nominal {
-            SavedNominal::Ins(x) => x.pos_ned_m,
-            SavedNominal::Planar(x) => x.pos_ned_m,
-        };
+        let position = s.nav_state().position_ned_m();
         if position.norm() > 1e7 {
             return Err(format!("position {:.0} m from the origin", position.norm()));
         }
