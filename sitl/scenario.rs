@@ -15,6 +15,8 @@ use std::path::Path;
 use serde::{Deserialize, Serialize};
 
 use crate::estimation::PlatformId;
+use crate::estimation::spec::{self, InvalidField};
+pub use crate::estimation::spec::{FilterTuning, InitialUncertainty, PlatformModel, Sensors, VehicleSpec, Wheels};
 use crate::time::TimeUs;
 
 /// What can be wrong with a scenario.
@@ -68,62 +70,8 @@ pub struct Scenario {
     pub platforms: Vec<PlatformSpec>,
 }
 
-/// The wheel odometry of a wheeled robot without IMU: a differential drive whose two wheels'
-/// distances give, over each interval, the mean forward speed and yaw rate.
-#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
-#[serde(deny_unknown_fields)]
-pub struct Wheels {
-    /// Rate of the wheel samples, Hz.
-    pub rate_hz: f64,
-    /// White noise on each sample's mean forward speed, m/s.
-    pub speed_sigma_m_s: f64,
-    /// White noise on each sample's mean yaw rate, deg/s.
-    pub yaw_rate_sigma_deg_s: f64,
-    /// Distance between the two wheels, m (what WHEEL_DISTANCE's two counters are apart).
-    pub track_m: f64,
-}
-
-/// What a platform navigates with.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
-#[serde(rename_all = "lowercase")]
-pub enum PlatformModel {
-    /// An IMU (strapdown INS) and an odometer.
-    #[default]
-    Ins,
-    /// A wheeled robot: wheel odometry only (`[wheels]`), a planar filter.
-    Planar,
-}
-
 fn default_gravity() -> f64 {
     9.80665
-}
-
-/// Sensor error models, the same for every platform (each platform draws its own errors).
-#[derive(Debug, Clone, Copy, PartialEq, Default, Serialize, Deserialize)]
-#[serde(deny_unknown_fields)]
-pub struct Sensors {
-    /// IMU sample rate, Hz. Each sample is the mean over its interval.
-    pub imu_rate_hz: f64,
-    /// Accelerometer constant bias: per-axis standard deviation of the per-run draw, micro-g.
-    pub accel_bias_ug: f64,
-    /// Accelerometer white noise density, micro-g/sqrt(Hz).
-    pub accel_noise_ug_per_sqrt_hz: f64,
-    /// Accelerometer bias instability as a random walk, micro-g/sqrt(s). Zero: constant bias.
-    #[serde(default)]
-    pub accel_bias_walk_ug_per_sqrt_s: f64,
-    /// Gyro constant bias: per-axis standard deviation of the per-run draw, deg/h.
-    pub gyro_bias_deg_h: f64,
-    /// Gyro angle random walk, deg/sqrt(h).
-    pub gyro_arw_deg_per_sqrt_h: f64,
-    /// Gyro bias instability as a random walk, (deg/h)/sqrt(s). Zero: constant bias.
-    #[serde(default)]
-    pub gyro_bias_walk_deg_h_per_sqrt_s: f64,
-    /// Odometer sample rate, Hz.
-    pub odometer_rate_hz: f64,
-    /// Odometer white noise on the forward speed, m/s.
-    pub odometer_sigma_m_s: f64,
-    /// Odometer scale factor error: standard deviation of the per-run draw (dimensionless).
-    pub odometer_scale_sigma: f64,
 }
 
 /// Inter-platform ranging: one noise level, any number of named schedules.
@@ -159,35 +107,6 @@ pub struct RangeSchedule {
     /// fall between IMU samples as real ranging rounds do. Less than half the period.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub jitter_s: Option<f64>,
-}
-
-/// Standard deviations of the filters' initial estimate errors; the world draws each run's
-/// initial errors from them, and a filter initialises its covariance with them.
-#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
-#[serde(deny_unknown_fields)]
-pub struct InitialUncertainty {
-    /// Per NED axis, m.
-    pub position_sigma_m: f64,
-    /// Per NED axis, m/s.
-    pub velocity_sigma_m_s: f64,
-    /// Roll and pitch, deg.
-    pub roll_pitch_sigma_deg: f64,
-    /// Yaw, deg.
-    pub yaw_sigma_deg: f64,
-}
-
-/// Filter tuning that is not a sensor property.
-#[derive(Debug, Clone, Copy, PartialEq, Default, Serialize, Deserialize)]
-#[serde(deny_unknown_fields)]
-pub struct FilterTuning {
-    /// Non-holonomic constraint: body-right (lateral) velocity is zero with this sigma, m/s.
-    pub nhc_lateral_sigma_m_s: f64,
-    /// Non-holonomic constraint: body-down velocity is zero with this sigma, m/s.
-    pub nhc_vertical_sigma_m_s: f64,
-    /// Rate of the INS covariance (and Psi) propagation, Hz; must divide the IMU rate. Absent:
-    /// the IMU rate (every sample).
-    #[serde(default)]
-    pub covariance_rate_hz: Option<f64>,
 }
 
 /// One vehicle: its id and its truth profile.
@@ -226,6 +145,57 @@ fn is_ins(m: &PlatformModel) -> bool {
 }
 
 impl Scenario {
+    /// The scenario's vehicle, as its INS platforms are: its sensors, initial uncertainty,
+    /// filter tuning, latitude and gravity.
+    pub fn vehicle(&self) -> VehicleSpec {
+        VehicleSpec {
+            name: self.name.clone(),
+            latitude_deg: Some(self.latitude_deg),
+            gravity_m_s2: self.gravity_m_s2,
+            model: PlatformModel::Ins,
+            sensors: Some(self.sensors),
+            initial: self.initial,
+            filter: Some(self.filter),
+            wheels: None,
+        }
+    }
+
+    /// Platform `id`'s vehicle: [`Self::vehicle`], or for a wheeled robot (`model = "planar"`)
+    /// the scenario's `[wheels]` without IMU or INS tuning.
+    pub fn vehicle_of(&self, id: PlatformId) -> VehicleSpec {
+        let mut v = self.vehicle();
+        let planar = self.platforms.iter().any(|q| q.id == id && q.model == PlatformModel::Planar);
+        if let (true, Some(w)) = (planar, self.wheels) {
+            v.model = PlatformModel::Planar;
+            v.sensors = None;
+            v.filter = None;
+            v.wheels = Some(w);
+        }
+        v
+    }
+
+    /// Puts a vehicle into the scenario: its sensors, filter tuning and wheels (those it gives),
+    /// initial uncertainty, latitude (if known) and gravity replace the scenario's, so that the
+    /// simulated vehicles are the ones the nodes are told they run on. The result is validated
+    /// as a scenario (sensor periods on the microsecond grid, epochs on the IMU grid).
+    pub fn put_vehicle(&mut self, v: &VehicleSpec) -> Result<(), ScenarioError> {
+        if let Some(lat) = v.latitude_deg {
+            self.latitude_deg = lat;
+        }
+        self.gravity_m_s2 = v.gravity_m_s2;
+        if let Some(sensors) = v.sensors {
+            self.sensors = sensors;
+        }
+        if let Some(filter) = v.filter {
+            self.filter = filter;
+        }
+        if v.wheels.is_some() {
+            self.wheels = v.wheels;
+        }
+        self.initial = v.initial;
+        self.validate()
+    }
+
     /// Reads, parses and validates a scenario file.
     pub fn from_path(path: impl AsRef<Path>) -> Result<Scenario, ScenarioError> {
         let path = path.as_ref();
@@ -504,16 +474,22 @@ impl PlatformSpec {
     }
 }
 
+impl From<InvalidField> for ScenarioError {
+    fn from(e: InvalidField) -> Self {
+        ScenarioError::Invalid { field: e.field, reason: e.reason }
+    }
+}
+
 pub(crate) fn finite(field: &str, v: f64) -> Result<(), ScenarioError> {
-    if v.is_finite() { Ok(()) } else { Err(invalid(field, format!("must be finite, got {v}"))) }
+    Ok(spec::finite(field, v)?)
 }
 
 pub(crate) fn positive(field: &str, v: f64) -> Result<(), ScenarioError> {
-    if v.is_finite() && v > 0.0 { Ok(()) } else { Err(invalid(field, format!("must be positive, got {v}"))) }
+    Ok(spec::positive(field, v)?)
 }
 
 pub(crate) fn non_negative(field: &str, v: f64) -> Result<(), ScenarioError> {
-    if v.is_finite() && v >= 0.0 { Ok(()) } else { Err(invalid(field, format!("must be non-negative, got {v}"))) }
+    Ok(spec::non_negative(field, v)?)
 }
 
 /// Seconds to whole microseconds, refusing negative values and fractions of a microsecond.

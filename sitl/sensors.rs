@@ -36,12 +36,7 @@ use crate::estimation::unicycle::wrap_angle;
 use crate::estimation::{ImuSample, OdometerSample, PlatformId, RangeSample, WheelSample};
 use crate::time::TimeUs;
 
-/// One micro-g in m/s^2 (standard gravity 9.80665 m/s^2).
-pub const MICRO_G_M_S2: f64 = 9.80665e-6;
-/// One deg/h in rad/s.
-pub const DEG_PER_H_RAD_S: f64 = std::f64::consts::PI / 180.0 / 3600.0;
-/// One deg/sqrt(h) in rad/sqrt(s).
-pub const DEG_PER_SQRT_H_RAD_PER_SQRT_S: f64 = std::f64::consts::PI / 180.0 / 60.0;
+pub use crate::estimation::spec::{DEG_PER_H_RAD_S, DEG_PER_SQRT_H_RAD_PER_SQRT_S, MICRO_G_M_S2};
 
 /// The scenario's sensor numbers in SI units, per sample where that applies.
 #[derive(Debug, Clone, Copy, PartialEq)]

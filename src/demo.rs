@@ -205,7 +205,7 @@ pub async fn run_demo(cfg: DemoConfig, ready: impl FnOnce(&DemoAddresses)) -> Re
             peers: node_addrs.iter().map(|(_, a)| *a).collect(),
             idle_exit: Some(Duration::from_millis(1500)),
             grace: Duration::from_millis(500),
-            profile: crate::node::profile::VehicleProfile::from_scenario_platform(&scenario, id),
+            profile: crate::node::profile::VehicleProfile::from_spec(&scenario.vehicle_of(id)),
             team_key: Some(team_key.clone()),
             signing_state: None,
             state_file: None,

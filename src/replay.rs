@@ -63,7 +63,7 @@ pub fn profile_of(log: &Log, world: Option<&World>, id: PlatformId) -> Result<Ve
             let text = std::str::from_utf8(&a.data).map_err(|e| ReplayError::Node(id, format!("vehicle profile: {e}")))?;
             VehicleProfile::from_toml_str(text).map_err(|e| ReplayError::Node(id, e.to_string()))
         }
-        (None, Some(world)) => Ok(VehicleProfile::from_scenario_platform(world.scenario(), id)),
+        (None, Some(world)) => Ok(VehicleProfile::from_spec(&world.scenario().vehicle_of(id))),
         (None, None) => Err(ReplayError::NoScenario),
     }
 }

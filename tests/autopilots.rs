@@ -390,7 +390,7 @@ fn team_of(
     let vehicle = VehicleProfile::from_path(&profile_path).unwrap();
     let scenario_path = format!("sitl/scenarios/{scenario_name}.toml");
     let mut scenario = Scenario::from_path(format!("{root}/{scenario_path}")).unwrap();
-    vehicle.apply_to(&mut scenario).unwrap();
+    scenario.put_vehicle(&vehicle.spec()).unwrap();
     let world = World::new(&scenario).unwrap();
     let robot_path = robot_profile.map(|name| {
         let path = dir.join(format!("{name}.toml")).display().to_string();

@@ -34,6 +34,7 @@ pub mod linear;
 pub mod nav;
 pub mod planar;
 pub mod platform;
+pub mod spec;
 pub mod team;
 pub mod unicycle;
 

@@ -22,8 +22,8 @@ use serde::Serialize;
 use super::{ExperimentError, nav_model, run_filter, state_from};
 use crate::estimation::nav::NavState;
 use crate::estimation::{Method, PlatformId};
-use crate::node::coop_link::Source;
 use crate::node::core::{NodeConfig, NodeCore, NodeInput, NodeStats};
+use crate::node::peers::Source;
 use crate::node::profile::VehicleProfile;
 use crate::node::shell::{LinkFacts, NodeInit, NodeShell, Now, ShellConfig, ShellOutput};
 use crate::protocol::budget;
@@ -531,7 +531,7 @@ impl Maker<'_> {
         .map_err(|e| ExperimentError::Settings(format!("node {id}: {e}")))?;
         // What the team sees of the autopilot is not measured here, so nothing goes back to it
         // (no ODOMETRY, GPS_INPUT or LOCAL_POSITION_NED).
-        let mut profile = VehicleProfile::from_scenario_platform(self.world.scenario(), id);
+        let mut profile = VehicleProfile::from_spec(&self.world.scenario().vehicle_of(id));
         profile.output.odometry_rate_hz = 0.0;
         profile.output.gps_input_rate_hz = 0.0;
         profile.output.local_position_ned = false;

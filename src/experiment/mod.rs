@@ -39,7 +39,7 @@ pub enum ExperimentError {
 /// initial uncertainty (every number lives in the scenario file).
 pub fn ins_settings(world: &World) -> (InsConfig, InsInitialSigma) {
     let s: &Scenario = world.scenario();
-    crate::node::profile::VehicleProfile::from_scenario(s).ins_settings(s.latitude_deg)
+    crate::node::profile::VehicleProfile::from_spec(&s.vehicle()).ins_settings(s.latitude_deg)
 }
 
 /// The navigation model platform `id` runs: the INS of [`ins_settings`], or, for a wheeled
@@ -288,7 +288,11 @@ pub enum InputSource {
     World,
     /// As an autopilot sends them and a node decodes them (see
     /// [`crate::simulator::personality::decoded_run`]).
-    Autopilot { autopilot: crate::simulator::Autopilot, inputs: crate::node::profile::Inputs, rates: Vec<(u32, f64)> },
+    Autopilot {
+        autopilot: crate::simulator::personality::Autopilot,
+        inputs: crate::node::profile::Inputs,
+        rates: Vec<(u32, f64)>,
+    },
 }
 
 /// What to run.

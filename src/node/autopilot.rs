@@ -551,7 +551,7 @@ mod tests {
     use nalgebra::{Matrix3, Matrix6, UnitQuaternion};
 
     fn profile() -> VehicleProfile {
-        let mut p = VehicleProfile::from_scenario(&Scenario::from_toml_str(PAPER_TOML).unwrap());
+        let mut p = VehicleProfile::from_spec(&Scenario::from_toml_str(PAPER_TOML).unwrap().vehicle());
         p.inputs.request_rates = true;
         p
     }

@@ -20,6 +20,7 @@
 //!   (counted), it never stalls the filter.
 
 use super::error::NodeError;
+pub use super::peers::Source;
 use std::net::{Ipv4Addr, SocketAddr, SocketAddrV4};
 
 use tokio::io::{AsyncReadExt as _, AsyncWriteExt as _};
@@ -151,37 +152,6 @@ pub enum CoopLink {
         dropped: std::sync::atomic::AtomicU64,
         device: String,
     },
-}
-
-/// Where a received run of frames came from.
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub enum Source {
-    /// A unicast datagram from this address.
-    Unicast(SocketAddr),
-    /// A datagram to the multicast group, from this (the sender's unicast) address.
-    Group(SocketAddr),
-    /// The serial radio (no address: everyone on the channel hears everything).
-    Radio,
-}
-
-impl Source {
-    /// The sender's address, when there is one.
-    pub fn addr(self) -> Option<SocketAddr> {
-        match self {
-            Source::Unicast(a) | Source::Group(a) => Some(a),
-            Source::Radio => None,
-        }
-    }
-}
-
-impl std::fmt::Display for Source {
-    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        match self {
-            Source::Unicast(a) => write!(f, "{a}"),
-            Source::Group(a) => write!(f, "{a} (group)"),
-            Source::Radio => write!(f, "radio"),
-        }
-    }
 }
 
 /// What went out.

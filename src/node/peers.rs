@@ -179,6 +179,37 @@ impl PeerTable {
     }
 }
 
+/// Where a received run of frames came from.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Source {
+    /// A unicast datagram from this address.
+    Unicast(SocketAddr),
+    /// A datagram to the multicast group, from this (the sender's unicast) address.
+    Group(SocketAddr),
+    /// The serial radio (no address: everyone on the channel hears everything).
+    Radio,
+}
+
+impl Source {
+    /// The sender's address, when there is one.
+    pub fn addr(self) -> Option<SocketAddr> {
+        match self {
+            Source::Unicast(a) | Source::Group(a) => Some(a),
+            Source::Radio => None,
+        }
+    }
+}
+
+impl std::fmt::Display for Source {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match self {
+            Source::Unicast(a) => write!(f, "{a}"),
+            Source::Group(a) => write!(f, "{a} (group)"),
+            Source::Radio => write!(f, "radio"),
+        }
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

@@ -45,16 +45,15 @@ use std::path::Path;
 use nalgebra::Vector3;
 use serde::{Deserialize, Serialize};
 
-use crate::estimation::PlatformId;
 use crate::estimation::ins::{InsConfig, InsInitialSigma};
 use crate::estimation::nav::NavModel;
 use crate::estimation::planar::{DEFAULT_MAX_GAP_S, PlanarConfig, PlanarSigma};
+use crate::estimation::spec::{
+    DEG_PER_H_RAD_S, DEG_PER_SQRT_H_RAD_PER_SQRT_S, InvalidField, MICRO_G_M_S2, finite, non_negative, positive,
+};
+pub use crate::estimation::spec::{FilterTuning, InitialUncertainty, PlatformModel, Sensors, VehicleSpec, Wheels};
 use crate::node::inputs::VehicleInputs;
 use crate::protocol::wire::GeoOrigin;
-use crate::sitl::scenario::{
-    FilterTuning, InitialUncertainty, PlatformModel, Scenario, ScenarioError, Sensors, Wheels, finite, non_negative, positive,
-};
-use crate::sitl::sensors::{DEG_PER_H_RAD_S, DEG_PER_SQRT_H_RAD_PER_SQRT_S, MICRO_G_M_S2};
 
 /// Why a profile is refused.
 #[derive(Debug, Clone, PartialEq, thiserror::Error)]
@@ -68,12 +67,9 @@ pub enum ProfileError {
     Invalid { field: String, reason: String },
 }
 
-impl From<ScenarioError> for ProfileError {
-    fn from(e: ScenarioError) -> Self {
-        match e {
-            ScenarioError::Invalid { field, reason } => ProfileError::Invalid { field, reason },
-            other => ProfileError::Invalid { field: String::new(), reason: other.to_string() },
-        }
+impl From<InvalidField> for ProfileError {
+    fn from(e: InvalidField) -> Self {
+        ProfileError::Invalid { field: e.field, reason: e.reason }
     }
 }
 
@@ -410,61 +406,42 @@ impl VehicleProfile {
         Ok(p)
     }
 
-    /// The vehicle part of a scenario, as the simulator's vehicles are: HIGHRES_IMU averages,
-    /// ODOMETRY, one clock, the scenario's latitude.
-    pub fn from_scenario(s: &Scenario) -> Self {
+    /// A vehicle's profile from its description (a simulated vehicle's: `sitl::Scenario::vehicle_of`),
+    /// as the simulator's vehicles speak: HIGHRES_IMU averages, ODOMETRY, one clock, rates
+    /// already streamed; a planar robot reads WHEEL_DISTANCE's wheels 0 and 1.
+    pub fn from_spec(v: &VehicleSpec) -> Self {
+        let mut inputs = Inputs { request_rates: false, ..Inputs::default() };
+        if let (PlatformModel::Planar, Some(w)) = (v.model, v.wheels) {
+            inputs = inputs.planar_wheels(w.track_m);
+        }
         VehicleProfile {
-            name: s.name.clone(),
-            latitude_deg: Some(s.latitude_deg),
-            gravity_m_s2: s.gravity_m_s2,
-            model: PlatformModel::Ins,
-            sensors: Some(s.sensors),
-            initial: s.initial,
-            filter: Some(s.filter),
-            wheels: None,
+            name: v.name.clone(),
+            latitude_deg: v.latitude_deg,
+            gravity_m_s2: v.gravity_m_s2,
+            model: v.model,
+            sensors: v.sensors,
+            initial: v.initial,
+            filter: v.filter,
+            wheels: v.wheels,
             origin: None,
-            // the simulator streams at the scenario's rates already
-            inputs: Inputs { request_rates: false, ..Inputs::default() },
+            inputs,
             output: Output::default(),
         }
     }
 
-    /// The vehicle part of a scenario for platform `id`: [`Self::from_scenario`], or for a
-    /// wheeled robot (`model = "planar"`) the planar profile with the scenario's `[wheels]`,
-    /// reading WHEEL_DISTANCE's wheels 0 and 1.
-    pub fn from_scenario_platform(s: &Scenario, id: PlatformId) -> Self {
-        let mut p = Self::from_scenario(s);
-        let planar = s.platforms.iter().any(|q| q.id == id && q.model == PlatformModel::Planar);
-        if let (true, Some(w)) = (planar, s.wheels) {
-            p.model = PlatformModel::Planar;
-            p.sensors = None;
-            p.filter = None;
-            p.wheels = Some(w);
-            p.inputs = p.inputs.planar_wheels(w.track_m);
+    /// The vehicle this profile describes (`sitl::Scenario::put_vehicle` puts it into a
+    /// scenario: `cooploc sitl --vehicle-config`).
+    pub fn spec(&self) -> VehicleSpec {
+        VehicleSpec {
+            name: self.name.clone(),
+            latitude_deg: self.latitude(),
+            gravity_m_s2: self.gravity_m_s2,
+            model: self.model,
+            sensors: self.sensors,
+            initial: self.initial,
+            filter: self.filter,
+            wheels: self.wheels,
         }
-        p
-    }
-
-    /// Puts this vehicle into a scenario: its sensors, initial uncertainty, filter tuning (or,
-    /// for a planar robot, its `[wheels]`), latitude and gravity replace the scenario's (`cooploc sitl --vehicle-config`), so that
-    /// the simulated vehicles are the ones the nodes are told they run on. The result is
-    /// validated as a scenario (sensor periods on the microsecond grid, epochs on the IMU grid).
-    pub fn apply_to(&self, s: &mut Scenario) -> Result<(), ScenarioError> {
-        if let Some(lat) = self.latitude() {
-            s.latitude_deg = lat;
-        }
-        s.gravity_m_s2 = self.gravity_m_s2;
-        if let Some(sensors) = self.sensors {
-            s.sensors = sensors;
-        }
-        if let Some(filter) = self.filter {
-            s.filter = filter;
-        }
-        if self.wheels.is_some() {
-            s.wheels = self.wheels;
-        }
-        s.initial = self.initial;
-        s.validate()
     }
 
     /// The profile as TOML (attached to logs so that replay reads the same profile).
@@ -795,7 +772,7 @@ impl VehicleProfile {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::sitl::{PAPER_TOML, World};
+    use crate::sitl::{PAPER_TOML, Scenario, World};
 
     fn example(name: &str) -> String {
         std::fs::read_to_string(format!("{}/sitl/vehicles/{name}.toml", env!("CARGO_MANIFEST_DIR"))).unwrap()
@@ -813,7 +790,7 @@ mod tests {
     fn a_scenario_is_a_profile_with_the_same_ins_settings() {
         let scenario = Scenario::from_toml_str(PAPER_TOML).unwrap();
         let world = World::new(&scenario).unwrap();
-        let p = VehicleProfile::from_scenario(&scenario);
+        let p = VehicleProfile::from_spec(&scenario.vehicle());
         p.validate().unwrap();
         // the same figures the simulator draws its sensor errors from
         let m = world.sensor_model();

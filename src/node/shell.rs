@@ -25,22 +25,22 @@
 use super::autopilot::{
     GpsInputOutput, OdometryOutput, OriginOffer, RateOutcome, RateRequest, RateRequests, TimeSync, TimesyncReply,
 };
-use super::coop_link::Source;
 use super::core::{NodeConfig, NodeCore, NodeInput, NodeOutput, NodeStats};
 use super::error::NodeError;
 use super::handover::{Handover, HandoverEvent};
 use super::inputs::{ClockSource, InputCounters, VehicleEvent, VehicleInputs};
 use super::log::{CoopUpdateRecord, NodeEvent};
+use super::peers::Source;
 use super::peers::{Heard, PeerCounters, PeerTable};
 use super::profile::{TeamClock, VehicleProfile};
 use super::saved::{SAVE_EVERY_US, SavedState};
-use super::vehicle_link::Received;
 use crate::estimation::PlatformId;
 use crate::estimation::coast::CoastBounds;
 use crate::estimation::ins::InsState;
 use crate::estimation::nav::NavState;
 use crate::protocol::MavMessage;
 use crate::protocol::dialect::cooploc::{MavAutopilot, MavCmd, MavResult, MavType};
+use crate::protocol::framing::Received;
 use crate::protocol::framing::{Direction, Link};
 use crate::protocol::signing::{Signer, SigningCounters, TeamKey, Verifier};
 use crate::protocol::wire;
@@ -1035,7 +1035,7 @@ impl NodeShell {
             // log and the core see the same frames.
             None => {
                 let mut frames = Vec::new();
-                for (header, msg, frame) in super::vehicle_link::split_frames(bytes) {
+                for (header, msg, frame) in crate::protocol::framing::split_frames(bytes) {
                     self.record(Record::Frame { link: Link::Coop(self.sysid), dir: Direction::Rx, bytes: frame });
                     frames.extend(msg.map(|m| (header, m)));
                 }
@@ -1194,7 +1194,7 @@ mod tests {
         let cfg = NodeConfig::for_model(1, Method::Decentralized, model, Encoding::F64, world.platform_ids());
         let core = NodeCore::new(cfg, t0, state).unwrap();
         let config = ShellConfig {
-            profile: VehicleProfile::from_scenario(&scenario),
+            profile: VehicleProfile::from_spec(&scenario.vehicle()),
             team_key: key,
             signing_resume_after: 0,
             peers: Vec::new(),
@@ -1251,7 +1251,7 @@ mod tests {
         );
         cfg.id = 300;
         let config = ShellConfig {
-            profile: VehicleProfile::from_scenario(&scenario),
+            profile: VehicleProfile::from_spec(&scenario.vehicle()),
             team_key: None,
             signing_resume_after: 0,
             peers: Vec::new(),

@@ -36,10 +36,7 @@ use crate::protocol::wire;
 /// node warns when it got less than it asked).
 pub const VEHICLE_RECV_BUFFER: usize = 4 << 20;
 
-/// One received MAVLink frame: its header, the message (None: a message of another dialect,
-/// whose header still counts for the link's sequence numbers) and the frame's bytes (for the
-/// log).
-pub type Received = (MavHeader, Option<MavMessage>, Vec<u8>);
+pub use crate::protocol::framing::{Received, split_frames};
 
 /// A connection to the vehicle.
 pub enum VehicleLink {
@@ -263,28 +260,6 @@ fn frames_of(bytes: &[u8], signing: Option<&Mutex<(Signer, Verifier)>>) -> Vec<R
 /// Unix time, us (signing timestamps).
 fn unix_now_us() -> u64 {
     std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).map_or(0, |d| d.as_micros() as u64)
-}
-
-/// The MAVLink v1 and v2 frames of one datagram, in order, frames of messages outside the
-/// dialect included (message None: skipped by their length, see [`crate::protocol::framing`]);
-/// reading stops at the first bytes that are not a frame (CRC, truncation, a payload that does
-/// not decode).
-pub fn split_frames(bytes: &[u8]) -> Vec<Received> {
-    let mut out = Vec::new();
-    let mut next = 0;
-    for f in crate::protocol::framing::frames(bytes) {
-        if f.offset != next {
-            break; // bytes that were not a frame came first
-        }
-        let msg = match f.message {
-            Ok(m) => Some(m),
-            Err(_) if !f.known => None,
-            Err(_) => break,
-        };
-        next = f.offset + f.bytes.len();
-        out.push((f.header, msg, f.bytes.to_vec()));
-    }
-    out
 }
 
 #[cfg(test)]

@@ -246,6 +246,33 @@ impl Direction {
     }
 }
 
+/// One received MAVLink frame: its header, the message (None: a message of another dialect,
+/// whose header still counts for the link's sequence numbers) and the frame's bytes (for the
+/// log).
+pub type Received = (MavHeader, Option<MavMessage>, Vec<u8>);
+
+/// The MAVLink v1 and v2 frames of one datagram, in order, frames of messages outside the
+/// dialect included (message None: skipped by their length, see [`frames`]);
+/// reading stops at the first bytes that are not a frame (CRC, truncation, a payload that does
+/// not decode).
+pub fn split_frames(bytes: &[u8]) -> Vec<Received> {
+    let mut out = Vec::new();
+    let mut next = 0;
+    for f in frames(bytes) {
+        if f.offset != next {
+            break; // bytes that were not a frame came first
+        }
+        let msg = match f.message {
+            Ok(m) => Some(m),
+            Err(_) if !f.known => None,
+            Err(_) => break,
+        };
+        next = f.offset + f.bytes.len();
+        out.push((f.header, msg, f.bytes.to_vec()));
+    }
+    out
+}
+
 #[cfg(test)]
 pub(crate) fn foreign_frame(seq: u8, id: u32) -> Vec<u8> {
     assert!(!known_message(id), "{id} is in the dialect");

@@ -64,7 +64,9 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     let source = match (&args.vehicle_config, args.autopilot) {
         (Some(path), autopilot) => {
             let profile = VehicleProfile::from_path(path)?;
-            profile.apply_to(&mut scenario).with_context(|| format!("the scenario with the vehicle of {}", profile.name))?;
+            scenario
+                .put_vehicle(&profile.spec())
+                .with_context(|| format!("the scenario with the vehicle of {}", profile.name))?;
             match autopilot {
                 Some(autopilot) => {
                     let rates = if args.stream_rates.is_empty() {

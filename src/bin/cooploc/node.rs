@@ -219,7 +219,7 @@ pub fn run_cmd(args: Args) -> anyhow::Result<()> {
     };
     let profile = match (&args.vehicle_config, &world) {
         (Some(path), _) => VehicleProfile::from_path(path)?,
-        (None, Some(world)) => VehicleProfile::from_scenario_platform(world.scenario(), args.id),
+        (None, Some(world)) => VehicleProfile::from_spec(&world.scenario().vehicle_of(args.id)),
         (None, None) => bail!(
             "no vehicle profile: give --vehicle-config FILE (vehicle_config in --config; examples in sitl/vehicles/), or the --scenario of a simulated run"
         ),

@@ -168,7 +168,7 @@ fn validate(args: Args) -> anyhow::Result<Validated> {
         None => None,
     };
     if let Some(p) = &profile {
-        p.apply_to(&mut scenario).with_context(|| format!("the scenario with the vehicle of {}", p.name))?;
+        scenario.put_vehicle(&p.spec()).with_context(|| format!("the scenario with the vehicle of {}", p.name))?;
     }
     let world = World::new(&scenario)?;
     let ids = world.platform_ids();
