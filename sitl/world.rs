@@ -7,6 +7,7 @@ use nalgebra::{UnitQuaternion, Vector3};
 use super::scenario::{PlatformModel, Scenario, ScenarioError};
 use super::sensors::{self, ImuStream, OdometerStream, SensorErrors, SensorModel, Stream, WheelStream};
 use super::truth::{Earth, Trajectory, TruthState};
+use crate::estimation::ins::InsState;
 use crate::estimation::{ImuSample, OdometerSample, PlatformId, RangeSample, WheelSample};
 use crate::time::TimeUs;
 
@@ -78,6 +79,19 @@ impl InitialEstimate {
     pub fn attitude(&self) -> UnitQuaternion<f64> {
         let e = self.attitude_error_rad;
         UnitQuaternion::from_euler_angles(e[0], e[1], self.truth.yaw_rad + e[2])
+    }
+
+    /// The INS filter state this estimate starts: its position, velocity and attitude; zero
+    /// biases and scale error.
+    pub fn ins_state(&self) -> InsState {
+        InsState {
+            pos_ned_m: self.pos_ned_m(),
+            vel_ned_m_s: self.vel_ned_m_s(),
+            att_frd_to_ned: self.attitude(),
+            accel_bias_frd_m_s2: Vector3::zeros(),
+            gyro_bias_frd_rad_s: Vector3::zeros(),
+            odometer_scale_error: 0.0,
+        }
     }
 }
 

@@ -17,10 +17,9 @@ use serde::Serialize;
 use crate::estimation::consistency::nees;
 use crate::estimation::ins::{self, InsConfig, InsInitialSigma, InsState};
 use crate::estimation::nav::{Drive, NavFilter, NavModel, NavState};
-use crate::estimation::planar::{PlanarConfig, PlanarSigma};
 use crate::estimation::unicycle::wrap_angle;
 use crate::estimation::{CoopMeasurement, EstimationError, Method, PlatformFilter, PlatformId, RangeSample, Team};
-use crate::sitl::scenario::{PlatformModel, Scenario, ScenarioError};
+use crate::sitl::scenario::{Scenario, ScenarioError};
 use crate::sitl::world::{PlatformRun, RunInputs, World};
 use crate::time::TimeUs;
 
@@ -47,19 +46,7 @@ pub fn ins_settings(world: &World) -> (InsConfig, InsInitialSigma) {
 /// position and yaw sigmas.
 pub fn nav_model(world: &World, id: PlatformId) -> NavModel {
     let s = world.scenario();
-    match (world.platform_model(id), s.wheels) {
-        (PlatformModel::Planar, Some(w)) => NavModel::Planar {
-            config: PlanarConfig {
-                max_gap_s: crate::estimation::planar::DEFAULT_MAX_GAP_S,
-                ..PlanarConfig::from_sample_sigmas(w.speed_sigma_m_s, w.yaw_rate_sigma_deg_s.to_radians(), w.rate_hz)
-            },
-            initial_sigma: PlanarSigma { pos_m: s.initial.position_sigma_m, yaw_rad: s.initial.yaw_sigma_deg.to_radians() },
-        },
-        _ => {
-            let (config, initial_sigma) = ins_settings(world);
-            NavModel::Ins { config, initial_sigma }
-        }
-    }
+    crate::node::profile::VehicleProfile::from_spec(&s.vehicle_of(id)).nav_model(s.latitude_deg)
 }
 
 /// Platform `id`'s initial state in run `run` for its model ([`initial_state`]; a wheeled
@@ -77,15 +64,7 @@ pub fn initial_state(world: &World, seed: u64, run: u32, id: PlatformId) -> Resu
 
 /// The filter state of an initial estimate drawn at any time (see [`World::estimate_at`]).
 pub fn state_from(init: crate::sitl::world::InitialEstimate) -> Result<(TimeUs, InsState), ScenarioError> {
-    let state = InsState {
-        pos_ned_m: init.pos_ned_m(),
-        vel_ned_m_s: init.vel_ned_m_s(),
-        att_frd_to_ned: init.attitude(),
-        accel_bias_frd_m_s2: Vector3::zeros(),
-        gyro_bias_frd_rad_s: Vector3::zeros(),
-        odometer_scale_error: 0.0,
-    };
-    Ok((init.truth.t, state))
+    Ok((init.truth.t, init.ins_state()))
 }
 
 /// Error of one platform's estimate at one instant.

@@ -1189,8 +1189,9 @@ mod tests {
     fn shell(key: Option<TeamKey>, idle_exit: Option<Duration>) -> NodeShell {
         let scenario = Scenario::from_toml_str(PAPER_TOML).unwrap();
         let world = World::new(&scenario).unwrap();
-        let (t0, state) = crate::experiment::initial_nav_state(&world, 1, 0, 1).unwrap();
-        let model = crate::experiment::nav_model(&world, 1);
+        let model = VehicleProfile::from_spec(&scenario.vehicle()).nav_model(scenario.latitude_deg);
+        let init = world.initial_estimate(1, 0, 1).unwrap();
+        let (t0, state) = (init.truth.t, crate::estimation::nav::NavState::for_model(&model, init.ins_state()));
         let cfg = NodeConfig::for_model(1, Method::Decentralized, model, Encoding::F64, world.platform_ids());
         let core = NodeCore::new(cfg, t0, state).unwrap();
         let config = ShellConfig {
@@ -1241,11 +1242,10 @@ mod tests {
         );
 
         let scenario = Scenario::from_toml_str(PAPER_TOML).unwrap();
-        let world = World::new(&scenario).unwrap();
         let mut cfg = NodeConfig::for_model(
             300,
             Method::Decentralized,
-            crate::experiment::nav_model(&world, 1),
+            VehicleProfile::from_spec(&scenario.vehicle()).nav_model(scenario.latitude_deg),
             Encoding::F64,
             vec![300, 2],
         );
