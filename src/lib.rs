@@ -3,7 +3,10 @@
 //! Decentralized cooperative localization of vehicle teams over MAVLink, after Wang et al.,
 //! *Decentralized Collaborative Localization Algorithm Based on Covariance Propagation*.
 //!
-//! The crate is laid out by concern:
+//! The crate is laid out by concern. The lower layers are crates of their own (docs/architecture.md,
+//! "Crates"), re-exported here under the same names: `estimation`, `time` and `geodesy`
+//! (`cooploc-estimation`), `sitl` (`cooploc-sitl`), `protocol` (`cooploc-protocol`), and the node's
+//! sans-io modules (`cooploc-node`, under [`node`] beside the node's adapters).
 //!
 //! - [`estimation`]: the pure math. Per-platform filters (a strapdown INS with odometer and
 //!   non-holonomic constraints, a planar unicycle, a generic linear model), the recursive
@@ -22,7 +25,7 @@
 //!   through every method offline.
 //! - [`demo`]: `cooploc demo`, simulator, nodes and ground station in one process.
 //! - [`sitl`]: the simulated world (truth trajectories, sensor error models, scenario files).
-//!   Its source lives in the top-level `sitl/` folder.
+//!   Its scenario files live in the top-level `sitl/` folder.
 //! - [`simulator`]: `cooploc sitl`, the world's vehicles as MAVLink systems (a sans-io vehicle
 //!   core and a tokio runner).
 //! - [`recording`]: MCAP logs (raw MAVLink frames, Foxglove views of the estimates, filter
@@ -38,22 +41,16 @@
 //!
 //! The `cooploc` binary (`src/bin/cooploc/`, one file per command) only parses arguments,
 //! calls the library and prints.
+pub use cooploc_estimation::{estimation, geodesy, time};
+pub use cooploc_protocol::protocol;
+pub use cooploc_sitl::sitl;
+
 pub mod dataset;
 pub mod demo;
-pub mod estimation;
 pub mod experiment;
 pub mod gcs;
-pub mod geodesy;
 pub mod node;
-pub mod protocol;
 pub mod recording;
 pub mod replay;
 pub mod simulator;
-#[path = "../sitl/mod.rs"]
-pub mod sitl;
-pub mod time;
 pub mod view;
-
-// The generated dialect code refers to `crate::utils`.
-#[allow(unused_imports)]
-use mavlink_core::utils;

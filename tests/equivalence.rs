@@ -6,7 +6,7 @@
 //! every covariance update is the textbook Joseph form on the whole stacked covariance. The
 //! decentralized filter never forms that matrix: each platform keeps `P_ii` and `Psi_i`, the
 //! team keeps the cross blocks of the last event, and Eq. 10 rebuilds the rest. Why the two are
-//! equal is explained in `src/estimation/coop.rs`.
+//! equal is explained in `crates/cooploc-estimation/src/estimation/coop.rs`.
 
 use cooploc::estimation::linear::LinearPlatform;
 use cooploc::estimation::{CoopMeasurement, CrossCovariances, CrossMode, PlatformFilter, cooperative_update};

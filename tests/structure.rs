@@ -1,6 +1,6 @@
 //! The code's shape, measured on its sources (issue 34): no function of the library or the
 //! binary over 150 lines, and the node's tokio runner under 300 lines in all (everything else a node does is in the sans-io
-//! node shell, `src/node/shell.rs`).
+//! node shell, `crates/cooploc-node/src/node/shell.rs`).
 
 use std::path::{Path, PathBuf};
 use syn::visit::Visit;
@@ -20,6 +20,28 @@ fn rust_files(dir: &Path, out: &mut Vec<PathBuf>) {
 }
 
 /// Every function with a body: (name, first line, lines).
+/// The library's and the binary's sources: `src/` and every crate's `crates/*/src/`.
+fn library_sources(root: &Path) -> Vec<PathBuf> {
+    let mut files = Vec::new();
+    rust_files(&root.join("src"), &mut files);
+    for krate in std::fs::read_dir(root.join("crates")).unwrap() {
+        rust_files(&krate.unwrap().path().join("src"), &mut files);
+    }
+    files.sort();
+    files
+}
+
+/// A source's path from the repository's root, with `/`.
+fn relative(root: &Path, file: &Path) -> String {
+    file.strip_prefix(root).unwrap().to_string_lossy().replace('\\', "/")
+}
+
+/// The path of a source inside its crate's `src/` (`crates/cooploc-node/src/node/shell.rs`:
+/// `node/shell.rs`).
+fn in_crate(rel: &str) -> &str {
+    rel.strip_prefix("src/").unwrap_or_else(|| rel.split_once("/src/").map_or(rel, |(_, r)| r))
+}
+
 #[derive(Default)]
 struct Functions(Vec<(String, usize, usize)>);
 
@@ -57,10 +79,9 @@ fn functions(source: &str) -> Vec<(String, usize, usize)> {
 #[test]
 fn no_function_of_the_library_or_the_binary_is_over_150_lines() {
     let root = Path::new(env!("CARGO_MANIFEST_DIR"));
-    let mut files = Vec::new();
-    rust_files(&root.join("src"), &mut files);
-    files.sort();
+    let files = library_sources(root);
     assert!(files.len() > 50, "the sources: {}", files.len());
+    assert!(files.iter().any(|f| f.ends_with("crates/cooploc-node/src/node/core.rs")), "the crates' sources are measured too");
     assert!(files.iter().any(|f| f.ends_with("src/bin/cooploc/node.rs")), "the binary's sources are measured too");
     let mut long = Vec::new();
     let mut count = 0;
@@ -69,7 +90,7 @@ fn no_function_of_the_library_or_the_binary_is_over_150_lines() {
         for (name, line, lines) in functions(&source) {
             count += 1;
             if lines > MAX_FN_LINES {
-                long.push(format!("{}:{line} {name}: {lines} lines", file.strip_prefix(root).unwrap().display()));
+                long.push(format!("{}:{line} {name}: {lines} lines", relative(root, file)));
             }
         }
     }
@@ -169,22 +190,16 @@ fn crate_imports(source: &str) -> Vec<(usize, String)> {
 #[test]
 fn every_module_imports_only_the_layers_below_it() {
     let root = Path::new(env!("CARGO_MANIFEST_DIR"));
-    let mut files = Vec::new();
-    rust_files(&root.join("src"), &mut files);
-    rust_files(&root.join("sitl"), &mut files);
-    files.sort();
+    let files = library_sources(root);
     let mut wrong = Vec::new();
     let mut seen_not_yet = Vec::new();
     for file in &files {
-        let rel = file.strip_prefix(root).unwrap().to_string_lossy().replace('\\', "/");
-        if rel.starts_with("src/bin/") || rel == "src/lib.rs" || rel.ends_with("/tests.rs") {
+        let rel = relative(root, file);
+        let inner = in_crate(&rel);
+        if inner.starts_with("bin/") || inner == "lib.rs" || rel.ends_with("/tests.rs") {
             continue;
         }
-        let module = if rel.starts_with("sitl/") {
-            "sitl".to_string()
-        } else {
-            rel.trim_start_matches("src/").split('/').next().unwrap().trim_end_matches(".rs").to_string()
-        };
+        let module = inner.split('/').next().unwrap().trim_end_matches(".rs").to_string();
         let allowed = MAY_IMPORT
             .iter()
             .find(|(m, _)| *m == module)
@@ -213,4 +228,90 @@ fn crate_paths_are_found_in_code_and_not_in_comments() {
     let source = "use crate::estimation::Method; // crate::gcs\n/// [`crate::view`]\nlet x = crate::time::TimeUs(1) + crate::geodesy::f();\n#[cfg(test)]\nuse crate::sitl;\n";
     let names: Vec<String> = crate_imports(source).into_iter().map(|(_, n)| n).collect();
     assert_eq!(names, ["estimation", "time", "geodesy"]);
+}
+
+/// The workspace's crates as the Crates table of docs/architecture.md lists them: (crate, its
+/// modules, the crates of the workspace it depends on).
+fn crates_table() -> Vec<(String, Vec<String>, Vec<String>)> {
+    let doc = std::fs::read_to_string(Path::new(env!("CARGO_MANIFEST_DIR")).join("docs/architecture.md")).unwrap();
+    let start = doc.find("| crate | folder | modules | depends on |").expect("docs/architecture.md has the Crates table");
+    let names = |cell: &str| -> Vec<String> {
+        let mut v: Vec<String> = cell.split('`').skip(1).step_by(2).map(str::to_string).collect();
+        v.sort();
+        v
+    };
+    doc[start..]
+        .lines()
+        .skip(2)
+        .take_while(|l| l.starts_with('|'))
+        .map(|l| {
+            let cells: Vec<&str> = l.split('|').map(str::trim).collect();
+            (cells[1].trim_matches('`').to_string(), names(cells[3]), names(cells[4]))
+        })
+        .collect()
+}
+
+/// Each workspace crate's normal dependencies among the workspace's crates, from `cargo metadata`.
+fn crate_graph() -> Vec<(String, Vec<String>)> {
+    let cargo = std::env::var("CARGO").unwrap_or_else(|_| "cargo".into());
+    let out = std::process::Command::new(cargo)
+        .args(["metadata", "--format-version", "1", "--no-deps", "--offline"])
+        .current_dir(env!("CARGO_MANIFEST_DIR"))
+        .output()
+        .expect("cargo metadata runs");
+    assert!(out.status.success(), "cargo metadata: {}", String::from_utf8_lossy(&out.stderr));
+    let meta: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
+    let members: Vec<String> =
+        meta["packages"].as_array().unwrap().iter().map(|p| p["name"].as_str().unwrap().to_string()).collect();
+    let mut graph: Vec<(String, Vec<String>)> = meta["packages"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|p| {
+            let mut deps: Vec<String> = p["dependencies"]
+                .as_array()
+                .unwrap()
+                .iter()
+                .filter(|d| d["kind"].is_null() && members.contains(&d["name"].as_str().unwrap().to_string()))
+                .map(|d| d["name"].as_str().unwrap().to_string())
+                .collect();
+            deps.sort();
+            (p["name"].as_str().unwrap().to_string(), deps)
+        })
+        .collect();
+    graph.sort();
+    graph
+}
+
+/// The dependency graph of the workspace is the architecture's Crates table (issue 34): a crate
+/// that imports a layer above it does not compile, and one that depends on a crate the table
+/// does not give it fails here. The node does not depend on the simulated world.
+#[test]
+fn the_crate_graph_is_the_architecture_table() {
+    let mut table: Vec<(String, Vec<String>)> = crates_table().into_iter().map(|(c, _, d)| (c, d)).collect();
+    table.sort();
+    let graph = crate_graph();
+    assert!(graph.len() >= 6, "the workspace's crates: {graph:?}");
+    assert_eq!(graph, table, "cargo metadata (left) against docs/architecture.md's Crates table (right)");
+    let node = graph.iter().find(|(c, _)| c == "cooploc-node").expect("a node crate");
+    assert!(!node.1.iter().any(|d| d == "cooploc-sitl"), "the node depends on the simulated world: {:?}", node.1);
+}
+
+/// Each crate's own top-level modules (the `pub mod` lines of its lib.rs; the layers below it are
+/// re-exported, not its own) are the ones the table lists.
+#[test]
+fn every_crate_holds_the_modules_the_table_gives_it() {
+    let root = Path::new(env!("CARGO_MANIFEST_DIR"));
+    for (krate, modules, _) in crates_table() {
+        let lib = match krate.as_str() {
+            "cooploc" => root.join("src/lib.rs"),
+            "cooploc-py" => continue,
+            other => root.join("crates").join(other).join("src/lib.rs"),
+        };
+        let source = std::fs::read_to_string(&lib).unwrap_or_else(|e| panic!("{}: {e}", lib.display()));
+        let mut own: Vec<String> =
+            source.lines().filter_map(|l| l.strip_prefix("pub mod ")).map(|m| m.trim_end_matches(';').to_string()).collect();
+        own.sort();
+        assert_eq!(own, modules, "{krate}: the modules of {} against the table", lib.display());
+    }
 }

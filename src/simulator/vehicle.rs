@@ -990,7 +990,7 @@ fn message_id_param(v: f32) -> Option<u32> {
 mod tests {
     use super::*;
     use crate::protocol::dialect::cooploc::{COMMAND_INT_DATA, COMMAND_LONG_DATA};
-    use crate::sitl::scenario::tests::SMALL;
+    use crate::sitl::scenario::SMALL_TOML as SMALL;
     use crate::sitl::{Scenario, World};
 
     fn world() -> World {

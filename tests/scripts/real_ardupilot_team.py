@@ -21,7 +21,7 @@ final. It builds nothing: it runs the `ardurover` binary it is given.
 - Ranges: one per pair of rovers per second (on the team's 1 s grid of Unix time), measured by
   the lower id's radio, from the truth of the two simulators (SIMSTATE, interpolated to the
   epoch's instant) plus N(0, 0.1 m), the paper's ranging error; sent to that rover's node as its
-  ranging device would (`--ranges`, src/node/ranging.rs).
+  ranging device would (`--ranges`, crates/cooploc-node/src/node/ranging.rs).
 - Missions in AUTO: each rover drives its own rectangle, twice without GNSS, three times when
   GNSS goes at 60 s (>= 300 m without GNSS either way).
 - What the driver does beyond a ground station's usual: for ArduPilot alone it gives the origin

@@ -174,7 +174,7 @@ pub struct Args {
     /// A ranging device on the companion (a UWB module), besides the vehicle link:
     /// `udpin:HOST:PORT` (datagrams to this address; port 0: any, printed) or
     /// `serial:PATH:BAUD`. One line per range, `RANGE,<epoch>,<to>,<range_m>,<sigma_m>,<t_us>`
-    /// (`t_us` in the team's clock, 0: on arrival; see src/node/ranging.rs).
+    /// (`t_us` in the team's clock, 0: on arrival; see crates/cooploc-node/src/node/ranging.rs).
     #[arg(long, value_name = "URL")]
     ranges: Option<String>,
     /// Record every frame in and out, the estimates and the node's events to this MCAP file.

@@ -827,7 +827,7 @@ pub struct TrueMotion {
 /// An autopilot's own estimate as it reports it (GPS_RAW_INT, GLOBAL_POSITION_INT and ATTITUDE,
 /// stamped `time_boot_ms` of its clock), here exact: a simulated autopilot on GNSS. `fix`: the
 /// GNSS fix it has (a 3D fix, or none). What the node's hand-over start reads
-/// ([`crate::node::handover`]).
+/// (`cooploc::node::handover`).
 pub fn truth_to_autopilot_estimate(truth: &TrueMotion, origin: &GeoOrigin, time_boot_ms: u32, fix: bool) -> [MavMessage; 3] {
     use super::dialect::cooploc::{GPS_RAW_INT_DATA, GpsFixType};
     let g = ned_to_geodetic(origin, &truth.pos_ned_m);
@@ -956,7 +956,7 @@ pub fn ins_state_from_sim_state(m: &SIM_STATE_DATA, origin: &GeoOrigin) -> Resul
 
 /// The autopilot's own estimate as an initial state in the local NED frame of `origin`: position
 /// and velocity from GLOBAL_POSITION_INT (degE7, mm above mean sea level, cm/s NED), attitude from
-/// ATTITUDE (rad). Biases zero. The node's hand-over start ([`crate::node::handover`]).
+/// ATTITUDE (rad). Biases zero. The node's hand-over start (`cooploc::node::handover`).
 pub fn ins_state_from_autopilot(
     p: &GLOBAL_POSITION_INT_DATA,
     a: &ATTITUDE_DATA,

@@ -547,7 +547,7 @@ impl GpsInputOutput {
 mod tests {
     use super::*;
     use crate::protocol::dialect::cooploc::MavFrame;
-    use crate::sitl::{PAPER_TOML, Scenario};
+    use cooploc_sitl::sitl::{PAPER_TOML, Scenario};
     use nalgebra::{Matrix3, Matrix6, UnitQuaternion};
 
     fn profile() -> VehicleProfile {
@@ -602,7 +602,7 @@ mod tests {
     #[allow(deprecated)]
     fn a_refused_wheel_distance_is_asked_for_by_its_stream_group() {
         let mut p = VehicleProfile::from_toml_str(
-            &std::fs::read_to_string(concat!(env!("CARGO_MANIFEST_DIR"), "/sitl/vehicles/ardupilot-rover.toml")).unwrap(),
+            &std::fs::read_to_string(concat!(env!("CARGO_MANIFEST_DIR"), "/../../sitl/vehicles/ardupilot-rover.toml")).unwrap(),
         )
         .unwrap();
         p.inputs.request_rates = true;

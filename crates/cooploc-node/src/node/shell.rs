@@ -18,7 +18,7 @@
 //! - what goes back: ODOMETRY, GPS_INPUT and LOCAL_POSITION_NED to the vehicle, the core's
 //!   messages signed and packed for the cooperative link.
 //!
-//! The tokio runner ([`super::runner`]) only reads the sockets, calls the shell and carries out
+//! The tokio runner (`cooploc::node::runner`) only reads the sockets, calls the shell and carries out
 //! its outputs. Wall time reaches the core only through recorded polls, so a log replays
 //! exactly.
 
@@ -1173,7 +1173,7 @@ mod tests {
     use super::*;
     use crate::estimation::Method;
     use crate::protocol::record::Encoding;
-    use crate::sitl::{PAPER_TOML, Scenario, World};
+    use cooploc_sitl::sitl::{PAPER_TOML, Scenario, World};
 
     const UNIX_NS: i64 = 1_800_000_000_000_000_000;
 

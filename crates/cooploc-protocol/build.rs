@@ -5,7 +5,7 @@ fn main() {
     // Read at run time: a build script binary reused from another checkout of this package
     // (a shared CARGO_TARGET_DIR) must not read that checkout's dialect.
     let manifest_dir = std::env::var_os("CARGO_MANIFEST_DIR").expect("cargo sets CARGO_MANIFEST_DIR");
-    let dialects = std::path::Path::new(&manifest_dir).join("dialects");
+    let dialects = std::path::Path::new(&manifest_dir).join("../../dialects");
     for xml in [
         "cooploc.xml",
         "ardupilotmega.xml",

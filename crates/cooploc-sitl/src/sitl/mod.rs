@@ -20,7 +20,7 @@
 //! truth (see the strapdown test in [`truth`]).
 //!
 //! ```
-//! use cooploc::sitl::{Scenario, World, PAPER_TOML};
+//! use cooploc_sitl::sitl::{Scenario, World, PAPER_TOML};
 //! let world = World::new(&Scenario::from_toml_str(PAPER_TOML).unwrap()).unwrap();
 //! let run = world.run_inputs(1, 0);
 //! assert_eq!(run.platforms.len(), 3);

@@ -418,7 +418,7 @@ mod tests {
     /// they did (same noise draws); a reach that is not a positive distance is refused.
     #[test]
     fn ranges_beyond_the_radios_reach_are_not_taken() {
-        let path = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("sitl/scenarios/paper.toml");
+        let path = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../../sitl/scenarios/paper.toml");
         let paper = Scenario::from_path(&path).unwrap();
         let all = World::new(&paper).unwrap().ranges("1hz", 1, 0).unwrap();
         let (t, first) = &all[0];

@@ -220,7 +220,7 @@ fn x25_crc(data: &[u8], extra: u8) -> u16 {
 /// dialect does not know, with a 9-byte payload and the checksum its own dialect would give
 /// (CRC_EXTRA 0x5A): what an autopilot of another dialect sends. For tests.
 /// Which link a raw frame travelled on, and the system id of the process that saw it (logs
-/// name their frame channels by it: [`crate::recording::topics::frames`]).
+/// name their frame channels by it: `cooploc::recording::topics::frames`).
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, PartialOrd, Ord)]
 pub enum Link {
     /// The link to the process's own vehicle (autopilot or simulator).
@@ -273,8 +273,8 @@ pub fn split_frames(bytes: &[u8]) -> Vec<Received> {
     out
 }
 
-#[cfg(test)]
-pub(crate) fn foreign_frame(seq: u8, id: u32) -> Vec<u8> {
+/// A test's frame of a message outside the dialect (id `id`, not in it), sequence `seq`.
+pub fn foreign_frame(seq: u8, id: u32) -> Vec<u8> {
     assert!(!known_message(id), "{id} is in the dialect");
     let payload = [1u8, 2, 3, 4, 5, 6, 7, 8, 9];
     let mut f = vec![STX_V2, payload.len() as u8, 0, 0, seq, 1, 1];
@@ -286,8 +286,7 @@ pub(crate) fn foreign_frame(seq: u8, id: u32) -> Vec<u8> {
 }
 
 /// A vehicle's HEARTBEAT frame (system 1, component 1) with sequence `seq`, for tests.
-#[cfg(test)]
-pub(crate) fn heartbeat_frame(seq: u8) -> Vec<u8> {
+pub fn heartbeat_frame(seq: u8) -> Vec<u8> {
     use crate::protocol::dialect::cooploc::{MavAutopilot, MavType};
     let msg = super::wire::heartbeat(MavType::MAV_TYPE_GROUND_ROVER, MavAutopilot::MAV_AUTOPILOT_ARDUPILOTMEGA);
     super::wire::to_frame(MavHeader { system_id: 1, component_id: 1, sequence: seq }, &msg)

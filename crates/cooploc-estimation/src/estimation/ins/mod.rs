@@ -336,8 +336,7 @@ pub struct InsInitialSigma {
 impl InsInitialSigma {
     /// 1 m, 0.1 m/s, 0.01 rad, 0.01 m/s^2, 1e-4 rad/s and 0.01 on every axis: a start for tests
     /// that need one, not a vehicle's.
-    #[cfg(test)]
-    pub(crate) fn for_tests() -> Self {
+    pub fn for_tests() -> Self {
         InsInitialSigma {
             pos_ned_m: Vector3::repeat(1.0),
             vel_ned_m_s: Vector3::repeat(0.1),

@@ -302,7 +302,7 @@ mod tests {
     use mavlink_core::MavHeader;
 
     fn profile() -> VehicleProfile {
-        VehicleProfile::from_path(concat!(env!("CARGO_MANIFEST_DIR"), "/sitl/vehicles/ardupilot-rover.toml")).unwrap()
+        VehicleProfile::from_path(concat!(env!("CARGO_MANIFEST_DIR"), "/../../sitl/vehicles/ardupilot-rover.toml")).unwrap()
     }
 
     /// An ArduPilot without GNSS at its 1 Hz defaults, for 10 s of its clock (5 s of wall time:

@@ -1,11 +1,12 @@
 //! The vehicle profile (`cooploc node --vehicle-config FILE.toml`): everything a node must know
 //! about the vehicle it runs on, and nothing about the world around it.
 //!
-//! The vehicle part has the same keys as a scenario's (see [`crate::sitl::scenario`]):
+//! The vehicle part has the same keys as a scenario's (both read [`crate::estimation::spec`]):
 //! `latitude_deg`, `gravity_m_s2`, `[sensors]` (IMU and odometer noise and bias figures, and the
 //! rates the node asks for), `[initial]` (initial uncertainty) and `[filter]` (non-holonomic
 //! constraints, covariance rate). A scenario's vehicle part *is* a profile
-//! ([`VehicleProfile::from_scenario`]), so the simulator and the node read one format. A profile
+//! ([`VehicleProfile::from_spec`] of `sitl::Scenario::vehicle_of`), so the simulator and the node
+//! read one format. A profile
 //! adds what only a real vehicle has:
 //!
 //! - `model`: `"ins"` (the default: the autopilot streams its IMU and the node runs the strapdown
@@ -772,10 +773,10 @@ impl VehicleProfile {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::sitl::{PAPER_TOML, Scenario, World};
+    use cooploc_sitl::sitl::{PAPER_TOML, Scenario, World};
 
     fn example(name: &str) -> String {
-        std::fs::read_to_string(format!("{}/sitl/vehicles/{name}.toml", env!("CARGO_MANIFEST_DIR"))).unwrap()
+        std::fs::read_to_string(format!("{}/../../sitl/vehicles/{name}.toml", env!("CARGO_MANIFEST_DIR"))).unwrap()
     }
 
     #[test]

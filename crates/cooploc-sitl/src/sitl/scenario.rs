@@ -552,20 +552,16 @@ fn within(field: &str, us: u64, duration_us: u64) -> Result<(), ScenarioError> {
 
 /// The scenario of the paper's experiment (section 4, Table 1), as shipped in
 /// `sitl/scenarios/paper.toml`.
-pub const PAPER_TOML: &str = include_str!("scenarios/paper.toml");
+pub const PAPER_TOML: &str = include_str!("../../../../sitl/scenarios/paper.toml");
 
 /// The paper scenario with unsynchronised sensors (100 Hz IMU, 15 Hz odometer, ranging jitter),
 /// as shipped in `sitl/scenarios/async.toml`.
-pub const ASYNC_TOML: &str = include_str!("scenarios/async.toml");
+pub const ASYNC_TOML: &str = include_str!("../../../../sitl/scenarios/async.toml");
 /// A mixed team: two INS vehicles and two wheeled robots (sitl/scenarios/mixed.toml).
-pub const MIXED_TOML: &str = include_str!("scenarios/mixed.toml");
+pub const MIXED_TOML: &str = include_str!("../../../../sitl/scenarios/mixed.toml");
 
-#[cfg(test)]
-pub(crate) mod tests {
-    use super::*;
-
-    /// A small valid scenario for tests: two platforms, 10 s.
-    pub(crate) const SMALL: &str = r#"
+/// A small valid scenario for tests: two platforms, 10 s.
+pub const SMALL_TOML: &str = r#"
 name = "small"
 duration_s = 10.0
 latitude_deg = 34.7
@@ -620,6 +616,12 @@ start_yaw_deg = 170.0
 start_speed_m_s = 8.0
 segments = [{ duration_s = 10.0, accel_m_s2 = 0.2, yaw_rate_deg_s = -3.0 }]
 "#;
+
+#[cfg(test)]
+pub(crate) mod tests {
+    use super::*;
+
+    pub(crate) use super::SMALL_TOML as SMALL;
 
     fn err_of(text: &str) -> ScenarioError {
         Scenario::from_toml_str(text).expect_err("scenario should be rejected")
@@ -748,7 +750,7 @@ segments = [{ duration_s = 10.0, accel_m_s2 = 0.2, yaw_rate_deg_s = -3.0 }]
     fn from_path_reports_the_path() {
         let e = Scenario::from_path("/nonexistent/cooploc-scenario.toml").unwrap_err();
         assert!(matches!(e, ScenarioError::Io { .. }) && e.to_string().contains("/nonexistent/cooploc-scenario.toml"), "{e}");
-        let path = concat!(env!("CARGO_MANIFEST_DIR"), "/sitl/scenarios/paper.toml");
+        let path = concat!(env!("CARGO_MANIFEST_DIR"), "/../../sitl/scenarios/paper.toml");
         assert_eq!(Scenario::from_path(path).unwrap(), Scenario::from_toml_str(PAPER_TOML).unwrap());
     }
 }
