@@ -80,6 +80,9 @@
 //! Wall time enters only through [`NodeCore::poll`] (timeouts and retries); a run whose
 //! messages all arrive is therefore deterministic and independent of timing.
 
+mod rewind;
+mod store_sync;
+
 use std::collections::{BTreeMap, BTreeSet, VecDeque};
 
 use super::cadence::Cadence;
@@ -98,6 +101,8 @@ use crate::protocol::fragment::{Payload, Pushed, Reassembler, fragment};
 use crate::protocol::record::{self, Encoding, FLAG_FRESH, StateRecord};
 use crate::protocol::wire::{self, EpochState};
 use crate::time::TimeUs;
+use rewind::{OdometerFate, Rewind, WriteBack};
+use store_sync::{Awaiting, StoreChoice, StoreRequest, StoreSync, choose_store};
 
 /// How a node runs.
 #[derive(Debug, Clone)]
@@ -332,29 +337,6 @@ impl NodeStats {
     }
 }
 
-#[derive(Debug, Clone)]
-enum Stamped {
-    Drive(Drive),
-    Odometer(OdometerSample),
-}
-
-impl Stamped {
-    fn t(&self) -> TimeUs {
-        match self {
-            Stamped::Drive(s) => s.t(),
-            Stamped::Odometer(s) => s.t,
-        }
-    }
-
-    /// Order within one instant: the IMU sample, then the odometer.
-    fn key(&self) -> (TimeUs, u8) {
-        match self {
-            Stamped::Drive(s) => (s.t(), 0),
-            Stamped::Odometer(s) => (s.t, 1),
-        }
-    }
-}
-
 #[derive(Debug)]
 struct Epoch {
     t: TimeUs,
@@ -447,7 +429,25 @@ const MAX_EPOCH_RATE_HZ: u64 = 100;
 /// advancing no faster than [`MAX_EPOCH_RATE_HZ`].
 fn epochs_fit(a: (u32, TimeUs), b: (u32, TimeUs)) -> bool {
     let ((lo, tlo), (hi, thi)) = if a.0 <= b.0 { (a, b) } else { (b, a) };
-    lo == hi && tlo == thi || thi > tlo && u64::from(hi - lo) <= (thi.0 - tlo.0) * MAX_EPOCH_RATE_HZ / 1_000_000 + 1
+    lo == hi && tlo == thi || hi > lo && thi > tlo && u64::from(hi - lo) <= (thi.0 - tlo.0) * MAX_EPOCH_RATE_HZ / 1_000_000 + 1
+}
+
+/// The last joint update a node applied: what its estimate reports (`epoch`, the update's NIS,
+/// how many participants and ranges it ran on).
+#[derive(Debug, Clone, Copy)]
+struct LastEvent {
+    epoch: u32,
+    nis: f64,
+    participants: u8,
+    ranges: u8,
+}
+
+/// A joint update's result for this node: its own correction, the update's diagnostics (none
+/// for covariance intersection) and the ranges the gate left out.
+struct JointResult {
+    own: Correction,
+    diagnostics: Option<crate::estimation::UpdateDiagnostics>,
+    gated: Vec<usize>,
 }
 
 /// An epoch that was run: its time, the records it ran on and the store digest after it.
@@ -456,92 +456,6 @@ struct RanOn {
     epoch: u32,
     participants: Vec<PlatformId>,
     digest: u64,
-}
-
-/// A store asked for: the one the participants of `epoch` hold right after it.
-#[derive(Debug, Clone)]
-struct WantStore {
-    epoch: u32,
-    t: TimeUs,
-    /// Their store's digest before the epoch (as their records carried it).
-    digest_before: u64,
-    members: Vec<PlatformId>,
-    /// Wall time we asked first and last.
-    since: u64,
-    last_request: u64,
-}
-
-/// Store snapshots kept for teammates that ask (the last epochs we took part in).
-const SNAPSHOTS_KEPT: usize = 4;
-
-/// How many freed checkpoint slots a node keeps for the next checkpoints (a slot is one
-/// filter, under 9 kB for the INS).
-const MAX_SPARE_CHECKPOINTS: usize = 256;
-
-/// A checkpoint is kept at every mark (epoch time) and at every `CHECKPOINT_EVERY`-th instant in
-/// between (every 40 ms of a 200 Hz IMU): copying the filter at every instant cost more than
-/// the occasional longer replay from the checkpoint before a late input. A replay from an older
-/// checkpoint over the same inputs computes the same values bit for bit.
-const CHECKPOINT_EVERY: u32 = 8;
-
-/// The records that share a store valid for every participant of an epoch (see
-/// [`choose_store`]).
-#[derive(Debug, Clone, PartialEq)]
-struct StoreChoice {
-    digest: u64,
-    /// Platforms whose record carries that store (they run the epoch).
-    members: Vec<PlatformId>,
-    /// Participants that started independently of the team after the store last saw them: their
-    /// blocks are forgotten (their errors are uncorrelated with everyone's).
-    refreshed: Vec<PlatformId>,
-}
-
-/// When the records of an epoch carry different store digests: the store, among theirs, that is
-/// valid for every participant, if any. A store is valid for a participant when the reference
-/// it holds for it is the participant's own (both saw the same last joint update of its Psi),
-/// or when the participant started independently of the team after the store last saw it. The
-/// store held by the most records wins (ties: the lowest digest); it must be held by two records
-/// at least. Every node computes this from the records alone, so every node that holds the same
-/// records makes the same choice.
-fn choose_store(records: &[StateRecord]) -> Option<StoreChoice> {
-    let mut groups: BTreeMap<u64, Vec<&StateRecord>> = BTreeMap::new();
-    for r in records {
-        groups.entry(r.digest).or_default().push(r);
-    }
-    let mut best: Option<StoreChoice> = None;
-    for (&digest, holders) in &groups {
-        if holders.len() < 2 || best.as_ref().is_some_and(|b| b.members.len() >= holders.len()) {
-            continue;
-        }
-        let refs: BTreeMap<PlatformId, StoreRef> = holders[0].refs.iter().copied().collect();
-        let mut refreshed = Vec::new();
-        let valid = records.iter().all(|r| {
-            let id = r.snapshot.id;
-            let held = refs.get(&id);
-            if r.own_ref.is_fresh() {
-                let stale = held.is_some_and(|h| h.epoch < r.own_ref.epoch);
-                if stale {
-                    refreshed.push(id);
-                }
-                held.is_none() || stale
-            } else {
-                held == Some(&r.own_ref)
-            }
-        });
-        if valid {
-            best = Some(StoreChoice { digest, members: holders.iter().map(|r| r.snapshot.id).collect(), refreshed });
-        }
-    }
-    best
-}
-
-/// What a replay writes into the checkpoint it starts from.
-enum WriteBack<'a> {
-    Nothing,
-    /// Our block of a joint update (`Psi` restarts).
-    Joint(&'a Correction),
-    /// Noise added to our covariance (`Psi` goes on).
-    Noise(&'a nalgebra::DMatrix<f64>),
 }
 
 /// Epochs in a row whose ranges all contradict a node (its record refused by the vetting, or
@@ -605,25 +519,8 @@ pub fn widen_horizontal(p: &mut nalgebra::DMatrix<f64>, index: &[Option<usize>; 
 #[derive(Debug)]
 pub struct NodeCore {
     cfg: NodeConfig,
-    filter: NavFilter,
-    /// Checkpoints at the end of instants, oldest first: every mark's and every
-    /// [`CHECKPOINT_EVERY`]-th in between (boxed: moved as pointers, and their slots recycled
-    /// through `spare`).
-    history: VecDeque<(TimeUs, Box<NavFilter>)>,
-    /// Instants closed since the newest checkpoint without one of their own.
-    unsaved: u32,
-    /// Slots of checkpoints that left the history, written over in place by the next ones (one
-    /// copy of the filter per checkpoint, no allocation).
-    spare: Vec<Box<NavFilter>>,
-    /// Vehicle inputs after the oldest checkpoint, in time order (odometer samples ahead of the
-    /// filter included: they wait for the IMU sample that covers them).
-    inputs: VecDeque<Stamped>,
-    /// Instants the filter must stop at (epoch times), newer than the oldest checkpoint.
-    marks: BTreeSet<TimeUs>,
-    /// The instant being filled (IMU sample seen, odometer may follow), not yet checkpointed.
-    open_instant: Option<TimeUs>,
-    /// The vehicle's stream has ended.
-    ended: bool,
+    /// The filter, its checkpoints and the vehicle's inputs since the oldest.
+    rewind: Rewind,
     /// IMU samples after a clock jump, waiting for confirmation.
     jump: Vec<Drive>,
     epochs: BTreeMap<u32, Epoch>,
@@ -660,21 +557,16 @@ pub struct NodeCore {
     own_ref: Option<StoreRef>,
     /// The first epoch we broadcast (our reference while we have applied none).
     born: Option<u32>,
-    /// Our store right after recent epochs we took part in: (epoch, time, store digest before
-    /// the epoch, store after it), for teammates that ask.
-    snapshots: VecDeque<(u32, TimeUs, u64, CrossCovariances)>,
-    /// The store we asked for after we were left out of an epoch.
-    want_store: Option<WantStore>,
-    /// Wall time we last sent our store after each recent epoch.
-    store_sent_at: BTreeMap<u32, u64>,
-    store_reassembler: Reassembler,
+    /// The stores we kept for teammates that ask, and the one we want.
+    stores: StoreSync,
     /// The epoch cadence the retry interval follows.
     cadence: Cadence,
     gate: Option<[f64; 3]>,
     /// Epochs in a row whose ranges all contradicted us: our record refused by the vetting, or
     /// every range involving us refused by the gate.
     contradicted_epochs: u32,
-    last_event: Option<(u32, f64, u8, u8)>,
+    /// The last joint update applied, as the estimate reports it.
+    last_event: Option<LastEvent>,
     pub stats: NodeStats,
 }
 
@@ -703,19 +595,11 @@ impl NodeCore {
         }
         let mut filter = NavFilter::new(cfg.model, t0, initial.into())?;
         filter.set_track_psi(cfg.method.needs_psi());
-        let history = VecDeque::from([(t0, Box::new(filter.clone()))]);
         let gate = UpdateOptions::gate_for_probability(cfg.gate_probability);
         Ok(Self {
             fresh: cfg.independent_start,
             cfg,
-            filter,
-            history,
-            unsaved: 0,
-            spare: Vec::new(),
-            inputs: VecDeque::new(),
-            marks: BTreeSet::new(),
-            open_instant: None,
-            ended: false,
+            rewind: Rewind::new(filter),
             jump: Vec::new(),
             epochs: BTreeMap::new(),
             last_applied: None,
@@ -734,10 +618,7 @@ impl NodeCore {
             cross: CrossCovariances::new(),
             own_ref: None,
             born: None,
-            snapshots: VecDeque::new(),
-            want_store: None,
-            store_sent_at: BTreeMap::new(),
-            store_reassembler: Reassembler::new(16),
+            stores: StoreSync::new(),
             cadence: Cadence::new(),
             gate,
             contradicted_epochs: 0,
@@ -750,7 +631,7 @@ impl NodeCore {
     /// restored from disk, [`super::saved`]) instead of the model's initial one.
     pub fn restored(cfg: NodeConfig, t0: TimeUs, initial: NavState, p: &nalgebra::DMatrix<f64>) -> Result<Self, NodeConfigError> {
         let mut core = Self::new(cfg, t0, initial)?;
-        let dim = core.filter.dim();
+        let dim = core.rewind.filter.dim();
         if p.nrows() != dim || p.ncols() != dim {
             return Err(EstimationError::DimensionMismatch { what: "restored covariance", expected: dim, got: p.nrows() }.into());
         }
@@ -758,8 +639,8 @@ impl NodeCore {
             return Err(EstimationError::NotApplicable("a restored covariance must be positive semi-definite").into());
         }
         // A write-back of no correction: the covariance replaced, Psi the identity (as at a start).
-        core.filter.apply_joint(&nalgebra::DVector::zeros(dim), p)?;
-        core.history = VecDeque::from([(t0, Box::new(core.filter.clone()))]);
+        core.rewind.filter.apply_joint(&nalgebra::DVector::zeros(dim), p)?;
+        core.rewind.restart_history();
         Ok(core)
     }
 
@@ -773,7 +654,7 @@ impl NodeCore {
 
     /// The filter as of the last input.
     pub fn filter(&self) -> &NavFilter {
-        &self.filter
+        &self.rewind.filter
     }
 
     /// Team members currently not waited for (they missed an epoch and have not sent a record
@@ -795,7 +676,7 @@ impl NodeCore {
 
     /// The stores kept for teammates that may ask: (epoch, store digest before it) of each.
     pub fn kept_stores(&self) -> impl Iterator<Item = (u32, u64)> + '_ {
-        self.snapshots.iter().map(|(e, _, d, _)| (*e, *d))
+        self.stores.kept()
     }
 
     /// Platforms whose id came with two different records for one epoch (see
@@ -852,21 +733,17 @@ impl NodeCore {
     // ---- the vehicle's inputs ----
 
     fn vehicle_drive(&mut self, s: Drive, out: &mut Vec<NodeOutput>) {
-        let now = self.filter.time();
-        if s.t() <= now || !self.filter.takes(&s) {
+        let now = self.rewind.filter.time();
+        if s.t() <= now || !self.rewind.filter.takes(&s) {
             self.stats.imu_rejected += 1;
             return;
         }
-        let max_gap_us = (self.filter.max_gap_s() * 1e6) as u64;
+        let max_gap_us = (self.rewind.filter.max_gap_s() * 1e6) as u64;
         let gap = s.t().0 - now.0;
         if gap > max_gap_us {
             if self.stats.imu == 0 {
                 // A start long before the vehicle's clock: the initial state is for "now".
-                self.filter.restart_clock(s.t());
-                self.history = VecDeque::from([(s.t(), Box::new(self.filter.clone()))]);
-                self.unsaved = 0;
-                self.inputs.clear();
-                self.marks.clear();
+                self.rewind.restart_clock(s.t());
                 self.stats.clock_restarts += 1;
                 self.stats.imu += 1;
                 return;
@@ -901,209 +778,42 @@ impl NodeCore {
     }
 
     fn take_imu(&mut self, s: Drive) {
-        match self.integrate(&s, true) {
-            Ok(()) => {
+        match self.rewind.take_imu(s) {
+            Ok(odometers_refused) => {
                 self.stats.imu += 1;
-                self.insert_input(Stamped::Drive(s));
+                self.stats.odometer_rejected += odometers_refused;
             }
             Err(_) => self.stats.imu_rejected += 1,
         }
     }
 
     fn vehicle_odometer(&mut self, s: OdometerSample, out: &mut Vec<NodeOutput>) {
-        let now = self.filter.time();
-        if s.t.0 > now.0.saturating_add(self.cfg.max_lead_us.min(1_000_000)) || s.t <= self.history[0].0 {
-            // Far ahead of its own vehicle's IMU, or older than anything kept.
-            self.stats.odometer_unmatched += 1;
-            return;
-        }
-        if self.open_instant == Some(s.t) {
-            match self.filter.update_odometer(&s) {
-                Ok(_) => {
-                    self.stats.odometer += 1;
-                    self.insert_input(Stamped::Odometer(s));
-                }
-                Err(_) => self.stats.odometer_rejected += 1,
-            }
-        } else if s.t > now {
-            // Waits for the IMU sample that covers it.
-            self.stats.odometer += 1;
-            self.insert_input(Stamped::Odometer(s));
-        } else {
-            self.stats.odometer += 1;
-            self.stats.odometer_late += 1;
-            self.insert_input(Stamped::Odometer(s));
-            self.rebuild_from_before(s.t);
-        }
-        self.after_input(out);
-    }
-
-    fn insert_input(&mut self, item: Stamped) {
-        let key = item.key();
-        if self.inputs.back().is_none_or(|last| last.key() <= key) {
-            self.inputs.push_back(item);
-        } else {
-            let at = self.inputs.partition_point(|i| i.key() <= key);
-            self.inputs.insert(at, item);
-        }
-    }
-
-    /// One IMU sample through the filter: the interval up to it is cut at every mark, every
-    /// odometer sample and, for a gap, every step the filter takes; each piece holds the sample's
-    /// rates; the odometer samples of each instant are applied at its end. Checkpoints every
-    /// instant it closes. On error the filter, its checkpoints and its open instant are as they
-    /// were (the filter is copied only when the interval is cut: one propagation that fails
-    /// changes nothing by itself).
-    fn integrate(&mut self, s: &Drive, live: bool) -> Result<(), EstimationError> {
-        let (history_len, open, unsaved) = (self.history.len(), self.open_instant, self.unsaved);
-        let cut = self.integrate_pieces(s, live);
-        let Err((e, before)) = cut else { return Ok(()) };
-        if let Some(f) = before {
-            self.filter = *f;
-        }
-        self.history.truncate(history_len);
-        self.open_instant = open;
-        self.unsaved = unsaved;
-        Err(e)
-    }
-
-    /// [`Self::integrate`]'s work; on error, the filter from before the first piece when there
-    /// were several.
-    fn integrate_pieces(&mut self, s: &Drive, live: bool) -> Result<(), (EstimationError, Option<Box<NavFilter>>)> {
-        let t0 = self.filter.time();
-        let from = self.inputs.partition_point(|i| i.t() <= t0);
-        let odometers: Vec<OdometerSample> = self
-            .inputs
-            .range(from..)
-            .take_while(|i| i.t() <= s.t())
-            .filter_map(|i| match i {
-                Stamped::Odometer(o) => Some(*o),
-                Stamped::Drive(_) => None,
-            })
-            .collect();
-        let mut cuts: Vec<TimeUs> = self.marks.range(TimeUs(t0.0 + 1)..s.t()).copied().collect();
-        cuts.extend(odometers.iter().map(|o| o.t).filter(|t| *t < s.t()));
-        let step_us = ((self.filter.max_gap_s() * 1e6) as u64 / 2).max(1);
-        if s.t().0 - t0.0 > 2 * step_us {
-            let mut t = t0.0 + step_us;
-            while t < s.t().0 {
-                cuts.push(TimeUs(t));
-                t += step_us;
-            }
-        }
-        cuts.sort_unstable();
-        cuts.dedup();
-        cuts.push(s.t());
-        let before = (cuts.len() > 1).then(|| Box::new(self.filter.clone()));
-        for t in cuts {
-            self.checkpoint_open();
-            if let Err(e) = self.filter.propagate(&s.at(t)) {
-                return Err((e, before));
-            }
-            self.open_instant = Some(t);
-            for o in odometers.iter().filter(|o| o.t == t) {
-                if self.filter.update_odometer(o).is_err() && live {
-                    self.stats.odometer_rejected += 1;
-                }
-            }
-        }
-        Ok(())
-    }
-
-    /// Closes the open instant: its checkpoint when it is a mark, the end of the stream or the
-    /// [`CHECKPOINT_EVERY`]-th since the last one.
-    fn checkpoint_open(&mut self) {
-        if let Some(t) = self.open_instant.take() {
-            self.unsaved += 1;
-            if self.unsaved < CHECKPOINT_EVERY && !self.ended && !self.marks.contains(&t) {
+        let fate = self.rewind.odometer(s, self.cfg.max_lead_us.min(1_000_000));
+        let st = &mut self.stats;
+        match fate {
+            OdometerFate::Unmatched => {
+                // Far ahead of its own vehicle's IMU, or older than anything kept.
+                st.odometer_unmatched += 1;
                 return;
             }
-            self.unsaved = 0;
-            let slot = match self.spare.pop() {
-                Some(mut slot) => {
-                    (*slot).clone_from(&self.filter);
-                    slot
-                }
-                None => Box::new(self.filter.clone()),
-            };
-            self.history.push_back((t, slot));
+            OdometerFate::Applied | OdometerFate::Waits => st.odometer += 1,
+            OdometerFate::Rejected => st.odometer_rejected += 1,
+            OdometerFate::Late { replayed } => {
+                st.odometer += 1;
+                st.odometer_late += 1;
+                st.replayed_inputs += replayed;
+            }
         }
+        self.after_input(out);
     }
 
     /// After a vehicle input: broadcast and run what is due, forget what is older than the
     /// history (except what open epochs need).
     fn after_input(&mut self, out: &mut Vec<NodeOutput>) {
         self.advance(out);
-        let horizon = self.filter.time().0.saturating_sub(self.cadence.history_us(self.cfg.history_us));
+        let horizon = self.rewind.filter.time().0.saturating_sub(self.cadence.history_us(self.cfg.history_us));
         let keep_from = self.epochs.values().map(|e| e.t.0).min().unwrap_or(u64::MAX).min(horizon);
-        while self.history.len() > 1 && self.history[0].0.0 < keep_from && self.history[1].0.0 <= keep_from {
-            if let Some((_, slot)) = self.history.pop_front()
-                && self.spare.len() < MAX_SPARE_CHECKPOINTS
-            {
-                self.spare.push(slot);
-            }
-        }
-        let oldest = self.history[0].0;
-        while self.inputs.front().is_some_and(|i| i.t() <= oldest) {
-            self.inputs.pop_front();
-        }
-        while self.marks.first().is_some_and(|m| *m <= oldest) {
-            self.marks.pop_first();
-        }
-    }
-
-    /// Rebuilds the filter from the last checkpoint strictly before `t` (a late input or a new
-    /// mark at `t`). Nothing changes when there is none or the replay fails.
-    fn rebuild_from_before(&mut self, t: TimeUs) {
-        let Some(pos) = self.history.iter().rposition(|(tc, _)| *tc < t) else { return };
-        let _ = self.replay_from(pos, WriteBack::Nothing);
-    }
-
-    /// Restores checkpoint `pos`, writes `write_back` into it (a joint update's correction, or
-    /// noise), and replays every input after it, rebuilding the checkpoints on the way. On error
-    /// nothing changes.
-    fn replay_from(&mut self, pos: usize, write_back: WriteBack<'_>) -> Result<(), EstimationError> {
-        let (tc, mut f) = self.history[pos].clone();
-        match write_back {
-            WriteBack::Nothing => {}
-            WriteBack::Joint(c) => f.apply_joint(&c.dx, &c.p)?,
-            WriteBack::Noise(q) => f.add_noise(q)?,
-        }
-        // What a failed replay puts back: the filter, the checkpoints it rebuilds (moved out,
-        // not copied: a replay after an epoch rebuilds seconds of 200 Hz checkpoints), the
-        // open instant.
-        let saved_filter = std::mem::replace(&mut self.filter, (*f).clone());
-        let saved_tail = self.history.split_off(pos);
-        let (saved_open, saved_unsaved) = (self.open_instant, self.unsaved);
-        self.history.push_back((tc, f));
-        self.open_instant = None;
-        self.unsaved = 0;
-        let replay: Vec<Drive> = self
-            .inputs
-            .iter()
-            .filter_map(|i| match i {
-                Stamped::Drive(s) if s.t() > tc => Some(*s),
-                _ => None,
-            })
-            .collect();
-        for s in &replay {
-            if let Err(e) = self.integrate(s, false) {
-                self.filter = saved_filter;
-                self.history.truncate(pos);
-                self.history.extend(saved_tail);
-                self.open_instant = saved_open;
-                self.unsaved = saved_unsaved;
-                return Err(e);
-            }
-            self.stats.replayed_inputs += 1;
-        }
-        // The checkpoints the replay rebuilt replace the saved ones: their slots are free.
-        let room = MAX_SPARE_CHECKPOINTS.saturating_sub(self.spare.len());
-        self.spare.extend(saved_tail.into_iter().map(|(_, slot)| slot).take(room));
-        if self.ended {
-            self.checkpoint_open();
-        }
-        Ok(())
+        self.rewind.forget_before(keep_from);
     }
 
     /// Gives the core the wall clock (us, any monotonic origin): runs the timeouts and sends the
@@ -1121,7 +831,7 @@ impl NodeCore {
             }
         }
         self.wall_us = self.wall_us.max(wall_us);
-        self.cadence.observe_clock(self.wall_us, self.filter.time().0);
+        self.cadence.observe_clock(self.wall_us, self.rewind.filter.time().0);
         let mut out = Vec::new();
         self.advance(&mut out);
         out
@@ -1160,7 +870,7 @@ impl NodeCore {
             }
             return self.epochs.get_mut(&epoch);
         }
-        let ahead = t.0 > self.filter.time().0.saturating_add(self.cfg.max_lead_us);
+        let ahead = t.0 > self.rewind.filter.time().0.saturating_add(self.cfg.max_lead_us);
         // Against the last epoch run, and the nearest open epochs that hold a record (a bare
         // claim, which anyone can make, is no evidence against another).
         let fits = |e: u32, te: TimeUs| epochs_fit((e, te), (epoch, t));
@@ -1175,14 +885,7 @@ impl NodeCore {
         let mut fresh_epoch = Epoch::new(t);
         fresh_epoch.after_freeze = self.woke_at.is_some_and(|w| self.wall_us < w + self.cfg.epoch_timeout_us);
         self.epochs.insert(epoch, fresh_epoch);
-        if t > self.history[0].0
-            && self.marks.insert(t)
-            && t <= self.filter.time()
-            && self.open_instant != Some(t)
-            && self.checkpoint_at(t).is_none()
-        {
-            self.rebuild_from_before(t);
-        }
+        self.stats.replayed_inputs += self.rewind.mark(t);
         self.epochs.get_mut(&epoch)
     }
 
@@ -1286,20 +989,15 @@ impl NodeCore {
             }
             CoopMessage::StoreFragment(f) => {
                 let Some(f) = self.fragment_of(from, f) else { return };
-                // Only fragments of a store we asked for are kept (nobody can make us hold
-                // another's bytes).
-                if self.want_store.as_ref().is_none_or(|w| w.epoch != f.epoch || !w.members.contains(&from)) {
-                    return;
-                }
-                match self.store_reassembler.push(&f) {
-                    Pushed::Complete(rec) => match record::decode_store(&rec.bytes) {
+                // Only fragments of a store we asked for are kept.
+                match self.stores.push_fragment(from, &f) {
+                    Some(Pushed::Complete(rec)) => match record::decode_store(&rec.bytes) {
                         Ok(snap) if snap.epoch == f.epoch => self.receive_store(from, snap),
                         Ok(_) | Err(_) => self.stats.stores_refused += 1,
                     },
-                    Pushed::Rejected(_) => self.stats.fragments_rejected += 1,
-                    Pushed::Stored | Pushed::Duplicate => {}
+                    Some(Pushed::Rejected(_)) => self.stats.fragments_rejected += 1,
+                    Some(Pushed::Stored | Pushed::Duplicate) | None => {}
                 }
-                self.store_reassembler.take_dropped();
             }
             // The joint problem takes ranges from records; a peer's range only makes the epoch
             // known early.
@@ -1399,7 +1097,7 @@ impl NodeCore {
     }
 
     fn checkpoint_at(&self, t: TimeUs) -> Option<&NavFilter> {
-        self.history.iter().rev().find(|(tc, _)| *tc == t).map(|(_, f)| &**f)
+        self.rewind.checkpoint_at(t)
     }
 
     /// Broadcasts, resolves and retries until nothing more can be done now. Epochs go strictly
@@ -1426,13 +1124,13 @@ impl NodeCore {
                 if self.awaiting_store(out) {
                     return;
                 }
-                if t <= self.history[0].0 && self.checkpoint_at(t).is_none() {
+                if t <= self.rewind.oldest() && self.checkpoint_at(t).is_none() {
                     // Before our start or beyond our history: we cannot take part.
                     self.stats.epochs_skipped += 1;
                     self.finish_epoch(epoch);
                     continue;
                 }
-                let due = self.ended || self.filter.time().0 >= t.0.saturating_add(self.cfg.range_grace_us);
+                let due = self.rewind.ended() || self.rewind.filter.time().0 >= t.0.saturating_add(self.cfg.range_grace_us);
                 if !due || self.checkpoint_at(t).is_none() {
                     if due {
                         // Passed and no instant at `t` (the rebuild failed): cannot take part.
@@ -1459,7 +1157,7 @@ impl NodeCore {
             let since = e.broadcast_at.unwrap_or(0);
             let waited = self.wall_us.saturating_sub(since.max(e.progress_at));
             let waited_in_all = self.wall_us.saturating_sub(since);
-            let lagging = self.filter.time().0.saturating_sub(t.0) >= self.cfg.max_lag_us;
+            let lagging = self.rewind.filter.time().0.saturating_sub(t.0) >= self.cfg.max_lag_us;
             // After a freeze of our own: how did the others run this epoch? Without us, we run
             // it as they did, as a bystander; with us, or if nobody says within a timeout, as
             // usual.
@@ -1518,21 +1216,16 @@ impl NodeCore {
     /// carry the old store, and we would be left out again. The request is repeated every retry
     /// interval meanwhile.
     fn awaiting_store(&mut self, out: &mut Vec<NodeOutput>) -> bool {
-        let Some(w) = self.want_store.clone() else { return false };
-        let current = self.last_applied.is_some_and(|(e, _)| e == w.epoch);
-        if !current || self.wall_us >= w.since + self.cfg.epoch_timeout_us {
-            if !current {
-                self.want_store = None;
+        let last = self.last_applied.map(|(e, _)| e);
+        match self.stores.awaiting(last, self.wall_us, self.cfg.epoch_timeout_us, self.retry_us()) {
+            Awaiting::No => false,
+            Awaiting::Yes(ask) => {
+                if let Some(r) = ask {
+                    self.send_status(r.epoch, r.t, r.members, EpochState::COOPLOC_EPOCH_STATE_STORE_WANTED, r.digest_before, out);
+                }
+                true
             }
-            return false;
         }
-        if self.wall_us >= w.last_request + self.retry_us() {
-            if let Some(x) = self.want_store.as_mut() {
-                x.last_request = self.wall_us;
-            }
-            self.send_status(w.epoch, w.t, w.members.clone(), EpochState::COOPLOC_EPOCH_STATE_STORE_WANTED, w.digest_before, out);
-        }
-        true
     }
 
     fn send_status(
@@ -1730,7 +1423,7 @@ impl NodeCore {
                 }
             }
         }
-        if let Some((mut own, diag, gated)) = applied {
+        if let Some(JointResult { mut own, diagnostics: diag, gated }) = applied {
             self.stats.ranges_gated += gated.len() as u64;
             if let Some(residual_m) = self.time_to_widen(own_ranges_verdict(self.cfg.id, &records, &ranges, &gated))
                 && let Some(ours) = records.iter().find(|r| r.snapshot.id == self.cfg.id)
@@ -1753,7 +1446,7 @@ impl NodeCore {
             }
         }
         if dcl && own_index.is_some() {
-            self.keep_snapshot(epoch, t, digest_before);
+            self.stores.keep(epoch, t, digest_before, &self.cross, self.cfg.team.len());
         }
         let digest = self.remember_run(epoch, participants.clone());
         if own_index.is_some() {
@@ -1855,31 +1548,12 @@ impl NodeCore {
         digest
     }
 
-    /// Keeps our store after `epoch` for teammates that may ask for it (only while a snapshot
-    /// fits in one fragment series: beyond that a left-out node heals with the bound).
-    fn keep_snapshot(&mut self, epoch: u32, t: TimeUs, digest_before: u64) {
-        let bytes: usize = self.cross.blocks().map(|(_, m)| 6 + m.len() * 8).sum::<usize>() + 32 + 14 * self.cfg.team.len();
-        if bytes > crate::protocol::fragment::MAX_RECORD_LEN.min(u16::MAX as usize) {
-            return;
-        }
-        self.snapshots.push_back((epoch, t, digest_before, self.cross.clone()));
-        if self.snapshots.len() > SNAPSHOTS_KEPT {
-            self.snapshots.pop_front();
-        }
-    }
-
     /// We were left out of `epoch` (our store is not valid for its participants): nothing is
     /// applied, and we ask them for their store after it.
     fn leave_out(&mut self, epoch: u32, t: TimeUs, c: &StoreChoice, out: &mut Vec<NodeOutput>) {
         self.stats.epochs_excluded += 1;
-        self.want_store = Some(WantStore {
-            epoch,
-            t,
-            digest_before: c.digest,
-            members: c.members.clone(),
-            since: self.wall_us,
-            last_request: self.wall_us,
-        });
+        let request = StoreRequest { epoch, t, digest_before: c.digest, members: c.members.clone() };
+        self.stores.want(request, self.wall_us);
         self.send_status(epoch, t, c.members.clone(), EpochState::COOPLOC_EPOCH_STATE_STORE_WANTED, c.digest, out);
     }
 
@@ -1887,16 +1561,10 @@ impl NodeCore {
     /// that epoch with us, and at most one store per retry interval in all (a request is a
     /// small message and a store a large one: nobody can make us flood the network).
     fn send_store(&mut self, to: PlatformId, epoch: u32, digest_before: u64, out: &mut Vec<NodeOutput>) {
-        let Some((_, t, _, store)) = self.snapshots.iter().find(|(e, _, d, _)| *e == epoch && *d == digest_before) else {
+        let ran_with_us = self.ran_on.iter().any(|r| r.epoch == epoch && r.participants.contains(&to));
+        let Some((t, snap)) = self.stores.answer(epoch, digest_before, ran_with_us, self.wall_us, self.retry_us()) else {
             return;
         };
-        let ran_with_us = self.ran_on.iter().any(|r| r.epoch == epoch && r.participants.contains(&to));
-        let retry = self.retry_us();
-        let recently = self.store_sent_at.values().any(|&at| self.wall_us < at + retry);
-        if ran_with_us || recently {
-            return;
-        }
-        let snap = record::StoreSnapshot { epoch, digest_before, store: store.clone() };
         let Ok(bytes) = record::encode_store(&snap) else { return };
         let Ok(frags) = fragment(self.cfg.id, epoch, t.0, &bytes) else { return };
         for mut f in frags {
@@ -1905,8 +1573,7 @@ impl NodeCore {
                 out.push(NodeOutput::ToPeers(m));
             }
         }
-        self.store_sent_at.insert(epoch, self.wall_us);
-        self.store_sent_at.retain(|e, _| e.saturating_add(EPOCHS_REMEMBERED as u32) > epoch);
+        self.stores.sent(epoch, self.wall_us, EPOCHS_REMEMBERED as u32);
         self.stats.stores_sent += 1;
     }
 
@@ -1917,30 +1584,24 @@ impl NodeCore {
             Some(r) => store.reference(self.cfg.id) == Some(r),
             None => store.reference(self.cfg.id).is_none() && self.cfg.independent_start,
         };
-        let wanted = self
-            .want_store
-            .as_ref()
-            .is_some_and(|w| w.epoch == snap.epoch && w.digest_before == snap.digest_before && w.members.contains(&from));
-        let current = self.last_applied.is_some_and(|(e, _)| e == snap.epoch);
-        if !(wanted && current && valid_for_us(&snap.store, self.own_ref)) {
+        let valid = valid_for_us(&snap.store, self.own_ref);
+        if !self.stores.offered(from, &snap, self.last_applied.map(|(e, _)| e), valid) {
             self.stats.stores_refused += 1;
             return;
         }
         self.cross = snap.store;
-        self.want_store = None;
         self.stats.stores_adopted += 1;
     }
 
     /// The method's joint update: exact when the stores agree, else (or when the exact one
     /// fails) the bound. Returns our correction, the diagnostics and the gated measurements.
-    #[allow(clippy::type_complexity)]
     fn joint_update(
         &mut self,
         snapshots: &[crate::estimation::Snapshot],
         measurements: &[CoopMeasurement],
         agree: bool,
         independent: Vec<PlatformId>,
-    ) -> Result<(Correction, Option<crate::estimation::UpdateDiagnostics>, Vec<usize>), EstimationError> {
+    ) -> Result<JointResult, EstimationError> {
         let own = |corrections: Vec<Correction>, id| corrections.into_iter().find(|c| c.id == id);
         let id = self.cfg.id;
         match self.cfg.method {
@@ -1948,16 +1609,16 @@ impl NodeCore {
                 let opts = UpdateOptions { gate_chi2: self.gate, ..UpdateOptions::new(CrossMode::Ignore) };
                 let o = cooperative_update_with(&mut CrossCovariances::new(), snapshots, measurements, &opts)?;
                 let c = own(o.corrections, id).ok_or(EstimationError::UnknownPlatform(id))?;
-                Ok((c, Some(o.diagnostics), o.gated))
+                Ok(JointResult { own: c, diagnostics: Some(o.diagnostics), gated: o.gated })
             }
             Method::Decentralized => {
                 let o = self.store_update(snapshots, measurements, agree, independent)?;
                 let c = own(o.corrections, id).ok_or(EstimationError::UnknownPlatform(id))?;
-                Ok((c, Some(o.diagnostics), o.gated))
+                Ok(JointResult { own: c, diagnostics: Some(o.diagnostics), gated: o.gated })
             }
             Method::CovarianceIntersection => {
                 let c = own(ci_update(snapshots, measurements)?, id).ok_or(EstimationError::UnknownPlatform(id))?;
-                Ok((c, None, Vec::new()))
+                Ok(JointResult { own: c, diagnostics: None, gated: Vec::new() })
             }
             Method::DeadReckoning | Method::Centralized => Err(EstimationError::NotApplicable("no joint update")),
         }
@@ -1999,7 +1660,7 @@ impl NodeCore {
     ) {
         let used: Vec<&RangeSample> = ranges.iter().enumerate().filter(|(i, _)| !gated.contains(i)).map(|(_, r)| r).collect();
         let nis = diag.as_ref().map_or(f64::NAN, |d| d.nis);
-        self.last_event = Some((epoch, nis, participants.len() as u8, used.len() as u8));
+        self.last_event = Some(LastEvent { epoch, nis, participants: participants.len() as u8, ranges: used.len() as u8 });
         out.push(NodeOutput::Update(Box::new(CoopUpdateRecord {
             vehicle: self.cfg.id,
             epoch,
@@ -2023,10 +1684,9 @@ impl NodeCore {
     /// Restores the checkpoint at `t`, writes back the correction, and replays the inputs after
     /// `t`, rebuilding the checkpoints on the way.
     fn replay_from_epoch(&mut self, t: TimeUs, write_back: WriteBack<'_>) -> Result<(), EstimationError> {
-        let Some(pos) = self.history.iter().position(|(tc, _)| *tc == t) else {
-            return Err(EstimationError::NotApplicable("no checkpoint at the epoch's time"));
-        };
-        self.replay_from(pos, write_back)
+        let replay = self.rewind.replay_from_checkpoint_at(t, write_back);
+        self.stats.replayed_inputs += replay.samples;
+        replay.result
     }
 
     /// The vehicle's stream has ended: closes the open instant and broadcasts what is due
@@ -2034,8 +1694,7 @@ impl NodeCore {
     /// [`NodeCore::run_pending`]).
     pub fn end_of_input(&mut self) -> Vec<NodeOutput> {
         let mut out = Vec::new();
-        self.ended = true;
-        self.checkpoint_open();
+        self.rewind.end();
         self.advance(&mut out);
         out
     }
@@ -2060,7 +1719,7 @@ impl NodeCore {
 
     /// The node's current navigation solution (what it feeds back to its autopilot).
     pub fn navigation(&self) -> wire::Navigation {
-        let f = &self.filter;
+        let f = &self.rewind.filter;
         let cov = f.output_covariances();
         wire::Navigation {
             t: f.time(),
@@ -2074,9 +1733,10 @@ impl NodeCore {
 
     /// The estimate report of the node's current state.
     pub fn estimate(&self) -> wire::EstimateReport {
-        let f = &self.filter;
+        let f = &self.rewind.filter;
         let cov = f.output_covariances();
-        let (epoch, nis, participants, ranges) = self.last_event.unwrap_or((0, f64::NAN, 0, 0));
+        let LastEvent { epoch, nis, participants, ranges } =
+            self.last_event.unwrap_or(LastEvent { epoch: 0, nis: f64::NAN, participants: 0, ranges: 0 });
         wire::EstimateReport {
             platform: self.cfg.id,
             t: f.time(),
@@ -2091,5 +1751,69 @@ impl NodeCore {
             participants,
             ranges,
         }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::estimation::ins::InsState;
+    use nalgebra::{UnitQuaternion, Vector3};
+
+    fn config(id: PlatformId, team: Vec<PlatformId>) -> NodeConfig {
+        let model = NavModel::Ins { config: InsConfig::default(), initial_sigma: InsInitialSigma::for_tests() };
+        NodeConfig::for_model(id, Method::Decentralized, model, Encoding::F64, team)
+    }
+
+    fn start() -> NavState {
+        NavState::Ins(InsState {
+            pos_ned_m: Vector3::zeros(),
+            vel_ned_m_s: Vector3::zeros(),
+            att_frd_to_ned: UnitQuaternion::identity(),
+            accel_bias_frd_m_s2: Vector3::zeros(),
+            gyro_bias_frd_rad_s: Vector3::zeros(),
+            odometer_scale_error: 0.0,
+        })
+    }
+
+    fn refused(cfg: NodeConfig) -> NodeConfigError {
+        NodeCore::new(cfg, TimeUs(0), start()).expect_err("refused")
+    }
+
+    #[test]
+    fn a_core_refuses_a_configuration_that_cannot_work_and_says_why() {
+        assert!(NodeCore::new(config(2, vec![3, 1, 2]), TimeUs(0), start()).is_ok());
+        assert!(matches!(
+            refused(NodeConfig { method: Method::Centralized, ..config(1, vec![1, 2]) }),
+            NodeConfigError::Method(_)
+        ));
+        for team in [vec![2, 3], vec![1, 2, 2], (1..=300).collect()] {
+            assert!(matches!(refused(config(1, team)), NodeConfigError::Team { id: 1, .. }));
+        }
+        let timing = refused(NodeConfig { retry_us: 2_000_000, ..config(1, vec![1, 2]) });
+        assert!(timing.to_string().contains("2000000 us"), "{timing}");
+        assert!(matches!(refused(NodeConfig { retry_us: 0, ..config(1, vec![1, 2]) }), NodeConfigError::Timing { .. }));
+        assert!(matches!(
+            refused(NodeConfig { range_grace_us: 4_000_000, ..config(1, vec![1, 2]) }),
+            NodeConfigError::Grace { .. }
+        ));
+        for p in [1.0, -0.1, f64::NAN] {
+            assert!(matches!(refused(NodeConfig { gate_probability: p, ..config(1, vec![1, 2]) }), NodeConfigError::Gate(_)));
+        }
+    }
+
+    #[test]
+    fn epochs_fit_when_the_later_id_comes_later_and_ids_advance_at_most_at_the_rate() {
+        let at = |s: u64| TimeUs(s * 1_000_000);
+        assert!(epochs_fit((5, at(10)), (5, at(10))), "the same epoch");
+        assert!(!epochs_fit((5, at(10)), (5, at(11))), "one id at two times");
+        assert!(!epochs_fit((5, at(10)), (6, at(10))), "two ids at one time");
+        assert!(epochs_fit((5, at(10)), (6, at(11))));
+        assert!(epochs_fit((6, at(11)), (5, at(10))), "in either order");
+        assert!(!epochs_fit((5, at(11)), (6, at(10))), "a later id at an earlier time");
+        let rate = MAX_EPOCH_RATE_HZ as u32;
+        assert!(epochs_fit((5, at(10)), (5 + rate + 1, at(11))), "the rate, and one for rounding");
+        assert!(!epochs_fit((5, at(10)), (5 + rate + 2, at(11))), "faster than the rate");
+        assert!(!epochs_fit((0, at(0)), (u32::MAX, at(1))), "a far-future id");
     }
 }

@@ -3,7 +3,7 @@
 //!
 //! | module | what |
 //! |---|---|
-//! | [`core`] | the whole cooperative protocol as a pure state machine (inputs in, messages out, no sockets, no clocks) |
+//! | [`core`] | the whole cooperative protocol as a pure state machine (inputs in, messages out, no sockets, no clocks): the epoch book in `core.rs`, the filter's checkpoints and replays in `core/rewind.rs`, the stores kept, wanted and given in `core/store_sync.rs`, each with its unit tests |
 //! | [`profile`] | the vehicle profile (`--vehicle-config`): sensor figures, which messages to read, what to send back |
 //! | [`inputs`] | what an autopilot sends (ArduPilot, PX4, the simulator), as the core's samples in the team's clock |
 //! | [`autopilot`] | rate requests (SET_MESSAGE_INTERVAL) and the estimate fed back as ODOMETRY |
