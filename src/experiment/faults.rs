@@ -82,6 +82,10 @@ pub struct Faults {
     /// Probability that a cooperative datagram arrives damaged (per receiver, while the link
     /// faults last): one byte changed, or the datagram cut short at a random length.
     pub corrupt: f64,
+    /// The link faults' own seed: the same world run (seed, run) under another draw of which
+    /// datagrams are lost, delayed or damaged, as a relay with its own seed draws them. None:
+    /// drawn from the run's seed.
+    pub link_seed: Option<u64>,
 }
 
 impl Default for Faults {
@@ -100,6 +104,7 @@ impl Default for Faults {
             leave: None,
             speed: 1.0,
             corrupt: 0.0,
+            link_seed: None,
         }
     }
 }
@@ -209,6 +214,9 @@ pub struct NodeOutcome {
     pub final_sigma_m: f64,
     /// Dead reckoning's final horizontal error on the same inputs, m.
     pub dr_final_err_m: f64,
+    /// RMS of the horizontal error sampled every second of vehicle time while the node ran, m:
+    /// the whole run's error, where the final one is a single draw.
+    pub rms_err_m: f64,
     #[serde(skip)]
     pub stats: NodeStats,
     /// Cooperative datagrams the node's shell refused whole (no valid frame in them).
@@ -580,7 +588,7 @@ pub fn run_case(
         case,
         ids: ids.clone(),
         nodes,
-        rng: ChaCha8Rng::seed_from_u64(seed ^ (u64::from(run) << 32) ^ 0x5eed_fa17),
+        rng: ChaCha8Rng::seed_from_u64(case.link_seed.unwrap_or(seed ^ (u64::from(run) << 32)) ^ 0x5eed_fa17),
         net: BinaryHeap::new(),
         in_flight: BTreeMap::new(),
         seq: 0,
@@ -588,6 +596,8 @@ pub fn run_case(
     let index = |id: PlatformId| ids.iter().position(|&p| p == id).expect("team member");
     let fault_end = TimeUs((case.end_s() * 1e6) as u64);
     let mut at_fault_end: Vec<Option<(f64, f64)>> = vec![None; ids.len()];
+    // (sum of squared horizontal errors, samples) of each node, every second
+    let mut sampled: Vec<(f64, u64)> = vec![(0.0, 0); ids.len()];
     let (mut epoch, mut last_poll, mut next_second, mut restarted) = (0u32, 0u64, 1u64, false);
 
     for event in world.events(schedule, seed, run)? {
@@ -624,6 +634,12 @@ pub fn run_case(
         }
         if now.0 >= next_second * 1_000_000 {
             next_second += 1;
+            for (k, node) in sim.nodes.iter().enumerate() {
+                if let Some(core) = node.core() {
+                    let (err, _) = horizontal_error(world, ids[k], core);
+                    sampled[k] = (sampled[k].0 + err * err, sampled[k].1 + 1);
+                }
+            }
             if case.restore {
                 for node in sim.nodes.iter_mut() {
                     if let Some(core) = node.core() {
@@ -681,7 +697,7 @@ pub fn run_case(
         }
     }
     sim.finish(world.end());
-    let at_end = AtFaultEnd { fault_end, epoch_times: &epoch_times, errors: &at_fault_end };
+    let at_end = AtFaultEnd { fault_end, epoch_times: &epoch_times, errors: &at_fault_end, sampled: &sampled };
     outcome(world, &sim, seed, run, &at_end)
 }
 
@@ -690,6 +706,8 @@ struct AtFaultEnd<'a> {
     fault_end: TimeUs,
     epoch_times: &'a [TimeUs],
     errors: &'a [Option<(f64, f64)>],
+    /// Each node's (sum of squared errors, samples), every second it ran.
+    sampled: &'a [(f64, u64)],
 }
 
 /// What a finished run measured.
@@ -715,6 +733,7 @@ fn outcome(world: &World, sim: &Sim<'_>, seed: u64, run: u32, at: &AtFaultEnd<'_
             final_nees,
             final_sigma_m: (p[(0, 0)] + p[(1, 1)]).sqrt(),
             dr_final_err_m: dr.platforms[k].final_error().pos_err_m,
+            rms_err_m: (at.sampled[k].0 / at.sampled[k].1.max(1) as f64).sqrt(),
             stats: core.stats.clone(),
             coop_refused: node.shell.as_ref().map_or(0, |sh| sh.summary(LinkFacts::default()).coop_rejected),
         });

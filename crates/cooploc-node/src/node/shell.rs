@@ -900,7 +900,7 @@ impl NodeShell {
         let age_us = t1.0 - saved.t_us;
         let sigma = (p[(0, 0)] + p[(1, 1)]).sqrt();
         println!(
-            "node {id} restored from its saved state of t {} ({:.1} s before the vehicle's first sample): pos_ned_m {:?}, horizontal sigma {sigma:.2} m",
+            "node {id} restored from its saved state of t {} ({:.3} s before the vehicle's first sample): pos_ned_m {:?}, horizontal sigma {sigma:.2} m",
             saved.t_us,
             age_us as f64 / 1e6,
             core.filter().position_ned_m().as_slice()
