@@ -382,8 +382,8 @@ fn a_node_restarted_with_its_first_arguments_restores_the_state_it_saved() {
 
 /// The same restart with 30% of the cooperative datagrams lost. (It once ended 0.794x its clean
 /// run against the harness's 1.085x: the harness killed node 3 at the instant of epoch 114, the
-/// processes at whatever phase the wall clock gave. Killed just after the epoch in both, they
-/// agree: 0.806x and 0.906x in one run.)
+/// processes at whatever phase the wall clock gave. Killed after the epoch ran in both, they
+/// agree: 0.850x and 0.882x in one run.)
 #[test]
 fn a_node_restarted_on_a_lossy_network_restores_the_state_it_saved() {
     restart_case(0.3);
@@ -429,18 +429,19 @@ fn restart_case(loss: f64) {
     for (e, err) in &late {
         assert!(*err <= 2.0 * clean_rms, "node 3 at epoch {e}: {err:.2} m, more than twice its clean RMS {clean_rms:.2} m");
     }
-    // The same restart in the harness, its twin: node 3 down from just after epoch 114 to the
-    // instant the processes' node 3 restarted (its saved state's time and age, as it said),
-    // restored from the state it saved: the two teams' ratios to their own clean runs within 20%
-    // of each other. (The phase matters: in the harness alone, node 3 killed at the instant of
-    // an epoch rather than just after it ends the team 1.09-1.38x instead of 0.87-0.95x, the
-    // whole team's absolute error, unobservable to ranges, shifted for the rest of the run.)
+    // The same restart in the harness, its twin: node 3 down from just after epoch 114 ran (its
+    // record goes at the range grace, 0.1 s after the epoch) to the instant the processes' node
+    // 3 restarted (its saved state's time and age, as it said), restored from the state it
+    // saved: the two teams' ratios to their own clean runs within 20% of each other. (The phase
+    // matters: in the harness alone, node 3 killed at an epoch's instant ends the team 1.09-1.16x
+    // its clean run, before its record went 0.89-0.93x, after the epoch ran 0.83-0.86x; see
+    // tests/faults.rs a_restart_costs_what_its_phase_against_the_epochs_gives.)
     let line = restarted.report[2].lines().find(|l| l.contains("restored from its saved state of t ")).unwrap();
     let words: Vec<&str> = line.split_once("saved state of t ").unwrap().1.split_whitespace().collect();
     let saved_s = words[0].parse::<f64>().unwrap() / 1e6;
     let back_s = saved_s + words[1].trim_start_matches('(').parse::<f64>().unwrap();
     let epoch_s = world.ranges("1hz", SEED, 0).unwrap()[KILL_AFTER_EPOCH as usize - 1].0.0 as f64 / 1e6;
-    let from_s = (epoch_s + 0.02).min(back_s - 0.01);
+    let from_s = (epoch_s + 0.11).min(back_s - 0.01);
     eprintln!("node 3 saved at {saved_s:.3} s, back at {back_s:.3} s; the harness's twin: down from {from_s:.3} s");
     let restore = Faults {
         kill: Some(cooploc::experiment::faults::Outage { node: 2, from_s, until_s: back_s }),
