@@ -83,8 +83,8 @@ pub struct Faults {
     /// faults last): one byte changed, or the datagram cut short at a random length.
     pub corrupt: f64,
     /// The link faults' own seed: the same world run (seed, run) under another draw of which
-    /// datagrams are lost, delayed or damaged, as a relay with its own seed draws them. None:
-    /// drawn from the run's seed.
+    /// datagrams are lost, delayed or damaged and which vehicle frames are lost, as a relay with
+    /// its own seed draws them. None: drawn from the run's seed.
     pub link_seed: Option<u64>,
 }
 
