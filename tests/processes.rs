@@ -154,7 +154,12 @@ fn run_team(loss: f64, attack: Attack, signed: bool, restart: bool) -> Outcome {
     // (a restarted node has no simulator's truth to start from: it must find its own state)
     let sim_state_hz = if restart { "0" } else { "1" };
     sitl.args(["--speed", &SPEED.to_string(), "--base-port", "0", "--wait-for-peers", "--sim-state-hz", sim_state_hz]);
-    let state_dir = std::env::temp_dir().join(format!("cooploc-processes-{}-{loss}-{attack:?}-{signed}", std::process::id()));
+    // One folder per team that restarts (tests run at once, and a team with the same loss, attack
+    // and signing may be another test's clean team: a shared name let that team's clean-up delete
+    // node 3's state file before its restart, which then had nothing to restore).
+    static TEAMS: std::sync::atomic::AtomicUsize = std::sync::atomic::AtomicUsize::new(0);
+    let team = TEAMS.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+    let state_dir = std::env::temp_dir().join(format!("cooploc-processes-{}-team{team}", std::process::id()));
     if restart {
         std::fs::create_dir_all(&state_dir).unwrap();
     }
@@ -250,13 +255,16 @@ fn run_team(loss: f64, attack: Attack, signed: bool, restart: bool) -> Outcome {
             }
         }
         let truth = inputs.platforms[k].truth.last().unwrap().pos_ned_m;
+        assert!(done.contains("pos_ned_m"), "node {id} ended without an estimate; it said:\n{}", report.join("\n"));
         let pos = common::numbers_after(&done, "pos_ned_m");
         outcome.finals.push(((truth[0] - pos[0]).powi(2) + (truth[1] - pos[1]).powi(2)).sqrt());
         outcome.dr.push(dr.platforms[k].final_error().pos_err_m);
         outcome.report.push(report.join("\n"));
     }
     outcome.relay = net.counts();
-    let _ = std::fs::remove_dir_all(&state_dir);
+    if restart {
+        let _ = std::fs::remove_dir_all(&state_dir);
+    }
     outcome.estimates = estimates.lock().unwrap().clone();
     drop(children);
     outcome
