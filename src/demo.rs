@@ -190,7 +190,8 @@ pub async fn run_demo(cfg: DemoConfig, ready: impl FnOnce(&DemoAddresses)) -> Re
         let (t0, state) = initial_state(&world, cfg.seed, cfg.run, id).step(format!("platform {id}'s initial state"))?;
         // an INS vehicle or a wheeled robot, as the scenario says
         let model = crate::experiment::nav_model(&world, id);
-        let node_cfg = NodeConfig::for_model(id, cfg.method, model, Encoding::F64, ids.clone());
+        let mut node_cfg = NodeConfig::for_model(id, cfg.method, model, Encoding::F64, ids.clone());
+        node_cfg.authenticated_peers = true; // (the demo's team is signed)
         let meta = NodeLogHeader::new(&node_cfg, LogStart::Given { t0: Some(t0), state }, Some(origin)).to_metadata();
         {
             let mut r = recorder.lock().map_err(|_| DemoError::Invalid("recorder lock poisoned".into()))?;

@@ -86,6 +86,11 @@ pub struct Faults {
     /// datagrams are lost, delayed or damaged and which vehicle frames are lost, as a relay with
     /// its own seed draws them. None: drawn from the run's seed.
     pub link_seed: Option<u64>,
+    /// The nodes run as an unsigned team does (`cooploc node --insecure`): they believe nothing
+    /// a record says of its sender before vetting ([`crate::node::core::NodeConfig::authenticated_peers`]).
+    /// False: as the signed team `cooploc node` runs by default (the harness's network carries
+    /// only its nodes' own records: it has no forger).
+    pub unsigned: bool,
 }
 
 impl Default for Faults {
@@ -105,6 +110,7 @@ impl Default for Faults {
             speed: 1.0,
             corrupt: 0.0,
             link_seed: None,
+            unsigned: false,
         }
     }
 }
@@ -517,7 +523,8 @@ impl Maker<'_> {
         saved: Option<&crate::node::saved::SavedState>,
     ) -> Result<NodeShell, ExperimentError> {
         let model = nav_model(self.world, id);
-        let cfg = NodeConfig::for_model(id, self.method, model, self.encoding, self.ids.clone());
+        let mut cfg = NodeConfig::for_model(id, self.method, model, self.encoding, self.ids.clone());
+        cfg.authenticated_peers = !self.case.unsigned;
         let restored = match (saved, at) {
             (Some(saved), Some(t)) => saved
                 .restore_at(id, &model, &HARNESS_ORIGIN, t, &crate::estimation::coast::CoastBounds::LAND)

@@ -252,6 +252,8 @@ pub fn run_cmd(args: Args) -> anyhow::Result<()> {
     cfg.range_grace_us = args.range_grace_ms * 1000;
     cfg.echo_ranges = !args.no_range_echo;
     cfg.gate_probability = args.gate_probability;
+    // signed: every record the core sees is a teammate's own (the shell drops the others)
+    cfg.authenticated_peers = args.team_key.is_some();
     let origin = profile.geo_origin().or(latitude.map(|lat_deg| GeoOrigin { lat_deg, lon_deg: args.origin_lon_deg, alt_m: 0.0 }));
     let recorder = open_log(&args, &cfg, &initial, origin, &profile)?;
     let init = node_init(&args, cfg, initial, origin)?;

@@ -296,6 +296,19 @@ impl StoreRef {
         self.token == 0
     }
 
+    /// A platform that started correlated with someone it cannot name (from a teammate's
+    /// estimate, a hand-over), first heard of at `epoch`: a reference no store holds, so that only
+    /// the bound applies to it.
+    pub fn unplaced(epoch: u32) -> Self {
+        Self { epoch, token: u64::MAX }
+    }
+
+    /// Before the platform's first joint update (fresh or unplaced): `epoch` is then the epoch
+    /// it was first heard of at, its first broadcast.
+    pub fn before_any_update(&self) -> bool {
+        self.token == 0 || self.token == u64::MAX
+    }
+
     /// The reference a joint update at `epoch` on `participants` (sorted), whose records carried
     /// `digests`, gives each participant: equal on every node that ran the same update.
     pub fn of_update(epoch: u32, participants: &[PlatformId], digests: &[u64]) -> Self {

@@ -144,6 +144,13 @@ pub struct NodeConfig {
     /// Send each own range as a COOPLOC_RANGE too (for ground stations and logs: the joint
     /// update takes ranges from the records). Off on links that count every byte.
     pub echo_ranges: bool,
+    /// Every record that reaches this core is its sender's own (a signed team: `cooploc node`
+    /// sets it with `--team-key`; the fault harness, whose network carries only its nodes'
+    /// records). What a record says of its sender is then believed before vetting: a teammate
+    /// whose record of a later epoch says it first broadcast after the epoch we wait on (it
+    /// restarted) is not waited for. False on an unsigned team, where a forger could say the
+    /// same of a genuine teammate.
+    pub authenticated_peers: bool,
 }
 
 impl NodeConfig {
@@ -179,6 +186,7 @@ impl NodeConfig {
             gate_probability: 1e-6,
             independent_start: true,
             echo_ranges: true,
+            authenticated_peers: false,
         }
     }
 }
@@ -291,6 +299,12 @@ pub struct NodeStats {
     pub epochs_applied: u64,
     /// Epochs run without every expected member (timeout, lag bound or end of input).
     pub epochs_partial: u64,
+    /// The longest wall time from our broadcast of an epoch to its joint update, us.
+    pub longest_wait_us: u64,
+    /// Of the partial epochs, the ones run without waiting for a teammate that first broadcast
+    /// after them (it restarted or joined since: its record would never come), as soon as its
+    /// record of a later epoch said so ([`NodeConfig::authenticated_peers`]).
+    pub epochs_not_waited: u64,
     /// Epochs with nothing to apply (no range among the participants, dead reckoning), or from
     /// before the node's start.
     pub epochs_skipped: u64,
@@ -1148,9 +1162,15 @@ impl NodeCore {
             self.sift(epoch);
             let Some(e) = self.epochs.get(&epoch) else { continue };
             // Members found absent are not waited for until a recent record of theirs arrives
-            // (waiting for them briefly was tried: it makes nodes race on the set they run).
-            let missing: Vec<PlatformId> =
-                self.cfg.team.iter().copied().filter(|p| !self.absent.contains(p) && !e.records.contains_key(p)).collect();
+            // (waiting for them briefly was tried: it makes nodes race on the set they run),
+            // nor a restarted one whose record of this epoch will never come.
+            let (missing, not_coming): (Vec<PlatformId>, Vec<PlatformId>) = self
+                .cfg
+                .team
+                .iter()
+                .copied()
+                .filter(|p| !self.absent.contains(p) && !e.records.contains_key(p))
+                .partition(|&p| !self.born_after(epoch, p));
             let complete = missing.is_empty();
             // The timeout runs from our broadcast, or from the last fragment of a missing
             // record (a lossy link still delivering), up to MAX_WAIT_FACTOR timeouts in all.
@@ -1180,7 +1200,10 @@ impl NodeCore {
                 return;
             }
             if complete {
-                self.run_epoch(epoch, false, out);
+                if !not_coming.is_empty() {
+                    self.stats.epochs_not_waited += 1;
+                }
+                self.run_epoch(epoch, !not_coming.is_empty(), out);
             } else if waited >= self.cfg.epoch_timeout_us
                 || waited_in_all >= MAX_WAIT_FACTOR * self.cfg.epoch_timeout_us
                 || lagging
@@ -1195,6 +1218,20 @@ impl NodeCore {
                 return;
             }
         }
+    }
+
+    /// Teammate `p` first broadcast after `epoch` (it restarted, or joined, since): its record
+    /// of a later epoch, from before any joint update, carries the epoch it first broadcast as
+    /// its own reference's ([`Self::broadcast`]), and a node broadcasts its epochs in order, so
+    /// its record of `epoch` will never come. Believed only from authenticated records
+    /// ([`NodeConfig::authenticated_peers`]): on an unsigned team a forger's record of a later
+    /// epoch, claiming to be `p`'s, would say the same and end the wait for `p`'s genuine one.
+    fn born_after(&self, epoch: u32, p: PlatformId) -> bool {
+        self.cfg.authenticated_peers
+            && self
+                .epochs
+                .range(epoch.saturating_add(1)..)
+                .any(|(_, later)| later.records.get(&p).is_some_and(|r| r.own_ref.before_any_update() && r.own_ref.epoch > epoch))
     }
 
     /// While we wait for records of `epoch`: our COLLECTING status (the records we hold, a
@@ -1251,11 +1288,8 @@ impl NodeCore {
         // Before our first joint update: fresh as of our first broadcast if we started
         // independently of the team, else a reference no store holds (we may be correlated with
         // anyone: only the bound is safe).
-        let own_ref = self.own_ref.unwrap_or(if self.cfg.independent_start {
-            StoreRef::fresh(born)
-        } else {
-            StoreRef { epoch: born, token: u64::MAX }
-        });
+        let own_ref =
+            self.own_ref.unwrap_or(if self.cfg.independent_start { StoreRef::fresh(born) } else { StoreRef::unplaced(born) });
         let refs = self.cross.references().collect();
         let e = self.epochs.get_mut(&epoch).expect("open");
         let ours = StateRecord {
@@ -1359,6 +1393,9 @@ impl NodeCore {
     fn run_epoch(&mut self, epoch: u32, partial: bool, out: &mut Vec<NodeOutput>) {
         let Some(e) = self.epochs.get(&epoch) else { return };
         let t = e.t;
+        if let Some(at) = e.broadcast_at {
+            self.stats.longest_wait_us = self.stats.longest_wait_us.max(self.wall_us.saturating_sub(at));
+        }
         let ours = e.records.get(&self.cfg.id).cloned();
         let mut records = self.vetted(epoch); // sorted by platform id
         self.finish_epoch(epoch);

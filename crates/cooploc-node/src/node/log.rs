@@ -151,6 +151,9 @@ pub struct NodeLogHeader {
     pub gate_probability: Option<f64>,
     pub independent_start: Option<bool>,
     pub echo_ranges: Option<bool>,
+    /// None in a log written before it existed: the node did not believe what a record said of
+    /// its sender ([`NodeConfig::authenticated_peers`]).
+    pub authenticated_peers: Option<bool>,
     pub start: LogStart,
     pub origin: Option<crate::protocol::wire::GeoOrigin>,
 }
@@ -182,6 +185,7 @@ impl NodeLogHeader {
             gate_probability: Some(cfg.gate_probability),
             independent_start: Some(cfg.independent_start),
             echo_ranges: Some(cfg.echo_ranges),
+            authenticated_peers: Some(cfg.authenticated_peers),
             start,
             origin,
         }
@@ -200,6 +204,7 @@ impl NodeLogHeader {
         cfg.gate_probability = self.gate_probability.unwrap_or(cfg.gate_probability);
         cfg.independent_start = self.independent_start.unwrap_or(cfg.independent_start);
         cfg.echo_ranges = self.echo_ranges.unwrap_or(cfg.echo_ranges);
+        cfg.authenticated_peers = self.authenticated_peers.unwrap_or(false);
         cfg
     }
 
@@ -233,6 +238,9 @@ impl NodeLogHeader {
         }
         if let Some(v) = self.echo_ranges {
             put("echo_ranges", v.to_string());
+        }
+        if let Some(v) = self.authenticated_peers {
+            put("authenticated_peers", v.to_string());
         }
         match &self.start {
             LogStart::Given { t0, state } => {
@@ -320,6 +328,7 @@ impl NodeLogHeader {
             gate_probability: opt(m, "gate_probability")?,
             independent_start: opt(m, "independent_start")?,
             echo_ranges: opt(m, "echo_ranges")?,
+            authenticated_peers: opt(m, "authenticated_peers")?,
             start,
             origin,
         })
@@ -434,6 +443,7 @@ mod tests {
             gate_probability: Some(1e-6),
             independent_start: Some(true),
             echo_ranges: Some(false),
+            authenticated_peers: Some(true),
             start: LogStart::Given { t0: Some(TimeUs(1_500_000)), state },
             origin: Some(crate::protocol::wire::GeoOrigin { lat_deg: 43.07, lon_deg: -79.5, alt_m: 12.5 }),
         }
@@ -459,6 +469,7 @@ mod tests {
             "gate_probability",
             "independent_start",
             "echo_ranges",
+            "authenticated_peers",
             "retry_follows_cadence",
             "model",
             "origin_alt_m",
@@ -467,6 +478,12 @@ mod tests {
         }
         let h = NodeLogHeader::from_metadata(&m).unwrap();
         assert_eq!((h.range_grace_us, h.echo_ranges, h.retry_follows_cadence), (None, None, false));
+        assert_eq!(h.authenticated_peers, None);
+        let model = crate::estimation::nav::NavModel::Ins {
+            config: crate::estimation::ins::InsConfig::default(),
+            initial_sigma: crate::estimation::ins::InsInitialSigma::for_tests(),
+        };
+        assert!(!h.config(model).authenticated_peers, "an old log's node believed no record");
         assert_eq!(h.origin.unwrap().alt_m, 0.0);
     }
 
