@@ -172,6 +172,22 @@ fn the_python_package_gives_the_library_s_results_and_refuses_bad_input() {
         })
         .collect();
     spec["replay"] = json!({ "nodes": replays, "compared": compared });
+    // One run of the paper scenario and where the experiment's filter of each method ends: the
+    // package's InsTeam, stepped from its arrays, must end there to the last bit.
+    let paper = concat!(env!("CARGO_MANIFEST_DIR"), "/sitl/scenarios/paper.toml");
+    let world = cooploc::sitl::World::new(&cooploc::sitl::Scenario::from_path(std::path::Path::new(paper)).unwrap()).unwrap();
+    let (seed, run) = (3u64, 1u32);
+    let inputs = world.run_inputs(seed, run);
+    let epochs = world.ranges("1hz", seed, run).unwrap();
+    let mut finals = serde_json::Map::new();
+    for method in
+        [Method::DeadReckoning, Method::NoPropagation, Method::Decentralized, Method::CovarianceIntersection, Method::Centralized]
+    {
+        let r = cooploc::experiment::run_filter(&world, &inputs, &epochs, method).unwrap();
+        let positions: Vec<[f64; 3]> = r.platforms.iter().map(|p| p.final_position_ned_m.into()).collect();
+        finals.insert(method.short_name().to_string(), json!(positions));
+    }
+    spec["ins_team"] = json!({ "scenario": paper, "seed": seed, "run": run, "schedule": "1hz", "final_positions": finals });
     spec["not_a_log"] = json!(concat!(env!("CARGO_MANIFEST_DIR"), "/README.md"));
     spec["no_file"] = json!(dir.join("absent.mcap"));
     let path = dir.join("spec.json");

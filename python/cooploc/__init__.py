@@ -27,6 +27,11 @@ So far (the first step of issue 35):
 - :class:`PlanarTeam`: a team of planar robots under one method (``dr``, ``naive``, ``dcl``, ``ci``,
   ``centralized``), stepped from numpy arrays of wheel speeds, yaw rates and ranges
   (``estimation::team``, ``estimation::planar``);
+- :class:`InsTeam`, :func:`scenario_run`: a team of INS vehicles (the paper's model) under one
+  method, stepped from numpy arrays of IMU samples, odometer speeds and 3-D ranges, and one run of
+  a simulated scenario as such arrays (``estimation::team``, ``estimation::nav``,
+  ``sitl::World::run_inputs``): stepped over a run it ends where ``cooploc experiment``'s filter
+  does, to the last bit;
 - :class:`EpochTally`: disagreements and heals from COOPLOC_EPOCH reports, the rules of every
   cooploc display (``view::health``);
 - :class:`RateWindow`: amounts a second over a sliding window, bounded at any rate (the ground
@@ -51,6 +56,7 @@ from cooploc._native import (
     MAX_REORDER,
     PALETTE,
     EpochTally,
+    InsTeam,
     PlanarTeam,
     RateWindow,
     SequenceTracker,
@@ -68,6 +74,7 @@ from cooploc._native import (
     position_nees,
     read_log,
     replay,
+    scenario_run,
     sim_state_from_frame,
 )
 
@@ -95,6 +102,7 @@ __all__ = [
     "EARTH_RADIUS_M",
     "MAX_REORDER",
     "EpochTally",
+    "InsTeam",
     "PlanarTeam",
     "RateWindow",
     "PALETTE",
@@ -114,5 +122,6 @@ __all__ = [
     "position_nees",
     "read_log",
     "replay",
+    "scenario_run",
     "sim_state_from_frame",
 ]

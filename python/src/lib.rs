@@ -1003,6 +1003,353 @@ impl PyPlanarTeam {
     }
 }
 
+/// One run of a simulated scenario as numpy arrays, what `cooploc experiment` feeds its filters
+/// (`sitl::World::run_inputs`, `World::ranges`, `experiment::initial_state`): `scenario` a
+/// scenario file (`sitl/scenarios/paper.toml`), `seed` and `run` the draw, `schedule` one of its
+/// ranging schedules. Returns a dict: `ids`; `platforms`, one dict per platform in id order with
+/// its initial estimate (`t0_s`, `position_ned_m` (3,), `velocity_ned_m_s` (3,), `attitude_wxyz`
+/// (4,), body FRD to NED), its IMU samples (`imu_t_s` (k,), `specific_force_frd_m_s2` (k, 3),
+/// `angular_rate_frd_rad_s` (k, 3)), odometer samples (`odometer_t_s`, `speed_m_s`) and truth
+/// (`truth_t_s`, `truth_position_ned_m` (k, 3)); `epochs`, one `(t_s, pairs (m, 2), ranges_m (m,),
+/// sigma_m (m,))` per ranging epoch; `ins_config` and `initial_sigma`, the filter's settings as
+/// dicts ([`InsTeam`] takes them). A planar robot's platform has no IMU: such a scenario is
+/// refused (`ValueError`), as is a bad file, schedule or run.
+#[pyfunction]
+#[pyo3(signature = (scenario, seed = 1, run = 0, schedule = "1hz"))]
+fn scenario_run<'py>(
+    py: Python<'py>,
+    scenario: std::path::PathBuf,
+    seed: u64,
+    run: u32,
+    schedule: &str,
+) -> PyResult<Bound<'py, PyDict>> {
+    use cooploc::estimation::nav::NavModel;
+    use numpy::IntoPyArray;
+    let bad = |e: &dyn std::fmt::Display| PyValueError::new_err(format!("{}: {e}", scenario.display()));
+    let sc = cooploc::sitl::scenario::Scenario::from_path(&scenario).map_err(|e| bad(&e))?;
+    let world = cooploc::sitl::world::World::new(&sc).map_err(|e| bad(&e))?;
+    let epochs = world.ranges(schedule, seed, run).map_err(|e| bad(&e))?;
+    let inputs = world.run_inputs(seed, run);
+    let ids = world.platform_ids();
+    let mut settings = None;
+    let platforms = pyo3::types::PyList::empty(py);
+    for p in &inputs.platforms {
+        let NavModel::Ins { config, initial_sigma } = cooploc::experiment::nav_model(&world, p.id) else {
+            return Err(bad(&format!("platform {} is a planar robot (no IMU): InsTeam runs INS platforms", p.id)));
+        };
+        settings.get_or_insert((config, initial_sigma));
+        let (t0, state) = cooploc::experiment::initial_state(&world, seed, run, p.id).map_err(|e| bad(&e))?;
+        let q = state.att_frd_to_ned.into_inner();
+        let d = PyDict::new(py);
+        d.set_item("id", p.id)?;
+        d.set_item("t0_s", t0.as_secs_f64())?;
+        d.set_item("position_ned_m", state.pos_ned_m.as_slice().to_vec().into_pyarray(py))?;
+        d.set_item("velocity_ned_m_s", state.vel_ned_m_s.as_slice().to_vec().into_pyarray(py))?;
+        d.set_item("attitude_wxyz", vec![q.w, q.i, q.j, q.k].into_pyarray(py))?;
+        let times = |t: &mut dyn Iterator<Item = cooploc::time::TimeUs>| t.map(|t| t.as_secs_f64()).collect::<Vec<f64>>();
+        let rows = |v: Vec<f64>, n: usize| v.into_pyarray(py).reshape([n, 3]);
+        let k = p.imu.len();
+        d.set_item("imu_t_s", times(&mut p.imu.iter().map(|s| s.t)).into_pyarray(py))?;
+        d.set_item(
+            "specific_force_frd_m_s2",
+            rows(p.imu.iter().flat_map(|s| s.specific_force_frd_m_s2.iter().copied()).collect(), k)?,
+        )?;
+        d.set_item(
+            "angular_rate_frd_rad_s",
+            rows(p.imu.iter().flat_map(|s| s.angular_rate_frd_rad_s.iter().copied()).collect(), k)?,
+        )?;
+        d.set_item("odometer_t_s", times(&mut p.odometer.iter().map(|s| s.t)).into_pyarray(py))?;
+        d.set_item("speed_m_s", p.odometer.iter().map(|s| s.speed_m_s).collect::<Vec<f64>>().into_pyarray(py))?;
+        d.set_item("truth_t_s", times(&mut p.truth.iter().map(|s| s.t)).into_pyarray(py))?;
+        d.set_item(
+            "truth_position_ned_m",
+            rows(p.truth.iter().flat_map(|s| s.pos_ned_m.iter().copied()).collect(), p.truth.len())?,
+        )?;
+        platforms.append(d)?;
+    }
+    let out = PyDict::new(py);
+    out.set_item("ids", ids)?;
+    out.set_item("platforms", platforms)?;
+    let list = pyo3::types::PyList::empty(py);
+    for (t, samples) in &epochs {
+        let pairs: Vec<i64> = samples.iter().flat_map(|r| [i64::from(r.from), i64::from(r.to)]).collect();
+        let pairs = pairs.into_pyarray(py).reshape([samples.len(), 2])?;
+        let ranges: Vec<f64> = samples.iter().map(|r| r.range_m).collect();
+        let sigmas: Vec<f64> = samples.iter().map(|r| r.sigma_m).collect();
+        list.append((t.as_secs_f64(), pairs, ranges.into_pyarray(py), sigmas.into_pyarray(py)))?;
+    }
+    out.set_item("epochs", list)?;
+    if let Some((config, sigma)) = settings {
+        let json = py.import("json")?;
+        let to_dict = |v: String| json.call_method1("loads", (v,));
+        out.set_item("ins_config", to_dict(serde_json::to_string(&config).map_err(|e| bad(&e))?)?)?;
+        out.set_item("initial_sigma", to_dict(serde_json::to_string(&sigma).map_err(|e| bad(&e))?)?)?;
+    }
+    Ok(out)
+}
+
+/// A dict of settings (`ins_config`, `initial_sigma`) read as the library's type: through JSON,
+/// so that a missing, unknown or mistyped field is named in the `ValueError`.
+fn settings_text(py: Python<'_>, d: &Bound<'_, PyDict>) -> PyResult<String> {
+    py.import("json")?.call_method1("dumps", (d,))?.extract()
+}
+
+/// A team of INS vehicles (the paper's model: 16 error states, IMU mechanization, odometer and
+/// non-holonomic constraints; 3-D ranges, Eq. 11) under one method (`dr`, `naive`, `dcl`, `ci`,
+/// `centralized`), stepped from numpy arrays: the estimation core of `cooploc experiment` and of
+/// every node (`estimation::team::Team` of `estimation::nav::NavFilter`). `positions` (n, 3) and
+/// `velocities` (n, 3) NED, `attitudes` (n, 4) quaternions [w, x, y, z] body FRD to NED; `ids`
+/// their platform ids (1..=n when None); `ins_config` and `initial_sigma` dicts with every field of
+/// `estimation::ins::InsConfig` and `InsInitialSigma` (as [`scenario_run`] gives them). Every
+/// input is checked: a wrong shape, a non-finite value, time going backwards or an unknown id
+/// raises `ValueError` and leaves the team as it was.
+#[pyclass(name = "InsTeam", module = "cooploc._native")]
+struct PyInsTeam {
+    team: cooploc::estimation::team::Team<cooploc::estimation::nav::NavFilter>,
+    ids: Vec<u16>,
+}
+
+/// Rows of an (n, 3) array as vectors, every value finite.
+fn vectors3(what: &str, a: &numpy::PyReadonlyArray2<'_, f64>, n: usize) -> PyResult<Vec<Vector3<f64>>> {
+    let a = a.as_array();
+    if a.shape() != [n, 3] {
+        return Err(PyValueError::new_err(format!("{what} of shape {:?}: ({n}, 3) expected", a.shape())));
+    }
+    if !a.iter().all(|v| v.is_finite()) {
+        return Err(PyValueError::new_err(format!("{what}: a value is not finite")));
+    }
+    Ok(a.rows().into_iter().map(|r| Vector3::new(r[0], r[1], r[2])).collect())
+}
+
+impl PyInsTeam {
+    /// The team's ids for `ids` (all, in order, when None), each once and a member.
+    fn members(&self, ids: Option<Vec<u16>>) -> PyResult<Vec<u16>> {
+        let Some(ids) = ids else { return Ok(self.ids.clone()) };
+        for (k, id) in ids.iter().enumerate() {
+            if !self.ids.contains(id) {
+                return Err(PyValueError::new_err(format!("platform {id} is not in the team {:?}", self.ids)));
+            }
+            if ids[..k].contains(id) {
+                return Err(PyValueError::new_err(format!("platform {id} given twice")));
+            }
+        }
+        Ok(ids)
+    }
+
+    fn filter(&self, id: u16) -> &cooploc::estimation::nav::NavFilter {
+        self.team.filter(id).expect("a member")
+    }
+}
+
+#[pymethods]
+impl PyInsTeam {
+    #[new]
+    #[pyo3(signature = (method, positions, velocities, attitudes, ins_config, initial_sigma, ids = None, t0_s = 0.0))]
+    #[allow(clippy::too_many_arguments)]
+    fn new(
+        py: Python<'_>,
+        method: &str,
+        positions: numpy::PyReadonlyArray2<'_, f64>,
+        velocities: numpy::PyReadonlyArray2<'_, f64>,
+        attitudes: numpy::PyReadonlyArray2<'_, f64>,
+        ins_config: &Bound<'_, PyDict>,
+        initial_sigma: &Bound<'_, PyDict>,
+        ids: Option<Vec<u16>>,
+        t0_s: f64,
+    ) -> PyResult<Self> {
+        use cooploc::estimation::ins::{InsConfig, InsInitialSigma, InsState};
+        use cooploc::estimation::nav::{NavFilter, NavModel, NavState};
+        let method = parse_methods(&[method.to_string()])?[0];
+        let n = positions.as_array().nrows();
+        if n == 0 {
+            return Err(PyValueError::new_err("no vehicle: positions of shape (0, 3)"));
+        }
+        let pos = vectors3("positions", &positions, n)?;
+        let vel = vectors3("velocities", &velocities, n)?;
+        let att = attitudes.as_array();
+        if att.shape() != [n, 4] || !att.iter().all(|v| v.is_finite()) {
+            return Err(PyValueError::new_err(format!(
+                "attitudes of shape {:?}: ({n}, 4) finite [w, x, y, z] expected",
+                att.shape()
+            )));
+        }
+        let config: InsConfig = serde_json::from_str(&settings_text(py, ins_config)?)
+            .map_err(|e| PyValueError::new_err(format!("ins_config: {e}")))?;
+        let initial_sigma: InsInitialSigma = serde_json::from_str(&settings_text(py, initial_sigma)?)
+            .map_err(|e| PyValueError::new_err(format!("initial_sigma: {e}")))?;
+        let ids = ids.unwrap_or_else(|| (1..=n as u16).collect());
+        if ids.len() != n {
+            return Err(PyValueError::new_err(format!("{} ids for {n} vehicles", ids.len())));
+        }
+        let model = NavModel::Ins { config, initial_sigma };
+        let t0 = time_us(t0_s)?;
+        let mut members = Vec::with_capacity(n);
+        for (k, &id) in ids.iter().enumerate() {
+            let q = nalgebra::Quaternion::new(att[(k, 0)], att[(k, 1)], att[(k, 2)], att[(k, 3)]);
+            if !(q.norm() > 0.5 && q.norm() < 2.0) {
+                return Err(PyValueError::new_err(format!("attitude {k}: norm {} (a unit quaternion expected)", q.norm())));
+            }
+            let state = InsState {
+                pos_ned_m: pos[k],
+                vel_ned_m_s: vel[k],
+                att_frd_to_ned: nalgebra::UnitQuaternion::from_quaternion(q),
+                ..InsState::at_rest(nalgebra::UnitQuaternion::identity())
+            };
+            let filter = NavFilter::new(model, t0, NavState::Ins(state))
+                .map_err(|e| PyValueError::new_err(format!("vehicle {id}: {e}")))?;
+            members.push((id, filter));
+        }
+        let team = cooploc::estimation::team::Team::new(method, members).map_err(estimation_error)?;
+        Ok(PyInsTeam { team, ids })
+    }
+
+    /// IMU samples at `t_s`: `specific_force` (k, 3) m/s^2 and `angular_rate` (k, 3) rad/s, body
+    /// FRD, for the vehicles `ids` (all, in order, when None). A vehicle whose odometer or range
+    /// falls between two IMU samples is brought to that time by a sample at it (a node holds the
+    /// next sample's rates over the cut: give that sample with the cut's time).
+    #[pyo3(signature = (t_s, specific_force, angular_rate, ids = None))]
+    fn imu(
+        &mut self,
+        t_s: f64,
+        specific_force: numpy::PyReadonlyArray2<'_, f64>,
+        angular_rate: numpy::PyReadonlyArray2<'_, f64>,
+        ids: Option<Vec<u16>>,
+    ) -> PyResult<()> {
+        use cooploc::estimation::ImuSample;
+        use cooploc::estimation::nav::Drive;
+        let t = time_us(t_s)?;
+        let ids = self.members(ids)?;
+        let f = vectors3("specific_force", &specific_force, ids.len())?;
+        let w = vectors3("angular_rate", &angular_rate, ids.len())?;
+        // every vehicle stepped on a copy first, so that an error leaves the team as it was
+        let mut stepped = Vec::with_capacity(ids.len());
+        for (k, &id) in ids.iter().enumerate() {
+            let mut filter = self.filter(id).clone();
+            let sample = ImuSample { t, specific_force_frd_m_s2: f[k], angular_rate_frd_rad_s: w[k] };
+            filter.propagate(&Drive::Imu(sample)).map_err(|e| PyValueError::new_err(format!("vehicle {id}: {e}")))?;
+            stepped.push(filter);
+        }
+        for (&id, filter) in ids.iter().zip(stepped) {
+            *self.team.filter_mut(id).expect("a member") = filter;
+        }
+        Ok(())
+    }
+
+    /// Odometer speeds (m/s) at `t_s` for the vehicles `ids` (all, in order, when None), each
+    /// vehicle already at `t_s` (its IMU sample at that time given). Applied as one batch, as the
+    /// experiment applies one instant's (the centralized EKF stacks them).
+    #[pyo3(signature = (t_s, speed, ids = None))]
+    fn odometer(&mut self, t_s: f64, speed: numpy::PyReadonlyArray1<'_, f64>, ids: Option<Vec<u16>>) -> PyResult<()> {
+        use cooploc::estimation::OdometerSample;
+        let t = time_us(t_s)?;
+        let ids = self.members(ids)?;
+        let speed = speed.as_array();
+        if speed.len() != ids.len() || !speed.iter().all(|v| v.is_finite()) {
+            return Err(PyValueError::new_err(format!("{} speeds for {} vehicles, all finite expected", speed.len(), ids.len())));
+        }
+        let mut batch = Vec::with_capacity(ids.len());
+        for (k, &id) in ids.iter().enumerate() {
+            let f = self.filter(id);
+            if f.time() != t {
+                return Err(PyValueError::new_err(format!(
+                    "vehicle {id} is at {} s, the odometer at {t_s} s: give its IMU sample at that time first",
+                    f.time().as_secs_f64()
+                )));
+            }
+            let m = f
+                .odometer_measurement(&OdometerSample { t, speed_m_s: speed[k] })
+                .map_err(|e| PyValueError::new_err(format!("vehicle {id}: {e}")))?;
+            batch.push((id, m));
+        }
+        // (on a copy: a failed update leaves the team as it was)
+        let mut team = self.team.clone();
+        team.local_updates(&batch).map_err(estimation_error)?;
+        self.team = team;
+        Ok(())
+    }
+
+    /// One epoch of 3-D ranges (paper Eq. 11): `pairs` an (m, 2) integer array of (from, to)
+    /// platform ids, `ranges` (m,) in metres, `sigma_m` (m,) their standard deviations; every
+    /// vehicle of a pair already at the epoch's time. Returns the joint update's NIS (None for
+    /// dead reckoning and covariance intersection).
+    fn ranges(
+        &mut self,
+        pairs: numpy::PyReadonlyArray2<'_, i64>,
+        ranges: numpy::PyReadonlyArray1<'_, f64>,
+        sigma_m: numpy::PyReadonlyArray1<'_, f64>,
+    ) -> PyResult<Option<f64>> {
+        use cooploc::estimation::CoopMeasurement;
+        let (pairs, ranges, sigma) = (pairs.as_array(), ranges.as_array(), sigma_m.as_array());
+        if pairs.ncols() != 2 || pairs.nrows() != ranges.len() || sigma.len() != ranges.len() {
+            return Err(PyValueError::new_err(format!(
+                "pairs of shape {:?}, {} ranges and {} sigmas: (m, 2), (m,) and (m,) expected",
+                pairs.shape(),
+                ranges.len(),
+                sigma.len()
+            )));
+        }
+        let id = |v: i64| -> PyResult<u16> {
+            u16::try_from(v)
+                .ok()
+                .filter(|id| self.ids.contains(id))
+                .ok_or_else(|| PyValueError::new_err(format!("platform {v} is not in the team {:?}", self.ids)))
+        };
+        let mut measurements = Vec::with_capacity(ranges.len());
+        for (k, (&range_m, &sigma_m)) in ranges.iter().zip(sigma.iter()).enumerate() {
+            let (from, to) = (id(pairs[(k, 0)])?, id(pairs[(k, 1)])?);
+            if from == to || !(range_m.is_finite() && range_m >= 0.0) || !(sigma_m.is_finite() && sigma_m > 0.0) {
+                return Err(PyValueError::new_err(format!("range {k}: {from} to {to}, {range_m} m, sigma {sigma_m} m")));
+            }
+            measurements.push(CoopMeasurement::Range { from, to, range_m, sigma_m });
+        }
+        let mut team = self.team.clone();
+        let d = team.cooperative_event(&measurements).map_err(estimation_error)?;
+        self.team = team;
+        Ok(d.map(|d| d.nis))
+    }
+
+    /// The vehicles' positions, an (n, 3) NED array in the order of `ids`, m.
+    fn positions<'py>(&self, py: Python<'py>) -> PyResult<Bound<'py, numpy::PyArray2<f64>>> {
+        use numpy::IntoPyArray;
+        let flat: Vec<f64> = self.ids.iter().flat_map(|&id| self.filter(id).position_ned_m().as_slice().to_vec()).collect();
+        flat.into_pyarray(py).reshape([self.ids.len(), 3])
+    }
+
+    /// Each vehicle's position error covariance, an (n, 3, 3) NED array, m^2.
+    fn position_covariances<'py>(&self, py: Python<'py>) -> PyResult<Bound<'py, numpy::PyArray3<f64>>> {
+        use cooploc::estimation::PlatformFilter;
+        use numpy::IntoPyArray;
+        let flat: Vec<f64> = self
+            .ids
+            .iter()
+            .flat_map(|&id| {
+                let p = self.filter(id).covariance();
+                let mut block = Vec::with_capacity(9);
+                for r in 0..3 {
+                    block.extend((0..3).map(|c| p[(r, c)]));
+                }
+                block
+            })
+            .collect();
+        flat.into_pyarray(py).reshape([self.ids.len(), 3, 3])
+    }
+
+    /// Each vehicle's filter time, s.
+    fn times(&self) -> Vec<f64> {
+        self.ids.iter().map(|&id| self.filter(id).time().as_secs_f64()).collect()
+    }
+
+    #[getter]
+    fn ids(&self) -> Vec<u16> {
+        self.ids.clone()
+    }
+
+    #[getter]
+    fn method(&self) -> &'static str {
+        self.team.method().short_name()
+    }
+}
+
 #[pymodule]
 fn _native(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add("__version__", env!("CARGO_PKG_VERSION"))?;
@@ -1023,6 +1370,8 @@ fn _native(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_class::<PyRateWindow>()?;
     m.add_class::<PyTruthTrack>()?;
     m.add_class::<PyPlanarTeam>()?;
+    m.add_class::<PyInsTeam>()?;
+    m.add_function(wrap_pyfunction!(scenario_run, m)?)?;
     m.add_function(wrap_pyfunction!(sim_state_from_frame, m)?)?;
     m.add_function(wrap_pyfunction!(replay, m)?)?;
     m.add_function(wrap_pyfunction!(compare_methods, m)?)?;

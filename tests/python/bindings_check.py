@@ -274,6 +274,85 @@ check("PlanarTeam: pairs of floats -> TypeError/ValueError",
 team.propagate(0.1, np.array([1.0, 1.0]), np.zeros(2))
 check("PlanarTeam: time going back -> ValueError", raises(ValueError, team.propagate, 0.05, np.ones(2), np.zeros(2)) is not None)
 
+# A team of INS vehicles stepped from numpy over one run of the paper scenario (its arrays from
+# scenario_run) ends where the library's experiment filter of the same method ends, to the last
+# bit: IMU, then odometer, then ranges at each instant, as `cooploc experiment` steps them.
+ins = spec["ins_team"]
+sr = cooploc.scenario_run(ins["scenario"], ins["seed"], ins["run"], ins["schedule"])
+plats = sr["platforms"]
+check("scenario_run: the paper's three platforms", sr["ids"] == [p["id"] for p in plats] and len(plats) == 3, sr["ids"])
+imu_t, odo_t = plats[0]["imu_t_s"], plats[0]["odometer_t_s"]
+check("scenario_run: every platform's IMU and odometer on the same instants (the paper's)",
+      all(np.array_equal(p["imu_t_s"], imu_t) and np.array_equal(p["odometer_t_s"], odo_t) for p in plats))
+force = np.stack([p["specific_force_frd_m_s2"] for p in plats], axis=1)
+rate = np.stack([p["angular_rate_frd_rad_s"] for p in plats], axis=1)
+speed = np.stack([p["speed_m_s"] for p in plats], axis=1)
+epochs = sr["epochs"]
+
+
+def ins_team(method):
+    return cooploc.InsTeam(method, np.array([p["position_ned_m"] for p in plats]),
+                           np.array([p["velocity_ned_m_s"] for p in plats]), np.array([p["attitude_wxyz"] for p in plats]),
+                           sr["ins_config"], sr["initial_sigma"], ids=sr["ids"], t0_s=plats[0]["t0_s"])
+
+
+def step_run(team):
+    o = e = 0
+
+    def due(upto, strictly):
+        nonlocal o, e
+        while o < len(odo_t) and (odo_t[o] < upto if strictly else odo_t[o] <= upto):
+            team.odometer(odo_t[o], speed[o])
+            o += 1
+        while e < len(epochs) and (epochs[e][0] < upto if strictly else epochs[e][0] <= upto):
+            team.ranges(epochs[e][1], epochs[e][2], epochs[e][3])
+            e += 1
+
+    for k in range(len(imu_t)):
+        due(imu_t[k], True)
+        team.imu(imu_t[k], force[k], rate[k])
+        due(imu_t[k], False)
+    due(float("inf"), False)
+    return team
+
+
+for method, expected in sorted(ins["final_positions"].items()):
+    got = step_run(ins_team(method)).positions()
+    check("InsTeam %s over a paper run ends where the experiment's filter ends, to the last bit" % method,
+          np.array_equal(got, np.array(expected)), (got.tolist(), expected))
+team = ins_team("dcl")
+pos0 = team.positions()
+check("InsTeam: positions of shape (3, 2) -> ValueError",
+      raises(ValueError, cooploc.InsTeam, "dcl", np.zeros((3, 2)), np.zeros((3, 3)), np.tile([1.0, 0, 0, 0], (3, 1)),
+             sr["ins_config"], sr["initial_sigma"]) is not None)
+check("InsTeam: a zero quaternion -> ValueError",
+      raises(ValueError, cooploc.InsTeam, "dcl", np.zeros((3, 3)), np.zeros((3, 3)), np.zeros((3, 4)),
+             sr["ins_config"], sr["initial_sigma"]) is not None)
+bad_config = dict(sr["ins_config"], gyro_noise=1.0)
+check("InsTeam: an unknown ins_config field -> ValueError naming it",
+      "gyro_noise" in (raises(ValueError, cooploc.InsTeam, "dcl", np.zeros((3, 3)), np.zeros((3, 3)),
+                              np.tile([1.0, 0, 0, 0], (3, 1)), bad_config, sr["initial_sigma"]) or ""))
+no_sigma = {k: v for k, v in sr["initial_sigma"].items() if k != "pos_ned_m"}
+check("InsTeam: an initial_sigma without pos_ned_m -> ValueError naming it",
+      "pos_ned_m" in (raises(ValueError, cooploc.InsTeam, "dcl", np.zeros((3, 3)), np.zeros((3, 3)),
+                             np.tile([1.0, 0, 0, 0], (3, 1)), sr["ins_config"], no_sigma) or ""))
+check("InsTeam: a NaN specific force -> ValueError",
+      raises(ValueError, team.imu, imu_t[0], np.full((3, 3), float("nan")), rate[0]) is not None)
+check("InsTeam: IMU for a stranger -> ValueError", raises(ValueError, team.imu, imu_t[0], force[0][:1], rate[0][:1], ids=[9]) is not None)
+check("InsTeam: an odometer at a time the vehicles are not at -> ValueError",
+      raises(ValueError, team.odometer, imu_t[3], speed[0]) is not None)
+check("InsTeam: a range to a stranger -> ValueError",
+      raises(ValueError, team.ranges, np.array([[1, 9]]), np.array([3.0]), np.array([0.1])) is not None)
+check("InsTeam: a zero range sigma -> ValueError",
+      raises(ValueError, team.ranges, np.array([[1, 2]]), np.array([3.0]), np.array([0.0])) is not None)
+check("InsTeam: the refused inputs left the team where it was",
+      np.array_equal(team.positions(), pos0) and team.times() == [plats[0]["t0_s"]] * 3, team.times())
+team.imu(imu_t[1], force[1], rate[1])
+check("InsTeam: time going back -> ValueError, nothing stepped",
+      raises(ValueError, team.imu, imu_t[0], force[0], rate[0]) is not None and team.times() == [imu_t[1]] * 3)
+check("scenario_run: a schedule the scenario lacks -> ValueError",
+      raises(ValueError, cooploc.scenario_run, ins["scenario"], 1, 0, "7hz") is not None)
+
 # The ground station's truth track: bad input is an exception, never a crash.
 tt = cooploc.TruthTrack()
 check("TruthTrack: a NaN position -> ValueError", raises(ValueError, tt.sim_state, (float("nan"), 0.0, 0.0)) is not None)
