@@ -1,5 +1,5 @@
 //! The cooploc Python package (python/, issue 35), installed into the test virtualenv by
-//! tests/run-all.sh: tests/python/bindings_check.py imports it by name and checks each function
+//! tests/run-all.sh: tests/python/test_bindings.py (pytest) imports it by name and checks each function
 //! against what the library computes here, and that bad input (a garbage or damaged frame, wrong
 //! shapes and types) raises a Python exception instead of crashing. Under CI=true a missing
 //! virtualenv or package fails the test.
@@ -193,13 +193,14 @@ fn the_python_package_gives_the_library_s_results_and_refuses_bad_input() {
     let path = dir.join("spec.json");
     std::fs::write(&path, serde_json::to_vec(&spec).unwrap()).unwrap();
     let out = Command::new(&python)
-        .arg(concat!(env!("CARGO_MANIFEST_DIR"), "/tests/python/bindings_check.py"))
-        .arg(&path)
+        .args(["-m", "pytest", "-q", "-rf", "-p", "no:cacheprovider"])
+        .arg(concat!(env!("CARGO_MANIFEST_DIR"), "/tests/python/test_bindings.py"))
+        .env("COOPLOC_BINDINGS_SPEC", &path)
         .output()
-        .expect("running tests/python/bindings_check.py");
+        .expect("running pytest on tests/python/test_bindings.py");
     let text = format!("{}{}", String::from_utf8_lossy(&out.stdout), String::from_utf8_lossy(&out.stderr));
     println!("{text}");
-    assert!(out.status.success(), "bindings_check.py failed (is the package installed? bash tests/run-all.sh):\n{text}");
+    assert!(out.status.success(), "tests/python/test_bindings.py failed (are the package and pytest installed? bash tests/run-all.sh):\n{text}");
     let _ = std::fs::remove_dir_all(&dir);
 }
 

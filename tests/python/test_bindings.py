@@ -1,21 +1,26 @@
-"""The cooploc Python package (python/, issue 35) as a user meets it: installed in the test
-virtualenv by tests/run-all.sh, imported by name, each function against the library's result
-passed in by tests/python_package.rs, and bad input answered with a Python exception, never a
-crash. Argument: a JSON file written by the Rust test (frames as hex, expected values).
-Prints PASS/FAIL lines and exits 1 on any failure."""
+"""The cooploc Python package (python/, issue 35) as a user meets it, under pytest: installed in the
+test virtualenv by tests/run-all.sh, imported by name, each function against the library's result
+handed over by tests/python_package.rs, and bad input answered with a Python exception, never a
+crash (a crash ends pytest with a failure). The Rust test writes what the library computes (frames
+as hex, expected values) to a JSON file named by COOPLOC_BINDINGS_SPEC.
+
+The checks run in order as the module loads (later ones use the objects earlier ones made); each
+becomes one pytest test, `test_binding[WHAT]`, that fails with what it found:
+
+    COOPLOC_BINDINGS_SPEC=spec.json .venv/bin/python -m pytest -q tests/python/test_bindings.py
+"""
 
 import json
 import math
 import os
-import sys
 
-failures = []
+import pytest
+
+CHECKS = []  # (what, ok, detail), in the order they ran
 
 
 def check(what, ok, detail=""):
-    print("%s %s%s" % ("PASS" if ok else "FAIL", what, "" if ok else ": %r" % (detail,)))
-    if not ok:
-        failures.append(what)
+    CHECKS.append((what, bool(ok), detail))
 
 
 def raises(exc, fn, *args, **kwargs):
@@ -28,9 +33,11 @@ def raises(exc, fn, *args, **kwargs):
     return None
 
 
-import cooploc  # noqa: E402  (after the helpers: an ImportError here is the first failure)
+import cooploc  # noqa: E402  (an ImportError here fails the collection: pytest exits non-zero)
 
-spec = json.load(open(sys.argv[1]))
+if "COOPLOC_BINDINGS_SPEC" not in os.environ:
+    raise RuntimeError("COOPLOC_BINDINGS_SPEC names no file: tests/python_package.rs writes it (cargo test --test python_package)")
+spec = json.load(open(os.environ["COOPLOC_BINDINGS_SPEC"]))
 
 check("version", cooploc.__version__ == spec["version"], cooploc.__version__)
 here = os.path.realpath(os.path.dirname(cooploc.__file__))
@@ -364,5 +371,8 @@ check("TruthTrack: a negative time -> OverflowError/TypeError/ValueError",
 check("sim_state_from_frame: garbage -> ValueError", raises(ValueError, cooploc.sim_state_from_frame, b"\xfd" + bytes(30), (34.7, 0.0, 0.0)) is not None)
 check("sim_state_from_frame: no bytes -> ValueError", raises(ValueError, cooploc.sim_state_from_frame, b"", (34.7, 0.0, 0.0)) is not None)
 
-print("bindings_check: %d failed%s" % (len(failures), (": " + "; ".join(failures)) if failures else ""))
-sys.exit(1 if failures else 0)
+
+
+@pytest.mark.parametrize("what,ok,detail", CHECKS, ids=[c[0] for c in CHECKS])
+def test_binding(what, ok, detail):
+    assert ok, "%s: %r" % (what, detail)
