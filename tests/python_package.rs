@@ -200,7 +200,10 @@ fn the_python_package_gives_the_library_s_results_and_refuses_bad_input() {
         .expect("running pytest on tests/python/test_bindings.py");
     let text = format!("{}{}", String::from_utf8_lossy(&out.stdout), String::from_utf8_lossy(&out.stderr));
     println!("{text}");
-    assert!(out.status.success(), "tests/python/test_bindings.py failed (are the package and pytest installed? bash tests/run-all.sh):\n{text}");
+    assert!(
+        out.status.success(),
+        "tests/python/test_bindings.py failed (are the package and pytest installed? bash tests/run-all.sh):\n{text}"
+    );
     let _ = std::fs::remove_dir_all(&dir);
 }
 

@@ -297,7 +297,8 @@ pub struct NodeStats {
     pub epochs_implausible: u64,
     pub epoch_messages_sent: u64,
     pub epochs_applied: u64,
-    /// Epochs run without every expected member (timeout, lag bound or end of input).
+    /// Epochs run without every expected member (timeout, lag bound, end of input, or a member
+    /// whose record would never come: `epochs_not_waited`).
     pub epochs_partial: u64,
     /// The longest wall time from our broadcast of an epoch to its joint update, us.
     pub longest_wait_us: u64,
