@@ -188,6 +188,27 @@ fn the_python_package_gives_the_library_s_results_and_refuses_bad_input() {
         finals.insert(method.short_name().to_string(), json!(positions));
     }
     spec["ins_team"] = json!({ "scenario": paper, "seed": seed, "run": run, "schedule": "1hz", "final_positions": finals });
+    // Each vehicle's series in the committed log and in its first 40 %, as the library reads them.
+    let series = |path: &std::path::Path| -> serde_json::Value {
+        let log = cooploc::recording::read_log(path).unwrap();
+        cooploc::recording::series::vehicle_series(&log)
+            .iter()
+            .map(|v| {
+                json!({
+                    "id": v.id,
+                    "estimate_n": v.estimate.pos_ned_m.len(),
+                    "estimate_last": v.estimate.pos_ned_m.last(),
+                    "estimate_yaw_last": v.estimate.yaw_rad.last(),
+                    "truth_n": v.truth.pos_ned_m.len(),
+                    "truth_last": v.truth.pos_ned_m.last(),
+                    "epochs": v.updates.epoch,
+                    "nis": v.updates.nis,
+                    "undecodable": v.undecodable,
+                })
+            })
+            .collect()
+    };
+    spec["log_series"] = json!({ "full": series(std::path::Path::new(log_path)), "cut": series(&cut_path) });
     spec["not_a_log"] = json!(concat!(env!("CARGO_MANIFEST_DIR"), "/README.md"));
     spec["no_file"] = json!(dir.join("absent.mcap"));
     let path = dir.join("spec.json");

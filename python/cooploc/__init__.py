@@ -17,6 +17,8 @@ So far (the first step of issue 35):
   the ground station check it;
 - :func:`read_log`: a cooploc MCAP log (metadata, topics, messages; a cut or damaged log is read
   up to the damage), as ``cooploc replay`` reads it (``recording::read_log``);
+- :func:`log_series`: each vehicle's estimates, truth and cooperative updates in a log as numpy
+  arrays (``recording::series``);
 - :func:`replay`: every node of a log replayed, its recorded and replayed estimates as numpy
   arrays (``replay::replay_nodes``); :func:`compare_methods`: any method run offline on a log's
   inputs, its errors at every truth sample as numpy arrays (``replay::compare_methods``);
@@ -69,6 +71,7 @@ from cooploc._native import (
     experiment_json,
     frames,
     geo_to_ned,
+    log_series,
     mrclam,
     ned_to_geo,
     position_nees,
@@ -117,6 +120,7 @@ __all__ = [
     "frames",
     "geo_to_ned",
     "init",
+    "log_series",
     "mrclam",
     "ned_to_geo",
     "position_nees",

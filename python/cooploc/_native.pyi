@@ -147,3 +147,9 @@ class InsTeam:
     def positions(self): ...
     def position_covariances(self): ...
     def times(self) -> list[float]: ...
+
+def log_series(path: str) -> dict[int, dict]:
+    """Each vehicle's series in a cooploc log as numpy arrays: ``estimate`` and ``truth``
+    (``log_time_s``, ``position_ned_m`` (n, 3), ``yaw_rad``), ``updates`` (``log_time_s``,
+    ``epoch``, ``t_s``, ``participants``, ``nis``, ``nis_dof``, ``nees``) and ``undecodable``.
+    OSError when the file cannot be read, ValueError when it is not an MCAP file."""

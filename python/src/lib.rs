@@ -1350,6 +1350,47 @@ impl PyInsTeam {
     }
 }
 
+/// Each vehicle's series in a cooploc log as numpy arrays (`recording::series`): a dict by
+/// platform id of `estimate` and `truth` (`log_time_s` (n,), `position_ned_m` (n, 3), `yaw_rad`
+/// (n,): the recorded poses in frame `ned`), `updates` (`log_time_s`, `epoch`, `t_s` (the epoch's
+/// instant on the vehicle's clock), `participants`, `nis`, `nis_dof`, `nees` (NaN where the truth
+/// was not known): the cooperative updates its node ran) and `undecodable`, the messages of those
+/// topics that did not decode (left out). A cut log gives what is before the cut. `OSError` when
+/// the file cannot be read, `ValueError` when it is not an MCAP file.
+#[pyfunction]
+fn log_series<'py>(py: Python<'py>, path: std::path::PathBuf) -> PyResult<Bound<'py, PyDict>> {
+    use numpy::IntoPyArray;
+    let log = open_log(&path)?;
+    let secs = |ns: &[u64]| ns.iter().map(|&t| t as f64 / 1e9).collect::<Vec<f64>>().into_pyarray(py);
+    let poses = |s: &cooploc::recording::series::PoseSeries| -> PyResult<Bound<'py, PyDict>> {
+        let d = PyDict::new(py);
+        d.set_item("log_time_s", secs(&s.log_time_ns))?;
+        let flat: Vec<f64> = s.pos_ned_m.iter().flatten().copied().collect();
+        d.set_item("position_ned_m", flat.into_pyarray(py).reshape([s.pos_ned_m.len(), 3])?)?;
+        d.set_item("yaw_rad", s.yaw_rad.clone().into_pyarray(py))?;
+        Ok(d)
+    };
+    let out = PyDict::new(py);
+    for v in cooploc::recording::series::vehicle_series(&log) {
+        let d = PyDict::new(py);
+        d.set_item("estimate", poses(&v.estimate)?)?;
+        d.set_item("truth", poses(&v.truth)?)?;
+        let u = &v.updates;
+        let updates = PyDict::new(py);
+        updates.set_item("log_time_s", secs(&u.log_time_ns))?;
+        updates.set_item("epoch", u.epoch.clone().into_pyarray(py))?;
+        updates.set_item("t_s", u.t_us.iter().map(|&t| t as f64 / 1e6).collect::<Vec<f64>>().into_pyarray(py))?;
+        updates.set_item("participants", u.participants.clone().into_pyarray(py))?;
+        updates.set_item("nis", u.nis.clone().into_pyarray(py))?;
+        updates.set_item("nis_dof", u.nis_dof.clone().into_pyarray(py))?;
+        updates.set_item("nees", u.nees.clone().into_pyarray(py))?;
+        d.set_item("updates", updates)?;
+        d.set_item("undecodable", v.undecodable)?;
+        out.set_item(v.id, d)?;
+    }
+    Ok(out)
+}
+
 #[pymodule]
 fn _native(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add("__version__", env!("CARGO_PKG_VERSION"))?;
@@ -1372,6 +1413,7 @@ fn _native(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_class::<PyPlanarTeam>()?;
     m.add_class::<PyInsTeam>()?;
     m.add_function(wrap_pyfunction!(scenario_run, m)?)?;
+    m.add_function(wrap_pyfunction!(log_series, m)?)?;
     m.add_function(wrap_pyfunction!(sim_state_from_frame, m)?)?;
     m.add_function(wrap_pyfunction!(replay, m)?)?;
     m.add_function(wrap_pyfunction!(compare_methods, m)?)?;

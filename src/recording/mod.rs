@@ -65,6 +65,7 @@
 
 pub mod internals;
 mod reader;
+pub mod series;
 mod writer;
 
 pub use crate::view::foxglove::{PositionEstimate, TruthSample};

@@ -360,6 +360,30 @@ check("InsTeam: time going back -> ValueError, nothing stepped",
 check("scenario_run: a schedule the scenario lacks -> ValueError",
       raises(ValueError, cooploc.scenario_run, ins["scenario"], 1, 0, "7hz") is not None)
 
+# Each vehicle's series in the committed log and in its first 40 %, as the library reads them.
+for name, path in [("full", spec["log"]["path"]), ("cut", spec["cut_log"]["path"])]:
+    got = cooploc.log_series(path)
+    for want in spec["log_series"][name]:
+        v = got.get(want["id"])
+        check("log_series (%s log): vehicle %d there" % (name, want["id"]), v is not None, sorted(got))
+        if v is None:
+            continue
+        est, truth, upd = v["estimate"], v["truth"], v["updates"]
+        check("log_series (%s log): vehicle %d's estimates, truth and updates as the library reads them" % (name, want["id"]),
+              est["position_ned_m"].shape == (want["estimate_n"], 3) and truth["position_ned_m"].shape == (want["truth_n"], 3)
+              and len(est["yaw_rad"]) == want["estimate_n"] and len(est["log_time_s"]) == want["estimate_n"]
+              and (want["estimate_n"] == 0 or (est["position_ned_m"][-1].tolist() == want["estimate_last"]
+                                              and est["yaw_rad"][-1] == want["estimate_yaw_last"]))
+              and (want["truth_n"] == 0 or truth["position_ned_m"][-1].tolist() == want["truth_last"])
+              and upd["epoch"].tolist() == want["epochs"] and upd["nis"].tolist() == want["nis"]
+              and v["undecodable"] == want["undecodable"],
+              (est["position_ned_m"].shape, truth["position_ned_m"].shape, upd["epoch"].tolist()[-3:]))
+    check("log_series (%s log): no other vehicle" % name, sorted(got) == [w["id"] for w in spec["log_series"][name]], sorted(got))
+check("log_series: the cut log holds fewer estimates than the whole",
+      all(c["estimate_n"] < f["estimate_n"] for c, f in zip(spec["log_series"]["cut"], spec["log_series"]["full"])))
+check("log_series: not a log -> ValueError", raises(ValueError, cooploc.log_series, spec["not_a_log"]) is not None)
+check("log_series: no file -> OSError", raises(OSError, cooploc.log_series, spec["no_file"]) is not None)
+
 # The ground station's truth track: bad input is an exception, never a crash.
 tt = cooploc.TruthTrack()
 check("TruthTrack: a NaN position -> ValueError", raises(ValueError, tt.sim_state, (float("nan"), 0.0, 0.0)) is not None)
