@@ -47,6 +47,11 @@ pub struct Args {
     /// them until then too). Without it, each case's own delays.
     #[arg(long, value_name = "LO-HI")]
     delay_ms: Option<String>,
+    /// Run the nodes as an unsigned team (`cooploc node --insecure`): they believe nothing a
+    /// record says of its sender, so they wait an epoch timeout for a restarted teammate's record
+    /// that will never come (`Faults::unsigned`). Without it, as the signed default.
+    #[arg(long)]
+    unsigned: bool,
     /// Also write every case's summary as JSON here.
     #[arg(long)]
     json: Option<PathBuf>,
@@ -89,6 +94,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
             .map(|run| {
                 let faults = cooploc::experiment::faults::Faults {
                     packed: args.packed || case.faults.packed,
+                    unsigned: args.unsigned || case.faults.unsigned,
                     speed: args.speed.unwrap_or(case.faults.speed),
                     delay_ms: delay_ms.unwrap_or(case.faults.delay_ms),
                     links_until_s: if delay_ms.is_some() && case.faults.links_until_s == 0.0 {
