@@ -836,6 +836,14 @@ struct PyPlanarTeam {
     ids: Vec<u16>,
 }
 
+/// A platform id given from Python (a range's end) that must be one of the team's `ids`.
+fn team_member(ids: &[u16], v: i64) -> PyResult<u16> {
+    u16::try_from(v)
+        .ok()
+        .filter(|id| ids.contains(id))
+        .ok_or_else(|| PyValueError::new_err(format!("platform {v} is not in the team {ids:?}")))
+}
+
 fn estimation_error(e: cooploc::estimation::EstimationError) -> PyErr {
     PyValueError::new_err(e.to_string())
 }
@@ -948,12 +956,7 @@ impl PyPlanarTeam {
         if !(sigma_m.is_finite() && sigma_m > 0.0) {
             return Err(PyValueError::new_err(format!("sigma_m {sigma_m}: positive")));
         }
-        let id = |v: i64| -> PyResult<u16> {
-            u16::try_from(v)
-                .ok()
-                .filter(|id| self.ids.contains(id))
-                .ok_or_else(|| PyValueError::new_err(format!("platform {v} is not in the team {:?}", self.ids)))
-        };
+        let id = |v: i64| team_member(&self.ids, v);
         let mut measurements = Vec::with_capacity(ranges.len());
         for (k, &range_m) in ranges.iter().enumerate() {
             let (from, to) = (id(pairs[(k, 0)])?, id(pairs[(k, 1)])?);
@@ -1037,7 +1040,10 @@ fn scenario_run<'py>(
         let NavModel::Ins { config, initial_sigma } = cooploc::experiment::nav_model(&world, p.id) else {
             return Err(bad(&format!("platform {} is a planar robot (no IMU): InsTeam runs INS platforms", p.id)));
         };
-        settings.get_or_insert((config, initial_sigma));
+        // (InsTeam takes one setting for the whole team: a scenario whose vehicles differ is refused)
+        if settings.get_or_insert((config, initial_sigma)) != &(config, initial_sigma) {
+            return Err(bad(&format!("platform {} has other IMU settings than the first: InsTeam takes one for all", p.id)));
+        }
         let (t0, state) = cooploc::experiment::initial_state(&world, seed, run, p.id).map_err(|e| bad(&e))?;
         let q = state.att_frd_to_ned.into_inner();
         let d = PyDict::new(py);
@@ -1288,12 +1294,7 @@ impl PyInsTeam {
                 sigma.len()
             )));
         }
-        let id = |v: i64| -> PyResult<u16> {
-            u16::try_from(v)
-                .ok()
-                .filter(|id| self.ids.contains(id))
-                .ok_or_else(|| PyValueError::new_err(format!("platform {v} is not in the team {:?}", self.ids)))
-        };
+        let id = |v: i64| team_member(&self.ids, v);
         let mut measurements = Vec::with_capacity(ranges.len());
         for (k, (&range_m, &sigma_m)) in ranges.iter().zip(sigma.iter()).enumerate() {
             let (from, to) = (id(pairs[(k, 0)])?, id(pairs[(k, 1)])?);
