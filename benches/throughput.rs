@@ -23,7 +23,7 @@ use cooploc::experiment::{ExperimentSpec, InputSource, run_once};
 use cooploc::protocol::record::Encoding;
 use cooploc::recording::read_log;
 use cooploc::replay::replay_nodes;
-use cooploc::sitl::scenario::{PlatformSpec, Scenario, Segment};
+use cooploc::sitl::scenario::Scenario;
 use cooploc::sitl::world::World;
 use criterion::{Criterion, criterion_group, criterion_main};
 
@@ -65,23 +65,8 @@ fn replay(c: &mut Criterion) {
 /// The paper scenario's sensors with `n` vehicles driving north side by side, 100 m apart, for
 /// `duration_s`, radios reaching 310 m (three neighbours on each side).
 pub fn line_team(n: usize, duration_s: f64) -> Scenario {
-    let mut s = Scenario::from_path(root().join("sitl/scenarios/paper.toml")).expect("paper scenario");
-    s.name = format!("line-{n}");
-    s.duration_s = duration_s;
-    s.ranging.max_range_m = Some(310.0);
-    s.ranging.schedules.retain(|r| r.name == "1hz");
-    let template = s.platforms[0].clone();
-    s.platforms = (0..n)
-        .map(|i| PlatformSpec {
-            id: i as u16 + 1,
-            start_ned_m: [0.0, 100.0 * i as f64, 0.0],
-            start_yaw_deg: 0.0,
-            start_speed_m_s: 10.0,
-            segments: vec![Segment { duration_s, accel_m_s2: 0.0, yaw_rate_deg_s: 0.0 }],
-            ..template.clone()
-        })
-        .collect();
-    s
+    let paper = Scenario::from_path(root().join("sitl/scenarios/paper.toml")).expect("paper scenario");
+    paper.side_by_side(n, 100.0, 310.0, duration_s)
 }
 
 fn team(c: &mut Criterion) {

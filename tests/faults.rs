@@ -289,3 +289,52 @@ fn a_signed_team_does_not_wait_for_a_record_its_restarted_teammate_will_never_se
     assert_eq!(s.divergent_epochs, 0, "signed: the stores were seen apart");
     assert!(u.divergent_epochs > 0, "unsigned: the stores were never seen apart (the signed run's check would prove nothing)");
 }
+
+/// A left-out node of a team whose store is larger than one fragment series (255 fragments of
+/// 204 bytes, 52,020 B) still rejoins exactly: ten 16-state vehicles side by side, 100 m apart,
+/// radios reaching 310 m; node 5 out of radio range from 20 s to 30 s. Its teammates' store (45
+/// blocks of 16 x 16, 92 KB) comes back to it in two parts, it is adopted, and nobody heals
+/// with the covariance-intersection bound. (Before stores went as parts, a store over one series
+/// was not kept for teammates: node 5 was left out of every epoch to the end of the run, 16 of
+/// them, and applied 19 of 60.) With 30% of the datagrams lost, a part needs several answers
+/// to arrive whole: the node keeps what came and takes the store all the same.
+#[test]
+fn a_left_out_node_of_a_ten_member_team_takes_a_store_of_two_parts_and_nobody_heals() {
+    use cooploc::experiment::faults::{Faults, Outage};
+    use cooploc::protocol::fragment::MAX_RECORD_LEN;
+    let paper = Scenario::from_toml_str(PAPER_TOML).unwrap();
+    let world = World::new(&paper.side_by_side(10, 100.0, 310.0, 60.0)).unwrap();
+    let store_bytes = 45 * (6 + 16 * 16 * 8);
+    assert!(store_bytes > MAX_RECORD_LEN, "the store must need more than one series for this test to mean anything");
+    let leave = Some(Outage { node: 4, from_s: 20.0, until_s: 30.0 });
+    for (loss, run) in [(0.0, 0), (0.3, 1), (0.3, 2)] {
+        let faults = Faults { leave, coop_loss: loss, links_until_s: 60.0, ..Faults::default() };
+        eprintln!("{:.0}% datagram loss, run {run}:", loss * 100.0);
+        a_left_out_node_takes_the_store(&run_case(&world, &faults, Method::Decentralized, "1hz", 1, run, Encoding::F64).unwrap());
+    }
+}
+
+fn a_left_out_node_takes_the_store(out: &cooploc::experiment::faults::RunOutcome) {
+    let sum = |f: fn(&cooploc::node::core::NodeStats) -> u64| out.nodes.iter().map(|n| f(&n.stats)).sum::<u64>();
+    for n in &out.nodes {
+        eprintln!(
+            "node {}: applied {} excluded {} adopted {} sent {} refused {} heals {}; final {:.2} m (dead reckoning {:.2})",
+            n.id,
+            n.stats.epochs_applied,
+            n.stats.epochs_excluded,
+            n.stats.stores_adopted,
+            n.stats.stores_sent,
+            n.stats.stores_refused,
+            n.stats.heals,
+            n.final_err_m,
+            n.dr_final_err_m
+        );
+    }
+    let left = &out.nodes[4].stats;
+    assert!(left.epochs_excluded >= 1 && left.stores_adopted >= 1, "node 5 must be left out and take a store: {left:?}");
+    assert_eq!(sum(|s| s.heals), 0, "nobody heals with the bound");
+    assert!(sum(|s| s.stores_sent) >= 1);
+    // Only the two participants with the lowest ids (1 and 2) answer.
+    assert!(out.nodes.iter().filter(|n| n.id > 2).all(|n| n.stats.stores_sent == 0), "only nodes 1 and 2 answer");
+    assert_eq!(out.last_divergent_epoch.map(|e| e <= 32), Some(true), "the stores agree again after the rejoin: {out:?}");
+}

@@ -3,7 +3,9 @@
 
 use cooploc::estimation::linear::LinearPlatform;
 use cooploc::estimation::{CoopMeasurement, CrossCovariances, CrossMode, PlatformFilter, Snapshot, cooperative_update};
-use cooploc::protocol::fragment::{FRAGMENT_DATA, Fragment, Pushed, Reassembler, fragment};
+use cooploc::protocol::fragment::{
+    FRAGMENT_CHUNK, FRAGMENT_DATA, Fragment, MAX_RADIO_FRAME, Pushed, Reassembler, fragment, fragment_in_chunks,
+};
 use cooploc::protocol::record::{self, Encoding, RecordError};
 use nalgebra::{DMatrix, DVector};
 use proptest::prelude::*;
@@ -80,16 +82,20 @@ proptest! {
     /// Any permutation, duplication or loss pattern yields the exact record (every fragment
     /// arrived) or nothing (some did not), for two records interleaved.
     #[test]
+    /// The two records are cut at chunk sizes of their own (a node of an older release cut at
+    /// 232 bytes): the receiver takes each record's from its fragments.
     fn reassembly_is_exact_or_incomplete(
         len_a in 1usize..4000,
         len_b in 1usize..4000,
+        chunk_a in 16usize..=FRAGMENT_DATA,
+        chunk_b in prop_oneof![Just(FRAGMENT_CHUNK), Just(FRAGMENT_DATA), 16usize..=FRAGMENT_DATA],
         seed in any::<u64>(),
         picks in proptest::collection::vec((any::<bool>(), any::<u16>()), 0..80),
     ) {
         let mk = |len: usize, salt: u64| (0..len).map(|i| ((i as u64).wrapping_mul(2654435761) ^ salt ^ seed) as u8).collect::<Vec<u8>>();
         let (ra, rb) = (mk(len_a, 1), mk(len_b, 2));
-        let fa = fragment(1, 10, 1_000_000, &ra).unwrap();
-        let fb = fragment(2, 10, 1_000_000, &rb).unwrap();
+        let fa = fragment_in_chunks(1, 10, 1_000_000, &ra, chunk_a).unwrap();
+        let fb = fragment_in_chunks(2, 10, 1_000_000, &rb, chunk_b).unwrap();
         let mut all = fa.clone();
         all.extend(fb.iter().cloned());
         let order: Vec<usize> = picks.iter().map(|(_, k)| *k as usize % all.len()).collect();
@@ -125,7 +131,7 @@ proptest! {
 
 #[test]
 fn memory_is_bounded_and_old_epochs_expire() {
-    let rec = vec![7u8; 3 * FRAGMENT_DATA + 5];
+    let rec = vec![7u8; 3 * FRAGMENT_CHUNK + 5];
     let mut r = Reassembler::new(5);
     for epoch in 0..100u32 {
         for platform in 0..4u16 {
@@ -145,9 +151,95 @@ fn memory_is_bounded_and_old_epochs_expire() {
     f.count = 9;
     assert!(matches!(r.push(&f), Pushed::Rejected(_)));
     f.count = 4;
-    f.data.pop();
+    // 150 bytes in a fragment before the last: 617 bytes would take 5 such chunks, not 4.
+    f.data.truncate(150);
     assert!(matches!(r.push(&f), Pushed::Rejected(_)));
     assert_eq!(r.in_progress(), 0);
+}
+
+/// The receiver takes each record's chunk size from its fragments, whichever arrives first, and
+/// refuses fragments that no chunk size makes into one record.
+#[test]
+fn a_record_cut_at_any_chunk_size_reassembles_and_contradictions_are_refused() {
+    let rec: Vec<u8> = (0..1041u32).map(|i| (i * 13 % 251) as u8 + 1).collect();
+    for chunk in [5, 17, 100, FRAGMENT_CHUNK, 205, FRAGMENT_DATA] {
+        let frags = fragment_in_chunks(4, 9, 9_000_000, &rec, chunk).unwrap();
+        assert_eq!(frags.len(), rec.len().div_ceil(chunk));
+        // The last fragment first: its chunk size comes from the record length and count.
+        let mut r = Reassembler::new(2);
+        let order: Vec<usize> = (0..frags.len()).rev().collect();
+        assert_eq!(deliver(&mut r, &frags, &order), vec![rec.clone()], "chunk {chunk}");
+    }
+    assert!(fragment_in_chunks(4, 9, 0, &rec, 4).is_err(), "1041 bytes in 4-byte chunks is more than 255 fragments");
+
+    let frags = fragment_in_chunks(4, 9, 9_000_000, &rec, 100).unwrap();
+    let mut r = Reassembler::new(2);
+    // A last fragment whose length no whole chunk count leaves: 1041 - 40 = 1001 is not 10 chunks.
+    let mut last = frags[10].clone();
+    last.data.truncate(40);
+    assert_eq!(r.push(&last), Pushed::Rejected("fragment data length does not fit the record length"));
+    // A middle fragment of another chunk size than the count says.
+    let mut mid = frags[3].clone();
+    mid.data.extend_from_slice(&[0; 20]);
+    assert_eq!(r.push(&mid), Pushed::Rejected("record length and fragment count disagree"));
+    // Over the array: refused before anything else.
+    mid.data.resize(FRAGMENT_DATA + 1, 1);
+    assert!(matches!(r.push(&mid), Pushed::Rejected(_)));
+    // The same record cut again at 232 bytes while a 100-byte cut is in progress (a sender
+    // restarted on a release with the older chunk): the newer cut supersedes, the bytes stay
+    // right.
+    assert_eq!(r.push(&frags[0]), Pushed::Stored);
+    let old = fragment_in_chunks(4, 9, 9_000_000, &rec, FRAGMENT_DATA).unwrap();
+    let mut got = None;
+    for f in &old {
+        if let Pushed::Complete(done) = r.push(f) {
+            got = Some(done.bytes);
+        }
+    }
+    assert_eq!(got, Some(rec.clone()));
+    assert_eq!(
+        r.take_dropped().iter().map(|d| d.reason).collect::<Vec<_>>(),
+        ["superseded by a different record for the same epoch"]
+    );
+}
+
+/// No frame cooploc sends on the cooperative link is longer than a SiK radio's packet, signed:
+/// a state or store fragment cut at [`FRAGMENT_CHUNK`] bytes with no zero to trim (the
+/// worst case), and every other message of the dialect at its full length.
+#[test]
+fn every_frame_on_the_cooperative_link_fits_a_radio_packet_signed() {
+    use cooploc::protocol::MavMessage;
+    use cooploc::protocol::dialect::cooploc::*;
+    use cooploc::protocol::fragment::Payload;
+    use cooploc::protocol::signing::{Signer, TeamKey};
+    use cooploc::protocol::wire::fragment_to_message;
+    use mavlink_core::{MavHeader, Message, MessageData};
+    let header = MavHeader { system_id: 200, component_id: 191, sequence: 255 };
+    let mut signer = Signer::new(TeamKey::from_passphrase("radio"), 200, 0);
+    let rec = vec![0xFFu8; 3 * FRAGMENT_CHUNK];
+    for payload in [Payload::Record, Payload::Store] {
+        for mut f in fragment(0xFFFF, u32::MAX, u64::MAX, &rec).unwrap() {
+            f.payload = payload;
+            let frame = signer.frame(header, &fragment_to_message(&f).unwrap(), 1_800_000_000_000_000);
+            assert_eq!(frame.len(), MAX_RADIO_FRAME, "{payload:?}: a whole chunk with nothing to trim fills the packet");
+        }
+    }
+    // The rest at their full payload (10 header, 2 checksum and 13 signature bytes around it).
+    let full = [
+        (COOPLOC_RANGE_DATA::NAME, COOPLOC_RANGE_DATA::ENCODED_LEN),
+        (COOPLOC_ESTIMATE_DATA::NAME, COOPLOC_ESTIMATE_DATA::ENCODED_LEN),
+        (COOPLOC_EPOCH_DATA::NAME, COOPLOC_EPOCH_DATA::ENCODED_LEN),
+        (COOPLOC_RANGE_BEARING_DATA::NAME, COOPLOC_RANGE_BEARING_DATA::ENCODED_LEN),
+        ("HEARTBEAT", HEARTBEAT_DATA::ENCODED_LEN),
+    ];
+    for (name, len) in full {
+        assert!(10 + len + 2 + 13 <= MAX_RADIO_FRAME, "{name}: {} B signed", 10 + len + 15);
+    }
+    // Every message of the cooploc dialect is one of those (ids 61000 to 61005).
+    for id in 61000..61100 {
+        let known = (61000..=61005).contains(&id);
+        assert_eq!(MavMessage::default_message_from_id(id).is_some(), known, "message {id}: add it above");
+    }
 }
 
 /// Three nodes exchange f32 records. Each runs the joint update on the decoded broadcasts, its
@@ -355,4 +447,72 @@ fn store_snapshots_round_trip_and_refuse_what_does_not_add_up() {
     let mut other = store.clone();
     other.set_reference(3, StoreRef { epoch: 9, token: 11 });
     assert_ne!(other.digest(), store.digest());
+}
+
+/// A store snapshot of any size goes as parts, each one fragment series: parts from two senders
+/// of the same store, in any order, with duplicates, some series lost and sent again, give the
+/// exact snapshot; a part of another snapshot, a contradicting or corrupted part never does.
+#[test]
+fn store_parts_reassemble_from_any_sender_in_any_order_and_refuse_contradictions() {
+    use cooploc::protocol::fragment::{PartPushed, StoreAssembler};
+    use cooploc::protocol::record::{MAX_STORE_LEN, STORE_PART_HEADER, STORE_VERSION, decode_store_part, store_parts};
+    let snapshot: Vec<u8> = std::iter::once(STORE_VERSION).chain((1..130_000u32).map(|i| (i * 7 % 253) as u8)).collect();
+    let parts = store_parts(&snapshot, 50_000).unwrap();
+    assert_eq!(parts.len(), 3);
+    assert!(parts.iter().all(|p| p.len() <= 50_000 + STORE_PART_HEADER));
+    // Each part as one fragment series, from sender 2 or 3, reassembled in a scrambled order.
+    let mut series = Reassembler::keeping_each_record(8);
+    let mut store = StoreAssembler::default();
+    let mut frags: Vec<Fragment> = Vec::new();
+    for (k, p) in parts.iter().enumerate() {
+        frags.extend(fragment(2 + (k % 2) as u16, 5, 0, p).unwrap());
+    }
+    // A few of the first sender's fragments lost the first time, sent again after the rest.
+    let order: Vec<usize> =
+        (0..frags.len()).filter(|i| i % 97 != 3).rev().chain((0..frags.len()).filter(|i| i % 97 == 3)).chain([0, 1]).collect();
+    let mut done = None;
+    for i in order {
+        if let Pushed::Complete(rec) = series.push(&frags[i]) {
+            let part = decode_store_part(&rec.bytes).unwrap().expect("a part");
+            match store.push(part) {
+                PartPushed::Complete(bytes) => done = Some(bytes),
+                PartPushed::Stored => {}
+                other => panic!("{other:?}"),
+            }
+        }
+    }
+    assert_eq!(done.as_deref(), Some(&snapshot[..]));
+    assert_eq!(store.in_progress(), 0);
+
+    // A whole snapshot (what releases before parts sent) is told apart from a part.
+    assert_eq!(decode_store_part(&snapshot).unwrap(), None);
+    let part = |k: usize| decode_store_part(&parts[k]).unwrap().unwrap();
+    let mut s = StoreAssembler::default();
+    assert_eq!(s.push(part(0)), PartPushed::Stored);
+    assert_eq!(s.push(part(0)), PartPushed::Duplicate);
+    let mut other = part(1);
+    other.bytes[7] ^= 1;
+    assert_eq!(s.push(other.clone()), PartPushed::Stored, "a corrupted part looks fine alone");
+    assert_eq!(s.push(part(2)), PartPushed::Rejected("the parts together fail the snapshot's CRC-32"));
+    let mut short = part(1);
+    short.bytes.truncate(10);
+    assert_eq!(s.push(short), PartPushed::Rejected("snapshot length and part count disagree"));
+    // Parts of a third and a fourth snapshot at once: only two are assembled.
+    let mut s = StoreAssembler::default();
+    for crc in 0..StoreAssembler::CANDIDATES as u32 {
+        assert_eq!(s.push(cooploc::protocol::record::StorePart { crc32: crc, ..part(0) }), PartPushed::Stored);
+    }
+    assert_eq!(
+        s.push(cooploc::protocol::record::StorePart { crc32: 99, ..part(0) }),
+        PartPushed::Rejected("parts of too many different snapshots")
+    );
+    // Headers that cannot be: beyond the count, over the size limit, an unknown version.
+    let mut bad = parts[1].clone();
+    bad[1..3].copy_from_slice(&7u16.to_le_bytes());
+    assert!(decode_store_part(&bad).unwrap_err().to_string().contains("index beyond the count"));
+    let mut huge = parts[1].clone();
+    huge[5..9].copy_from_slice(&(MAX_STORE_LEN as u32 + 1).to_le_bytes());
+    assert!(decode_store_part(&huge).unwrap_err().to_string().contains("more than"));
+    assert!(decode_store_part(&[9, 0, 0]).is_err());
+    assert!(store_parts(&vec![1u8; MAX_STORE_LEN + 1], 50_000).is_err());
 }

@@ -10,8 +10,8 @@
 //!
 //! What a node writes is cut into packets on MAVLink frame boundaries (a radio's MAVLink
 //! framing: a whole frame per packet, so that packets from two senders interleave only between
-//! frames; SiK does this for frames up to its 252-byte packet, and a full signed state fragment
-//! is 279 bytes, so here a packet holds up to 280), queued (a radio buffers a few kilobytes and
+//! frames; SiK does this for frames up to its 252-byte packet and cuts a longer frame, which the
+//! test counts and refuses: no frame cooploc sends is longer), queued (a radio buffers a few kilobytes and
 //! drops what does not fit), sent one at a time at the air rate, each byte hit by noise with a
 //! small probability (no firmware error correction), and delivered to every other radio. The nodes cut the byte stream back into frames, drop what noise
 //! damaged, and ask for what they missed. The run is the paper scenario at 5x with the air rate
@@ -37,14 +37,15 @@ use cooploc::protocol::wire;
 use cooploc::sitl::{PAPER_TOML, Scenario, World};
 use serialport::SerialPort;
 
-/// The largest packet on the air: a whole MAVLink 2 frame, signed.
-const PACKET: usize = 280;
+/// The largest packet on the air: SiK's.
+const PACKET: usize = cooploc::protocol::fragment::MAX_RADIO_FRAME;
 /// What a radio buffers before it drops (bytes).
 const RADIO_BUFFER: usize = 8 * 1024;
 
 /// Cuts whole MAVLink frames off the front of `pending` as packets (by the length byte, as a
-/// radio's MAVLink framing does; bytes before a start marker go as a packet of their own).
-fn packets(pending: &mut Vec<u8>) -> Vec<Vec<u8>> {
+/// radio's MAVLink framing does; bytes before a start marker go as a packet of their own); a
+/// frame longer than a packet is cut into packets as SiK does (counted in `cut`).
+fn packets(pending: &mut Vec<u8>, cut: &AtomicU64) -> Vec<Vec<u8>> {
     let mut out = Vec::new();
     loop {
         let Some(start) = pending.iter().position(|&b| b == 0xFD || b == 0xFE) else {
@@ -65,7 +66,11 @@ fn packets(pending: &mut Vec<u8>) -> Vec<Vec<u8>> {
         if pending.len() < len {
             return out;
         }
-        out.push(pending.drain(..len.min(PACKET)).collect());
+        if len > PACKET {
+            cut.fetch_add(1, Ordering::Relaxed);
+        }
+        let frame: Vec<u8> = pending.drain(..len).collect();
+        out.extend(frame.chunks(PACKET).map(<[u8]>::to_vec));
     }
 }
 
@@ -81,6 +86,8 @@ struct AirStats {
     overflow: AtomicU64,
     /// Bytes noise changed.
     corrupted: AtomicU64,
+    /// Frames longer than a packet, which the radio cut in two (interleavable with others').
+    cut: AtomicU64,
 }
 
 /// A radio network of `n` pseudo-terminals on one channel of `rate` bytes per second, each byte
@@ -112,7 +119,7 @@ fn radio_network(n: usize, rate: f64, noise: f64) -> (Vec<String>, Arc<AirStats>
                         pending.extend_from_slice(&buf[..got]);
                         let mut q = queue.lock().unwrap();
                         let mut mine: usize = q.iter().filter(|(from, _)| *from == k).map(|(_, p)| p.len()).sum();
-                        for packet in packets(&mut pending) {
+                        for packet in packets(&mut pending, &stats.cut) {
                             if mine + packet.len() > RADIO_BUFFER {
                                 stats.overflow.fetch_add(packet.len() as u64, Ordering::Relaxed);
                             } else {
@@ -272,8 +279,12 @@ fn three_nodes_on_a_shared_serial_radio_run_the_paper_scenario_within_its_budget
     }
     stop.store(true, Ordering::Relaxed);
     let (overflow, corrupted) = (air.overflow.load(Ordering::Relaxed), air.corrupted.load(Ordering::Relaxed));
-    eprintln!("air: {corrupted} bytes hit by noise, {overflow} dropped by full radio buffers");
+    let cut = air.cut.load(Ordering::Relaxed);
+    eprintln!(
+        "air: {corrupted} bytes hit by noise, {overflow} dropped by full radio buffers, {cut} frames over a {PACKET}-byte packet"
+    );
     assert!(failures.is_empty(), "{failures:?}");
+    assert_eq!(cut, 0, "every frame must fit one radio packet");
     assert!(corrupted > 0, "the noise must have hit something for the test to mean anything");
     assert!(node_err < 0.5 * dr_err, "the team ({node_err:.2} m) should beat dead reckoning ({dr_err:.2} m) by far");
     let _ = std::fs::remove_dir_all(&dir);

@@ -45,8 +45,9 @@
 //!      or the participant started independently after the store last saw it), its holders run
 //!      the exact method among themselves and the others are *left out*: they apply nothing
 //!      (their Psi keeps accumulating, so that store stays right for them), ask the holders for
-//!      their store right after the epoch (STORE_WANTED, answered with COOPLOC_STORE_FRAGMENT),
-//!      and adopt it; the team is exact again from the next epoch on;
+//!      their store right after the epoch (STORE_WANTED, answered by the two lowest-id holders
+//!      with the store in parts of COOPLOC_STORE_FRAGMENT series, see [`store_sync`]), and adopt
+//!      it; the team is exact again from the next epoch on;
 //!    - else every node *heals* with the covariance-intersection bound of
 //!      [`crate::estimation::coop`] (cross blocks dropped, each participant's covariance divided
 //!      by its weight), which is consistent whatever the true cross-covariances were; after it
@@ -1028,7 +1029,7 @@ impl NodeCore {
                     return;
                 }
                 if a.state == EpochState::COOPLOC_EPOCH_STATE_STORE_WANTED {
-                    if a.participants.contains(&self.cfg.id) {
+                    if store_sync::answers(&a.participants, self.cfg.id) {
                         self.send_store(from, a.epoch, a.digest, out);
                     }
                     return;
@@ -1604,11 +1605,14 @@ impl NodeCore {
             return;
         };
         let Ok(bytes) = record::encode_store(&snap) else { return };
-        let Ok(frags) = fragment(self.cfg.id, epoch, t.0, &bytes) else { return };
-        for mut f in frags {
-            f.payload = Payload::Store;
-            if let Ok(m) = wire::fragment_to_message(&f) {
-                out.push(NodeOutput::ToPeers(m));
+        let Ok(parts) = record::store_parts(&bytes, store_sync::PART_LEN) else { return };
+        for part in parts {
+            let Ok(frags) = fragment(self.cfg.id, epoch, t.0, &part) else { return };
+            for mut f in frags {
+                f.payload = Payload::Store;
+                if let Ok(m) = wire::fragment_to_message(&f) {
+                    out.push(NodeOutput::ToPeers(m));
+                }
             }
         }
         self.stores.sent(epoch, self.wall_us, EPOCHS_REMEMBERED as u32);

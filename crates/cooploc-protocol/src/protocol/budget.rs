@@ -378,7 +378,7 @@ mod tests {
         let signed = epoch_frames(&shape(3, Encoding::F64, true)).unwrap();
         // 40 header + (136 + 256) x 8 + 23 trailer + 3 refs x 14 + 2 ranges x 10.
         assert_eq!(plain.record_bytes, 40 + 392 * 8 + 23 + 3 * 14 + 2 * 10);
-        assert_eq!(plain.kinds[0].1, plain.record_bytes.div_ceil(232));
+        assert_eq!(plain.kinds[0].1, plain.record_bytes.div_ceil(crate::protocol::fragment::FRAGMENT_CHUNK));
         assert_eq!(signed.bytes(), plain.bytes() + 13 * plain.frames());
         let compact = epoch_frames(&shape(3, Encoding::Compact, false)).unwrap();
         assert_eq!(compact.record_bytes, 40 + crate::protocol::compact::len(16) + 23 + 3 * 14 + 2 * 10);

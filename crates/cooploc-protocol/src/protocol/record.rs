@@ -126,6 +126,10 @@ pub enum RecordError {
     Store(StoreError),
     #[error("store snapshot's blocks and references do not give the digest it claims")]
     StoreDigest,
+    #[error("store snapshot of {0} bytes, more than {MAX_STORE_LEN} or 65,535 parts")]
+    StoreLength(usize),
+    #[error("store part: {0}")]
+    StorePart(&'static str),
 }
 
 /// One platform's contribution to an epoch: its state, the digest of its cross-covariance
@@ -512,4 +516,82 @@ pub fn decode_store(bytes: &[u8]) -> Result<StoreSnapshot, RecordError> {
         return Err(RecordError::StoreDigest);
     }
     Ok(StoreSnapshot { epoch, digest_before, store })
+}
+
+/// Store part format version (a whole snapshot starts with [`STORE_VERSION`]).
+pub const STORE_PART_VERSION: u8 = 2;
+/// Bytes of a store part's header.
+pub const STORE_PART_HEADER: usize = 1 + 2 + 2 + 4 + 4;
+/// Largest store snapshot a node sends or assembles (8 MiB: a 64-member team of 16-state
+/// platforms holds 2,016 blocks, 4.1 MB).
+pub const MAX_STORE_LEN: usize = 8 << 20;
+
+/// One part of a store snapshot. A snapshot (see [`encode_store`]) goes as parts so that a store
+/// of any size fits the fragment series (255 fragments each): each part is one series of
+/// COOPLOC_STORE_FRAGMENT. Layout, little endian: u8 version (2), u16 index, u16 count, u32
+/// length of the whole snapshot, u32 CRC-32 of it, then the part's bytes: every part but the
+/// last carries the same number of bytes, the last one the rest. Participants of an epoch hold
+/// the same store, so a part from any of them fits the others'.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct StorePart {
+    pub index: u16,
+    pub count: u16,
+    pub total_len: u32,
+    pub crc32: u32,
+    pub bytes: Vec<u8>,
+}
+
+/// Cuts an encoded snapshot into parts of at most `part_len` snapshot bytes each, every part
+/// with its header.
+pub fn store_parts(snapshot: &[u8], part_len: usize) -> Result<Vec<Vec<u8>>, RecordError> {
+    let part_len = part_len.max(1);
+    let count = snapshot.len().div_ceil(part_len);
+    if snapshot.is_empty() || snapshot.len() > MAX_STORE_LEN || count > u16::MAX as usize {
+        return Err(RecordError::StoreLength(snapshot.len()));
+    }
+    let crc = crc32fast::hash(snapshot);
+    Ok(snapshot
+        .chunks(part_len)
+        .enumerate()
+        .map(|(i, bytes)| {
+            let mut out = Vec::with_capacity(STORE_PART_HEADER + bytes.len());
+            out.push(STORE_PART_VERSION);
+            out.extend_from_slice(&(i as u16).to_le_bytes());
+            out.extend_from_slice(&(count as u16).to_le_bytes());
+            out.extend_from_slice(&(snapshot.len() as u32).to_le_bytes());
+            out.extend_from_slice(&crc.to_le_bytes());
+            out.extend_from_slice(bytes);
+            out
+        })
+        .collect())
+}
+
+/// Reads a store series' bytes: a part (Some), or a whole snapshot as releases before parts sent
+/// it (None: decode it with [`decode_store`]).
+pub fn decode_store_part(bytes: &[u8]) -> Result<Option<StorePart>, RecordError> {
+    match bytes.first() {
+        None => Err(RecordError::TooShort { got: 0, need: 1 }),
+        Some(&STORE_VERSION) => Ok(None),
+        Some(&STORE_PART_VERSION) => {
+            if bytes.len() <= STORE_PART_HEADER {
+                return Err(RecordError::TooShort { got: bytes.len(), need: STORE_PART_HEADER + 1 });
+            }
+            let index = u16::from_le_bytes([bytes[1], bytes[2]]);
+            let count = u16::from_le_bytes([bytes[3], bytes[4]]);
+            let total_len = u32::from_le_bytes(bytes[5..9].try_into().expect("4 bytes"));
+            let crc32 = u32::from_le_bytes(bytes[9..13].try_into().expect("4 bytes"));
+            if total_len as usize > MAX_STORE_LEN {
+                return Err(RecordError::StoreLength(total_len as usize));
+            }
+            if index >= count {
+                return Err(RecordError::StorePart("index beyond the count"));
+            }
+            let part = &bytes[STORE_PART_HEADER..];
+            if part.len() > total_len as usize {
+                return Err(RecordError::StorePart("longer than the whole snapshot"));
+            }
+            Ok(Some(StorePart { index, count, total_len, crc32, bytes: part.to_vec() }))
+        }
+        Some(&v) => Err(RecordError::Version(v)),
+    }
 }

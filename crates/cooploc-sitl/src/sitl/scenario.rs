@@ -145,6 +145,30 @@ fn is_ins(m: &PlatformModel) -> bool {
 }
 
 impl Scenario {
+    /// This scenario's vehicles and sensors as a team of `n` driving north side by side,
+    /// `spacing_m` apart, at 10 m/s for `duration_s`, radios reaching `reach_m` (a large team
+    /// spread out: each vehicle ranges to its neighbours only), ranging at 1 Hz only. The
+    /// platforms take the first platform's settings; ids 1 to `n`.
+    pub fn side_by_side(&self, n: usize, spacing_m: f64, reach_m: f64, duration_s: f64) -> Scenario {
+        let mut s = self.clone();
+        s.name = format!("side-by-side-{n}");
+        s.duration_s = duration_s;
+        s.ranging.max_range_m = Some(reach_m);
+        s.ranging.schedules.retain(|r| r.name == "1hz");
+        let template = s.platforms[0].clone();
+        s.platforms = (0..n)
+            .map(|i| PlatformSpec {
+                id: i as PlatformId + 1,
+                start_ned_m: [0.0, spacing_m * i as f64, 0.0],
+                start_yaw_deg: 0.0,
+                start_speed_m_s: 10.0,
+                segments: vec![Segment { duration_s, accel_m_s2: 0.0, yaw_rate_deg_s: 0.0 }],
+                ..template.clone()
+            })
+            .collect();
+        s
+    }
+
     /// The scenario's vehicle, as its INS platforms are: its sensors, initial uncertainty,
     /// filter tuning, latitude and gravity.
     pub fn vehicle(&self) -> VehicleSpec {

@@ -8,7 +8,15 @@
 //! asking again every retry interval. A participant answers with the store it kept after that
 //! epoch (COOPLOC_STORE_FRAGMENT), only to a teammate that did not run the epoch with it, and at
 //! most one store per retry interval in all: a request is a small message and a store a large
-//! one, so nobody can make a node flood the network. The asking node adopts a store only if it
+//! one, so nobody can make a node flood the network. Only the two participants with the lowest
+//! ids answer (one answer may be lost; 63 copies of a 64-member team's 4 MB store would be a
+//! flood of their own).
+//!
+//! A store goes as parts of at most [`PART_LEN`] bytes, each one fragment series
+//! ([`crate::protocol::record::StorePart`]), so that a store of any size (up to
+//! [`crate::protocol::record::MAX_STORE_LEN`]) can be sent: the asking node keeps every series
+//! and every part that arrived, from either answerer (they hold the same store), while it still
+//! wants the store, so that a repeated request fills what was lost instead of starting over. The asking node adopts a store only if it
 //! asked for it, from a participant, nothing was resolved since, and it is valid for itself.
 //!
 //! This module holds the decisions and the state they need; the core sends and decodes.
@@ -16,12 +24,24 @@
 use std::collections::{BTreeMap, VecDeque};
 
 use crate::estimation::{CrossCovariances, PlatformId, StoreRef};
-use crate::protocol::fragment::{Fragment, Pushed, Reassembler};
-use crate::protocol::record::{StateRecord, StoreSnapshot};
+use crate::protocol::fragment::{Fragment, MAX_RECORD_LEN, PartPushed, Pushed, Reassembler, StoreAssembler};
+use crate::protocol::record::{self, MAX_STORE_LEN, STORE_PART_HEADER, StateRecord, StoreSnapshot};
 use crate::time::TimeUs;
 
 /// Store snapshots kept for teammates that ask (the last epochs we took part in).
 pub(super) const SNAPSHOTS_KEPT: usize = 4;
+/// Snapshot bytes per part: a part and its header fill one fragment series.
+pub(super) const PART_LEN: usize = MAX_RECORD_LEN - STORE_PART_HEADER;
+/// Fragment series of a wanted store in progress at once (each at most 255 fragments).
+const SERIES_IN_PROGRESS: usize = 256;
+/// Participants that answer a request for a store: the ones with the lowest ids.
+pub(super) const ANSWERERS: usize = 2;
+
+/// Whether `me` answers a request for the store of the epoch `participants` ran: one of the
+/// [`ANSWERERS`] lowest ids among them.
+pub(super) fn answers(participants: &[PlatformId], me: PlatformId) -> bool {
+    participants.contains(&me) && participants.iter().filter(|&&p| p < me).count() < ANSWERERS
+}
 
 /// Our store right after an epoch we took part in, for teammates that ask.
 #[derive(Debug, Clone)]
@@ -40,6 +60,8 @@ struct WantStore {
     /// Wall time we asked first and last.
     since: u64,
     last_request: u64,
+    /// The parts of the store that arrived.
+    parts: StoreAssembler,
 }
 
 /// A request for the store after `epoch` (at `t`), to the participants that ran it on a store
@@ -73,7 +95,12 @@ pub(super) struct StoreSync {
 
 impl StoreSync {
     pub(super) fn new() -> Self {
-        Self { kept: VecDeque::new(), wanted: None, sent_at: BTreeMap::new(), reassembler: Reassembler::new(16) }
+        Self {
+            kept: VecDeque::new(),
+            wanted: None,
+            sent_at: BTreeMap::new(),
+            reassembler: Reassembler::keeping_each_record(SERIES_IN_PROGRESS),
+        }
     }
 
     /// The stores kept: (epoch, store digest before it) of each.
@@ -81,12 +108,12 @@ impl StoreSync {
         self.kept.iter().map(|k| (k.epoch, k.digest_before))
     }
 
-    /// Keeps our store after `epoch` for teammates that may ask for it, only while it fits in
-    /// one fragment series (beyond that a left-out node heals with the bound); the last
+    /// Keeps our store after `epoch` for teammates that may ask for it, when its snapshot is at
+    /// most [`MAX_STORE_LEN`] bytes (beyond that a left-out node heals with the bound); the last
     /// [`SNAPSHOTS_KEPT`] are kept.
     pub(super) fn keep(&mut self, epoch: u32, t: TimeUs, digest_before: u64, store: &CrossCovariances, team: usize) {
         let bytes: usize = store.blocks().map(|(_, m)| 6 + m.len() * 8).sum::<usize>() + 32 + 14 * team;
-        if bytes > crate::protocol::fragment::MAX_RECORD_LEN.min(u16::MAX as usize) {
+        if bytes > MAX_STORE_LEN {
             return;
         }
         self.kept.push_back(KeptStore { epoch, t, digest_before, store: store.clone() });
@@ -97,7 +124,10 @@ impl StoreSync {
 
     /// We were left out: we want the store of `request` from now (`wall_us`) on.
     pub(super) fn want(&mut self, request: StoreRequest, wall_us: u64) {
-        self.wanted = Some(WantStore { request, since: wall_us, last_request: wall_us });
+        if self.wanted.as_ref().is_some_and(|w| w.request == request) {
+            return;
+        }
+        self.wanted = Some(WantStore { request, since: wall_us, last_request: wall_us, parts: StoreAssembler::default() });
     }
 
     /// Whether the next broadcast waits for the store we want: while `last_applied` (the last
@@ -122,15 +152,27 @@ impl StoreSync {
     }
 
     /// A fragment of a store from `from`: kept only when it is of the store we want, from one of
-    /// its participants (nobody can make us hold another's bytes). None: not kept.
+    /// its participants (nobody can make us hold another's bytes). None: not kept. Complete:
+    /// the whole snapshot's bytes, from its parts (or in one series, as releases before parts
+    /// sent it).
     pub(super) fn push_fragment(&mut self, from: PlatformId, f: &Fragment) -> Option<Pushed> {
-        let w = self.wanted.as_ref()?;
+        let w = self.wanted.as_mut()?;
         if w.request.epoch != f.epoch || !w.request.members.contains(&from) {
             return None;
         }
         let pushed = self.reassembler.push(f);
         self.reassembler.take_dropped();
-        Some(pushed)
+        let Pushed::Complete(series) = pushed else { return Some(pushed) };
+        Some(match record::decode_store_part(&series.bytes) {
+            Ok(None) => Pushed::Complete(series),
+            Ok(Some(part)) => match w.parts.push(part) {
+                PartPushed::Stored => Pushed::Stored,
+                PartPushed::Duplicate => Pushed::Duplicate,
+                PartPushed::Rejected(why) => Pushed::Rejected(why),
+                PartPushed::Complete(bytes) => Pushed::Complete(crate::protocol::fragment::Record { bytes, ..series }),
+            },
+            Err(_) => Pushed::Rejected("a store series that is neither a part nor a snapshot"),
+        })
     }
 
     /// Our store after `epoch` for `to`, when we kept it (under that digest), `to` did not run
@@ -246,17 +288,66 @@ mod tests {
     }
 
     #[test]
-    fn the_last_stores_are_kept_and_one_too_large_for_a_fragment_series_is_not() {
+    fn the_last_stores_are_kept_and_one_over_the_size_limit_is_not() {
         let mut s = StoreSync::new();
         for epoch in 1..=6 {
             s.keep(epoch, TimeUs(u64::from(epoch)), 100 + u64::from(epoch), &store(epoch as f64), 3);
         }
         assert_eq!(s.kept().collect::<Vec<_>>(), [(3, 103), (4, 104), (5, 105), (6, 106)]);
-        // 60 platforms' 15-state blocks: far beyond 255 fragments.
+        // 60 platforms' 15-state blocks, 107 KB: more than one fragment series, kept.
         let blocks = (1..60u16).map(|i| ((i, i + 1), DMatrix::from_element(15, 15, 0.1))).collect();
+        let large = CrossCovariances::from_parts(blocks, Vec::new()).unwrap();
+        s.keep(7, TimeUs(7), 107, &large, 60);
+        assert_eq!(s.kept().last(), Some((7, 107)));
+        // 91 platforms' 4,095 blocks of 16 x 16, 8.4 MB: over the limit.
+        let blocks = (1..=91u16).flat_map(|i| (i + 1..=91).map(move |j| ((i, j), DMatrix::from_element(16, 16, 0.1)))).collect();
         let huge = CrossCovariances::from_parts(blocks, Vec::new()).unwrap();
-        s.keep(7, TimeUs(7), 107, &huge, 60);
-        assert_eq!(s.kept().last(), Some((6, 106)));
+        s.keep(8, TimeUs(8), 108, &huge, 91);
+        assert_eq!(s.kept().last(), Some((7, 107)));
+    }
+
+    #[test]
+    fn the_two_participants_with_the_lowest_ids_answer() {
+        assert!(answers(&[2, 5, 9], 2) && answers(&[2, 5, 9], 5) && !answers(&[2, 5, 9], 9));
+        assert!(answers(&[9, 5, 2], 5), "whatever the order");
+        assert!(!answers(&[2, 5, 9], 1), "not a participant");
+        assert!(answers(&[4], 4));
+    }
+
+    #[test]
+    fn a_store_in_parts_is_kept_across_requests_and_taken_whole() {
+        let blocks =
+            (1..40u16).map(|i| ((i, i + 1), DMatrix::from_fn(16, 16, |r, c| (r * 16 + c) as f64 + f64::from(i)))).collect();
+        let large = CrossCovariances::from_parts(blocks, Vec::new()).unwrap();
+        let snap = StoreSnapshot { epoch: 5, digest_before: 77, store: large };
+        let bytes = record::encode_store(&snap).unwrap();
+        let parts = record::store_parts(&bytes, PART_LEN).unwrap();
+        assert_eq!(parts.len(), 2, "{} bytes", bytes.len());
+        let series = |from: PlatformId, k: usize| {
+            let mut frags = fragment(from, 5, 5_000_000, &parts[k]).unwrap();
+            frags.iter_mut().for_each(|f| f.payload = Payload::Store);
+            frags
+        };
+        let mut s = StoreSync::new();
+        s.want(request(5), 0);
+        // The first answer, from 1, loses the first fragment of part 0 and two of part 1; the
+        // request is repeated (what came is kept); then fragment 0 of part 0 comes again from 1
+        // and part 1 whole from 2 (the same store: its part fits 1's).
+        let (a0, a1) = (series(1, 0), series(1, 1));
+        for f in a0.iter().skip(1).chain(a1.iter().skip(2)) {
+            assert!(matches!(s.push_fragment(1, f), Some(Pushed::Stored | Pushed::Duplicate)));
+        }
+        s.want(request(5), 400_000);
+        assert_eq!(s.push_fragment(2, &series(2, 0)[0]), Some(Pushed::Stored), "part 0 from 2, whole only with 2's own");
+        let mut got = None;
+        for f in series(1, 0).iter().take(1).chain(series(2, 1).iter()) {
+            let from = if f.platform == 1 { 1 } else { 2 };
+            if let Some(Pushed::Complete(rec)) = s.push_fragment(from, f) {
+                got = Some(rec.bytes);
+            }
+        }
+        assert_eq!(got.as_deref(), Some(&bytes[..]), "the parts kept across the second request");
+        assert_eq!(record::decode_store(&got.unwrap()).unwrap(), snap);
     }
 
     #[test]
