@@ -306,9 +306,9 @@ fn a_left_out_node_of_a_ten_member_team_takes_a_store_of_two_parts_and_nobody_he
     let world = World::new(&paper.side_by_side(10, 100.0, 310.0, 60.0)).unwrap();
     let store_bytes = 45 * (6 + 16 * 16 * 8);
     assert!(store_bytes > MAX_RECORD_LEN, "the store must need more than one series for this test to mean anything");
-    let leave = Some(Outage { node: 4, from_s: 20.0, until_s: 30.0 });
+    let leave = vec![Outage { node: 4, from_s: 20.0, until_s: 30.0 }];
     for (loss, run) in [(0.0, 0), (0.3, 1), (0.3, 2)] {
-        let faults = Faults { leave, coop_loss: loss, links_until_s: 60.0, ..Faults::default() };
+        let faults = Faults { leave: leave.clone(), coop_loss: loss, links_until_s: 60.0, ..Faults::default() };
         eprintln!("{:.0}% datagram loss, run {run}:", loss * 100.0);
         a_left_out_node_takes_the_store(&run_case(&world, &faults, Method::Decentralized, "1hz", 1, run, Encoding::F64).unwrap());
     }
@@ -337,4 +337,33 @@ fn a_left_out_node_takes_the_store(out: &cooploc::experiment::faults::RunOutcome
     // Only the two participants with the lowest ids (1 and 2) answer.
     assert!(out.nodes.iter().filter(|n| n.id > 2).all(|n| n.stats.stores_sent == 0), "only nodes 1 and 2 answer");
     assert_eq!(out.last_divergent_epoch.map(|e| e <= 32), Some(true), "the stores agree again after the rejoin: {out:?}");
+}
+
+/// Sixteen vehicles side by side (`cooploc faults --side-by-side 16`), four of them out of radio
+/// range in turn (overlapping): every returning member is left out once or more, takes the
+/// team's store (120 blocks of 16 x 16, 247 KB: five parts), nobody heals, and
+/// the team ends where the run without the leaves ends (0.664 m against 0.649 m; issue 36 asks
+/// for 15%). With 10% datagram loss on
+/// top the team heals with the bound and ends worse than dead reckoning: not asserted here (see
+/// docs/robustness.md, "A large team").
+#[test]
+fn four_members_of_a_sixteen_member_team_leave_and_come_back_without_a_heal() {
+    use cooploc::experiment::faults::large_team_cases;
+    let paper = Scenario::from_toml_str(PAPER_TOML).unwrap();
+    let world = World::new(&paper.side_by_side(16, 100.0, 310.0, 60.0)).unwrap();
+    let cases = large_team_cases(16, 60.0);
+    let case = |name: &str| cases.iter().find(|c| c.name == name).unwrap().faults.clone();
+    let run = |f| run_case(&world, &f, Method::Decentralized, "1hz", 1, 0, Encoding::F64).unwrap();
+    let (base, left) = (run(case("fault-free")), run(case("four members leave and come back")));
+    let rms = |o: &cooploc::experiment::faults::RunOutcome| {
+        (o.nodes.iter().map(|n| n.final_err_m.powi(2)).sum::<f64>() / o.nodes.len() as f64).sqrt()
+    };
+    eprintln!("fault-free {:.3} m, four leave {:.3} m", rms(&base), rms(&left));
+    for k in [3, 6, 9, 12] {
+        let s = &left.nodes[k].stats;
+        assert!(s.epochs_excluded >= 1 && s.stores_adopted >= 1, "node {}: {s:?}", k + 1);
+    }
+    assert_eq!(left.nodes.iter().map(|n| n.stats.heals).sum::<u64>(), 0);
+    // Issue 36's bar for a large team's faults: within 15% of the run without them.
+    assert!((rms(&left) / rms(&base) - 1.0).abs() < 0.15, "{} against {}", rms(&left), rms(&base));
 }

@@ -73,8 +73,9 @@ pub struct Faults {
     /// fragment alone, the rest packed into datagrams of up to [`budget::MAX_DATAGRAM`] bytes;
     /// loss and delay strike whole datagrams (as a lossy network does), not single messages.
     pub packed: bool,
-    /// The node's cooperative radio is out of range (both ways); its vehicle link is not.
-    pub leave: Option<Outage>,
+    /// Nodes whose cooperative radio is out of range (both ways) for a while; their vehicle
+    /// links are not.
+    pub leave: Vec<Outage>,
     /// How many times faster than real time the vehicles run (`cooploc sitl --speed`): the
     /// nodes' wall-clock timers (retries, epoch timeouts) and the network's delays are wall
     /// time, so in vehicle time they last `speed` times longer. 1: real time.
@@ -106,7 +107,7 @@ impl Default for Faults {
             restore: false,
             join: None,
             packed: false,
-            leave: None,
+            leave: Vec::new(),
             speed: 1.0,
             corrupt: 0.0,
             link_seed: None,
@@ -120,9 +121,10 @@ impl Faults {
     pub fn end_s(&self) -> f64 {
         let faulty = self.coop_loss > 0.0 || self.vehicle_loss > 0.0 || self.delay_ms.1 > 0 || self.corrupt > 0.0;
         let link = if faulty { self.links_until_s } else { 0.0 };
-        [self.stall, self.kill, self.leave]
+        [self.stall, self.kill]
             .iter()
             .flatten()
+            .chain(&self.leave)
             .map(|o| o.until_s)
             .chain(self.join.map(|(_, t)| t))
             .fold(link, f64::max)
@@ -134,7 +136,7 @@ impl Faults {
     /// end): a case whose node comes back after the end says nothing about recovery. Link faults
     /// fit any scenario (they last to its end when it is shorter than `links_until_s`).
     pub fn fits(&self, duration_s: f64) -> bool {
-        [self.stall, self.kill, self.leave].iter().flatten().all(|o| o.until_s < duration_s)
+        [self.stall, self.kill].iter().flatten().chain(&self.leave).all(|o| o.until_s < duration_s)
             && self.join.is_none_or(|(_, t)| t < duration_s)
     }
 }
@@ -197,11 +199,37 @@ pub fn standard_cases() -> Vec<FaultCase> {
             faults: Faults { kill: node3(114.0, 114.3), restore: true, ..Faults::default() },
         },
         FaultCase { name: "node 3 joins at 100 s", faults: Faults { join: Some((2, 100.0)), ..Faults::default() } },
-        FaultCase { name: "node 3 leaves for 60 s", faults: Faults { leave: node3(150.0, 210.0), ..Faults::default() } },
+        FaultCase {
+            name: "node 3 leaves for 60 s",
+            faults: Faults { leave: node3(150.0, 210.0).into_iter().collect(), ..Faults::default() },
+        },
         FaultCase {
             name: "node 3 leaves for 60 s, 10% loss, delay 0-300 ms",
-            faults: Faults { leave: node3(150.0, 210.0), ..links(0.10, 0.0, (0, 300)) },
+            faults: Faults { leave: node3(150.0, 210.0).into_iter().collect(), ..links(0.10, 0.0, (0, 300)) },
         },
+    ]
+}
+
+/// The cases for a large team spread out ([`crate::sitl::scenario::Scenario::side_by_side`]) of
+/// `n` members over `duration_s`: loss-free, 10% datagram loss, four members
+/// (at a fifth, two, three and four fifths of the line) out of radio range for a fifth of the
+/// run each, one after the other from a fifth of the run on, overlapping by half, without and
+/// with the 10% loss. Link faults last until nine tenths of the run.
+pub fn large_team_cases(n: usize, duration_s: f64) -> Vec<FaultCase> {
+    let until = 0.9 * duration_s;
+    let lossy = Faults { coop_loss: 0.10, links_until_s: until, ..Faults::default() };
+    let out = duration_s / 5.0;
+    let leave: Vec<Outage> = (1..=4)
+        .map(|k| {
+            let from_s = out + (k - 1) as f64 * out / 2.0;
+            Outage { node: (k * n / 5).min(n - 1), from_s, until_s: from_s + out }
+        })
+        .collect();
+    vec![
+        FaultCase { name: "fault-free", faults: Faults::default() },
+        FaultCase { name: "coop loss 10%", faults: lossy.clone() },
+        FaultCase { name: "four members leave and come back", faults: Faults { leave: leave.clone(), ..Faults::default() } },
+        FaultCase { name: "coop loss 10%, four members leave and come back", faults: Faults { leave, ..lossy } },
     ]
 }
 
@@ -292,7 +320,7 @@ impl Sim<'_> {
     }
 
     fn cut(&self, k: usize, t: TimeUs) -> bool {
-        self.case.leave.is_some_and(|o| o.covers(k, t))
+        self.case.leave.iter().any(|o| o.covers(k, t))
     }
 
     fn stalled(&self, k: usize, t: TimeUs) -> bool {

@@ -4,7 +4,7 @@ use std::path::PathBuf;
 use std::time::Instant;
 
 use anyhow::{Context, bail};
-use cooploc::experiment::faults::{CaseSummary, run_case, standard_cases, summarize};
+use cooploc::experiment::faults::{CaseSummary, large_team_cases, run_case, standard_cases, summarize};
 use cooploc::sitl::scenario::Scenario;
 use cooploc::sitl::world::World;
 use rayon::prelude::*;
@@ -55,6 +55,21 @@ pub struct Args {
     /// Also write every case's summary as JSON here.
     #[arg(long)]
     json: Option<PathBuf>,
+    /// A large team instead of the scenario's: N of its vehicles side by side (`--spacing-m`
+    /// apart, radios reaching `--reach-m`, 1 Hz ranging, the scenario's duration or
+    /// `--duration-s`), run through the large-team cases (loss-free, 10% loss, 10% loss with
+    /// four members leaving and coming back) instead of the standard ones.
+    #[arg(long, value_name = "N", value_parser = clap::value_parser!(u16).range(2..=64))]
+    side_by_side: Option<u16>,
+    /// With --side-by-side: the distance between neighbours, m.
+    #[arg(long, default_value_t = 100.0, requires = "side_by_side")]
+    spacing_m: f64,
+    /// With --side-by-side: the radios' reach, m (310: three neighbours on each side).
+    #[arg(long, default_value_t = 310.0, requires = "side_by_side")]
+    reach_m: f64,
+    /// With --side-by-side: the run's length, s.
+    #[arg(long, requires = "side_by_side")]
+    duration_s: Option<f64>,
 }
 
 pub fn run(args: Args) -> anyhow::Result<()> {
@@ -74,9 +89,21 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         ),
         None => None,
     };
-    let world = World::new(&Scenario::from_path(&args.scenario)?)?;
+    let mut scenario = Scenario::from_path(&args.scenario)?;
+    if let Some(n) = args.side_by_side {
+        let duration_s = args.duration_s.unwrap_or(scenario.duration_s);
+        if !(args.spacing_m > 0.0 && args.reach_m > 0.0 && duration_s > 0.0) {
+            bail!("--spacing-m, --reach-m and --duration-s must be positive");
+        }
+        scenario = scenario.side_by_side(usize::from(n), args.spacing_m, args.reach_m, duration_s);
+    }
+    let world = World::new(&scenario)?;
     let duration_s = world.scenario().duration_s;
-    let (cases, too_long): (Vec<_>, Vec<_>) = standard_cases()
+    let all_cases = match args.side_by_side {
+        Some(n) => large_team_cases(usize::from(n), duration_s),
+        None => standard_cases(),
+    };
+    let (cases, too_long): (Vec<_>, Vec<_>) = all_cases
         .into_iter()
         .filter(|c| args.only.as_ref().is_none_or(|o| c.name.contains(o.as_str())))
         .partition(|c| c.faults.fits(duration_s));
@@ -111,7 +138,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         summaries.push(summarize(case.name, &runs));
     }
     println!(
-        "cooploc faults: {} cases x {} runs, method {}, encoding {}, schedule {}, seed {}{}{}{} ({:.1} s)",
+        "cooploc faults: {} cases x {} runs, method {}, encoding {}, schedule {}, seed {}{}{}{}{} ({:.1} s)",
         cases.len(),
         args.runs,
         method.short_name(),
@@ -121,6 +148,12 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         if args.packed { ", packed datagrams" } else { "" },
         args.speed.map(|s| format!(", every case at {s}x real time")).unwrap_or_default(),
         delay_ms.map(|(lo, hi)| format!(", every case with delays of {lo}-{hi} ms")).unwrap_or_default(),
+        args.side_by_side
+            .map(|n| format!(
+                ", {n} vehicles side by side {} m apart, radios reaching {} m, {duration_s} s",
+                args.spacing_m, args.reach_m
+            ))
+            .unwrap_or_default(),
         started.elapsed().as_secs_f64()
     );
     let base = summaries.iter().find(|s| s.name == "fault-free").map(|s| s.final_rms_m);
