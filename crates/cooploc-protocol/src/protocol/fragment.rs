@@ -9,7 +9,9 @@
 //! unused end of the array never goes on the air. The receiver does not assume the chunk size:
 //! every fragment gives its record's (a fragment that is not the last carries `data_len` bytes
 //! of a whole chunk; the last one ends the record), so records cut at any chunk size up to the
-//! array's (those of logs written before the chunk shrank from 232 bytes) reassemble alike. The [`Reassembler`] keeps at most a fixed number of partial records
+//! array's (those of logs written before the chunk shrank from 232 bytes) reassemble alike.
+//!
+//! The [`Reassembler`] keeps at most a fixed number of partial records
 //! (oldest epoch evicted first) and hands out a record only when every fragment has arrived, the
 //! fragments agree on the record's length, count and CRC-32, and the CRC-32 of the reassembled
 //! bytes matches. Anything else is reported, never used.
