@@ -517,6 +517,7 @@ fn lossy_links_and_a_restarted_node_do_not_break_the_team() {
     let inputs = world.run_inputs(seed, run);
     let dr = run_filter(&world, &inputs, &[], Method::DeadReckoning).unwrap();
     let (mut node_err, mut dr_err, mut detections, mut restart_handled) = (0.0, 0.0, 0u64, 0u64);
+    let mut diverged = Vec::new();
     for (k, (&id, out)) in ids.iter().zip(&outs).enumerate() {
         let line = wait_line(out, &format!("node {id} done:"), Duration::from_secs(240));
         let stats = wait_line(out, &format!("node {id} stats"), Duration::from_secs(5));
@@ -536,7 +537,11 @@ fn lossy_links_and_a_restarted_node_do_not_break_the_team() {
         }
         let dr_k = dr.platforms[k].final_error().pos_err_m;
         eprintln!("node {id}: final horizontal error {err:.2} m, dead reckoning {dr_k:.2} m, heals {}", field("heals"));
-        assert!(err < dr_k + 5.0, "node {id} diverged: {err:.2} m against dead reckoning's {dr_k:.2} m");
+        if err >= dr_k + 5.0 {
+            // Every node's lines are printed before the test fails (a failure seen on one node
+            // is explained by the others' counters).
+            diverged.push(format!("node {id} diverged: {err:.2} m against dead reckoning's {dr_k:.2} m"));
+        }
         node_err += err;
         dr_err += dr_k;
     }
@@ -545,6 +550,7 @@ fn lossy_links_and_a_restarted_node_do_not_break_the_team() {
     eprintln!(
         "cooperative datagrams: {fw} forwarded, {dropped} dropped; team error {node_err:.2} m, dead reckoning {dr_err:.2} m"
     );
+    assert!(diverged.is_empty(), "{diverged:?}");
     assert!(dropped * 100 >= (fw + dropped) * 8, "the network lost about 10%");
     assert!(detections > 0, "the restart was not detected");
     assert!(restart_handled > 0, "the restarted node neither took the others' store nor healed");
