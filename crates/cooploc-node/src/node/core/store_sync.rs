@@ -16,7 +16,9 @@
 //! ([`crate::protocol::record::StorePart`]), so that a store of any size (up to
 //! [`crate::protocol::record::MAX_STORE_LEN`]) can be sent: the asking node keeps every series
 //! and every part that arrived, from either answerer (they hold the same store), while it still
-//! wants the store, so that a repeated request fills what was lost instead of starting over. The asking node adopts a store only if it
+//! wants the store, so that a repeated request fills what was lost instead of starting over.
+//!
+//! The asking node adopts a store only if it
 //! asked for it, from a participant, nothing was resolved since, and it is valid for itself.
 //!
 //! This module holds the decisions and the state they need; the core sends and decodes.
