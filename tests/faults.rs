@@ -340,12 +340,12 @@ fn a_left_out_node_takes_the_store(out: &cooploc::experiment::faults::RunOutcome
 }
 
 /// Sixteen vehicles side by side (`cooploc faults --side-by-side 16`), four of them out of radio
-/// range in turn (overlapping): every returning member is left out once or more, takes the
-/// team's store (120 blocks of 16 x 16, 247 KB: five parts), nobody heals, and
-/// the team ends where the run without the leaves ends (0.664 m against 0.649 m; issue 36 asks
-/// for 15%). With 10% datagram loss on
-/// top the team heals with the bound and ends worse than dead reckoning: not asserted here (see
-/// docs/robustness.md, "A large team").
+/// range in turn (overlapping), with 10% datagram loss: every returning member is left out once
+/// or more, takes the team's store (120 blocks of 16 x 16, 247 KB: five parts), nobody heals,
+/// and the team ends where the loss-free run ends (issue 36 asks for 15%). Before a node that
+/// times out followed the set its peers ran the epoch on, and waited again for a member as soon
+/// as it speaks, this run ended 2.00 m against 0.65 m: the team healed instead, and node 13
+/// was never left out to take the store (docs/robustness.md, "A large team").
 #[test]
 fn four_members_of_a_sixteen_member_team_leave_and_come_back_without_a_heal() {
     use cooploc::experiment::faults::large_team_cases;
@@ -354,11 +354,11 @@ fn four_members_of_a_sixteen_member_team_leave_and_come_back_without_a_heal() {
     let cases = large_team_cases(16, 60.0);
     let case = |name: &str| cases.iter().find(|c| c.name == name).unwrap().faults.clone();
     let run = |f| run_case(&world, &f, Method::Decentralized, "1hz", 1, 0, Encoding::F64).unwrap();
-    let (base, left) = (run(case("fault-free")), run(case("four members leave and come back")));
+    let (base, left) = (run(case("fault-free")), run(case("coop loss 10%, four members leave and come back")));
     let rms = |o: &cooploc::experiment::faults::RunOutcome| {
         (o.nodes.iter().map(|n| n.final_err_m.powi(2)).sum::<f64>() / o.nodes.len() as f64).sqrt()
     };
-    eprintln!("fault-free {:.3} m, four leave {:.3} m", rms(&base), rms(&left));
+    eprintln!("fault-free {:.3} m, 10% loss and four leave {:.3} m", rms(&base), rms(&left));
     for k in [3, 6, 9, 12] {
         let s = &left.nodes[k].stats;
         assert!(s.epochs_excluded >= 1 && s.stores_adopted >= 1, "node {}: {s:?}", k + 1);

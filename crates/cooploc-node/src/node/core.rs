@@ -34,8 +34,16 @@
 //!    not listed resends its record. The retry interval follows the team's epoch cadence (at
 //!    most `retry_us`, at most a tenth of the epoch period in wall time: [`super::cadence`]),
 //!    unless configured not to.
-//!    After `epoch_timeout_us` it runs without the missing members, marks them absent until a
-//!    record of theirs arrives for an epoch still open, and says so (PARTIAL).
+//!    After `epoch_timeout_us` it runs without the missing members, marks them absent until
+//!    they speak again (a record or a fragment of one for an epoch still open, a COOPLOC_EPOCH
+//!    of a recent epoch), and says so (PARTIAL). Unless a peer already reported it ran the
+//!    epoch (APPLIED or PARTIAL, with another member at least): then the node runs it on the
+//!    records of the largest set so reported, not on its own, waiting one more timeout for
+//!    those it lacks (asked for meanwhile), and as a bystander if that set leaves it out. A
+//!    node that times out is late; the peers that held every record ran on all of them without
+//!    waiting, and the late node follows them instead of splitting the team's stores (in
+//!    16-member teams with 10% loss and four members leaving and coming back, following and
+//!    waiting again for a member that speaks turned 322 heals in five runs into none).
 //! 3. **Joint update** (Steps 4-5), on the records sorted by platform id. If every record carries
 //!    the same store digest, the exact method runs (the store and the Psi of each record). If
 //!    not, the stores have diverged (a node missed an epoch, ran it on other records, restarted).
@@ -324,6 +332,10 @@ pub struct NodeStats {
     pub epochs_excluded: u64,
     /// Epochs the others ran without us while we were frozen, run as they did (our store only).
     pub epochs_bystood: u64,
+    /// Epochs whose timeout passed after a peer reported it ran them: waited for and run on
+    /// the set of records the peer ran them on, not on the ones we held then ([`NodeCore`]
+    /// docs, step 2).
+    pub epochs_followed: u64,
     /// Store snapshots sent to a teammate that asked, and adopted from one.
     pub stores_sent: u64,
     pub stores_adopted: u64,
@@ -376,8 +388,11 @@ struct Epoch {
     /// Open while (or just after) we were frozen: the others may have run it without us, so
     /// we wait for how they ran it before we run it.
     after_freeze: bool,
-    /// The participants a peer reported it ran this epoch on (APPLIED or PARTIAL).
+    /// The largest set of participants a peer reported it ran this epoch on (APPLIED or
+    /// PARTIAL, the peer among them).
     peer_ran: Option<Vec<PlatformId>>,
+    /// Its timeout passed after a peer reported it: run (or waited for) on the peer's set.
+    followed: bool,
 }
 
 impl Epoch {
@@ -395,6 +410,7 @@ impl Epoch {
             vetted_at: 0,
             after_freeze: false,
             peer_ran: None,
+            followed: false,
         }
     }
 
@@ -434,6 +450,10 @@ const EPOCHS_REMEMBERED: usize = 32;
 
 /// The longest wait for missing records, in epoch timeouts, while fragments keep arriving.
 const MAX_WAIT_FACTOR: u64 = 5;
+
+/// The longest wait, in epoch timeouts from our broadcast, for the records a peer reported it
+/// ran an epoch on that we lack (after that we run on ours).
+const FOLLOW_WAIT_FACTOR: u64 = 2;
 
 /// A record this many epochs behind the last one run still shows its sender is in step.
 const RECENT_EPOCHS: u32 = 3;
@@ -993,10 +1013,14 @@ impl NodeCore {
                     Pushed::Stored => {
                         // A record's first fragment makes its epoch known (as a peer's range
                         // does): a node that measured no range of the epoch broadcasts without
-                        // waiting for a whole record to cross a slow radio.
+                        // waiting for a whole record to cross a slow radio. And its sender is
+                        // back: waited for again, already for this epoch (a member found absent
+                        // whose record some teammates receive whole and we only in part would
+                        // otherwise be run without here and with there).
                         let wall = self.wall_us;
                         if let Some(e) = self.learn_epoch(f.epoch, TimeUs(f.time_usec)) {
                             e.progress_at = wall;
+                            self.absent.remove(&f.platform);
                         }
                     }
                     Pushed::Duplicate => {}
@@ -1028,6 +1052,12 @@ impl NodeCore {
                 if a.announcer != from {
                     return;
                 }
+                // A member that speaks of a recent epoch is back (it may be waiting for our
+                // store before it broadcasts): waited for again, as by the teammates that got
+                // its last record when we did not.
+                if self.last_applied.is_none_or(|(last, _)| a.epoch.saturating_add(RECENT_EPOCHS) > last) {
+                    self.absent.remove(&from);
+                }
                 if a.state == EpochState::COOPLOC_EPOCH_STATE_STORE_WANTED {
                     if store_sync::answers(&a.participants, self.cfg.id) {
                         self.send_store(from, a.epoch, a.digest, out);
@@ -1041,7 +1071,8 @@ impl NodeCore {
                         self.stats.epoch_disagreements += 1;
                     }
                 } else if let Some(e) = self.epochs.get_mut(&a.epoch)
-                    && e.peer_ran.is_none()
+                    && a.participants.len() >= 2
+                    && e.peer_ran.as_ref().is_none_or(|ran| a.participants.len() > ran.len())
                     && matches!(a.state, EpochState::COOPLOC_EPOCH_STATE_APPLIED | EpochState::COOPLOC_EPOCH_STATE_PARTIAL)
                     && a.participants.contains(&from)
                 {
@@ -1210,10 +1241,34 @@ impl NodeCore {
                 || waited_in_all >= MAX_WAIT_FACTOR * self.cfg.epoch_timeout_us
                 || lagging
             {
+                // A peer ran it already: on the records it ran, not on ours, so that the stores
+                // stay equal. Its records we lack are waited for (asked for) one timeout more.
+                let follow = e.peer_ran.clone();
+                let lacking = follow.as_ref().is_some_and(|ran| ran.iter().any(|p| !e.records.contains_key(p)));
+                if follow.is_some()
+                    && let Some(e) = self.epochs.get_mut(&epoch)
+                    && !std::mem::replace(&mut e.followed, true)
+                {
+                    self.stats.epochs_followed += 1;
+                }
+                if lacking && waited_in_all < FOLLOW_WAIT_FACTOR * self.cfg.epoch_timeout_us && !lagging {
+                    self.ask_again(epoch, out);
+                    return;
+                }
                 // Absent: the members we have not heard from at all while we waited. One still
                 // talking is alive on a lossy link: it is waited for again at the next epoch.
-                let silent = missing.into_iter().filter(|p| self.heard_at.get(p).is_none_or(|&h| h < since));
+                let silent: Vec<PlatformId> =
+                    missing.into_iter().filter(|p| self.heard_at.get(p).is_none_or(|&h| h < since)).collect();
                 self.absent.extend(silent);
+                if let Some(ran) = follow.filter(|_| !lacking) {
+                    if ran.contains(&self.cfg.id) {
+                        let partial = self.cfg.team.iter().any(|p| !ran.contains(p));
+                        self.run_epoch_on(epoch, partial, Some(&ran), out);
+                    } else {
+                        self.run_bystander(epoch, &ran);
+                    }
+                    continue;
+                }
                 self.run_epoch(epoch, true, out);
             } else {
                 self.ask_again(epoch, out);
@@ -1393,6 +1448,11 @@ impl NodeCore {
 
     /// The joint update of `epoch` on the records held (see the module docs), then the report.
     fn run_epoch(&mut self, epoch: u32, partial: bool, out: &mut Vec<NodeOutput>) {
+        self.run_epoch_on(epoch, partial, None, out);
+    }
+
+    /// [`Self::run_epoch`] on the records of `only` when given (those a peer ran it on).
+    fn run_epoch_on(&mut self, epoch: u32, partial: bool, only: Option<&[PlatformId]>, out: &mut Vec<NodeOutput>) {
         let Some(e) = self.epochs.get(&epoch) else { return };
         let t = e.t;
         if let Some(at) = e.broadcast_at {
@@ -1400,6 +1460,9 @@ impl NodeCore {
         }
         let ours = e.records.get(&self.cfg.id).cloned();
         let mut records = self.vetted(epoch); // sorted by platform id
+        if let Some(only) = only {
+            records.retain(|r| only.contains(&r.snapshot.id));
+        }
         self.finish_epoch(epoch);
         if let Some(ours) = ours.filter(|o| !records.iter().any(|r| r.snapshot.id == o.snapshot.id)) {
             self.refused_own_record(t, ours, &records);
