@@ -57,8 +57,8 @@ pub struct Args {
     json: Option<PathBuf>,
     /// A large team instead of the scenario's: N of its vehicles side by side (`--spacing-m`
     /// apart, radios reaching `--reach-m`, 1 Hz ranging, the scenario's duration or
-    /// `--duration-s`), run through the large-team cases (loss-free, 10% loss, 10% loss with
-    /// four members leaving and coming back) instead of the standard ones.
+    /// `--duration-s`), run through the large-team cases (loss-free; 10% loss; four members
+    /// leaving and coming back; both) instead of the standard ones.
     #[arg(long, value_name = "N", value_parser = clap::value_parser!(u16).range(2..=64))]
     side_by_side: Option<u16>,
     /// With --side-by-side: the distance between neighbours, m.
