@@ -1907,6 +1907,57 @@ mod tests {
         }
     }
 
+    /// What a node follows at a timeout ([`NodeCore::advance`]): the largest set a peer reported
+    /// it ran the epoch on, the peer among them, two members at least (a member back from a leave
+    /// reports the epoch it ran alone, `[4]`, and a first version that followed the first report
+    /// led ten nodes of a sixteen-member team to run on that). And a member found absent is
+    /// waited for again once it speaks of a recent epoch.
+    #[test]
+    fn a_node_follows_the_largest_set_a_peer_ran_and_waits_again_for_a_member_that_speaks() {
+        let mut core = NodeCore::new(config(1, vec![1, 2, 3, 4]), TimeUs(0), start()).unwrap();
+        let say = |core: &mut NodeCore, from: PlatformId, epoch: u32, participants: Vec<PlatformId>, state: EpochState| {
+            let a = wire::EpochAnnouncement {
+                epoch,
+                t: TimeUs(u64::from(epoch) * 1_000_000),
+                announcer: from,
+                participants,
+                state,
+                digest: 0,
+            };
+            core.handle(NodeInput::Peer { from, msg: Box::new(wire::epoch_to_message(&a).unwrap()) });
+        };
+        let ran = |core: &NodeCore| core.epochs.get(&5).and_then(|e| e.peer_ran.clone());
+        // One IMU sample: the vehicle's clock is known, epochs can become known.
+        let rest = ImuSample {
+            t: TimeUs(10_000),
+            specific_force_frd_m_s2: Vector3::new(0.0, 0.0, -9.8),
+            angular_rate_frd_rad_s: Vector3::zeros(),
+        };
+        core.handle(NodeInput::Imu(rest));
+        say(&mut core, 2, 5, vec![2], EpochState::COOPLOC_EPOCH_STATE_COLLECTING);
+        assert!(core.epochs.contains_key(&5), "the epoch became known");
+        say(&mut core, 4, 5, vec![4], EpochState::COOPLOC_EPOCH_STATE_APPLIED);
+        assert_eq!(ran(&core), None, "a lone run is nothing to follow");
+        say(&mut core, 2, 5, vec![2, 3], EpochState::COOPLOC_EPOCH_STATE_PARTIAL);
+        assert_eq!(ran(&core), Some(vec![2, 3]));
+        say(&mut core, 3, 5, vec![1, 2, 4], EpochState::COOPLOC_EPOCH_STATE_APPLIED);
+        assert_eq!(ran(&core), Some(vec![2, 3]), "a set without its reporter");
+        say(&mut core, 3, 5, vec![2, 3, 4], EpochState::COOPLOC_EPOCH_STATE_COLLECTING);
+        assert_eq!(ran(&core), Some(vec![2, 3]), "what a peer holds is not what it ran");
+        say(&mut core, 4, 5, vec![1, 2, 3, 4], EpochState::COOPLOC_EPOCH_STATE_APPLIED);
+        assert_eq!(ran(&core), Some(vec![1, 2, 3, 4]), "the largest");
+        say(&mut core, 2, 5, vec![2, 3], EpochState::COOPLOC_EPOCH_STATE_APPLIED);
+        assert_eq!(ran(&core), Some(vec![1, 2, 3, 4]), "a smaller set does not replace it");
+
+        core.absent.extend([3, 4]);
+        core.last_applied = Some((20, TimeUs(20_000_000)));
+        say(&mut core, 3, 10, vec![3], EpochState::COOPLOC_EPOCH_STATE_STORE_WANTED);
+        assert!(core.absent.contains(&3), "an epoch long over says nothing of now");
+        say(&mut core, 3, 19, vec![1, 2], EpochState::COOPLOC_EPOCH_STATE_STORE_WANTED);
+        say(&mut core, 2, 21, vec![2, 4], EpochState::COOPLOC_EPOCH_STATE_COLLECTING);
+        assert_eq!(core.absent().collect::<Vec<_>>(), vec![4], "3 spoke of a recent epoch; 4 did not speak");
+    }
+
     #[test]
     fn epochs_fit_when_the_later_id_comes_later_and_ids_advance_at_most_at_the_rate() {
         let at = |s: u64| TimeUs(s * 1_000_000);
