@@ -1048,56 +1048,61 @@ impl NodeCore {
                     self.stats.ranges_rejected += 1;
                 }
             }
-            CoopMessage::Epoch(a) => {
-                if a.announcer != from {
-                    return;
-                }
-                // A member that speaks of a recent epoch is back (it may be waiting for our
-                // store before it broadcasts): waited for again, as by the teammates that got
-                // its last record when we did not.
-                if self.last_applied.is_none_or(|(last, _)| a.epoch.saturating_add(RECENT_EPOCHS) > last) {
-                    self.absent.remove(&from);
-                }
-                if a.state == EpochState::COOPLOC_EPOCH_STATE_STORE_WANTED {
-                    if store_sync::answers(&a.participants, self.cfg.id) {
-                        self.send_store(from, a.epoch, a.digest, out);
-                    }
-                    return;
-                }
-                if a.state == EpochState::COOPLOC_EPOCH_STATE_COLLECTING {
-                    self.learn_epoch(a.epoch, a.t);
-                } else if let Some(ours) = self.ran_on.iter().find(|r| r.epoch == a.epoch) {
-                    if ours.participants != a.participants || ours.digest != a.digest {
-                        self.stats.epoch_disagreements += 1;
-                    }
-                } else if let Some(e) = self.epochs.get_mut(&a.epoch)
-                    && a.participants.len() >= 2
-                    && e.peer_ran.as_ref().is_none_or(|ran| a.participants.len() > ran.len())
-                    && matches!(a.state, EpochState::COOPLOC_EPOCH_STATE_APPLIED | EpochState::COOPLOC_EPOCH_STATE_PARTIAL)
-                    && a.participants.contains(&from)
-                {
-                    e.peer_ran = Some(a.participants.clone());
-                }
-                let reported = a.state != EpochState::COOPLOC_EPOCH_STATE_COLLECTING;
-                if reported
-                    && let Some(e) = self.epochs.get_mut(&a.epoch)
-                    && e.broadcast_at.is_some()
-                    && !e.early_request_sent
-                    && a.participants.iter().any(|p| !e.records.contains_key(p))
-                {
-                    // A peer ran the epoch on records we lack: ask for them now rather than
-                    // at the next retry.
-                    e.early_request_sent = true;
-                    e.last_status_at = self.wall_us;
-                    let (t, held) = (e.t, e.records.keys().copied().collect());
-                    let digest = self.store_digest();
-                    self.send_status(a.epoch, t, held, EpochState::COOPLOC_EPOCH_STATE_COLLECTING, digest, out);
-                }
-                if !a.participants.contains(&self.cfg.id) && a.state == EpochState::COOPLOC_EPOCH_STATE_COLLECTING {
-                    self.resend(a.epoch, out);
-                }
-            }
+            CoopMessage::Epoch(a) => self.epoch_message(from, a, out),
             CoopMessage::Estimate(_) => {}
+        }
+    }
+
+    /// A teammate's COOPLOC_EPOCH (dropped unless its announcer is the sender): a request for our
+    /// store, its records held while it waits (what to resend), or what it ran an epoch on
+    /// (agreement, and what a node that times out follows).
+    fn epoch_message(&mut self, from: PlatformId, a: wire::EpochAnnouncement, out: &mut Vec<NodeOutput>) {
+        if a.announcer != from {
+            return;
+        }
+        // A member that speaks of a recent epoch is back (it may be waiting for our
+        // store before it broadcasts): waited for again, as by the teammates that got
+        // its last record when we did not.
+        if self.last_applied.is_none_or(|(last, _)| a.epoch.saturating_add(RECENT_EPOCHS) > last) {
+            self.absent.remove(&from);
+        }
+        if a.state == EpochState::COOPLOC_EPOCH_STATE_STORE_WANTED {
+            if store_sync::answers(&a.participants, self.cfg.id) {
+                self.send_store(from, a.epoch, a.digest, out);
+            }
+            return;
+        }
+        if a.state == EpochState::COOPLOC_EPOCH_STATE_COLLECTING {
+            self.learn_epoch(a.epoch, a.t);
+        } else if let Some(ours) = self.ran_on.iter().find(|r| r.epoch == a.epoch) {
+            if ours.participants != a.participants || ours.digest != a.digest {
+                self.stats.epoch_disagreements += 1;
+            }
+        } else if let Some(e) = self.epochs.get_mut(&a.epoch)
+            && a.participants.len() >= 2
+            && e.peer_ran.as_ref().is_none_or(|ran| a.participants.len() > ran.len())
+            && matches!(a.state, EpochState::COOPLOC_EPOCH_STATE_APPLIED | EpochState::COOPLOC_EPOCH_STATE_PARTIAL)
+            && a.participants.contains(&from)
+        {
+            e.peer_ran = Some(a.participants.clone());
+        }
+        let reported = a.state != EpochState::COOPLOC_EPOCH_STATE_COLLECTING;
+        if reported
+            && let Some(e) = self.epochs.get_mut(&a.epoch)
+            && e.broadcast_at.is_some()
+            && !e.early_request_sent
+            && a.participants.iter().any(|p| !e.records.contains_key(p))
+        {
+            // A peer ran the epoch on records we lack: ask for them now rather than
+            // at the next retry.
+            e.early_request_sent = true;
+            e.last_status_at = self.wall_us;
+            let (t, held) = (e.t, e.records.keys().copied().collect());
+            let digest = self.store_digest();
+            self.send_status(a.epoch, t, held, EpochState::COOPLOC_EPOCH_STATE_COLLECTING, digest, out);
+        }
+        if !a.participants.contains(&self.cfg.id) && a.state == EpochState::COOPLOC_EPOCH_STATE_COLLECTING {
+            self.resend(a.epoch, out);
         }
     }
 
