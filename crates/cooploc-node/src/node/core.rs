@@ -1262,8 +1262,7 @@ impl NodeCore {
                 }
                 // Absent: the members we have not heard from at all while we waited. One still
                 // talking is alive on a lossy link: it is waited for again at the next epoch.
-                let silent: Vec<PlatformId> =
-                    missing.into_iter().filter(|p| self.heard_at.get(p).is_none_or(|&h| h < since)).collect();
+                let silent = missing.into_iter().filter(|p| self.heard_at.get(p).is_none_or(|&h| h < since));
                 self.absent.extend(silent);
                 if let Some(ran) = follow.filter(|_| !lacking) {
                     if ran.contains(&self.cfg.id) {
