@@ -521,7 +521,13 @@ fn team_of(
         assert!(field("accepted").parse::<f64>().unwrap() > 0.9 * 20.0 * duration_s, "{line}");
         assert_eq!(field("ignored"), "0", "{line}");
         assert!(field("rate_hz").parse::<f64>().unwrap() >= 10.0, "{line}");
-        assert_eq!(field("off_clock"), "0", "{line}");
+        // In the vehicle's clock: never ahead of it, and behind it by more than a second only
+        // where a node stalled. At 20x real time a second of the vehicle's clock is 50 ms of the
+        // node's, and a CPU-starved 2-core machine stalls that long now and then (CI once saw 8
+        // of 7,598 late); a wrong clock would put nearly every stamp off.
+        assert_eq!(field("ahead_of_clock"), "0", "{line}");
+        let behind: f64 = field("behind_clock").parse().unwrap();
+        assert!(behind <= 0.01 * field("accepted").parse::<f64>().unwrap(), "{line}");
         assert_eq!(field("without_covariance"), "0", "{line}");
     }
     let rate_pairs: Vec<(u32, f64)> = rates

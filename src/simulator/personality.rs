@@ -278,8 +278,14 @@ pub struct Checker {
     pub ignored: BTreeMap<&'static str, u64>,
     /// Accepted, but the autopilot would use its own noise parameters (PX4: no covariance).
     pub without_covariance: u64,
-    /// Accepted messages stamped more than a second away from the vehicle's clock.
-    pub off_clock: u64,
+    /// Accepted messages stamped more than a second ahead of the vehicle's clock when they
+    /// arrived: no node can know a later time, so always a wrong clock.
+    pub ahead_of_clock: u64,
+    /// Accepted messages stamped more than a second behind the vehicle's clock when they
+    /// arrived: a wrong clock (then nearly all of them), or a node that lagged its vehicle
+    /// (then a few, where it stalled: faster than real time, a second of the vehicle's clock is
+    /// a fraction of one of the node's).
+    pub behind_clock: u64,
     /// First and last `time_usec` accepted (the vehicle's clock).
     pub first_us: Option<u64>,
     pub last_us: Option<u64>,
@@ -299,8 +305,10 @@ impl Checker {
         if autopilot == Autopilot::Px4 && [0, 6, 11].iter().any(|&k| !m.pose_covariance[k].is_finite()) {
             self.without_covariance += 1;
         }
-        if m.time_usec.abs_diff(now_us) > 1_000_000 {
-            self.off_clock += 1;
+        if m.time_usec > now_us.saturating_add(1_000_000) {
+            self.ahead_of_clock += 1;
+        } else if m.time_usec.saturating_add(1_000_000) < now_us {
+            self.behind_clock += 1;
         }
         self.accepted += 1;
         self.first_us = Some(self.first_us.map_or(m.time_usec, |f| f.min(m.time_usec)));
@@ -514,7 +522,11 @@ mod tests {
         for (ap, m) in [(Autopilot::ArduPilot, &frd), (Autopilot::Px4, &good)] {
             let mut c = Checker::default();
             c.check(ap, m, 5_000_000);
-            assert_eq!((c.accepted, c.ignored.len(), c.without_covariance, c.off_clock), (1, 0, 0, 0), "{ap:?}");
+            assert_eq!(
+                (c.accepted, c.ignored.len(), c.without_covariance, c.ahead_of_clock, c.behind_clock),
+                (1, 0, 0, 0, 0),
+                "{ap:?}"
+            );
         }
         // the other way round, neither: ArduPilot takes LOCAL_FRD only, PX4's EKF2 has no
         // heading from a LOCAL_FRD pose (measured on its SIH)
@@ -533,7 +545,14 @@ mod tests {
         c.check(Autopilot::Px4, &mocap, 5_000_000);
         c.check(Autopilot::Px4, &nan, 5_000_000);
         c.check(Autopilot::Px4, &good, 1_795_000_005_000_000);
-        assert_eq!((c.accepted, c.ignored.values().sum::<u64>(), c.off_clock), (1, 2, 1));
+        assert_eq!((c.accepted, c.ignored.values().sum::<u64>(), c.ahead_of_clock, c.behind_clock), (1, 2, 0, 1));
+        // the other way round (a Unix stamp to a vehicle on its boot clock), and a second late
+        let mut unix = good.clone();
+        unix.time_usec = 1_795_000_005_000_000;
+        c.check(Autopilot::Px4, &unix, 5_000_000);
+        c.check(Autopilot::Px4, &good, 6_000_000);
+        c.check(Autopilot::Px4, &good, 6_000_001);
+        assert_eq!((c.accepted, c.ahead_of_clock, c.behind_clock), (4, 1, 2));
     }
 
     #[test]

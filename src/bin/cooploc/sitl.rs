@@ -297,13 +297,14 @@ pub fn run(args: Args) -> anyhow::Result<()> {
             }
             if k.accepted + k.ignored.values().sum::<u64>() > 0 {
                 println!(
-                    "vehicle {} odometry_check accepted {} ignored {} rate_hz {} without_covariance {} off_clock {} reasons {:?}",
+                    "vehicle {} odometry_check accepted {} ignored {} rate_hz {} without_covariance {} ahead_of_clock {} behind_clock {} reasons {:?}",
                     v.platform,
                     k.accepted,
                     k.ignored.values().sum::<u64>(),
                     k.rate_hz().map_or("-".into(), |r| format!("{r:.2}")),
                     k.without_covariance,
-                    k.off_clock,
+                    k.ahead_of_clock,
+                    k.behind_clock,
                     k.ignored
                 );
             }
