@@ -128,6 +128,19 @@ pub struct Args {
     /// epochs come faster (a faster schedule, or a simulation faster than real time).
     #[arg(long)]
     retry_ms: Option<u64>,
+    /// The team's ranging schedule, when it is periodic: an epoch every this many ms of the team
+    /// clock, the same on every member. The node then knows each epoch from the one before, not
+    /// first from its own ranges or a teammate's record (a member that ranges to nobody
+    /// broadcasts with the others instead of after them).
+    #[arg(long)]
+    epoch_period_ms: Option<u64>,
+    /// Airtime slots on one shared channel (a radio network) carrying this many bytes per second
+    /// one way at real time, the same on every member: each member broadcasts its record in its
+    /// own slot (by its place in the sorted team list, each as long as the largest record takes
+    /// on the air), and nobody asks for a missing record before every slot has passed. Needs
+    /// --epoch-period-ms: the slots and the range grace must fit in the period.
+    #[arg(long, requires = "epoch_period_ms")]
+    airtime_bps: Option<f64>,
     /// Vehicle time the node waits after an epoch's instant for its radio's ranges of that
     /// epoch before it broadcasts its record, ms (raise it when ranges reach the node late).
     #[arg(long, default_value_t = 100)]
@@ -252,6 +265,8 @@ pub fn run_cmd(args: Args) -> anyhow::Result<()> {
     cfg.range_grace_us = args.range_grace_ms * 1000;
     cfg.echo_ranges = !args.no_range_echo;
     cfg.gate_probability = args.gate_probability;
+    cfg.epoch_period_us = args.epoch_period_ms.map(|ms| ms * 1000);
+    cfg.slot_us = airtime_slot_us(&args, (budget_team, budget_dim, encoding))?;
     // signed: every record the core sees is a teammate's own (the shell drops the others)
     cfg.authenticated_peers = args.team_key.is_some();
     let origin = profile.geo_origin().or(latitude.map(|lat_deg| GeoOrigin { lat_deg, lon_deg: args.origin_lon_deg, alt_m: 0.0 }));
@@ -525,6 +540,25 @@ fn range_source(args: &Args) -> anyhow::Result<Option<RangeSource>> {
             bail!("--ranges {url}: expected udpin:HOST:PORT or serial:PATH:BAUD");
         }),
     })
+}
+
+/// The airtime slot of `--airtime-bps` (0 without it): every member computes the same from the
+/// team's size, state, encoding and signing.
+fn airtime_slot_us(
+    args: &Args,
+    (team, state_dim, encoding): (usize, usize, cooploc::protocol::record::Encoding),
+) -> anyhow::Result<u64> {
+    let Some(bps) = args.airtime_bps else { return Ok(0) };
+    let shape = cooploc::protocol::budget::TeamShape {
+        team,
+        state_dim,
+        ranges_per_node: 0,
+        epoch_hz: 1.0,
+        encoding,
+        signed: args.team_key.is_some(),
+        echo_ranges: false,
+    };
+    cooploc::protocol::budget::airtime_slot_us(&shape, bps).map_err(|e| anyhow::anyhow!("--airtime-bps: {e}"))
 }
 
 /// What the node did, printed when it stops (one line per subject, `node ID subject ...`).

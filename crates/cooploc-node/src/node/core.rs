@@ -20,15 +20,18 @@
 //!
 //! # An epoch
 //!
-//! A ranging epoch `e` at time `t_e` becomes known from the node's own ranges or from peers.
-//! Epochs run strictly in order. Then:
+//! A ranging epoch `e` at time `t_e` becomes known from the node's own ranges or from peers, or,
+//! with a periodic schedule ([`NodeConfig::epoch_period_us`]), from the epoch before it as the
+//! filter passes that one. Epochs run strictly in order. Then:
 //!
 //! 1. **Broadcast** (Step 3): once the filter has passed `t_e` by `range_grace_us` (so that the
 //!    vehicle's ranges of the epoch are in) and every earlier epoch is resolved, the node sends
 //!    its *record*: its checkpoint at `t_e`, the digest of its cross-covariance store, whether it
 //!    is fresh (independent of every teammate), and the ranges its radio measured. It keeps the
 //!    decoded record as its own (quantisation rule). A record is the sender's whole share of the
-//!    joint problem: nodes that hold the same records solve the same problem.
+//!    joint problem: nodes that hold the same records solve the same problem. With airtime
+//!    slots ([`NodeConfig::slot_us`]) the node broadcasts its slot later (its place in the
+//!    sorted team times the slot), and the wait below starts only when every slot is over.
 //! 2. **Agreement**: the node waits for the record of every expected team member, sending a
 //!    COOPLOC_EPOCH (COLLECTING, the records it holds) every `retry_us` of wall time; a member
 //!    not listed resends its record. The retry interval follows the team's epoch cadence (at
@@ -160,6 +163,19 @@ pub struct NodeConfig {
     /// restarted) is not waited for. False on an unsigned team, where a forger could say the
     /// same of a genuine teammate.
     pub authenticated_peers: bool,
+    /// The team's ranging schedule, when it is periodic: an epoch every `epoch_period_us` of the
+    /// team clock, ids consecutive. A node then knows the next epoch from the last one it knows
+    /// (id + 1, a period later) as its filter passes that one, instead of hearing of it first
+    /// from its own ranges or a teammate's record: a member that ranges to nobody broadcasts
+    /// with the others, not after them. Every member must be told the same period (a member told
+    /// none learns the epochs as before). None: no schedule.
+    pub epoch_period_us: Option<u64>,
+    /// Airtime on a shared channel (a radio): the member at position `k` of the sorted `team`
+    /// broadcasts its record `k * slot_us` of the team clock after the epoch is due, and no
+    /// member asks for a missing record before every slot has passed (the retransmission clock
+    /// starts when the plan has run). Every member computes the same plan from the team list.
+    /// 0: everyone at once, asking from its own broadcast on.
+    pub slot_us: u64,
 }
 
 impl NodeConfig {
@@ -196,6 +212,8 @@ impl NodeConfig {
             independent_start: true,
             echo_ranges: true,
             authenticated_peers: false,
+            epoch_period_us: None,
+            slot_us: 0,
         }
     }
 }
@@ -213,6 +231,10 @@ pub enum NodeConfigError {
     Grace { grace_us: u64, history_us: u64 },
     #[error("the gate probability {0} must be in [0, 1)")]
     Gate(f64),
+    #[error(
+        "the schedule does not fit: the range grace ({grace_us} us) and {members} airtime slots of {slot_us} us take {plan_us} us, which must be less than the epoch period ({period_us} us, at least {min_period_us} us) and the history kept ({history_us} us)"
+    )]
+    Schedule { period_us: u64, min_period_us: u64, grace_us: u64, members: usize, slot_us: u64, plan_us: u64, history_us: u64 },
     #[error(transparent)]
     Filter(#[from] EstimationError),
 }
@@ -280,7 +302,8 @@ pub struct NodeStats {
     pub records_sent: u64,
     pub records_resent: u64,
     /// Resend requests not answered: the epoch's record was resent less than half a retry
-    /// interval ago, or [`RESENDS_PER_RETRY`] resends went out in the last retry interval.
+    /// interval ago, or [`RESENDS_PER_RETRY`] resends went out in the last retry interval, or
+    /// (airtime slots) our broadcast of it may still be on the air.
     pub resends_limited: u64,
     pub records_received: u64,
     /// Records refused: not decodable, or a covariance that is not positive semi-definite.
@@ -332,6 +355,9 @@ pub struct NodeStats {
     pub epochs_excluded: u64,
     /// Epochs the others ran without us while we were frozen, run as they did (our store only).
     pub epochs_bystood: u64,
+    /// Epochs known from the team's periodic schedule before anything else said them
+    /// ([`NodeConfig::epoch_period_us`]).
+    pub epochs_scheduled: u64,
     /// Epochs whose timeout passed after a peer reported it ran them: waited for and run on
     /// the set of records the peer ran them on, not on the ones we held then ([`NodeCore`]
     /// docs, step 2).
@@ -393,6 +419,11 @@ struct Epoch {
     peer_ran: Option<Vec<PlatformId>>,
     /// Its timeout passed after a peer reported it: run (or waited for) on the peer's set.
     followed: bool,
+    /// With airtime slots: the wall time every member's slot had passed (the wait's start).
+    plan_over_at: Option<u64>,
+    /// With airtime slots: we broadcast after our slot had passed (the epoch before resolved
+    /// late), when every member late alike sends at once.
+    broadcast_late: bool,
 }
 
 impl Epoch {
@@ -411,6 +442,8 @@ impl Epoch {
             after_freeze: false,
             peer_ran: None,
             followed: false,
+            plan_over_at: None,
+            broadcast_late: false,
         }
     }
 
@@ -568,6 +601,9 @@ pub struct NodeCore {
     /// epoch still remembered (the rate limits).
     resent_at: VecDeque<u64>,
     epoch_resent_at: BTreeMap<u32, u64>,
+    /// With airtime slots: until when (wall time) our broadcast of an epoch may still be on the
+    /// air; a resend asked for before then is not sent.
+    on_air_until: BTreeMap<u32, u64>,
     /// What recent epochs ran on.
     ran_on: VecDeque<RanOn>,
     absent: BTreeSet<PlatformId>,
@@ -579,6 +615,9 @@ pub struct NodeCore {
     /// Since when (wall time) the lowest epoch known is not the one after the last resolved:
     /// an epoch in between that we have not heard of yet.
     gap_since: Option<u64>,
+    /// The last epoch id [`Self::schedule_next`] took up (learned or refused), so that it tries
+    /// each id once.
+    scheduled_up_to: Option<u32>,
     /// Wall clock, us, as last given to [`NodeCore::poll`].
     wall_us: u64,
     /// Wall time we woke from the last freeze of our own.
@@ -629,6 +668,20 @@ impl NodeCore {
         if !(0.0..1.0).contains(&cfg.gate_probability) {
             return Err(NodeConfigError::Gate(cfg.gate_probability));
         }
+        let plan_us = (cfg.team.len() as u64).saturating_mul(cfg.slot_us).saturating_add(cfg.range_grace_us);
+        let min_period_us = 1_000_000 / MAX_EPOCH_RATE_HZ;
+        let fits = plan_us < cfg.history_us && cfg.epoch_period_us.is_none_or(|p| p >= min_period_us && plan_us < p);
+        if !fits {
+            return Err(NodeConfigError::Schedule {
+                period_us: cfg.epoch_period_us.unwrap_or(0),
+                min_period_us,
+                grace_us: cfg.range_grace_us,
+                members: cfg.team.len(),
+                slot_us: cfg.slot_us,
+                plan_us,
+                history_us: cfg.history_us,
+            });
+        }
         let mut filter = NavFilter::new(cfg.model, t0, initial.into())?;
         filter.set_track_psi(cfg.method.needs_psi());
         let gate = UpdateOptions::gate_for_probability(cfg.gate_probability);
@@ -642,11 +695,13 @@ impl NodeCore {
             sent: VecDeque::new(),
             resent_at: VecDeque::new(),
             epoch_resent_at: BTreeMap::new(),
+            on_air_until: BTreeMap::new(),
             ran_on: VecDeque::new(),
             absent: BTreeSet::new(),
             heard_at: BTreeMap::new(),
             flagged: BTreeSet::new(),
             gap_since: None,
+            scheduled_up_to: None,
             wall_us: 0,
             woke_at: None,
             last_estimate_answer: None,
@@ -875,8 +930,17 @@ impl NodeCore {
 
     /// The retry interval now, us: the configured one, shortened to the epoch cadence
     /// ([`Cadence::retry_us`]).
+    /// With airtime slots, never shorter than a slot and a quarter in wall time: the time a
+    /// status and the record it asks for take on the air.
     fn retry_us(&self) -> u64 {
-        if self.cfg.retry_follows_cadence { self.cadence.retry_us(self.cfg.retry_us) } else { self.cfg.retry_us }
+        let base = if self.cfg.retry_follows_cadence { self.cadence.retry_us(self.cfg.retry_us) } else { self.cfg.retry_us };
+        if self.cfg.slot_us == 0 { base } else { base.max(self.to_wall_us(self.cfg.slot_us + self.cfg.slot_us / 4)) }
+    }
+
+    /// `vehicle_us` of the team clock in wall time, at the vehicle clock's measured rate (real
+    /// time until measured).
+    fn to_wall_us(&self, vehicle_us: u64) -> u64 {
+        (vehicle_us as f64 / self.cadence.rate().unwrap_or(1.0).clamp(1e-3, super::cadence::MAX_RATE)) as u64
     }
 
     fn in_team(&self, p: PlatformId) -> bool {
@@ -1138,7 +1202,9 @@ impl NodeCore {
             self.resent_at.pop_front();
         }
         let too_soon = self.epoch_resent_at.get(&epoch).is_some_and(|&at| wall < at + retry / 2);
-        if too_soon || self.resent_at.len() >= RESENDS_PER_RETRY {
+        // With airtime slots: not while our broadcast may still be on the air.
+        let on_air = self.on_air_until.get(&epoch).is_some_and(|&until| wall < until);
+        if too_soon || on_air || self.resent_at.len() >= RESENDS_PER_RETRY {
             self.stats.resends_limited += 1;
             return;
         }
@@ -1155,6 +1221,7 @@ impl NodeCore {
     /// Broadcasts, resolves and retries until nothing more can be done now. Epochs go strictly
     /// in order: only the lowest open epoch is broadcast or run.
     fn advance(&mut self, out: &mut Vec<NodeOutput>) {
+        self.schedule_next();
         while let Some((&epoch, e)) = self.epochs.first_key_value() {
             let t = e.t;
             if e.broadcast_at.is_none() {
@@ -1182,7 +1249,8 @@ impl NodeCore {
                     self.finish_epoch(epoch);
                     continue;
                 }
-                let due = self.rewind.ended() || self.rewind.filter.time().0 >= t.0.saturating_add(self.cfg.range_grace_us);
+                let due = self.rewind.ended()
+                    || self.rewind.filter.time().0 >= t.0.saturating_add(self.cfg.range_grace_us + self.slot_offset_us());
                 if !due || self.checkpoint_at(t).is_none() {
                     if due {
                         // Passed and no instant at `t` (the rebuild failed): cannot take part.
@@ -1198,6 +1266,16 @@ impl NodeCore {
             // Records the teammates' ranges contradict are refused now, and their platform
             // waited for again (its genuine record may still come: a forger's came first).
             self.sift(epoch);
+            if self.cfg.slot_us > 0 && self.plan_over(epoch) {
+                let wall = self.wall_us;
+                if let Some(e) = self.epochs.get_mut(&epoch)
+                    && e.plan_over_at.is_none()
+                {
+                    // every record should be in: ask for the missing ones now
+                    e.plan_over_at = Some(wall);
+                    e.last_status_at = 0;
+                }
+            }
             let Some(e) = self.epochs.get(&epoch) else { continue };
             // Members found absent are not waited for until a recent record of theirs arrives
             // (waiting for them briefly was tried: it makes nodes race on the set they run),
@@ -1210,9 +1288,14 @@ impl NodeCore {
                 .filter(|p| !self.absent.contains(p) && !e.records.contains_key(p))
                 .partition(|&p| !self.born_after(epoch, p));
             let complete = missing.is_empty();
-            // The timeout runs from our broadcast, or from the last fragment of a missing
-            // record (a lossy link still delivering), up to MAX_WAIT_FACTOR timeouts in all.
-            let since = e.broadcast_at.unwrap_or(0);
+            if !complete && self.cfg.slot_us > 0 && e.plan_over_at.is_none() {
+                // Slots still to come: nothing is missing yet.
+                return;
+            }
+            // The timeout runs from our broadcast (with slots, from the end of the plan), or
+            // from the last fragment of a missing record (a lossy link still delivering), up to
+            // MAX_WAIT_FACTOR timeouts in all.
+            let since = e.broadcast_at.unwrap_or(0).max(e.plan_over_at.unwrap_or(0));
             let waited = self.wall_us.saturating_sub(since.max(e.progress_at));
             let waited_in_all = self.wall_us.saturating_sub(since);
             let lagging = self.rewind.filter.time().0.saturating_sub(t.0) >= self.cfg.max_lag_us;
@@ -1279,6 +1362,60 @@ impl NodeCore {
                 return;
             }
         }
+    }
+
+    /// The next epoch of a periodic schedule ([`NodeConfig::epoch_period_us`]): learned as the
+    /// filter passes the newest epoch known at or before it (id + 1, a period later), once per
+    /// id. Not from an epoch more than a period behind the filter (the team stopped ranging, or
+    /// we were away): the next epoch then comes from the team again. Not after the vehicle's
+    /// input ended (an epoch it never reaches would be passed over, and the next scheduled).
+    fn schedule_next(&mut self) {
+        let Some(period) = self.cfg.epoch_period_us.filter(|_| !self.rewind.ended()) else { return };
+        let now = self.rewind.filter.time();
+        let newest = self
+            .epochs
+            .iter()
+            .map(|(&e, x)| (e, x.t))
+            .chain(self.last_applied)
+            .filter(|&(_, t)| t <= now)
+            .max_by_key(|&(e, _)| e);
+        let Some((e, t)) = newest else { return };
+        let next = e.saturating_add(1);
+        if self.scheduled_up_to.is_some_and(|s| s >= next)
+            || self.epochs.contains_key(&next)
+            || now.0 >= t.0.saturating_add(2 * period)
+        {
+            return;
+        }
+        self.scheduled_up_to = Some(next);
+        if self.learn_epoch(next, TimeUs(t.0 + period)).is_some() {
+            self.stats.epochs_scheduled += 1;
+        }
+    }
+
+    /// When our airtime slot starts after an epoch is due, team clock, us.
+    fn slot_offset_us(&self) -> u64 {
+        let k = self.cfg.team.binary_search(&self.cfg.id).unwrap_or(0) as u64;
+        k * self.cfg.slot_us
+    }
+
+    /// When every member's slot of the epoch at `t` has passed, team clock, us.
+    fn plan_end_us(&self, t: TimeUs) -> u64 {
+        t.0 + self.cfg.range_grace_us + self.cfg.team.len() as u64 * self.cfg.slot_us
+    }
+
+    /// Every member's record of `epoch` should have arrived by now, if nothing was lost: the
+    /// filter has passed the end of the plan by a quarter slot; if we broadcast late (the team
+    /// running late sends everything at once, as soon as the epoch before is resolved), the air
+    /// time of every slot and one more has passed since; and no fragment of a missing record
+    /// came for a quarter slot (the channel is still delivering).
+    fn plan_over(&self, epoch: u32) -> bool {
+        let Some(e) = self.epochs.get(&epoch) else { return true };
+        let margin = self.cfg.slot_us / 4;
+        let late_air_us = self.to_wall_us((self.cfg.team.len() as u64 + 1) * self.cfg.slot_us);
+        let aired = !e.broadcast_late || self.wall_us >= e.broadcast_at.unwrap_or(0).saturating_add(late_air_us);
+        let quiet = self.wall_us >= e.progress_at.saturating_add(self.to_wall_us(margin));
+        self.rewind.ended() || self.rewind.filter.time().0 >= self.plan_end_us(e.t) + margin && aired && quiet
     }
 
     /// Teammate `p` first broadcast after `epoch` (it restarted, or joined, since): its record
@@ -1352,6 +1489,12 @@ impl NodeCore {
         let own_ref =
             self.own_ref.unwrap_or(if self.cfg.independent_start { StoreRef::fresh(born) } else { StoreRef::unplaced(born) });
         let refs = self.cross.references().collect();
+        // With airtime slots: sent after our slot had passed (the team is late: every member
+        // sends at once), and until when it may still be on the air (every slot and one more;
+        // in our slot, the slot and one of margin for what went before us).
+        let slot = self.cfg.slot_us;
+        let late = slot > 0 && self.rewind.filter.time().0 > t.0 + self.cfg.range_grace_us + self.slot_offset_us() + slot / 4;
+        let on_air_us = self.to_wall_us(if late { (self.cfg.team.len() as u64 + 1) * slot } else { 2 * slot });
         let e = self.epochs.get_mut(&epoch).expect("open");
         let ours = StateRecord {
             snapshot,
@@ -1369,15 +1512,20 @@ impl NodeCore {
         let wall = self.wall_us;
         e.broadcast_at = Some(wall);
         e.last_status_at = wall;
+        e.broadcast_late = late;
         if let Some((own, msgs)) = sent {
             out.extend(msgs.iter().cloned().map(NodeOutput::ToPeers));
             e.records.insert(self.cfg.id, own);
             self.stats.records_sent += 1;
             self.sent.push_back((epoch, msgs));
+            if slot > 0 {
+                self.on_air_until.insert(epoch, wall + on_air_us);
+            }
             if self.sent.len() > EPOCHS_REMEMBERED
                 && let Some((old, _)) = self.sent.pop_front()
             {
                 self.epoch_resent_at.remove(&old);
+                self.on_air_until.remove(&old);
             }
         }
     }
@@ -1960,6 +2108,96 @@ mod tests {
         say(&mut core, 3, 19, vec![1, 2], EpochState::COOPLOC_EPOCH_STATE_STORE_WANTED);
         say(&mut core, 2, 21, vec![2, 4], EpochState::COOPLOC_EPOCH_STATE_COLLECTING);
         assert_eq!(core.absent().collect::<Vec<_>>(), vec![4], "3 spoke of a recent epoch; 4 did not speak");
+    }
+
+    /// A periodic schedule and airtime slots ([`NodeConfig::epoch_period_us`],
+    /// [`NodeConfig::slot_us`]): a node learns the next epoch as its filter passes the last one,
+    /// from nothing but the schedule; it broadcasts in its slot (grace plus its place in the
+    /// team times the slot), and asks for missing records once the filter has passed the plan's
+    /// end by a quarter slot; having broadcast late (after its slot), only once every slot's air
+    /// time and one more have passed since.
+    #[test]
+    fn a_scheduled_node_knows_the_next_epoch_and_keeps_to_its_slot() {
+        let slot = 200_000;
+        let slotted = |id: PlatformId, period: Option<u64>| NodeConfig {
+            epoch_period_us: period,
+            slot_us: slot,
+            ..config(id, vec![1, 2, 3])
+        };
+        let say = |core: &mut NodeCore, epoch: u32| {
+            let a = wire::EpochAnnouncement {
+                epoch,
+                t: TimeUs(u64::from(epoch) * 1_000_000),
+                announcer: 2,
+                participants: vec![2],
+                state: EpochState::COOPLOC_EPOCH_STATE_COLLECTING,
+                digest: 0,
+            };
+            core.handle(NodeInput::Peer { from: 2, msg: Box::new(wire::epoch_to_message(&a).unwrap()) })
+        };
+        // IMU samples every 10 ms up to 7 s, the wall clock running with them; a teammate says
+        // epoch `said` when the filter is at `said_at`: when the node broadcast epoch 5, and when
+        // it first asked for the records it lacks
+        let run = |core: &mut NodeCore, said: u32, said_at: u64| -> (Option<f64>, Option<f64>) {
+            let (mut sent_at, mut asked_at) = (None, None);
+            core.last_applied = Some((said - 1, TimeUs(u64::from(said - 1) * 1_000_000)));
+            for k in 1..=700u64 {
+                let t = k * 10_000;
+                let s = ImuSample {
+                    t: TimeUs(t),
+                    specific_force_frd_m_s2: Vector3::new(0.0, 0.0, -9.8),
+                    angular_rate_frd_rad_s: Vector3::zeros(),
+                };
+                let mut out = if k == 1 { Vec::new() } else { core.poll(t) };
+                out.extend(core.handle(NodeInput::Imu(s)));
+                if t == said_at {
+                    out.extend(say(core, said));
+                }
+                if t == 3_990_000 && said == 4 {
+                    assert!(!core.epochs.contains_key(&5), "not before the filter passes epoch 4");
+                }
+                if t == 4_010_000 && said == 4 {
+                    assert_eq!(core.epochs.get(&5).map(|e| e.t), Some(TimeUs(5_000_000)), "epoch 5 from the schedule");
+                    // epoch 4 resolved (without the others, who are not here): what matters is 5
+                    core.epochs.remove(&4);
+                    core.last_applied = Some((4, TimeUs(4_000_000)));
+                }
+                for o in out {
+                    match o {
+                        NodeOutput::ToPeers(MavMessage::COOPLOC_STATE_FRAGMENT(f)) if f.epoch == 5 => {
+                            sent_at.get_or_insert(t as f64 / 1e6);
+                        }
+                        NodeOutput::ToPeers(MavMessage::COOPLOC_EPOCH(m)) => {
+                            let a = wire::epoch_from_message(&m).unwrap();
+                            if a.epoch == 5 && a.state == EpochState::COOPLOC_EPOCH_STATE_COLLECTING {
+                                asked_at.get_or_insert(t as f64 / 1e6);
+                            }
+                        }
+                        _ => {}
+                    }
+                }
+            }
+            (sent_at, asked_at)
+        };
+        // told epoch 4 early, the rest from the schedule (node 3's slot starts at 5.5 s, the plan
+        // ends at 5.7 s)
+        for (id, broadcast_s, first_ask_s) in [(1, 5.1, 5.75), (3, 5.5, 5.75)] {
+            let mut core = NodeCore::new(slotted(id, Some(1_000_000)), TimeUs(0), start()).unwrap();
+            assert_eq!(run(&mut core, 4, 20_000), (Some(broadcast_s), Some(first_ask_s)), "node {id}");
+            assert!(core.stats.epochs_scheduled >= 2, "epochs 5 and 6: {}", core.stats.epochs_scheduled);
+        }
+        // without the schedule, told epoch 5 only at 5.3 s, after node 1's slot: it broadcasts at
+        // once and waits for every slot's air time and one more
+        let mut core = NodeCore::new(slotted(1, None), TimeUs(0), start()).unwrap();
+        assert_eq!(run(&mut core, 5, 5_300_000), (Some(5.3), Some(6.1)));
+        assert_eq!(core.stats.epochs_scheduled, 0);
+        // the plan must fit in the period, and the period must not be shorter than the
+        // fastest epoch rate allows
+        for (period, slot) in [(1_000_000, 300_000), (5_000, 0)] {
+            let cfg = NodeConfig { epoch_period_us: Some(period), slot_us: slot, ..config(1, vec![1, 2, 3]) };
+            let e = refused(cfg);
+            assert!(matches!(e, NodeConfigError::Schedule { .. }) && e.to_string().contains("slots"), "{e}");
+        }
     }
 
     #[test]

@@ -154,6 +154,10 @@ pub struct NodeLogHeader {
     /// None in a log written before it existed: the node did not believe what a record said of
     /// its sender ([`NodeConfig::authenticated_peers`]).
     pub authenticated_peers: Option<bool>,
+    /// None in a log written before they existed, and when the node ran without them: no
+    /// schedule, no airtime slots ([`NodeConfig::epoch_period_us`], [`NodeConfig::slot_us`]).
+    pub epoch_period_us: Option<u64>,
+    pub slot_us: Option<u64>,
     pub start: LogStart,
     pub origin: Option<crate::protocol::wire::GeoOrigin>,
 }
@@ -186,6 +190,8 @@ impl NodeLogHeader {
             independent_start: Some(cfg.independent_start),
             echo_ranges: Some(cfg.echo_ranges),
             authenticated_peers: Some(cfg.authenticated_peers),
+            epoch_period_us: cfg.epoch_period_us,
+            slot_us: (cfg.slot_us > 0).then_some(cfg.slot_us),
             start,
             origin,
         }
@@ -205,6 +211,8 @@ impl NodeLogHeader {
         cfg.independent_start = self.independent_start.unwrap_or(cfg.independent_start);
         cfg.echo_ranges = self.echo_ranges.unwrap_or(cfg.echo_ranges);
         cfg.authenticated_peers = self.authenticated_peers.unwrap_or(false);
+        cfg.epoch_period_us = self.epoch_period_us;
+        cfg.slot_us = self.slot_us.unwrap_or(0);
         cfg
     }
 
@@ -241,6 +249,12 @@ impl NodeLogHeader {
         }
         if let Some(v) = self.authenticated_peers {
             put("authenticated_peers", v.to_string());
+        }
+        if let Some(v) = self.epoch_period_us {
+            put("epoch_period_us", v.to_string());
+        }
+        if let Some(v) = self.slot_us {
+            put("slot_us", v.to_string());
         }
         match &self.start {
             LogStart::Given { t0, state } => {
@@ -329,6 +343,8 @@ impl NodeLogHeader {
             independent_start: opt(m, "independent_start")?,
             echo_ranges: opt(m, "echo_ranges")?,
             authenticated_peers: opt(m, "authenticated_peers")?,
+            epoch_period_us: opt(m, "epoch_period_us")?,
+            slot_us: opt(m, "slot_us")?,
             start,
             origin,
         })
@@ -444,6 +460,8 @@ mod tests {
             independent_start: Some(true),
             echo_ranges: Some(false),
             authenticated_peers: Some(true),
+            epoch_period_us: Some(1_000_000),
+            slot_us: Some(270_000),
             start: LogStart::Given { t0: Some(TimeUs(1_500_000)), state },
             origin: Some(crate::protocol::wire::GeoOrigin { lat_deg: 43.07, lon_deg: -79.5, alt_m: 12.5 }),
         }
@@ -470,6 +488,8 @@ mod tests {
             "independent_start",
             "echo_ranges",
             "authenticated_peers",
+            "epoch_period_us",
+            "slot_us",
             "retry_follows_cadence",
             "model",
             "origin_alt_m",
@@ -483,7 +503,9 @@ mod tests {
             config: crate::estimation::ins::InsConfig::default(),
             initial_sigma: crate::estimation::ins::InsInitialSigma::for_tests(),
         };
-        assert!(!h.config(model).authenticated_peers, "an old log's node believed no record");
+        let cfg = h.config(model);
+        assert!(!cfg.authenticated_peers, "an old log's node believed no record");
+        assert_eq!((cfg.epoch_period_us, cfg.slot_us), (None, 0), "nor kept a schedule");
         assert_eq!(h.origin.unwrap().alt_m, 0.0);
     }
 

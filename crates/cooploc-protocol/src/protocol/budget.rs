@@ -228,6 +228,19 @@ pub fn epoch_frames(shape: &TeamShape) -> Result<EpochFrames, String> {
     })
 }
 
+/// A member's airtime slot on a shared channel of `bytes_per_s` (one way, every member's share
+/// of it in turn), us: the time its largest record takes on the air, the record of a member that
+/// ranged to every teammate (`shape.ranges_per_node` is not used). Every member of a team computes
+/// the same slot: it depends on the team's size, state, encoding and signing only.
+pub fn airtime_slot_us(shape: &TeamShape, bytes_per_s: f64) -> Result<u64, String> {
+    if !(bytes_per_s.is_finite() && bytes_per_s > 0.0) {
+        return Err(format!("a channel rate must be positive, got {bytes_per_s} B/s"));
+    }
+    let largest = TeamShape { ranges_per_node: shape.team.saturating_sub(1).min(super::record::MAX_RANGES), ..*shape };
+    let frames = epoch_frames(&largest)?;
+    Ok((frames.kinds[0].2 as f64 * 1e6 / bytes_per_s).ceil() as u64)
+}
+
 /// Datagrams that carry `sizes` (frames in order), packed up to [`MAX_DATAGRAM`] bytes or one
 /// frame each: as many as [`pack`] makes.
 pub fn datagrams(sizes: &[usize], packed: bool) -> usize {
@@ -370,6 +383,24 @@ mod tests {
 
     fn shape(team: usize, encoding: Encoding, signed: bool) -> TeamShape {
         TeamShape { team, state_dim: 16, ranges_per_node: 2, epoch_hz: 1.0, encoding, signed, echo_ranges: true }
+    }
+
+    /// Every member computes the same slot (its own ranges do not count: the largest record's),
+    /// the time the record's frames take at the rate; a rate that is not positive is refused.
+    #[test]
+    fn an_airtime_slot_is_the_largest_record_on_the_air() {
+        let team = shape(3, Encoding::Compact, true);
+        let slot = airtime_slot_us(&team, 5_400.0).unwrap();
+        for ranges in [0, 1, 2] {
+            assert_eq!(airtime_slot_us(&TeamShape { ranges_per_node: ranges, ..team }, 5_400.0).unwrap(), slot);
+        }
+        let largest = epoch_frames(&team).unwrap().kinds[0].2; // two ranges: every teammate
+        assert_eq!(slot, (largest as f64 * 1e6 / 5_400.0).ceil() as u64);
+        assert!(airtime_slot_us(&team, 21_000.0).unwrap() * 3 < slot, "a faster channel, a shorter slot");
+        assert!(airtime_slot_us(&shape(8, Encoding::Compact, true), 5_400.0).unwrap() > slot, "more refs and ranges");
+        for bad in [0.0, -1.0, f64::NAN, f64::INFINITY] {
+            assert!(airtime_slot_us(&team, bad).unwrap_err().contains("positive"), "{bad}");
+        }
     }
 
     #[test]
