@@ -265,7 +265,7 @@ pub fn run_cmd(args: Args) -> anyhow::Result<()> {
     cfg.range_grace_us = args.range_grace_ms * 1000;
     cfg.echo_ranges = !args.no_range_echo;
     cfg.gate_probability = args.gate_probability;
-    cfg.epoch_period_us = args.epoch_period_ms.map(|ms| ms * 1000);
+    cfg.epoch_period_us = args.epoch_period_ms.map(|ms| ms.saturating_mul(1000));
     cfg.slot_us = airtime_slot_us(&args, (budget_team, budget_dim, encoding))?;
     // signed: every record the core sees is a teammate's own (the shell drops the others)
     cfg.authenticated_peers = args.team_key.is_some();

@@ -1383,12 +1383,12 @@ impl NodeCore {
         let next = e.saturating_add(1);
         if self.scheduled_up_to.is_some_and(|s| s >= next)
             || self.epochs.contains_key(&next)
-            || now.0 >= t.0.saturating_add(2 * period)
+            || now.0 >= t.0.saturating_add(period.saturating_mul(2))
         {
             return;
         }
         self.scheduled_up_to = Some(next);
-        if self.learn_epoch(next, TimeUs(t.0 + period)).is_some() {
+        if self.learn_epoch(next, TimeUs(t.0.saturating_add(period))).is_some() {
             self.stats.epochs_scheduled += 1;
         }
     }
