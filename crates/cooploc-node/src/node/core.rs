@@ -1249,8 +1249,7 @@ impl NodeCore {
                     self.finish_epoch(epoch);
                     continue;
                 }
-                let due = self.rewind.ended()
-                    || self.rewind.filter.time().0 >= t.0.saturating_add(self.cfg.range_grace_us + self.slot_offset_us());
+                let due = self.rewind.ended() || self.rewind.filter.time().0 >= self.slot_start_us(t);
                 if !due || self.checkpoint_at(t).is_none() {
                     if due {
                         // Passed and no instant at `t` (the rebuild failed): cannot take part.
@@ -1266,11 +1265,10 @@ impl NodeCore {
             // Records the teammates' ranges contradict are refused now, and their platform
             // waited for again (its genuine record may still come: a forger's came first).
             self.sift(epoch);
-            if self.cfg.slot_us > 0 && self.plan_over(epoch) {
+            let waiting_on_plan = self.epochs.get(&epoch).is_some_and(|e| e.plan_over_at.is_none());
+            if self.cfg.slot_us > 0 && waiting_on_plan && self.plan_over(epoch) {
                 let wall = self.wall_us;
-                if let Some(e) = self.epochs.get_mut(&epoch)
-                    && e.plan_over_at.is_none()
-                {
+                if let Some(e) = self.epochs.get_mut(&epoch) {
                     // every record should be in: ask for the missing ones now
                     e.plan_over_at = Some(wall);
                     e.last_status_at = 0;
@@ -1393,10 +1391,11 @@ impl NodeCore {
         }
     }
 
-    /// When our airtime slot starts after an epoch is due, team clock, us.
-    fn slot_offset_us(&self) -> u64 {
+    /// When we broadcast our record of the epoch at `t`, team clock, us: the range grace after
+    /// it, and with airtime slots our place in the sorted team times the slot.
+    fn slot_start_us(&self, t: TimeUs) -> u64 {
         let k = self.cfg.team.binary_search(&self.cfg.id).unwrap_or(0) as u64;
-        k * self.cfg.slot_us
+        t.0.saturating_add(self.cfg.range_grace_us + k * self.cfg.slot_us)
     }
 
     /// When every member's slot of the epoch at `t` has passed, team clock, us.
@@ -1493,7 +1492,7 @@ impl NodeCore {
         // sends at once), and until when it may still be on the air (every slot and one more;
         // in our slot, the slot and one of margin for what went before us).
         let slot = self.cfg.slot_us;
-        let late = slot > 0 && self.rewind.filter.time().0 > t.0 + self.cfg.range_grace_us + self.slot_offset_us() + slot / 4;
+        let late = slot > 0 && self.rewind.filter.time().0 > self.slot_start_us(t) + slot / 4;
         let on_air_us = self.to_wall_us(if late { (self.cfg.team.len() as u64 + 1) * slot } else { 2 * slot });
         let e = self.epochs.get_mut(&epoch).expect("open");
         let ours = StateRecord {
