@@ -451,12 +451,16 @@ fn a_node_whose_ranges_all_contradict_it_widens_and_comes_back() {
     assert!((1..=2).contains(&st.reinitialised), "{st:?}");
     assert!(st.records_contradicted > 0 || st.ranges_gated > 0, "the wrong start was refused first: {st:?}");
     // It sat out only the epochs before it widened (and one store transfer): without the rule
-    // it sits out the rest of the run.
-    assert!(st.epochs_applied >= 370, "{st:?}");
+    // it sits out the rest of the run. The epoch timeouts while its records were refused, one
+    // after another, put the team behind (at 20x a 2 s timeout is 40 epochs), and the team
+    // passed a few epochs over (8 in one run, `epochs_strided`; see the core's docs, step 1):
+    // those are not sat out.
+    assert!(st.epochs_applied + st.epochs_strided >= 370, "{st:?}");
     for (k, node) in nodes.iter().enumerate() {
         if k < 2 {
             assert_eq!(node.stats.reinitialised, 0, "node {} widened", node.id());
-            assert_eq!(node.stats.epochs_applied, 380, "node {}: {:?}", node.id(), node.stats);
+            let s = &node.stats;
+            assert_eq!(s.epochs_applied + s.epochs_strided, 380, "node {}: {s:?}", node.id());
         }
         let (e, e_clean) = (err(k, node), err(k, &clean[k]));
         assert!(e < 2.0 * e_clean, "node {}: final error {e:.2} m, clean run {e_clean:.2} m", node.id());

@@ -374,6 +374,15 @@ fn records_carry_digest_flags_and_ranges() {
         let mut flags = bytes.clone();
         flags[count_at - 2] = 0x80;
         assert_eq!(decode_record(1, t, &flags), Err(RecordError::Flags(0x80)));
+        flags[count_at - 2] = 0x08;
+        assert_eq!(decode_record(1, t, &flags), Err(RecordError::Flags(0x08)));
+        // The epochs the sender asks the team to pass over (0-3) come back, beside FRESH.
+        for skip in 0..=record::MAX_SKIP {
+            let asks = StateRecord { flags: record::with_skip(FLAG_FRESH, skip), ..rec.clone() };
+            let back = decode_record(1, t, &encode_record(&asks, enc).unwrap()).unwrap();
+            assert_eq!((record::skip_of(back.flags), back.flags & FLAG_FRESH), (skip, FLAG_FRESH));
+        }
+        assert_eq!(record::skip_of(record::with_skip(0, 9)), record::MAX_SKIP, "at most MAX_SKIP");
         // A range to the sender itself, or a negative sigma, is refused.
         let mut selfie = bytes.clone();
         selfie[count_at + 1..count_at + 3].copy_from_slice(&1u16.to_le_bytes());

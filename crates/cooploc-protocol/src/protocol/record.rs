@@ -17,7 +17,7 @@
 //! | .. | n*n values | recursive coefficient matrix Psi, row major (compact: see [`super::compact`]) |
 //! | .. | u64 | digest of the sender's cross-covariance store before this epoch (0: none kept) |
 //! | .. | u32, u64 | the sender's own reference: the epoch and token of the joint update that last reset its Psi (token 0: it started independently of the team, first heard of at that epoch) |
-//! | .. | u8 | flags: bit 0 `FRESH` (initialised independently of every teammate, no epoch applied yet) |
+//! | .. | u8 | flags: bit 0 `FRESH` (initialised independently of every teammate, no epoch applied yet); bits 1-2 the epochs after this one the sender asks the team to pass over, 0-3 ([`skip_of`]); the other bits 0 |
 //! | .. | u8 | number `m` of references in the sender's store (0..=64) |
 //! | .. | m x (u16, u32, u64) | each: platform, epoch, token (ascending platform ids) |
 //! | .. | u8 | number `k` of ranges the sender's radio measured at this epoch (0..=32) |
@@ -56,6 +56,25 @@ pub const MAX_REFS: usize = 64;
 /// Record flag: the sender was initialised independently of every teammate and has run no
 /// epoch since (a fresh or late joiner): its error is uncorrelated with everyone's.
 pub const FLAG_FRESH: u8 = 1;
+/// Record flags, bits 1-2: how many epochs after this one the sender asks the team to pass over
+/// (it is falling behind the epochs: see the node core's docs). Every node that runs the epoch
+/// on the same records passes over the most any of them asks.
+pub const FLAG_SKIP_MASK: u8 = 0b110;
+const FLAG_SKIP_SHIFT: u8 = 1;
+/// The most epochs one record can ask the team to pass over.
+pub const MAX_SKIP: u8 = FLAG_SKIP_MASK >> FLAG_SKIP_SHIFT;
+/// Every flag a record may carry.
+const KNOWN_FLAGS: u8 = FLAG_FRESH | FLAG_SKIP_MASK;
+
+/// The epochs after this one that a record's `flags` ask the team to pass over.
+pub fn skip_of(flags: u8) -> u8 {
+    (flags & FLAG_SKIP_MASK) >> FLAG_SKIP_SHIFT
+}
+
+/// `flags` asking the team to pass over `skip` epochs ([`MAX_SKIP`] at most).
+pub fn with_skip(flags: u8, skip: u8) -> u8 {
+    (flags & !FLAG_SKIP_MASK) | (skip.min(MAX_SKIP) << FLAG_SKIP_SHIFT)
+}
 /// Largest error-state dimension a record may carry.
 pub const MAX_DIM: usize = 64;
 const HEADER_LEN: usize = 40;
@@ -185,7 +204,7 @@ pub fn encode_record(rec: &StateRecord, encoding: Encoding) -> Result<Vec<u8>, R
     if rec.ranges.len() > MAX_RANGES {
         return Err(RecordError::TooManyRanges(rec.ranges.len()));
     }
-    if rec.flags & !FLAG_FRESH != 0 {
+    if rec.flags & !KNOWN_FLAGS != 0 {
         return Err(RecordError::Flags(rec.flags));
     }
     check_refs(&rec.refs)?;
@@ -299,7 +318,7 @@ pub fn decode_record(id: PlatformId, t: TimeUs, bytes: &[u8]) -> Result<StateRec
         token: u64::from_le_bytes(bytes[end + 12..end + 20].try_into().expect("8 bytes")),
     };
     let flags = bytes[end + 20];
-    if flags & !FLAG_FRESH != 0 {
+    if flags & !KNOWN_FLAGS != 0 {
         return Err(RecordError::Flags(flags));
     }
     let (refs, o) = get_refs(bytes, end + 21)?;
