@@ -1266,7 +1266,7 @@ impl NodeCore {
         self.schedule_next();
         while let Some((&epoch, e)) = self.epochs.first_key_value() {
             let t = e.t;
-            if e.broadcast_at.is_none() && self.skip_through.is_some_and(|s| epoch <= s) {
+            if e.broadcast_at.is_none() && self.agreed_to_pass_over(epoch) {
                 // A record of the epoch before asked the team to pass this one over.
                 self.pass_over(epoch);
                 continue;
@@ -1809,6 +1809,11 @@ impl NodeCore {
         }
     }
 
+    /// Whether the team agreed to pass `epoch` over ([`Self::pass_over_after`]).
+    fn agreed_to_pass_over(&self, epoch: u32) -> bool {
+        self.skip_through.is_some_and(|s| epoch <= s)
+    }
+
     /// Passes `epoch` over as the team agreed ([`Self::pass_over_after`]): nothing sent, nothing
     /// applied.
     fn pass_over(&mut self, epoch: u32) {
@@ -2034,7 +2039,7 @@ impl NodeCore {
     pub fn run_pending(&mut self) -> Vec<NodeOutput> {
         let mut out = Vec::new();
         while let Some((&epoch, e)) = self.epochs.first_key_value() {
-            if e.broadcast_at.is_none() && self.skip_through.is_some_and(|s| epoch <= s) {
+            if e.broadcast_at.is_none() && self.agreed_to_pass_over(epoch) {
                 self.pass_over(epoch);
             } else if e.broadcast_at.is_none() && self.checkpoint_at(e.t).is_some() {
                 self.broadcast(epoch, e.t, &mut out);
