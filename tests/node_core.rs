@@ -453,7 +453,7 @@ fn a_node_whose_ranges_all_contradict_it_widens_and_comes_back() {
     // It sat out only the epochs before it widened (and one store transfer): without the rule
     // it sits out the rest of the run. The epoch timeouts while its records were refused, one
     // after another, put the team behind (at 20x a 2 s timeout is 40 epochs), and the team
-    // passed a few epochs over (8 in one run, `epochs_strided`; see the core's docs, step 1):
+    // passed a few epochs over (6-8 in one run of an earlier trigger, `epochs_strided`; see the core's docs, step 1):
     // those are not sat out.
     assert!(st.epochs_applied + st.epochs_strided >= 370, "{st:?}");
     for (k, node) in nodes.iter().enumerate() {
