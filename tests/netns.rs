@@ -14,10 +14,12 @@
 //! fails under CI=true and says why elsewhere.
 //!
 //! - `a_radio_like_link_carries_the_paper_scenario_within_its_byte_budget`: 64 kbit/s per node,
-//!   2% loss, 40 +- 20 ms delay, signed compact records, real time (380 s): every node runs the
-//!   scenario to the end, beats dead reckoning, and the bytes per second measured on every node's
-//!   interface equal `cooploc::protocol::budget`'s figure (the `cooploc budget` command's) within
-//!   10%.
+//!   2% loss, 40 +- 20 ms delay, signed compact records, real time, the first 150 s of the paper
+//!   scenario (the whole 380 s made this file the longest of the suite, 6.4 min of CI, for a rate
+//!   that is steady after the first epochs): every node runs it to the end, beats dead reckoning,
+//!   and the bytes per second measured on every node's interface equal
+//!   `cooploc::protocol::budget`'s figure (the `cooploc budget` command's) within 10%, and every
+//!   node ends where the same team run offline ends.
 //! - `a_wifi_like_link_runs_the_team_at_20x`: 6 Mbit/s, 1% loss, 5 +- 3 ms, f64 records, 20x.
 //! - `nodes_given_no_peers_find_each_other_on_the_multicast_group_and_send_each_frame_once`: no
 //!   `--peer`, no relay: the nodes bound to their LAN addresses join the default multicast group
@@ -154,6 +156,8 @@ struct LinkSpec {
     delay_ms: f64,
     jitter_ms: f64,
     speed: u32,
+    /// The scenario's simulated seconds: the paper's 380, or its first part.
+    duration_s: f64,
     encoding: Encoding,
     retry_ms: u64,
     timeout_ms: u64,
@@ -166,6 +170,8 @@ struct LinkSpec {
 }
 
 struct Outcome {
+    /// The scenario the team ran (the paper's, maybe cut short).
+    toml: String,
     finals: Vec<(u16, Vec<f64>, u64)>,
     /// Bytes per second each node transmitted during the measured window (wall time).
     measured_bytes_per_s: Vec<f64>,
@@ -175,11 +181,13 @@ struct Outcome {
 fn run_team(tag: &str, spec: &LinkSpec) -> Option<Outcome> {
     let python =
         if spec.multicast { Default::default() } else { common::python("the network-namespace test's impairment relay")? };
-    let world = World::new(&Scenario::from_toml_str(PAPER_TOML).unwrap()).unwrap();
+    let toml = paper_for(spec.duration_s);
+    let world = World::new(&Scenario::from_toml_str(&toml).unwrap()).unwrap();
     let ids = world.platform_ids();
     let topo = Topology::build(&format!("{tag}{}", std::process::id() % 10_000), ids.len(), spec.rate).unwrap();
-    let dir = std::env::temp_dir().join(format!("cooploc-netns-{tag}-{}", std::process::id()));
-    std::fs::create_dir_all(&dir).unwrap();
+    let dir = common::TempDir::new(&format!("cooploc-netns-{tag}"));
+    let scenario = dir.join("scenario.toml");
+    std::fs::write(&scenario, &toml).unwrap();
     let key = dir.join("team.key");
     std::fs::write(&key, "the team's radio passphrase\n").unwrap();
     let stats = dir.join("relay.json");
@@ -200,7 +208,7 @@ fn run_team(tag: &str, spec: &LinkSpec) -> Option<Outcome> {
 
     let bin = env!("CARGO_BIN_EXE_cooploc");
     let mut sitl = topo.exec("sim", bin);
-    sitl.args(["sitl", "sitl/scenarios/paper.toml", "--seed", "1", "--run", "0", "--schedule", "1hz"]);
+    sitl.arg("sitl").arg(&scenario).args(["--seed", "1", "--run", "0", "--schedule", "1hz"]);
     sitl.args(["--speed", &spec.speed.to_string(), "--wait-for-peers", "--sim-state-hz", "1"]);
     for &k in &ids {
         sitl.args(["--vehicle", &format!("{k}=udpin:10.78.{k}.1:14540")]);
@@ -233,7 +241,7 @@ fn run_team(tag: &str, spec: &LinkSpec) -> Option<Outcome> {
         outs.push((id, out));
     }
     // The measured window: from a tenth of the run to nine tenths (no start, no end).
-    let run_s = 380.0 / f64::from(spec.speed);
+    let run_s = spec.duration_s / f64::from(spec.speed);
     let started = Instant::now();
     std::thread::sleep(Duration::from_secs_f64(0.1 * run_s));
     let (t_a, a): (Instant, Vec<u64>) = (Instant::now(), (1..=ids.len()).map(|k| topo.tx_bytes(k)).collect());
@@ -256,33 +264,61 @@ fn run_team(tag: &str, spec: &LinkSpec) -> Option<Outcome> {
     eprintln!("run took {:.0} s", started.elapsed().as_secs_f64());
     drop(children); // the relay writes its statistics on SIGTERM... and on every second
     let relay = std::fs::read_to_string(&stats).ok().and_then(|s| serde_json::from_str(&s).ok()).unwrap_or_default();
-    let _ = std::fs::remove_dir_all(&dir);
+    drop(dir);
     drop(topo);
-    Some(Outcome { finals, measured_bytes_per_s: measured, relay })
+    Some(Outcome { toml, finals, measured_bytes_per_s: measured, relay })
 }
 
-/// The final errors of the nodes against dead reckoning on the same inputs.
-fn check_against_dead_reckoning(outcome: &Outcome) {
-    let world = World::new(&Scenario::from_toml_str(PAPER_TOML).unwrap()).unwrap();
+/// The paper scenario, its first `duration_s` seconds (its vehicles' paths and sensors unchanged;
+/// the 1 Hz schedule alone, the one the nodes run).
+fn paper_for(duration_s: f64) -> String {
+    let mut s = Scenario::from_toml_str(PAPER_TOML).unwrap();
+    s.duration_s = duration_s;
+    s.ranging.schedules.retain(|r| r.name == "1hz");
+    toml::to_string(&s).unwrap()
+}
+
+/// The nodes' final positions against the same team run offline (`cooploc experiment`'s exact
+/// method on what went on the wire, f64 records): within a tenth of a metre (the compact
+/// encoding's rounding, under a tenth of a sigma in `tests/node_core.rs`); and, over the whole
+/// paper scenario, far better than dead reckoning. (Over its first 150 s dead reckoning is still
+/// within 1-7 m and cooperation, which shares the team's errors, is not better on every node:
+/// 2.23 / 2.64 / 1.12 m against 1.19 / 6.77 / 0.80 m in one run, so the cut run is held to the
+/// offline run alone.)
+fn check_against_offline_run(outcome: &Outcome) {
+    let world = World::new(&Scenario::from_toml_str(&outcome.toml).unwrap()).unwrap();
+    let epochs = world.ranges("1hz", 1, 0).unwrap().len() as u64;
     let mut inputs = world.run_inputs(1, 0);
     for p in &mut inputs.platforms {
         p.imu.iter_mut().for_each(|s| *s = wire::imu_as_sent(s));
         p.odometer.iter_mut().for_each(|s| *s = wire::odometer_as_sent(s));
     }
+    let ranges: Vec<_> =
+        world.ranges("1hz", 1, 0).unwrap().into_iter().map(|(t, rs)| (t, rs.iter().map(wire::range_as_sent).collect())).collect();
+    let dcl = run_filter(&world, &inputs, &ranges, Method::Decentralized).unwrap();
     let dr = run_filter(&world, &inputs, &[], Method::DeadReckoning).unwrap();
     let (mut node_err, mut dr_err) = (0.0, 0.0);
     for (k, (id, pos, applied)) in outcome.finals.iter().enumerate() {
         let truth = inputs.platforms[k].truth.last().unwrap().pos_ned_m;
         let e = ((truth[0] - pos[0]).powi(2) + (truth[1] - pos[1]).powi(2)).sqrt();
+        let off = dcl.platforms[k].final_error().pos_err_ne_m;
+        let apart = ((truth[0] - off[0] - pos[0]).powi(2) + (truth[1] - off[1] - pos[1]).powi(2)).sqrt();
         eprintln!(
-            "node {id}: {applied} epochs applied, final error {e:.2} m, dead reckoning {:.2} m",
+            "node {id}: {applied} epochs applied, final error {e:.2} m, {apart:.3} m from the offline run's ({:.2} m), dead reckoning {:.2} m",
+            dcl.platforms[k].final_error().pos_err_m,
             dr.platforms[k].final_error().pos_err_m
         );
-        assert!(*applied >= 370, "node {id} applied only {applied} of 380 epochs");
+        // (370 of the paper's 380: the same share of a shorter run)
+        assert!(*applied >= epochs - epochs / 38, "node {id} applied only {applied} of {epochs} epochs");
+        if *applied == epochs {
+            assert!(apart < 0.1, "node {id} ended {apart:.3} m from the offline run of the same team");
+        }
         node_err += e;
         dr_err += dr.platforms[k].final_error().pos_err_m;
     }
-    assert!(node_err < 0.5 * dr_err, "the team ({node_err:.2} m) should beat dead reckoning ({dr_err:.2} m) by far");
+    if epochs >= 380 {
+        assert!(node_err < 0.5 * dr_err, "the team ({node_err:.2} m) should beat dead reckoning ({dr_err:.2} m) by far");
+    }
 }
 
 #[test]
@@ -296,6 +332,7 @@ fn a_radio_like_link_carries_the_paper_scenario_within_its_byte_budget() {
         delay_ms: 40.0,
         jitter_ms: 20.0,
         speed: 1,
+        duration_s: 150.0,
         encoding: Encoding::Compact,
         retry_ms: 1000,
         timeout_ms: 3000,
@@ -305,7 +342,7 @@ fn a_radio_like_link_carries_the_paper_scenario_within_its_byte_budget() {
     };
     let Some(outcome) = run_team("r", &spec) else { return };
     eprintln!("relay: {}", outcome.relay);
-    check_against_dead_reckoning(&outcome);
+    check_against_offline_run(&outcome);
     // The budget: three 16-state nodes, two ranges each per epoch, 1 Hz, compact, signed, each
     // frame in its own datagram (as on a radio, which has no IP packing) to each of two peers
     // (through the relay), with the resends that 2% loss costs; plus the Ethernet header the
@@ -340,6 +377,7 @@ fn a_wifi_like_link_runs_the_team_at_20x() {
         delay_ms: 5.0,
         jitter_ms: 3.0,
         speed: 20,
+        duration_s: 380.0,
         encoding: Encoding::F64,
         retry_ms: 100,
         timeout_ms: 2000,
@@ -349,7 +387,7 @@ fn a_wifi_like_link_runs_the_team_at_20x() {
     };
     let Some(outcome) = run_team("w", &spec) else { return };
     eprintln!("relay: {}", outcome.relay);
-    check_against_dead_reckoning(&outcome);
+    check_against_offline_run(&outcome);
 }
 
 #[test]
@@ -363,6 +401,7 @@ fn nodes_given_no_peers_find_each_other_on_the_multicast_group_and_send_each_fra
         delay_ms: 0.0,
         jitter_ms: 0.0,
         speed: 10,
+        duration_s: 380.0,
         encoding: Encoding::F32,
         retry_ms: 100,
         timeout_ms: 2000,
@@ -371,7 +410,7 @@ fn nodes_given_no_peers_find_each_other_on_the_multicast_group_and_send_each_fra
         packed: true,
     };
     let Some(outcome) = run_team("m", &spec) else { return };
-    check_against_dead_reckoning(&outcome);
+    check_against_offline_run(&outcome);
     // One copy of each batch on the wire, whatever the team size: the budget's multicast figure
     // (packed, 10 epochs a second at 10x, the heartbeat at 1 Hz of wall time), not the unicast
     // one (two copies). Each node's figure with the ranges its own radio measures (the

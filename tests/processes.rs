@@ -219,10 +219,7 @@ fn run_team(loss: f64, attack: Attack, signed: bool, restart: bool) -> Outcome {
     // node 3's state file before its restart, which then had nothing to restore).
     static TEAMS: std::sync::atomic::AtomicUsize = std::sync::atomic::AtomicUsize::new(0);
     let team = TEAMS.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
-    let state_dir = std::env::temp_dir().join(format!("cooploc-processes-{}-team{team}", std::process::id()));
-    if restart {
-        std::fs::create_dir_all(&state_dir).unwrap();
-    }
+    let state_dir = common::TempDir::new(&format!("cooploc-processes-team{team}"));
     let (sitl_child, sitl_out) = spawn_lines(sitl);
     let mut vehicle_addr = BTreeMap::new();
     for _ in world.platform_ids() {
@@ -322,9 +319,7 @@ fn run_team(loss: f64, attack: Attack, signed: bool, restart: bool) -> Outcome {
         outcome.report.push(report.join("\n"));
     }
     outcome.relay = net.counts();
-    if restart {
-        let _ = std::fs::remove_dir_all(&state_dir);
-    }
+    drop(state_dir);
     outcome.estimates = estimates.lock().unwrap().clone();
     drop(children);
     outcome

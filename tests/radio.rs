@@ -189,8 +189,7 @@ fn three_nodes_on_a_shared_serial_radio_run_the_paper_scenario_within_its_budget
     let rate = 21_000.0 * f64::from(speed);
     let noise = 2e-5;
     let (paths, air, stop) = radio_network(ids.len(), rate, noise);
-    let dir = std::env::temp_dir().join(format!("cooploc-radio-{}", std::process::id()));
-    std::fs::create_dir_all(&dir).unwrap();
+    let dir = common::TempDir::new("cooploc-radio");
     let key = dir.join("team.key");
     std::fs::write(&key, "the team's radio passphrase\n").unwrap();
 
@@ -301,5 +300,4 @@ fn three_nodes_on_a_shared_serial_radio_run_the_paper_scenario_within_its_budget
     assert_eq!(cut, 0, "every frame must fit one radio packet");
     assert!(corrupted > 0, "the noise must have hit something for the test to mean anything");
     assert!(node_err < 0.5 * dr_err, "the team ({node_err:.2} m) should beat dead reckoning ({dr_err:.2} m) by far");
-    let _ = std::fs::remove_dir_all(&dir);
 }

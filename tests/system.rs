@@ -476,7 +476,8 @@ fn mavproxy_sees_the_vehicle_and_the_node_and_gets_its_command_acknowledged() {
 fn lossy_links_and_a_restarted_node_do_not_break_the_team() {
     let world = World::new(&Scenario::from_toml_str(PAPER_TOML).unwrap()).unwrap();
     let (seed, run, schedule, speed) = (1u64, 0u32, "1hz", 20.0);
-    let key_path = std::env::temp_dir().join(format!("cooploc-restart-key-{}", std::process::id()));
+    let key_dir = common::TempDir::new("cooploc-restart-key");
+    let key_path = key_dir.join("team.key");
     std::fs::write(&key_path, "0123456789abcdef0123456789abcdef0123456789abcdef0123456789abcdef\n").unwrap();
     let (sitl_child, _sitl_out, vehicle_addr) = start_sitl(&world, schedule, &["--link-loss", "0.01"]);
     let mut children = Kill(vec![sitl_child]);
@@ -556,7 +557,6 @@ fn lossy_links_and_a_restarted_node_do_not_break_the_team() {
     assert!(restart_handled > 0, "the restarted node neither took the others' store nor healed");
     assert!(node_err < dr_err, "the team ({node_err:.2} m) should beat dead reckoning ({dr_err:.2} m)");
     drop(children);
-    let _ = std::fs::remove_file(&key_path);
 }
 
 /// A node frozen (SIGSTOP) for 1.5 s of wall time, 30 s of vehicle time at 20x, while the

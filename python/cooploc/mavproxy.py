@@ -285,18 +285,23 @@ def generate_bindings(xml_path):
     import contextlib
     import importlib.util
     import io
+    import shutil
     import tempfile
     from pymavlink.generator import mavgen
     out_dir = tempfile.mkdtemp(prefix="mavproxy-cooploc-")
-    out = os.path.join(out_dir, "cooploc_bindings.py")
-    opts = mavgen.Opts(out, wire_protocol="2.0", language="Python3", validate=False)
-    with contextlib.redirect_stdout(io.StringIO()):
-        if not mavgen.mavgen(opts, [xml_path]):
-            raise RuntimeError("mavgen refused %s" % xml_path)
-    spec = importlib.util.spec_from_file_location("_mavproxy_cooploc_bindings", out)
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
+    try:
+        out = os.path.join(out_dir, "cooploc_bindings.py")
+        opts = mavgen.Opts(out, wire_protocol="2.0", language="Python3", validate=False)
+        with contextlib.redirect_stdout(io.StringIO()):
+            if not mavgen.mavgen(opts, [xml_path]):
+                raise RuntimeError("mavgen refused %s" % xml_path)
+        spec = importlib.util.spec_from_file_location("_mavproxy_cooploc_bindings", out)
+        mod = importlib.util.module_from_spec(spec)
+        spec.loader.exec_module(mod)
+        return mod
+    finally:
+        # (the module is loaded: its folder is not left behind at every `module load`)
+        shutil.rmtree(out_dir, ignore_errors=True)
 
 
 # ---- the module ---------------------------------------------------------------------------------

@@ -91,6 +91,27 @@ impl Drop for Kill {
     }
 }
 
+/// A test's own folder in the temporary directory (`NAME-PID`), made at once and removed with
+/// what is in it when dropped, a failing test's unwinding included: runs leave nothing behind.
+#[allow(dead_code)] // (not every test binary writes files)
+pub struct TempDir(pub std::path::PathBuf);
+#[allow(dead_code)]
+impl TempDir {
+    pub fn new(name: &str) -> Self {
+        let dir = std::env::temp_dir().join(format!("{name}-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap_or_else(|e| panic!("cannot make {}: {e}", dir.display()));
+        Self(dir)
+    }
+    pub fn join(&self, name: impl AsRef<std::path::Path>) -> std::path::PathBuf {
+        self.0.join(name)
+    }
+}
+impl Drop for TempDir {
+    fn drop(&mut self) {
+        let _ = std::fs::remove_dir_all(&self.0);
+    }
+}
+
 /// What `cooploc demo` writes by default, `logs/demo-<seed>-<run>.mcap` (ignored by git, like
 /// in .gitignore): a user who ran the README's first command has one, and it is not a golden log.
 pub fn demo_default(p: &std::path::Path) -> bool {
@@ -119,14 +140,15 @@ pub fn paper_node_args(id: u16, vehicle: &str) -> Vec<String> {
 }
 
 /// `--team-key FILE` for a test's node (or ground station): a node refuses an unsigned
-/// cooperative network unless told --insecure. The file (a fixed passphrase) is written once
-/// per test process, whole (renamed into place), so that tests running at once never read half
-/// of it.
+/// cooperative network unless told --insecure. The file (a fixed passphrase) is one for every
+/// test process (one file left in the temporary directory, not one per process), written whole
+/// (renamed into place), so that tests running at once never read half of it.
 #[allow(dead_code)] // (not every test binary starts a node)
 pub fn team_key_args() -> Vec<String> {
-    let path = std::env::temp_dir().join(format!("cooploc-test-team-{}.key", std::process::id()));
+    let path = std::env::temp_dir().join("cooploc-test-team.key");
     if !path.exists() {
-        let tmp = path.with_extension(format!("{:?}.tmp", std::thread::current().id()).replace(['(', ')'], ""));
+        let writer = format!("{}-{:?}", std::process::id(), std::thread::current().id()).replace(['(', ')'], "");
+        let tmp = path.with_extension(format!("{writer}.tmp"));
         std::fs::write(&tmp, "the passphrase of the tests' team\n").unwrap();
         std::fs::rename(&tmp, &path).unwrap();
     }

@@ -8,10 +8,12 @@ Prints one JSON object: per robot the ODOMETRY and COOPLOC_RANGE_BEARING frames 
 decoded (and how many frames it could not), the truth and estimate messages, and the first
 observation's fields; raises naming what is missing.
 """
+import atexit
 import contextlib
 import json
 import os
 import sys
+import shutil
 import tempfile
 
 from mcap.reader import make_reader
@@ -20,6 +22,7 @@ from pymavlink.generator import mavgen
 
 xml_path, path = sys.argv[1], sys.argv[2]
 out_dir = tempfile.mkdtemp(prefix="cooploc-mavgen-")
+atexit.register(shutil.rmtree, out_dir, ignore_errors=True)
 opts = mavgen.Opts(os.path.join(out_dir, "cooploc_dialect.py"), wire_protocol="2.0", language="Python3", validate=True)
 with contextlib.redirect_stdout(sys.stderr):
     assert mavgen.mavgen(opts, [xml_path]), "mavgen rejected " + xml_path

@@ -8,11 +8,13 @@ case {"name", "sysid", "compid", "seq", "fields", "hex"} of CASES_JSON:
   - encodes "fields" with pymavlink (same header) and reports the frame's hex.
 Prints one JSON object: {"cases": [{"name", "decoded_equal", "mismatches", "python_hex"}]}.
 """
+import atexit
 import contextlib
 import json
 import math
 import os
 import sys
+import shutil
 import tempfile
 
 from pymavlink.generator import mavgen
@@ -20,6 +22,7 @@ from pymavlink.generator import mavgen
 
 def load_dialect(xml_path):
     out_dir = tempfile.mkdtemp(prefix="cooploc-mavgen-")
+    atexit.register(shutil.rmtree, out_dir, ignore_errors=True)
     opts = mavgen.Opts(os.path.join(out_dir, "cooploc_dialect.py"), wire_protocol="2.0", language="Python3", validate=True)
     with contextlib.redirect_stdout(sys.stderr):  # mavgen reports progress on stdout
         ok = mavgen.mavgen(opts, [xml_path])

@@ -6,9 +6,11 @@ Runs MAVProxy headless with both as masters, asks it to send SET_MESSAGE_INTERVA
 10 Hz) to system 2, stops it, and reads MAVProxy's own telemetry log (tlog) with pymavlink:
 prints every (sysid:compid, type) heartbeat it received and every COMMAND_ACK.
 """
+import atexit
 import os
 import subprocess
 import sys
+import shutil
 import tempfile
 import time
 
@@ -17,6 +19,7 @@ from pymavlink import mavutil  # noqa: E402
 
 vehicle, node = sys.argv[1], sys.argv[2]
 home = tempfile.mkdtemp(prefix="cooploc-mavproxy-")
+atexit.register(shutil.rmtree, home, ignore_errors=True)
 mavproxy = os.path.join(os.path.dirname(sys.executable), "mavproxy.py")
 cmd = [
     sys.executable, mavproxy,
