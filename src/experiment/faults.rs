@@ -92,7 +92,19 @@ pub struct Faults {
     /// False: as the signed team `cooploc node` runs by default (the harness's network carries
     /// only its nodes' own records: it has no forger).
     pub unsigned: bool,
+    /// One node's team clock is off (node index, ms; its clock ahead of the others'): a TIMESYNC
+    /// mapping or a companion's NTP that is wrong by that much. Its vehicle's samples reach it
+    /// stamped that much later than the instant they were taken, and its ranges are named by the
+    /// instant of the epoch grid ([`EPOCH_GRID_US`], the profiles' `epoch_grid_ms = 100`)
+    /// nearest to theirs (the epoch's own up to half the grid). Its errors are scored against
+    /// the truth at the instant its clock names (so what is measured is what the offset does to
+    /// the team's updates, not the offset itself).
+    pub clock_offset: Option<(usize, f64)>,
 }
+
+/// The grid on which a node names its ranges' epochs (the vehicle profiles' `epoch_grid_ms`),
+/// us: clocks that agree to half of it name every epoch alike.
+pub const EPOCH_GRID_US: u64 = 100_000;
 
 impl Default for Faults {
     fn default() -> Self {
@@ -112,11 +124,20 @@ impl Default for Faults {
             corrupt: 0.0,
             link_seed: None,
             unsigned: false,
+            clock_offset: None,
         }
     }
 }
 
 impl Faults {
+    /// How far node `k`'s team clock is ahead of the truth, us.
+    pub fn clock_offset_us(&self, k: usize) -> u64 {
+        match self.clock_offset {
+            Some((n, ms)) if n == k && ms > 0.0 => (ms * 1000.0).round() as u64,
+            _ => 0,
+        }
+    }
+
     /// When the last fault ends (0 for none), s.
     pub fn end_s(&self) -> f64 {
         let faulty = self.coop_loss > 0.0 || self.vehicle_loss > 0.0 || self.delay_ms.1 > 0 || self.corrupt > 0.0;
@@ -209,6 +230,51 @@ pub fn standard_cases() -> Vec<FaultCase> {
         },
     ]
 }
+
+/// The offsets of the clock sweep ([`clock_offset_cases`]), ms.
+pub const CLOCK_OFFSETS_MS: [f64; 9] = [1.0, 2.0, 5.0, 10.0, 20.0, 30.0, 45.0, 55.0, 100.0];
+
+/// What a team clock that is off costs (issue 31, item 2): fault-free, then one node's clock
+/// ahead of its teammates' by each of [`CLOCK_OFFSETS_MS`] for the whole run: node 1's, whose
+/// radio measures two of the three ranges, then node 3's, which measures none (it learns each
+/// epoch from its teammates). Up to half the epoch grid (50 ms) every node names each epoch
+/// alike and the offset only moves where the node's state is taken (v x offset along its
+/// track); past it node 1 names every epoch by another instant than its teammates do.
+pub fn clock_offset_cases() -> Vec<FaultCase> {
+    let mut cases = vec![FaultCase { name: "fault-free", faults: Faults::default() }];
+    for (node, names) in [(0, &CLOCK_NAMES[0]), (2, &CLOCK_NAMES[1])] {
+        for (&name, ms) in names.iter().zip(CLOCK_OFFSETS_MS) {
+            cases.push(FaultCase { name, faults: Faults { clock_offset: Some((node, ms)), ..Faults::default() } });
+        }
+    }
+    cases
+}
+
+/// The clock sweep's case names (static, as every case's).
+const CLOCK_NAMES: [[&str; 9]; 2] = [
+    [
+        "node 1's clock 1 ms ahead",
+        "node 1's clock 2 ms ahead",
+        "node 1's clock 5 ms ahead",
+        "node 1's clock 10 ms ahead",
+        "node 1's clock 20 ms ahead",
+        "node 1's clock 30 ms ahead",
+        "node 1's clock 45 ms ahead",
+        "node 1's clock 55 ms ahead",
+        "node 1's clock 100 ms ahead",
+    ],
+    [
+        "node 3's clock 1 ms ahead",
+        "node 3's clock 2 ms ahead",
+        "node 3's clock 5 ms ahead",
+        "node 3's clock 10 ms ahead",
+        "node 3's clock 20 ms ahead",
+        "node 3's clock 30 ms ahead",
+        "node 3's clock 45 ms ahead",
+        "node 3's clock 55 ms ahead",
+        "node 3's clock 100 ms ahead",
+    ],
+];
 
 /// The cases for a large team spread out ([`crate::sitl::scenario::Scenario::side_by_side`]) of
 /// `n` members over `duration_s`: loss-free, 10% datagram loss, four members
@@ -463,9 +529,9 @@ fn damage(bytes: &mut Vec<u8>, rng: &mut ChaCha8Rng) {
 }
 
 /// Horizontal error (truth minus estimate) and its 2-D NEES.
-fn horizontal_error(world: &World, id: PlatformId, core: &NodeCore) -> (f64, f64) {
+fn horizontal_error(world: &World, id: PlatformId, core: &NodeCore, clock_offset_us: u64) -> (f64, f64) {
     let f = core.filter();
-    let truth = world.trajectory(id).expect("team member").truth_at(f.time());
+    let truth = world.trajectory(id).expect("team member").truth_at(TimeUs(f.time().0.saturating_sub(clock_offset_us)));
     let e = truth.pos_ned_m - f.position_ned_m();
     let p = f.output_covariances().position();
     let cov = nalgebra::DMatrix::from_fn(2, 2, |r, c| p[(r, c)]);
@@ -480,7 +546,7 @@ fn horizontal_error(world: &World, id: PlatformId, core: &NodeCore) -> (f64, f64
 /// are strongly correlated (ranges leave the team's common position unobserved, so the nodes'
 /// errors move together), this is one chi-square sample per run, so its run average has an exact
 /// band. NaN for methods that keep no store.
-fn team_nees(world: &World, ids: &[PlatformId], cores: &[&NodeCore]) -> f64 {
+fn team_nees(world: &World, ids: &[PlatformId], cores: &[&NodeCore], offsets_us: &[u64]) -> f64 {
     use crate::estimation::PlatformFilter;
     use nalgebra::{DMatrix, DVector};
     if cores.iter().any(|c| c.config().method != Method::Decentralized) {
@@ -503,7 +569,7 @@ fn team_nees(world: &World, ids: &[PlatformId], cores: &[&NodeCore]) -> f64 {
     for i in 0..n {
         let Some(pi) = pos(i) else { return f64::NAN };
         let f = cores[i].filter();
-        let truth = world.trajectory(ids[i]).expect("team member").truth_at(f.time());
+        let truth = world.trajectory(ids[i]).expect("team member").truth_at(TimeUs(f.time().0.saturating_sub(offsets_us[i])));
         let err = truth.pos_ned_m - f.position_ned_m();
         e[2 * i] = err.x;
         e[2 * i + 1] = err.y;
@@ -568,6 +634,9 @@ impl Maker<'_> {
                     Some(t) => self.world.estimate_at(self.seed, self.run, id, t, 1)?,
                 };
                 let (t0, state) = state_from(init)?;
+                // (a node whose clock is off names its start instant by its clock too)
+                let k = self.ids.iter().position(|&p| p == id).unwrap_or(0);
+                let t0 = TimeUs(t0.0 + self.case.clock_offset_us(k));
                 NodeCore::new(cfg, t0, NavState::for_model(&model, state))
             }
         }
@@ -671,7 +740,7 @@ pub fn run_case(
             next_second += 1;
             for (k, node) in sim.nodes.iter().enumerate() {
                 if let Some(core) = node.core() {
-                    let (err, _) = horizontal_error(world, ids[k], core);
+                    let (err, _) = horizontal_error(world, ids[k], core, case.clock_offset_us(k));
                     sampled[k] = (sampled[k].0 + err * err, sampled[k].1 + 1);
                 }
             }
@@ -687,34 +756,44 @@ pub fn run_case(
                     if at_fault_end[k].is_none()
                         && let Some(core) = sim.nodes[k].core()
                     {
-                        at_fault_end[k] = Some(horizontal_error(world, ids[k], core));
+                        at_fault_end[k] = Some(horizontal_error(world, ids[k], core, case.clock_offset_us(k)));
                     }
                 }
             }
         }
+        // A node whose clock is off stamps its vehicle's samples by it (`Faults::clock_offset`).
+        let later = |k: usize, t: TimeUs| TimeUs(t.0 + case.clock_offset_us(k));
         match event {
-            SimEvent::Imu(id, s) => {
+            SimEvent::Imu(id, mut s) => {
                 let k = index(id);
                 if dropped_imu != Some((k, s.t)) && !sim.lose_vehicle_frame(s.t) {
+                    s.t = later(k, s.t);
                     sim.deliver(k, Arrival::Input(NodeInput::Imu(s)), now);
                 }
             }
-            SimEvent::Odometer(id, s) => {
+            SimEvent::Odometer(id, mut s) => {
+                let k = index(id);
                 if !sim.lose_vehicle_frame(s.t) {
-                    sim.deliver(index(id), Arrival::Input(NodeInput::Odometer(s)), now);
+                    s.t = later(k, s.t);
+                    sim.deliver(k, Arrival::Input(NodeInput::Odometer(s)), now);
                 }
             }
-            SimEvent::Wheel(id, s) => {
+            SimEvent::Wheel(id, mut s) => {
                 let k = index(id);
                 if dropped_imu != Some((k, s.t)) && !sim.lose_vehicle_frame(s.t) {
+                    s.t = later(k, s.t);
                     sim.deliver(k, Arrival::Input(NodeInput::Wheel(s)), now);
                 }
             }
             SimEvent::Ranges(t, samples) => {
                 epoch += 1;
-                for r in samples {
+                for mut r in samples {
                     if !sim.lose_vehicle_frame(t) {
-                        sim.deliver(index(r.from), Arrival::Input(NodeInput::OwnRange { epoch, range: r }), now);
+                        let k = index(r.from);
+                        if case.clock_offset_us(k) > 0 {
+                            r.t = crate::node::inputs::snap_to_grid(later(k, r.t), EPOCH_GRID_US).0;
+                        }
+                        sim.deliver(k, Arrival::Input(NodeInput::OwnRange { epoch, range: r }), now);
                     }
                 }
             }
@@ -756,7 +835,7 @@ fn outcome(world: &World, sim: &Sim<'_>, seed: u64, run: u32, at: &AtFaultEnd<'_
         let Some(core) = node.core() else {
             return Err(ExperimentError::Settings(format!("node {} never ran", ids[k])));
         };
-        let (final_err_m, final_nees) = horizontal_error(world, ids[k], core);
+        let (final_err_m, final_nees) = horizontal_error(world, ids[k], core, sim.case.clock_offset_us(k));
         let (fault_end_err_m, fault_end_nees) = at.errors[k].unwrap_or((final_err_m, final_nees));
         let p = core.filter().output_covariances().position();
         detections += core.stats.epoch_disagreements + core.stats.store_mismatches;
@@ -784,7 +863,8 @@ fn outcome(world: &World, sim: &Sim<'_>, seed: u64, run: u32, at: &AtFaultEnd<'_
     let divergent: Vec<u32> = all.iter().filter(|(_, d)| d.windows(2).any(|w| w[0] != w[1])).map(|(e, _)| *e).collect();
     let fault_end_epoch = at.epoch_times.iter().filter(|t| **t <= at.fault_end).count() as u32;
     let cores: Vec<&NodeCore> = sim.nodes.iter().filter_map(Node::core).collect();
-    let team_nees = team_nees(world, ids, &cores);
+    let offsets: Vec<u64> = (0..ids.len()).map(|k| sim.case.clock_offset_us(k)).collect();
+    let team_nees = team_nees(world, ids, &cores, &offsets);
     Ok(RunOutcome {
         nodes: outcomes,
         divergent_epochs: divergent.len() as u32,
@@ -806,6 +886,9 @@ pub struct CaseSummary {
     pub fault_end_rms_m: f64,
     /// RMS of dead reckoning's final error on the same inputs, m.
     pub dr_rms_m: f64,
+    /// RMS over runs and nodes of each node's whole-run RMS error (sampled every second), m:
+    /// what a small, steady cost shows in, where the final error is one draw.
+    pub run_rms_m: f64,
     /// Average final 2-D NEES over runs and nodes, and the 95% band it would have if the nodes'
     /// errors were independent (they are not: see `team_nees`).
     pub avg_nees: f64,
@@ -833,6 +916,8 @@ pub struct CaseSummary {
     pub applied: u64,
     pub failed: u64,
     pub gated: u64,
+    /// Epochs refused as implausible (an id that does not fit its instant: clocks apart).
+    pub implausible: u64,
 }
 
 /// Sums up runs of one case.
@@ -848,6 +933,7 @@ pub fn summarize(name: &str, runs: &[RunOutcome]) -> CaseSummary {
         final_rms_m: rms(&|n| n.final_err_m),
         fault_end_rms_m: rms(&|n| n.fault_end_err_m),
         dr_rms_m: rms(&|n| n.dr_final_err_m),
+        run_rms_m: rms(&|n| n.rms_err_m),
         avg_nees: nodes.iter().map(|n| n.final_nees).sum::<f64>() / nodes.len().max(1) as f64,
         nees_band: crate::estimation::consistency::average_nees_band(2, nodes.len(), 0.95),
         team_nees: runs.iter().map(|r| r.team_nees).sum::<f64>() / runs.len().max(1) as f64,
@@ -868,5 +954,6 @@ pub fn summarize(name: &str, runs: &[RunOutcome]) -> CaseSummary {
         applied: sum(&|s| s.epochs_applied),
         failed: sum(&|s| s.epochs_failed),
         gated: sum(&|s| s.ranges_gated),
+        implausible: sum(&|s| s.epochs_implausible),
     }
 }

@@ -4,7 +4,7 @@ use std::path::PathBuf;
 use std::time::Instant;
 
 use anyhow::{Context, bail};
-use cooploc::experiment::faults::{CaseSummary, large_team_cases, run_case, standard_cases, summarize};
+use cooploc::experiment::faults::{CaseSummary, clock_offset_cases, large_team_cases, run_case, standard_cases, summarize};
 use cooploc::sitl::scenario::Scenario;
 use cooploc::sitl::world::World;
 use rayon::prelude::*;
@@ -70,6 +70,11 @@ pub struct Args {
     /// With --side-by-side: the run's length, s.
     #[arg(long, requires = "side_by_side")]
     duration_s: Option<f64>,
+    /// The clock sweep instead of the standard cases: node 3's team clock ahead of its
+    /// teammates' by 1 to 100 ms (a TIMESYNC mapping or an NTP clock that is off), its ranges on
+    /// the profiles' 100 ms epoch grid; what each offset costs the team.
+    #[arg(long, conflicts_with = "side_by_side")]
+    clock_sweep: bool,
 }
 
 pub fn run(args: Args) -> anyhow::Result<()> {
@@ -101,6 +106,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     let duration_s = world.scenario().duration_s;
     let all_cases = match args.side_by_side {
         Some(n) => large_team_cases(usize::from(n), duration_s),
+        None if args.clock_sweep => clock_offset_cases(),
         None => standard_cases(),
     };
     let (cases, too_long): (Vec<_>, Vec<_>) = all_cases
@@ -156,12 +162,54 @@ pub fn run(args: Args) -> anyhow::Result<()> {
             .unwrap_or_default(),
         started.elapsed().as_secs_f64()
     );
+    if args.clock_sweep {
+        print_clock_sweep(&summaries);
+    } else {
+        print_table(&summaries);
+    }
+    if let Some(path) = &args.json {
+        std::fs::write(path, serde_json::to_string_pretty(&summaries)?).with_context(|| format!("writing {}", path.display()))?;
+    }
+    Ok(())
+}
+
+/// The clock sweep's table: what each offset costs, over the whole run and at its end.
+fn print_clock_sweep(summaries: &[CaseSummary]) {
+    let base = summaries.iter().find(|s| s.name == "fault-free").map(|s| (s.run_rms_m, s.final_rms_m));
+    let rel = |v: f64, b: f64| format!("{:+.1}%", 100.0 * (v / b - 1.0));
+    println!(
+        "| case | whole-run RMS m | vs fault-free | final RMS m | vs fault-free | team NEES (95% band) | applied | partial | implausible | gated |"
+    );
+    println!("|---|---|---|---|---|---|---|---|---|---|");
+    for s in summaries {
+        let (run_rel, final_rel) =
+            base.map_or((String::new(), String::new()), |(r, f)| (rel(s.run_rms_m, r), rel(s.final_rms_m, f)));
+        println!(
+            "| {} | {:.3} | {} | {:.3} | {} | {:.2} ({:.2}-{:.2}) | {} | {} | {} | {} |",
+            s.name,
+            s.run_rms_m,
+            run_rel,
+            s.final_rms_m,
+            final_rel,
+            s.team_nees,
+            s.team_nees_band.0,
+            s.team_nees_band.1,
+            s.applied,
+            s.partial,
+            s.implausible,
+            s.gated
+        );
+    }
+}
+
+/// The standard table (docs/robustness.md).
+fn print_table(summaries: &[CaseSummary]) {
     let base = summaries.iter().find(|s| s.name == "fault-free").map(|s| s.final_rms_m);
     println!(
         "| case | final RMS m | vs fault-free | at fault end m | dead reckoning m | NEES per node | team NEES (95% band) | worse than DR | diverged / detected / not recovered | left out / stores adopted / bystood | heals | partial | failed | gated |"
     );
     println!("|---|---|---|---|---|---|---|---|---|---|---|---|---|---|");
-    for s in &summaries {
+    for s in summaries {
         let rel = base.map_or("".into(), |b| format!("{:+.0}%", 100.0 * (s.final_rms_m / b - 1.0)));
         println!(
             "| {} | {:.2} | {} | {:.2} | {:.2} | {:.2} | {:.2} ({:.2}-{:.2}) | {} | {} / {} / {} | {} / {} / {} | {} | {} | {} | {} |",
@@ -187,8 +235,4 @@ pub fn run(args: Args) -> anyhow::Result<()> {
             s.gated
         );
     }
-    if let Some(path) = &args.json {
-        std::fs::write(path, serde_json::to_string_pretty(&summaries)?).with_context(|| format!("writing {}", path.display()))?;
-    }
-    Ok(())
 }
