@@ -22,6 +22,10 @@ use crate::sitl::{ScenarioError, SimEvent, World};
 use crate::time::TimeUs;
 
 /// Most heard UDP peers a vehicle streams to (the least recently heard is dropped first).
+/// How far from real time (as a fraction) the vehicles' clocks still answer TIMESYNC: within
+/// it they are real clocks at a rate of their own (`cooploc sitl --speed 0.992` runs as PX4's SIH
+/// did), beyond it a simulated time no companion clock follows.
+pub const NEAR_REAL_TIME: f64 = 0.02;
 pub const MAX_UDP_PEERS: usize = 8;
 /// A heard UDP peer silent for this long (wall time) is no longer streamed to.
 pub const UDP_PEER_TIMEOUT: Duration = Duration::from_secs(30);
@@ -456,7 +460,9 @@ impl Simulator {
                 return Ok(self.finish(StopReason::Shutdown, sim_now).await);
             }
         }
-        let real_time = self.config.speed == Speed::Factor(1.0);
+        // (near real time, the vehicles' clocks are real clocks running at a rate of their own,
+        // as PX4's SIH ran at 0.992: their TIMESYNC answers are what a node's mapping must follow)
+        let real_time = matches!(self.config.speed, Speed::Factor(s) if (s - 1.0).abs() <= NEAR_REAL_TIME);
         self.cores.iter_mut().for_each(|c| c.set_answers_timesync(real_time));
         tracing::info!(schedule = %self.config.schedule, seed = self.config.seed, run = self.config.run, speed = ?self.config.speed, "simulation started");
         let wall_start = Instant::now();

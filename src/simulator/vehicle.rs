@@ -239,9 +239,11 @@ pub struct VehicleCore {
     /// Sequence of the wheel-odometry peripheral (its own component).
     peripheral_sequence: u8,
     params: ParamTable,
-    /// The vehicle answers TIMESYNC: its clock runs at real time (a simulator holding its
-    /// clock at zero for its peers, or running faster or slower than real time, says no: an
-    /// answer would map its clock to the companion's wrongly).
+    /// The vehicle answers TIMESYNC: its clock runs at real time, or within
+    /// [`super::runner::NEAR_REAL_TIME`] of it, as a real autopilot's or a real simulator's clock
+    /// does (PX4's SIH ran at 0.992); a simulator holding its clock at zero for its peers, or
+    /// running much faster or slower, says no: an answer would map its clock to the companion's
+    /// wrongly.
     answers_timesync: bool,
     /// The EKF origin the vehicle reports (GPS_GLOBAL_ORIGIN): with GNSS (`gnss`) its
     /// fix's, which is the scenario's origin here; without, none until a SET_GPS_GLOBAL_ORIGIN

@@ -23,6 +23,8 @@ pub struct Args {
     #[command(flatten)]
     sim: crate::args::SimRun,
     /// Times real time: 1 = real time, 10 = ten times faster; `max` (or 0) = as fast as possible.
+    /// Within 2% of real time the vehicles answer TIMESYNC (a clock of their own: 0.992 runs as
+    /// PX4's SIH did), otherwise not.
     #[arg(long, default_value = "1", value_parser = parse_speed)]
     speed: Speed,
     /// Vehicle N listens on UDP port BASE_PORT + N (PX4 style); 0 = an ephemeral port each.

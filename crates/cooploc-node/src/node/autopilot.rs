@@ -213,8 +213,17 @@ impl RateRequest {
 pub const TIMESYNC_FAST_US: u64 = 200_000;
 /// TIMESYNC requests sent once a mapping is known, apart, us.
 pub const TIMESYNC_SLOW_US: u64 = 1_000_000;
-/// Answers kept: the mapping is the one of the answer with the shortest round trip among them.
+/// The newest answers the mapping's offset comes from (the quickest of them).
 const TIMESYNC_WINDOW: usize = 16;
+/// Answers kept for the rate (a longer span: a rate is what moves over time).
+const RATE_WINDOW: usize = 64;
+/// Answers the rate fit needs, at least, and the time they must span (companion clock), ns.
+const RATE_FIT_MIN_ANSWERS: usize = 4;
+const RATE_FIT_MIN_SPAN_NS: i64 = 3_000_000_000;
+/// The largest rate difference believed between the two clocks (crystals differ by tens of
+/// parts per million; PX4's SIH ran 0.8% slow): a fit beyond it is noise, and the quickest
+/// answer alone gives the mapping.
+pub const TIMESYNC_MAX_RATE: f64 = 0.02;
 /// An answer slower than this (round trip) is not used, us.
 pub const TIMESYNC_MAX_RTT_US: i64 = 500_000;
 /// Requests remembered (an answer must echo one of them).
@@ -227,15 +236,23 @@ const TIMESYNC_SENT_KEPT: usize = 32;
 /// answer with `tc1` = their boot time (ns) when the request arrived and `ts1` echoed. If the
 /// answer comes back at companion time `t4`, the autopilot's instant `tc1` is taken as the
 /// middle of the round trip: offset = (ts1 + t4) / 2 - tc1 (companion time minus boot time),
-/// wrong by at most half the round trip (by half the difference of the two ways' delays). Of
-/// the last [`TIMESYNC_WINDOW`] answers the one with the shortest round trip gives the
-/// mapping (the least delayed by queues); the window follows the two clocks' drift.
+/// wrong by at most half the round trip (by half the difference of the two ways' delays). The
+/// two clocks need not run at the same rate (PX4's SIH ran 0.992 times real time; crystals
+/// differ by tens of parts per million), so the offset moves: of the last [`TIMESYNC_WINDOW`]
+/// answers (one a second) the quickest gives the offset (the least delayed by queues: an answer
+/// is good to half its round trip), and a line fitted to them all, each weighted by its round
+/// trip, gives the rate at which the offset moves: the mapping is the quickest answer's offset
+/// moved on at that rate to the newest answer. (The line's own offset, an average over answers
+/// whose two ways differ, was 3 times worse than the quickest answer's with equal rates.) An offset taken from the quickest answer alone lagged by the rate difference
+/// times its age: up to 0.1 s on SIH, past the 50 ms at which a team's epochs split. Too few
+/// answers, or too short a span, or a rate beyond [`TIMESYNC_MAX_RATE`]: the quickest answer
+/// alone.
 #[derive(Debug, Clone, Default)]
 pub struct TimeSync {
     next_due_wall_us: u64,
     sent: std::collections::VecDeque<i64>,
-    /// (round trip, offset), ns, newest last.
-    answers: std::collections::VecDeque<(i64, i64)>,
+    /// (round trip, offset, companion time of the answer's middle), ns, newest last.
+    answers: std::collections::VecDeque<(i64, i64, i64)>,
     /// Answers that echo no request of ours, or are too slow or implausible.
     pub refused: u64,
     pub requests: u64,
@@ -294,17 +311,66 @@ impl TimeSync {
             return TimesyncReply::Nothing;
         }
         let offset = m.ts1 + rtt / 2 - m.tc1;
-        self.answers.push_back((rtt, offset));
-        if self.answers.len() > TIMESYNC_WINDOW {
+        self.answers.push_back((rtt, offset, m.ts1 + rtt / 2));
+        if self.answers.len() > RATE_WINDOW {
             self.answers.pop_front();
         }
         TimesyncReply::Sample
     }
 
-    /// The mapping (companion time minus boot time, us) and its round trip (us): the answer of
-    /// the shortest round trip in the window.
+    /// The mapping (companion time minus boot time, us) at the newest answer, and the quickest
+    /// round trip (us): see the type's documentation.
     pub fn offset_us(&self) -> Option<(i64, i64)> {
-        self.answers.iter().min_by_key(|(rtt, _)| *rtt).map(|&(rtt, offset)| (offset.div_euclid(1000), rtt / 1000))
+        self.offset_at_us(self.answers.back()?.2)
+    }
+
+    /// The same at companion time `unix_ns`.
+    pub fn offset_at_us(&self, unix_ns: i64) -> Option<(i64, i64)> {
+        let recent = self.answers.iter().skip(self.answers.len().saturating_sub(TIMESYNC_WINDOW));
+        let &(quickest, offset, at) = recent.min_by_key(|(rtt, ..)| *rtt)?;
+        let moved = self.rate_fit().map_or(0, |(_, rate)| (rate * (unix_ns - at) as f64).round() as i64);
+        Some((offset.saturating_add(moved).div_euclid(1000), quickest / 1000))
+    }
+
+    /// Whether the two clocks run at rates told apart (the mapping moves between answers).
+    pub fn drifts(&self) -> bool {
+        self.rate_fit().is_some()
+    }
+
+    /// The line through the answers: (offset at the newest answer, ns; rate, the offset's
+    /// change per ns of the companion's clock), when there are enough of them over long enough
+    /// and the rate is believable (at most [`TIMESYNC_MAX_RATE`]) and told apart from none (three
+    /// times its standard error, each answer taken as good to half its round trip: equal
+    /// crystals give no rate at all, and the quickest answer alone, rather than noise).
+    pub fn rate_fit(&self) -> Option<(i64, f64)> {
+        let newest = self.answers.back()?.2;
+        let quick: Vec<&(i64, i64, i64)> = self.answers.iter().collect();
+        let span = newest - quick.first()?.2;
+        if quick.len() < RATE_FIT_MIN_ANSWERS || span < RATE_FIT_MIN_SPAN_NS {
+            return None;
+        }
+        // Weighted least squares about the newest answer and the first offset (numbers small
+        // enough for f64): an answer is good to half its round trip, which weighs it (a slow
+        // one, queued behind a busy loop, counts for little).
+        let o0 = quick[0].1;
+        let (mut sw, mut sx, mut sy, mut sxx, mut sxy) = (0.0, 0.0, 0.0, 0.0, 0.0);
+        for &&(rtt, offset, t) in &quick {
+            let w = 1.0 / (rtt as f64 / 2.0 + 10_000.0).powi(2); // (its error, ns, to the -2)
+            let (x, y) = ((t - newest) as f64, (offset - o0) as f64);
+            sw += w;
+            sx += w * x;
+            sy += w * y;
+            sxx += w * x * x;
+            sxy += w * x * y;
+        }
+        let denominator = sw * sxx - sx * sx;
+        if denominator <= 0.0 {
+            return None;
+        }
+        let rate = (sw * sxy - sx * sy) / denominator;
+        let at_newest = (sy - rate * sx) / sw;
+        let rate_sigma = (sw / denominator).sqrt(); // 1 / sum w (x - mean x)^2, square root
+        (rate.abs() <= TIMESYNC_MAX_RATE && rate.abs() > 3.0 * rate_sigma).then(|| (o0 + at_newest.round() as i64, rate))
     }
 
     /// Forgets every answer (the autopilot rebooted: its boot clock started again).
@@ -683,6 +749,67 @@ mod tests {
         // a reboot forgets every answer
         ts.reset();
         assert_eq!(ts.offset_us(), None);
+    }
+
+    /// An autopilot whose clock runs at `rate` times the companion's (PX4's SIH ran at 0.992),
+    /// asked once a second for 120 s, answering after delays of 0.2-20 ms each way (one in eight
+    /// held 100 ms more, as by a busy loop): the worst error of the mapping at each answer, from
+    /// the 16th on (ns), and the last rate fitted.
+    fn mapping_error(rate: f64) -> (i64, i64, Option<f64>) {
+        let mut ts = TimeSync::default();
+        let c0 = 1_795_000_000_000_000_000i64;
+        let boot = |c: i64| ((c - c0) as f64 * rate) as i64 + 42_000_000_000;
+        let mut lcg = 12345u64;
+        let mut delay = || {
+            lcg = lcg.wrapping_mul(6364136223846793005).wrapping_add(1442695040888963407);
+            let u = (lcg >> 33) as f64 / (1u64 << 31) as f64;
+            let spike = if (lcg >> 20).is_multiple_of(8) { 100_000_000 } else { 0 };
+            200_000 + (u * 19_800_000.0) as i64 + spike
+        };
+        let (mut worst_fit, mut worst_quickest) = (0i64, 0i64);
+        for k in 0..120i64 {
+            let c = c0 + k * 1_000_000_000;
+            let Some(MavMessage::TIMESYNC(q)) = ts.poll((k as u64) * 1_000_000, c, 1) else { panic!("no request at {k} s") };
+            let (out, back) = (delay(), delay());
+            assert_eq!(
+                ts.on_message(&timesync_answer(q.ts1, boot(c + out)), c + out + back, (1, 1), None),
+                TimesyncReply::Sample
+            );
+            let mid = c + (out + back) / 2;
+            let truth = mid - boot(mid);
+            let (offset_us, _) = ts.offset_us().unwrap();
+            // (the mapping before: the quickest of the last 16 answers, as it was)
+            let quickest = ts.answers.iter().rev().take(TIMESYNC_WINDOW).min_by_key(|a| a.0).unwrap().1;
+            if k >= 16 {
+                worst_fit = worst_fit.max((offset_us * 1000 - truth).abs());
+                worst_quickest = worst_quickest.max((quickest - truth).abs());
+            }
+        }
+        (worst_fit, worst_quickest, ts.rate_fit().map(|(_, r)| r))
+    }
+
+    /// The mapping follows a rate difference between the two clocks: with SIH's 0.8% it stays
+    /// within a millisecond where the quickest answer alone was off by tens of milliseconds
+    /// (past the 25-50 ms at which a team's epochs split); with equal rates it is as good as the
+    /// quickest answer (half its round trip).
+    #[test]
+    fn timesync_follows_a_clock_that_runs_at_another_rate() {
+        let (fit, quickest, rate) = mapping_error(0.992);
+        eprintln!("rate 0.992: worst {fit} ns, the quickest answer alone {quickest} ns, rate {rate:?}");
+        assert!((rate.unwrap() - 0.008).abs() < 1e-4, "rate {rate:?}");
+        assert!(fit < 5_000_000, "the mapping was off by {fit} ns");
+        assert!(quickest > 20_000_000, "the quickest answer alone was off by only {quickest} ns");
+        // crystals 20 ppm apart: no rate told apart from the answers' noise, the quickest answer
+        let (fit, quickest, rate) = mapping_error(1.0 + 20e-6);
+        eprintln!("rate 1.00002: worst {fit} ns, the quickest answer alone {quickest} ns, rate {rate:?}");
+        assert_eq!(rate, None);
+        assert!(fit <= quickest + 1000, "{fit} / {quickest} ns");
+        // too few quick answers, or a span too short: no fit, the quickest answer
+        let mut ts = TimeSync::default();
+        let Some(MavMessage::TIMESYNC(q)) = ts.poll(0, 5_000_000_000, 1) else { panic!() };
+        ts.on_message(&timesync_answer(q.ts1, 7), q.ts1 + 1_000_000, (1, 1), None);
+        assert_eq!(ts.rate_fit(), None);
+        assert_eq!(ts.offset_us(), Some(((q.ts1 + 500_000 - 7) / 1000, 1000)));
     }
 
     fn nav(t: u64, n: f64) -> Navigation {

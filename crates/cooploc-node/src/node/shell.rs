@@ -664,6 +664,9 @@ impl NodeShell {
         {
             self.send_vehicle(req);
         }
+        if self.clock.wanted && self.decoder.clock_source() == Some(ClockSource::Timesync) && self.clock.timesync.drifts() {
+            self.follow_clock(now);
+        }
     }
 
     /// One frame from the vehicle link. Fails only when the node cannot be made from the state
@@ -710,17 +713,22 @@ impl NodeShell {
     fn on_timesync(&mut self, m: &crate::protocol::dialect::cooploc::TIMESYNC_DATA, from: (u8, u8), now: Now) {
         match self.clock.timesync.on_message(m, now.unix_ns, from, self.decoder.clock_offset_us()) {
             TimesyncReply::Answer(answer) => self.send_vehicle(MavMessage::TIMESYNC(answer)),
-            TimesyncReply::Sample if self.clock.wanted => {
-                if let Some((offset_us, rtt_us)) = self.clock.timesync.offset_us()
-                    && self.decoder.clock_offset_us().is_none_or(|o| (o - offset_us).abs() > CLOCK_UPDATE_US)
-                    && self.decoder.clock_source() != Some(ClockSource::SystemTime)
-                {
-                    self.event(NodeEvent::Clock { offset_us, rtt_us });
-                    self.decoder.set_companion_offset(offset_us);
-                    self.clock.rtt_us = Some(rtt_us);
-                }
-            }
+            TimesyncReply::Sample if self.clock.wanted => self.follow_clock(now),
             _ => {}
+        }
+    }
+
+    /// The TIMESYNC mapping at `now` replaces the one in use when they differ by more than
+    /// [`CLOCK_UPDATE_US`]: at each answer, and on every tick while the autopilot's clock runs at
+    /// a rate of its own (the mapping then moves in steps of that size, not of a second's drift).
+    fn follow_clock(&mut self, now: Now) {
+        if let Some((offset_us, rtt_us)) = self.clock.timesync.offset_at_us(now.unix_ns)
+            && self.decoder.clock_offset_us().is_none_or(|o| (o - offset_us).abs() > CLOCK_UPDATE_US)
+            && self.decoder.clock_source() != Some(ClockSource::SystemTime)
+        {
+            self.event(NodeEvent::Clock { offset_us, rtt_us });
+            self.decoder.set_companion_offset(offset_us);
+            self.clock.rtt_us = Some(rtt_us);
         }
     }
 
