@@ -2117,6 +2117,37 @@ mod tests {
         NodeCore::new(cfg, TimeUs(0), start()).expect_err("refused")
     }
 
+    /// The wall clock at `t_us` (not at the `first` sample) and an IMU sample at rest then.
+    fn step_at_rest(core: &mut NodeCore, t_us: u64, first: bool) -> Vec<NodeOutput> {
+        let s = ImuSample {
+            t: TimeUs(t_us),
+            specific_force_frd_m_s2: Vector3::new(0.0, 0.0, -9.8),
+            angular_rate_frd_rad_s: Vector3::zeros(),
+        };
+        let mut out = if first { Vec::new() } else { core.poll(t_us) };
+        out.extend(core.handle(NodeInput::Imu(s)));
+        out
+    }
+
+    /// Teammate `from` announces `epoch` (at `epoch` seconds) in `state`, holding `participants`.
+    fn announce(
+        core: &mut NodeCore,
+        from: PlatformId,
+        epoch: u32,
+        participants: Vec<PlatformId>,
+        state: EpochState,
+    ) -> Vec<NodeOutput> {
+        let a = wire::EpochAnnouncement {
+            epoch,
+            t: TimeUs(u64::from(epoch) * 1_000_000),
+            announcer: from,
+            participants,
+            state,
+            digest: 0,
+        };
+        core.handle(NodeInput::Peer { from, msg: Box::new(wire::epoch_to_message(&a).unwrap()) })
+    }
+
     #[test]
     fn a_core_refuses_a_configuration_that_cannot_work_and_says_why() {
         assert!(NodeCore::new(config(2, vec![3, 1, 2]), TimeUs(0), start()).is_ok());
@@ -2148,15 +2179,7 @@ mod tests {
     fn a_node_follows_the_largest_set_a_peer_ran_and_waits_again_for_a_member_that_speaks() {
         let mut core = NodeCore::new(config(1, vec![1, 2, 3, 4]), TimeUs(0), start()).unwrap();
         let say = |core: &mut NodeCore, from: PlatformId, epoch: u32, participants: Vec<PlatformId>, state: EpochState| {
-            let a = wire::EpochAnnouncement {
-                epoch,
-                t: TimeUs(u64::from(epoch) * 1_000_000),
-                announcer: from,
-                participants,
-                state,
-                digest: 0,
-            };
-            core.handle(NodeInput::Peer { from, msg: Box::new(wire::epoch_to_message(&a).unwrap()) });
+            announce(core, from, epoch, participants, state);
         };
         let ran = |core: &NodeCore| core.epochs.get(&5).and_then(|e| e.peer_ran.clone());
         // One IMU sample: the vehicle's clock is known, epochs can become known.
@@ -2204,17 +2227,7 @@ mod tests {
             slot_us: slot,
             ..config(id, vec![1, 2, 3])
         };
-        let say = |core: &mut NodeCore, epoch: u32| {
-            let a = wire::EpochAnnouncement {
-                epoch,
-                t: TimeUs(u64::from(epoch) * 1_000_000),
-                announcer: 2,
-                participants: vec![2],
-                state: EpochState::COOPLOC_EPOCH_STATE_COLLECTING,
-                digest: 0,
-            };
-            core.handle(NodeInput::Peer { from: 2, msg: Box::new(wire::epoch_to_message(&a).unwrap()) })
-        };
+        let say = |core: &mut NodeCore, epoch: u32| announce(core, 2, epoch, vec![2], EpochState::COOPLOC_EPOCH_STATE_COLLECTING);
         // IMU samples every 10 ms up to 7 s, the wall clock running with them; a teammate says
         // epoch `said` when the filter is at `said_at`: when the node broadcast epoch 5, and when
         // it first asked for the records it lacks
@@ -2223,13 +2236,7 @@ mod tests {
             core.last_applied = Some((said - 1, TimeUs(u64::from(said - 1) * 1_000_000)));
             for k in 1..=700u64 {
                 let t = k * 10_000;
-                let s = ImuSample {
-                    t: TimeUs(t),
-                    specific_force_frd_m_s2: Vector3::new(0.0, 0.0, -9.8),
-                    angular_rate_frd_rad_s: Vector3::zeros(),
-                };
-                let mut out = if k == 1 { Vec::new() } else { core.poll(t) };
-                out.extend(core.handle(NodeInput::Imu(s)));
+                let mut out = step_at_rest(core, t, k == 1);
                 if t == said_at {
                     out.extend(say(core, said));
                 }
@@ -2290,17 +2297,7 @@ mod tests {
     /// ran stays the one a store it asked for is checked against.
     #[test]
     fn epochs_the_team_passes_over_are_no_gap_and_nothing_is_sent_for_them() {
-        let say = |core: &mut NodeCore, epoch: u32| {
-            let a = wire::EpochAnnouncement {
-                epoch,
-                t: TimeUs(u64::from(epoch) * 1_000_000),
-                announcer: 2,
-                participants: vec![2],
-                state: EpochState::COOPLOC_EPOCH_STATE_COLLECTING,
-                digest: 0,
-            };
-            core.handle(NodeInput::Peer { from: 2, msg: Box::new(wire::epoch_to_message(&a).unwrap()) })
-        };
+        let say = |core: &mut NodeCore, epoch: u32| announce(core, 2, epoch, vec![2], EpochState::COOPLOC_EPOCH_STATE_COLLECTING);
         // IMU samples every 10 ms, the wall clock running with them; epoch 5 said at 5.2 s
         // (when `say_five`), epoch 7 at 7.2 s, until `until_s`: the epochs node 3 sent a fragment
         // of, each with when it first did
@@ -2310,13 +2307,7 @@ mod tests {
             core.last_run = Some(4);
             for k in 1..=until_s * 100 {
                 let t = k * 10_000;
-                let s = ImuSample {
-                    t: TimeUs(t),
-                    specific_force_frd_m_s2: Vector3::new(0.0, 0.0, -9.8),
-                    angular_rate_frd_rad_s: Vector3::zeros(),
-                };
-                let mut out = if k == 1 { Vec::new() } else { core.poll(t) };
-                out.extend(core.handle(NodeInput::Imu(s)));
+                let mut out = step_at_rest(core, t, k == 1);
                 if t == 5_200_000 && say_five {
                     out.extend(say(core, 5));
                 }
