@@ -33,10 +33,15 @@ final. It builds nothing: it runs the `ardurover` binary it is given.
   started again at once with the same command line, as a supervisor would; every node keeps its
   navigation state (`state_file = "node.state"`), so the restarted one restores it. The driver
   prints the restarted rover's EKF3 error around the restart.
+- `--down-s D`: the killed node stays down D seconds before it is started again (default 0), and
+  `--without-state`: its state file goes with it (a companion whose disk was lost, or a node that
+  died before its first save): what ArduPilot's EKF3 does without the node's ODOMETRY, second by
+  second (its error and its EKF_STATUS_REPORT flags), and what the node does when it comes back
+  with nothing but its start-up configuration.
 
 usage: real_ardupilot_team.py --ardurover PATH --setup nognss|gnss-lost --method dcl|dr|alone
        [--defaults rover.parm] [--cooploc PATH] [--out DIR] [--seed N] [--json FILE]
-       [--restart-node K --restart-at-s S]
+       [--restart-node K --restart-at-s S [--down-s D] [--without-state]]
 """
 
 import argparse
@@ -277,6 +282,8 @@ def main():
     ap.add_argument("--timeout-s", type=float, default=420.0, help="give up on the mission after this long")
     ap.add_argument("--restart-node", type=int, default=None, help="kill this node (1..3) and start it again")
     ap.add_argument("--restart-at-s", type=float, default=60.0, help="... this long into the mission")
+    ap.add_argument("--down-s", type=float, default=0.0, help="... and kept down this long before it starts again")
+    ap.add_argument("--without-state", action="store_true", help="... and its state file removed before it starts again")
     args = ap.parse_args()
     if args.restart_node is not None and (args.method == "alone" or not 1 <= args.restart_node <= 3):
         sys.exit("error: --restart-node needs cooploc nodes (--method dcl or dr) and a node 1..3")
@@ -413,7 +420,7 @@ def main():
         epochs = 0
         done_at = None
         restart_at = start + args.restart_at_s if args.restart_node is not None else None
-        restarted_at = None
+        restarted_at = killed_at = None
         next_epoch = math.floor(time.time()) + 1
         while True:
             now = time.time()
@@ -437,14 +444,22 @@ def main():
                             line = "RANGE,%d,%d,%.3f,%.2f,%d\n" % (t, j + 1, d, RANGE_SIGMA_M, t * 1_000_000)
                             dev.sendto(line.encode(), ("127.0.0.1", range_ports[i]))
                     epochs += 1
-            if restart_at is not None and now >= restart_at:
+            if restart_at is not None and killed_at is None and now >= restart_at:
                 k = args.restart_node - 1
                 old = nodes_started[k]
                 old.kill()  # SIGKILL: no summary, no last save
                 old.wait()
+                killed_at = now
+                rovers[k].say("node killed")
+                if args.without_state:
+                    state = os.path.join(out, "r%d" % (k + 1), "node.state")
+                    if os.path.exists(state):
+                        os.remove(state)
+            if restart_at is not None and killed_at is not None and now >= killed_at + args.down_s:
+                k = args.restart_node - 1
                 d = os.path.join(out, "r%d" % (k + 1))
                 nodes_started[k] = spawn([cooploc, "node", "--config", "node.toml"], d, "node%d-restarted.out" % (k + 1))
-                rovers[k].say("node killed and restarted")
+                rovers[k].say("node restarted after %.1f s%s" % (now - killed_at, ", its state file removed" if args.without_state else ""))
                 restarted_at, restart_at = now, None
             finished = [rv.armed is False or ("Mission Complete" in " ".join(rv.texts)) for rv in rovers]
             if all(finished) and done_at is None:
@@ -482,10 +497,21 @@ def main():
             rv = rovers[args.restart_node - 1]
             with rv.lock:
                 ekf = list(rv.ekf)
-            windows = [("30 s before", restarted_at - 30, restarted_at), ("10 s after", restarted_at, restarted_at + 10),
+            if args.down_s > 0:
+                for sec in range(int(math.ceil(restarted_at - killed_at + 10))):
+                    errs = [math.hypot(n - p[0], e - p[1]) for (t, n, e) in ekf if killed_at + sec <= t < killed_at + sec + 1
+                            for p in [rv.truth_at(t)] if p is not None]
+                    if errs:
+                        print("rover %d, %2d-%2d s after the kill: EKF3 error %.2f m (worst %.2f m)"
+                              % (args.restart_node, sec, sec + 1, sum(errs) / len(errs), max(errs)), flush=True)
+            windows = [("30 s before", killed_at - 30, killed_at), ("while down", killed_at, restarted_at),
+                       ("10 s after", restarted_at, restarted_at + 10),
                        ("10-60 s after", restarted_at + 10, restarted_at + 60), ("10 s after to the end", restarted_at + 10, end)]
-            result["restart"] = {"node": args.restart_node, "at_s": restarted_at - start}
+            result["restart"] = {"node": args.restart_node, "at_s": restarted_at - start, "down_s": restarted_at - killed_at,
+                                 "without_state": args.without_state}
             for name, a, b in windows:
+                if b - a < 0.05:
+                    continue  # (not down at all)
                 errs = [math.hypot(n - p[0], e - p[1]) for (t, n, e) in ekf if a <= t <= b
                         for p in [rv.truth_at(t)] if p is not None]
                 worst = max(errs) if errs else float("nan")
