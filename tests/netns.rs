@@ -172,7 +172,8 @@ struct LinkSpec {
 struct Outcome {
     /// The scenario the team ran (the paper's, maybe cut short).
     toml: String,
-    finals: Vec<(u16, Vec<f64>, u64)>,
+    /// Each node's id, final position and epochs applied and run partial (of those applied).
+    finals: Vec<(u16, Vec<f64>, u64, u64)>,
     /// Bytes per second each node transmitted during the measured window (wall time).
     measured_bytes_per_s: Vec<f64>,
     relay: serde_json::Value,
@@ -258,8 +259,10 @@ fn run_team(tag: &str, spec: &LinkSpec) -> Option<Outcome> {
         eprintln!("{line}\n{stats}\n{signing}\n{peers}");
         let pos: Vec<f64> =
             line.split('[').nth(1).unwrap().split(']').next().unwrap().split(',').map(|v| v.trim().parse().unwrap()).collect();
-        let applied: u64 = line.split(" epochs_applied ").nth(1).unwrap().split_whitespace().next().unwrap().parse().unwrap();
-        finals.push((*id, pos, applied));
+        let count = |name: &str| -> u64 {
+            line.split(&format!(" {name} ")).nth(1).unwrap().split_whitespace().next().unwrap().parse().unwrap()
+        };
+        finals.push((*id, pos, count("epochs_applied"), count("epochs_partial")));
     }
     eprintln!("run took {:.0} s", started.elapsed().as_secs_f64());
     drop(children); // the relay writes its statistics on SIGTERM... and on every second
@@ -298,7 +301,14 @@ fn check_against_offline_run(outcome: &Outcome) {
     let dcl = run_filter(&world, &inputs, &ranges, Method::Decentralized).unwrap();
     let dr = run_filter(&world, &inputs, &[], Method::DeadReckoning).unwrap();
     let (mut node_err, mut dr_err) = (0.0, 0.0);
-    for (k, (id, pos, applied)) in outcome.finals.iter().enumerate() {
+    // The team ran what the offline run ran when every node applied every epoch on every record:
+    // one epoch run partial anywhere (a record lost past its resends) heals with the bound and
+    // changes every store after it.
+    let whole = outcome.finals.iter().all(|f| f.2 == epochs && f.3 == 0);
+    if !whole {
+        eprintln!("an epoch was left out or run partial: the team is not held to the offline run");
+    }
+    for (k, (id, pos, applied, _)) in outcome.finals.iter().enumerate() {
         let truth = inputs.platforms[k].truth.last().unwrap().pos_ned_m;
         let e = ((truth[0] - pos[0]).powi(2) + (truth[1] - pos[1]).powi(2)).sqrt();
         let off = dcl.platforms[k].final_error().pos_err_ne_m;
@@ -310,7 +320,7 @@ fn check_against_offline_run(outcome: &Outcome) {
         );
         // (370 of the paper's 380: the same share of a shorter run)
         assert!(*applied >= epochs - epochs / 38, "node {id} applied only {applied} of {epochs} epochs");
-        if *applied == epochs {
+        if whole {
             assert!(apart < 0.1, "node {id} ended {apart:.3} m from the offline run of the same team");
         }
         node_err += e;

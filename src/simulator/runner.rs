@@ -21,11 +21,11 @@ use crate::protocol::wire::GeoOrigin;
 use crate::sitl::{ScenarioError, SimEvent, World};
 use crate::time::TimeUs;
 
-/// Most heard UDP peers a vehicle streams to (the least recently heard is dropped first).
 /// How far from real time (as a fraction) the vehicles' clocks still answer TIMESYNC: within
 /// it they are real clocks at a rate of their own (`cooploc sitl --speed 0.992` runs as PX4's SIH
 /// did), beyond it a simulated time no companion clock follows.
 pub const NEAR_REAL_TIME: f64 = 0.02;
+/// Most heard UDP peers a vehicle streams to (the least recently heard is dropped first).
 pub const MAX_UDP_PEERS: usize = 8;
 /// A heard UDP peer silent for this long (wall time) is no longer streamed to.
 pub const UDP_PEER_TIMEOUT: Duration = Duration::from_secs(30);
