@@ -385,18 +385,16 @@ impl TimeSync {
     /// times its standard error, each answer taken as good to half its round trip: equal
     /// crystals give no rate at all, and the quickest answer alone, rather than noise).
     pub fn rate_fit(&self) -> Option<(i64, f64)> {
-        let newest = self.answers.back()?.2;
-        let quick: Vec<&(i64, i64, i64)> = self.answers.iter().collect();
-        let span = newest - quick.first()?.2;
-        if quick.len() < RATE_FIT_MIN_ANSWERS || span < RATE_FIT_MIN_SPAN_NS {
+        let (newest, first) = (self.answers.back()?.2, self.answers.front()?);
+        if self.answers.len() < RATE_FIT_MIN_ANSWERS || newest - first.2 < RATE_FIT_MIN_SPAN_NS {
             return None;
         }
         // Weighted least squares about the newest answer and the first offset (numbers small
         // enough for f64): an answer is good to half its round trip, which weighs it (a slow
         // one, queued behind a busy loop, counts for little).
-        let o0 = quick[0].1;
+        let o0 = first.1;
         let (mut sw, mut sx, mut sy, mut sxx, mut sxy) = (0.0, 0.0, 0.0, 0.0, 0.0);
-        for &&(rtt, offset, t) in &quick {
+        for &(rtt, offset, t) in &self.answers {
             let w = 1.0 / (rtt as f64 / 2.0 + 10_000.0).powi(2); // (its error, ns, to the -2)
             let (x, y) = ((t - newest) as f64, (offset - o0) as f64);
             sw += w;
