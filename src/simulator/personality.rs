@@ -333,7 +333,7 @@ impl Checker {
         }
     }
 
-    fn refusal(autopilot: Autopilot, m: &Odometry) -> Option<&'static str> {
+    pub(crate) fn refusal(autopilot: Autopilot, m: &Odometry) -> Option<&'static str> {
         let q = nalgebra::Quaternion::new(m.q[0], m.q[1], m.q[2], m.q[3]);
         let finite = [m.x, m.y, m.z].iter().chain(&m.q).all(|v| v.is_finite());
         match autopilot {

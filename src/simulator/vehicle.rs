@@ -250,7 +250,18 @@ pub struct VehicleCore {
     /// gives one, as on the real ArduPilot (measured: REQUEST_MESSAGE 49 answered ACCEPTED with
     /// no message, "EKF3 IMU0 origin set" after SET_GPS_GLOBAL_ORIGIN, then the origin on request).
     ekf_origin: Option<(i32, i32, i32)>,
+    /// What the autopilot's EKF holds of the node's estimate: the error of the last ODOMETRY
+    /// it took (position, yaw) and when it arrived. Without GNSS its estimate is the truth plus
+    /// that error, held (its IMU is perfect here; the real EKF3 drifted 0.04-0.23 m in the 7 s
+    /// after the node's ODOMETRY stopped), and its horizontal position is vouched for
+    /// [`EKF_DEAD_RECKONING_US`] after it.
+    odometry_error: Option<(TimeUs, nalgebra::Vector3<f64>, f64)>,
 }
+
+/// How long the EKF vouches for its horizontal position after the last ODOMETRY, without GNSS,
+/// us: the real ArduPilot 4.7 Rover's EKF3 kept it for 7 s, then said flags 0x033f -> 0x0027
+/// (docs/real-autopilot.md).
+pub const EKF_DEAD_RECKONING_US: u64 = 7_000_000;
 
 /// A platform that cannot be a MAVLink system.
 #[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
@@ -289,6 +300,7 @@ impl VehicleCore {
             config.gnss.then(|| (wire::deg_to_e7(o.lat_deg), wire::deg_to_e7(o.lon_deg), (o.alt_m * 1e3).round() as i32));
         Ok(VehicleCore {
             ekf_origin,
+            odometry_error: None,
             params: ParamTable::for_vehicle(&config, sysid),
             personality,
             checker: Checker::default(),
@@ -443,7 +455,7 @@ impl VehicleCore {
                         self.emit(Destination::AllPeers, message, out);
                     }
                     if self.config.autopilot == Autopilot::ArduPilot {
-                        let status = self.ekf_status();
+                        let status = self.ekf_status(due);
                         self.emit(Destination::AllPeers, status, out);
                     }
                     let st = &mut self.streams[stream.index()];
@@ -479,16 +491,20 @@ impl VehicleCore {
         }
     }
 
-    /// ArduPilot's EKF_STATUS_REPORT: an attitude and velocities, and a horizontal position once
-    /// it has an origin. (The real EKF3 reports itself uninitialised for 1-2 s after boot; the
-    /// personality's vehicles booted 20 s or more before the simulation starts.)
-    fn ekf_status(&self) -> MavMessage {
+    /// ArduPilot's EKF_STATUS_REPORT at `t`: an attitude and velocities, and a horizontal
+    /// position once it has an origin and something to hold it (a GNSS fix, or the node's
+    /// ODOMETRY in the last [`EKF_DEAD_RECKONING_US`]). (The real EKF3 reports itself
+    /// uninitialised for 1-2 s after boot; the personality's vehicles booted 20 s or more before
+    /// the simulation starts.)
+    fn ekf_status(&self, t: TimeUs) -> MavMessage {
         use crate::protocol::dialect::cooploc::{EKF_STATUS_REPORT_DATA, EkfStatusFlags};
         let mut flags = EkfStatusFlags::EKF_ATTITUDE
             | EkfStatusFlags::EKF_VELOCITY_HORIZ
             | EkfStatusFlags::EKF_VELOCITY_VERT
             | EkfStatusFlags::EKF_POS_VERT_ABS;
-        if self.ekf_origin.is_some() {
+        let aided =
+            self.gnss_fix(t) || self.odometry_error.is_some_and(|(at, _, _)| t.0 <= at.0.saturating_add(EKF_DEAD_RECKONING_US));
+        if self.ekf_origin.is_some() && aided {
             flags |= EkfStatusFlags::EKF_POS_HORIZ_REL | EkfStatusFlags::EKF_POS_HORIZ_ABS;
         }
         MavMessage::EKF_STATUS_REPORT(EKF_STATUS_REPORT_DATA { flags, ..Default::default() })
@@ -613,6 +629,9 @@ impl VehicleCore {
         let (command, params, target) = match message {
             MavMessage::ODOMETRY(m) => {
                 self.checker.check(self.config.autopilot, m, self.personality.clock_us(now));
+                if Checker::refusal(self.config.autopilot, m).is_none() {
+                    self.take_odometry(now, m, truth);
+                }
                 return;
             }
             MavMessage::GPS_INPUT(m) => {
@@ -938,18 +957,46 @@ impl VehicleCore {
         }
     }
 
-    /// The autopilot's fix and estimate at `t` (exact: a simulated autopilot on GNSS; after the
-    /// loss, still the truth, while the fix says none).
+    /// The error of an ODOMETRY the autopilot took at `now` (its position about the scenario's
+    /// origin: the node's frame when the EKF's origin is the team's), against the truth at its
+    /// time stamp.
+    fn take_odometry(&mut self, now: TimeUs, m: &crate::protocol::dialect::cooploc::ODOMETRY_DATA, truth: &Trajectory) {
+        let behind = self.personality.clock_us(now).saturating_sub(m.time_usec);
+        let tr = truth.truth_at(TimeUs(now.0.saturating_sub(behind)));
+        let q = nalgebra::UnitQuaternion::from_quaternion(nalgebra::Quaternion::new(
+            f64::from(m.q[0]),
+            f64::from(m.q[1]),
+            f64::from(m.q[2]),
+            f64::from(m.q[3]),
+        ));
+        let pos = nalgebra::Vector3::new(f64::from(m.x), f64::from(m.y), f64::from(m.z));
+        let yaw_error = crate::estimation::unicycle::wrap_angle(q.euler_angles().2 - tr.attitude.euler_angles().2);
+        self.odometry_error = Some((now, pos - tr.pos_ned_m, yaw_error));
+    }
+
+    /// Whether the EKF has a GNSS fix at `t`.
+    fn gnss_fix(&self, t: TimeUs) -> bool {
+        self.config.gnss && self.config.gnss_lost_at.is_none_or(|lost| t < lost)
+    }
+
+    /// The autopilot's fix and estimate at `t`: on GNSS, exact; without, the truth plus the
+    /// error of the last ODOMETRY it took (the truth when it took none), while the fix says none.
     fn estimate(&self, t: TimeUs, truth: &Trajectory) -> [MavMessage; 3] {
         let tr = truth.truth_at(t);
-        let motion = wire::TrueMotion {
+        let mut motion = wire::TrueMotion {
             pos_ned_m: tr.pos_ned_m,
             vel_ned_m_s: tr.vel_ned_m_s,
             attitude: tr.attitude,
             body_accel_m_s2: nalgebra::Vector3::zeros(),
             body_rate_rad_s: nalgebra::Vector3::new(0.0, 0.0, tr.yaw_rate_rad_s),
         };
-        let fix = self.config.gnss && self.config.gnss_lost_at.is_none_or(|lost| t < lost);
+        let fix = self.gnss_fix(t);
+        if let (false, Some((_, pos_error, yaw_error))) = (fix, self.odometry_error) {
+            let turn = nalgebra::UnitQuaternion::from_axis_angle(&nalgebra::Vector3::z_axis(), yaw_error);
+            motion.pos_ned_m += pos_error;
+            motion.vel_ned_m_s = turn * motion.vel_ned_m_s;
+            motion.attitude = turn * motion.attitude;
+        }
         let time_boot_ms = ((self.personality.clock_us(t) / 1000) % (1 << 32)) as u32;
         wire::truth_to_autopilot_estimate(&motion, &self.config.origin, time_boot_ms, fix)
     }
@@ -1397,8 +1444,64 @@ mod tests {
         // with an origin, a horizontal position
         let mut gnss = core(1);
         gnss.config.autopilot = Autopilot::ArduPilot;
-        let MavMessage::EKF_STATUS_REPORT(m) = gnss.ekf_status() else { panic!() };
+        let MavMessage::EKF_STATUS_REPORT(m) = gnss.ekf_status(TimeUs(1_000_000)) else { panic!() };
         assert_eq!(m.flags.bits() & 0x0018, 0x0018);
+    }
+
+    /// Without GNSS the autopilot's estimate is the node's last ODOMETRY carried on (its error
+    /// held), vouched for 7 s after it as the real EKF3's was; before any, the truth without a
+    /// horizontal position.
+    #[test]
+    fn without_gnss_the_ardupilot_personality_carries_the_nodes_last_odometry_and_vouches_for_it_7_s() {
+        #[allow(deprecated)]
+        use crate::protocol::dialect::cooploc::{MavEstimatorType, MavFrame, ODOMETRY_DATA, SET_GPS_GLOBAL_ORIGIN_DATA};
+        let w = world();
+        let truth = w.trajectory(1).unwrap();
+        let mut ap = ardupilot_without_gnss();
+        let mut out = Vec::new();
+        #[allow(deprecated)]
+        let origin =
+            MavMessage::SET_GPS_GLOBAL_ORIGIN(SET_GPS_GLOBAL_ORIGIN_DATA { target_system: 1, latitude: 1, ..Default::default() });
+        ap.on_message(TimeUs(0), GCS, &origin, truth, &mut out);
+        let estimate_at = |ap: &VehicleCore, t: u64| {
+            let [_, MavMessage::GLOBAL_POSITION_INT(_), MavMessage::ATTITUDE(a)] = ap.estimate(TimeUs(t), truth) else {
+                panic!()
+            };
+            let MavMessage::EKF_STATUS_REPORT(s) = ap.ekf_status(TimeUs(t)) else { panic!() };
+            (f64::from(a.yaw), s.flags.bits())
+        };
+        let true_yaw = |t: u64| truth.truth_at(TimeUs(t)).attitude.euler_angles().2;
+        let (yaw, flags) = estimate_at(&ap, 10_000_000);
+        assert!((yaw - true_yaw(10_000_000)).abs() < 1e-6 && flags & 0x0018 == 0, "no ODOMETRY yet: {flags:#x}");
+        // the node's ODOMETRY at 10 s: 3 m north and 0.2 rad off
+        let tr = truth.truth_at(TimeUs(10_000_000));
+        let q = nalgebra::UnitQuaternion::from_axis_angle(&nalgebra::Vector3::z_axis(), 0.2) * tr.attitude;
+        let odometry = MavMessage::ODOMETRY(ODOMETRY_DATA {
+            time_usec: ap.personality.clock_us(TimeUs(10_000_000)),
+            frame_id: MavFrame::MAV_FRAME_LOCAL_FRD,
+            child_frame_id: MavFrame::MAV_FRAME_BODY_FRD,
+            x: (tr.pos_ned_m.x + 3.0) as f32,
+            y: tr.pos_ned_m.y as f32,
+            z: tr.pos_ned_m.z as f32,
+            q: [q.w as f32, q.i as f32, q.j as f32, q.k as f32],
+            estimator_type: MavEstimatorType::MAV_ESTIMATOR_TYPE_VISION,
+            ..Default::default()
+        });
+        ap.on_message(TimeUs(10_000_000), GCS, &odometry, truth, &mut out);
+        for t in [10_000_000, 15_000_000, 17_000_000] {
+            let (yaw, flags) = estimate_at(&ap, t);
+            assert!((crate::estimation::unicycle::wrap_angle(yaw - true_yaw(t)) - 0.2).abs() < 1e-5, "t {t}: the error held");
+            assert_eq!(flags & 0x0018, 0x0018, "t {t}: vouched");
+            let [_, MavMessage::GLOBAL_POSITION_INT(p), _] = ap.estimate(TimeUs(t), truth) else { panic!() };
+            let g = wire::Geodetic {
+                lat_deg: wire::e7_to_deg(p.lat),
+                lon_deg: wire::e7_to_deg(p.lon),
+                alt_m: f64::from(p.alt) * 1e-3,
+            };
+            let north = wire::geodetic_to_ned(&ap.config.origin, &g).x - truth.truth_at(TimeUs(t)).pos_ned_m.x;
+            assert!((north - 3.0).abs() < 0.1, "t {t}: {north}");
+        }
+        assert_eq!(estimate_at(&ap, 17_000_001).1 & 0x0018, 0, "7 s on: no horizontal position");
     }
 
     #[test]

@@ -11,6 +11,11 @@
 //! Biases and the odometer scale are kept as they were. Planar robot (`[N, E, yaw]`, no velocity
 //! in its state): the position is kept, `(s T)^2` is added per horizontal axis and `(omega T)^2` to
 //! the yaw.
+//!
+//! [`coast_to_fix`]: the same, when another estimator ran across the gap (the autopilot's EKF,
+//! which kept fusing the node's output until it stopped and then went on on its own IMU): its
+//! heading, and its position and velocity when it vouches for them, replace the extrapolated
+//! ones, grown by that estimator's drift ([`GapDrift`]) instead of the land bounds.
 
 use nalgebra::DMatrix;
 
@@ -90,6 +95,157 @@ pub fn coast(
             Ok((NavState::Planar(*s), grown))
         }
     }
+}
+
+/// What an estimator that kept running across the gap says at its end: the autopilot's EKF,
+/// which fused the node's estimate until the node stopped and then went on on its own IMU (and
+/// compass, and whatever else it has). Its heading, and its horizontal position and velocity
+/// when it vouches for them, are the node's own estimate carried across the gap by a sensor
+/// that measured the motion, so they replace the extrapolated ones, and their errors are the
+/// saved state's plus what that sensor drifts by over the gap ([`GapDrift`]), not what a land
+/// vehicle could have done meanwhile ([`CoastBounds`]).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct GapFix {
+    /// Heading (yaw from north, clockwise seen from above), rad.
+    pub yaw_rad: f64,
+    /// Horizontal position and velocity, when the estimator vouches for its position.
+    pub horizontal: Option<HorizontalFix>,
+}
+
+/// A horizontal position (N, E, m) and velocity (N, E, m/s) in the node's NED frame.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct HorizontalFix {
+    pub pos_ne_m: [f64; 2],
+    pub vel_ne_m_s: [f64; 2],
+}
+
+/// What the estimator that carried the state across a gap adds to its error, one standard
+/// deviation: a strapdown IMU's residual gyro bias and angle random walk on the heading, its
+/// residual accelerometer bias and tilt error on the horizontal acceleration.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct GapDrift {
+    /// Heading drift rate (a residual gyro bias), rad/s.
+    pub yaw_rate_rad_s: f64,
+    /// Heading random walk, rad/sqrt(s).
+    pub yaw_walk_rad_per_sqrt_s: f64,
+    /// Heading error that does not grow with the gap: how far the estimator's heading may sit
+    /// from the node's (its own filtering, or a compass that took over), rad.
+    pub yaw_floor_rad: f64,
+    /// Horizontal acceleration error, m/s^2 (the planar robot, whose state has no velocity: a
+    /// speed noise density, m/s/sqrt(Hz), the position a random walk of it).
+    pub accel_m_s2: f64,
+}
+
+impl GapDrift {
+    /// The drift of an IMU with the noise and the initial (residual) errors `model` assumes: the
+    /// INS's gyro bias about D and its angle random walk; its heading sigma as the floor; its
+    /// accelerometer bias and the acceleration its roll/pitch sigma tilts gravity into. The
+    /// planar robot (no IMU in its model): its yaw-rate noise as the walk, its yaw sigma as the
+    /// floor, its speed noise as the horizontal error.
+    pub fn of_model(model: &super::nav::NavModel) -> GapDrift {
+        use super::nav::NavModel;
+        match model {
+            NavModel::Ins { config, initial_sigma } => {
+                let ab = initial_sigma.accel_bias_frd_m_s2;
+                let tilt = initial_sigma.att_ned_rad.x.max(initial_sigma.att_ned_rad.y);
+                GapDrift {
+                    yaw_rate_rad_s: initial_sigma.gyro_bias_frd_rad_s.z,
+                    yaw_walk_rad_per_sqrt_s: config.gyro_noise_density_rad_s_per_sqrt_hz,
+                    yaw_floor_rad: initial_sigma.att_ned_rad.z,
+                    accel_m_s2: (ab.x.max(ab.y).powi(2) + (config.gravity_m_s2 * tilt).powi(2)).sqrt(),
+                }
+            }
+            NavModel::Planar { config, initial_sigma } => GapDrift {
+                yaw_rate_rad_s: 0.0,
+                yaw_walk_rad_per_sqrt_s: config.yaw_rate_noise_rad_s_per_sqrt_hz,
+                yaw_floor_rad: initial_sigma.yaw_rad,
+                accel_m_s2: config.speed_noise_m_s_per_sqrt_hz,
+            },
+        }
+    }
+
+    fn check(&self) -> Result<(), EstimationError> {
+        for (what, value) in [
+            ("gap drift yaw rate", self.yaw_rate_rad_s),
+            ("gap drift yaw walk", self.yaw_walk_rad_per_sqrt_s),
+            ("gap drift yaw floor", self.yaw_floor_rad),
+            ("gap drift acceleration", self.accel_m_s2),
+        ] {
+            if !(value.is_finite() && value >= 0.0) {
+                return Err(EstimationError::InvalidValue { what, value });
+            }
+        }
+        Ok(())
+    }
+}
+
+/// `state` and `p` carried `gap_s` seconds ahead as [`coast`] does, then given what `fix` says
+/// at the end of the gap: the heading replaced by the fix's, its variance grown by `drift`
+/// instead of the land bound's yaw rate (`P_psi + (b T)^2 + w^2 T + f^2`); the INS velocity
+/// turned with the heading (a land vehicle moves where it points). With a horizontal fix, the
+/// position and velocity replaced too and grown by `drift`'s acceleration instead of `land`'s
+/// (`a^2 [T^4/4, T^3/2; T^3/2, T^2]` per axis); without one, they keep `land`'s growth.
+pub fn coast_to_fix(
+    state: &NavState,
+    p: &DMatrix<f64>,
+    gap_s: f64,
+    land: &CoastBounds,
+    drift: &GapDrift,
+    fix: &GapFix,
+) -> Result<(NavState, DMatrix<f64>), EstimationError> {
+    drift.check()?;
+    let mut numbers = vec![("fix heading", fix.yaw_rad)];
+    if let Some(h) = &fix.horizontal {
+        numbers.extend([("fix position", h.pos_ne_m[0]), ("fix position", h.pos_ne_m[1])]);
+        numbers.extend([("fix velocity", h.vel_ne_m_s[0]), ("fix velocity", h.vel_ne_m_s[1])]);
+    }
+    if let Some((what, value)) = numbers.into_iter().find(|(_, v)| !v.is_finite()) {
+        return Err(EstimationError::InvalidValue { what, value });
+    }
+    let t = gap_s;
+    let bounds = match fix.horizontal {
+        Some(_) => CoastBounds {
+            accel_m_s2: drift.accel_m_s2,
+            yaw_rate_rad_s: drift.yaw_rate_rad_s,
+            // (the planar robot: (s T)^2 = n^2 T)
+            speed_m_s: if t > 0.0 { drift.accel_m_s2 / t.sqrt() } else { 0.0 },
+        },
+        None => CoastBounds { yaw_rate_rad_s: drift.yaw_rate_rad_s, ..*land },
+    };
+    let (coasted, mut p) = coast(state, p, gap_s, &bounds)?;
+    let heading = match coasted {
+        NavState::Ins(_) => super::ins::HEADING_INDEX,
+        NavState::Planar(_) => 2,
+    };
+    p[(heading, heading)] += drift.yaw_walk_rad_per_sqrt_s.powi(2) * t + drift.yaw_floor_rad.powi(2);
+    let out = match coasted {
+        NavState::Ins(mut s) => {
+            let (roll, pitch, yaw) = s.att_frd_to_ned.euler_angles();
+            s.att_frd_to_ned = nalgebra::UnitQuaternion::from_euler_angles(roll, pitch, fix.yaw_rad);
+            match &fix.horizontal {
+                Some(h) => {
+                    s.pos_ned_m.x = h.pos_ne_m[0];
+                    s.pos_ned_m.y = h.pos_ne_m[1];
+                    s.vel_ned_m_s.x = h.vel_ne_m_s[0];
+                    s.vel_ned_m_s.y = h.vel_ne_m_s[1];
+                }
+                None => {
+                    let turn = nalgebra::Rotation3::from_axis_angle(&nalgebra::Vector3::z_axis(), fix.yaw_rad - yaw);
+                    s.vel_ned_m_s = turn * s.vel_ned_m_s;
+                }
+            }
+            NavState::Ins(s)
+        }
+        NavState::Planar(mut s) => {
+            s.yaw_rad = fix.yaw_rad;
+            if let Some(h) = &fix.horizontal {
+                s.pos_ned_m.x = h.pos_ne_m[0];
+                s.pos_ned_m.y = h.pos_ne_m[1];
+            }
+            NavState::Planar(s)
+        }
+    };
+    Ok((out, p))
 }
 
 fn check_shape(p: &DMatrix<f64>, n: usize) -> Result<(), EstimationError> {
@@ -206,5 +362,108 @@ mod tests {
         assert!(coast(&s, &DMatrix::identity(3, 3), 1.0, &CoastBounds::LAND).is_err());
         let planar = NavState::Planar(PlanarState { pos_ned_m: Vector3::zeros(), yaw_rad: 0.0 });
         assert!(coast(&planar, &p, 1.0, &CoastBounds::LAND).is_err());
+    }
+
+    const DRIFT: GapDrift =
+        GapDrift { yaw_rate_rad_s: 1e-3, yaw_walk_rad_per_sqrt_s: 1e-4, yaw_floor_rad: 0.035, accel_m_s2: 0.1 };
+
+    #[test]
+    fn a_heading_fix_replaces_the_heading_and_turns_the_velocity_and_the_position_keeps_the_land_bound() {
+        let (s, p) = (NavState::Ins(ins_state()), spd16());
+        let t = 10.0;
+        let fix = GapFix { yaw_rad: 1.2, horizontal: None };
+        let (NavState::Ins(out), grown) = coast_to_fix(&s, &p, t, &CoastBounds::LAND, &DRIFT, &fix).unwrap() else {
+            panic!("an INS state stays one")
+        };
+        let (_, land) = coast(&s, &p, t, &CoastBounds::LAND).unwrap();
+        let (roll, pitch, yaw) = out.att_frd_to_ned.euler_angles();
+        assert!((yaw - 1.2).abs() < 1e-12 && roll.abs() < 1e-12 && pitch.abs() < 1e-12);
+        // the heading: its own variance, the drift over the gap and the floor, not (0.5 rad/s x 10 s)^2
+        let expected = p[(8, 8)] + (1e-3 * t).powi(2) + 1e-8 * t + 0.035f64.powi(2);
+        assert!((grown[(8, 8)] - expected).abs() < 1e-12, "{} vs {expected}", grown[(8, 8)]);
+        assert!(land[(8, 8)] > 24.0);
+        // the velocity turned to the new heading, its speed kept; the position extrapolated as before
+        assert!(
+            (out.vel_ned_m_s - Vector3::new(10.0 * 1.2f64.cos(), 10.0 * 1.2f64.sin(), 0.0)).norm() < 2e-5,
+            "{}",
+            out.vel_ned_m_s
+        ); // (the state's yaw 0.6435 is atan2(6, 8) to 1e-6)
+        assert!((out.pos_ned_m - Vector3::new(180.0, 10.0, 0.0)).norm() < 1e-9);
+        for i in 0..6 {
+            assert!((grown[(i, i)] - land[(i, i)]).abs() < 1e-9, "index {i}: the land bound");
+        }
+        assert_eq!(grown, grown.transpose());
+        assert!(grown.clone().cholesky().is_some());
+    }
+
+    #[test]
+    fn a_horizontal_fix_replaces_position_and_velocity_and_grows_them_by_the_drift_alone() {
+        let (s, p) = (NavState::Ins(ins_state()), spd16());
+        let t = 5.0;
+        let h = HorizontalFix { pos_ne_m: [141.5, -18.25], vel_ne_m_s: [-1.5, 2.0] };
+        let fix = GapFix { yaw_rad: -0.4, horizontal: Some(h) };
+        let (NavState::Ins(out), grown) = coast_to_fix(&s, &p, t, &CoastBounds::LAND, &DRIFT, &fix).unwrap() else { panic!() };
+        assert_eq!((out.pos_ned_m.x, out.pos_ned_m.y, out.pos_ned_m.z), (141.5, -18.25, ins_state().pos_ned_m.z));
+        assert_eq!((out.vel_ned_m_s.x, out.vel_ned_m_s.y), (-1.5, 2.0), "the fix's velocity, not the turned one");
+        assert!((out.att_frd_to_ned.euler_angles().2 + 0.4).abs() < 1e-12);
+        for i in 0..2 {
+            let expected = p[(i, i)] + 2.0 * t * p[(i, 3 + i)] + t * t * p[(3 + i, 3 + i)] + 0.01 * t.powi(4) / 4.0;
+            assert!((grown[(i, i)] - expected).abs() < 1e-12, "axis {i}");
+            assert!((grown[(3 + i, 3 + i)] - (p[(3 + i, 3 + i)] + 0.01 * t * t)).abs() < 1e-12);
+        }
+        // the biases and the odometer scale untouched
+        for i in 9..16 {
+            assert!((grown[(i, i)] - p[(i, i)]).abs() < 1e-12, "index {i}");
+        }
+    }
+
+    #[test]
+    fn the_planar_robot_takes_the_fix_with_its_own_noise() {
+        let s = NavState::Planar(PlanarState { pos_ned_m: Vector3::new(1.0, 2.0, 0.0), yaw_rad: 0.3 });
+        let p = DMatrix::from_diagonal(&nalgebra::DVector::from_vec(vec![0.01, 0.02, 0.001]));
+        let drift = GapDrift { yaw_rate_rad_s: 0.0, yaw_walk_rad_per_sqrt_s: 0.01, yaw_floor_rad: 0.02, accel_m_s2: 0.05 };
+        let h = HorizontalFix { pos_ne_m: [3.0, 4.0], vel_ne_m_s: [0.0, 0.0] };
+        let (NavState::Planar(out), grown) =
+            coast_to_fix(&s, &p, 4.0, &CoastBounds::LAND, &drift, &GapFix { yaw_rad: -2.0, horizontal: Some(h) }).unwrap()
+        else {
+            panic!()
+        };
+        assert_eq!((out.pos_ned_m, out.yaw_rad), (Vector3::new(3.0, 4.0, 0.0), -2.0));
+        assert!((grown[(0, 0)] - (0.01 + 0.0025 * 4.0)).abs() < 1e-12, "a random walk of the speed noise");
+        assert!((grown[(2, 2)] - (0.001 + 1e-4 * 4.0 + 4e-4)).abs() < 1e-12);
+        // without a horizontal fix the position keeps the land bound (5 m/s x 4 s)
+        let (NavState::Planar(out), grown) =
+            coast_to_fix(&s, &p, 4.0, &CoastBounds::LAND, &drift, &GapFix { yaw_rad: -2.0, horizontal: None }).unwrap()
+        else {
+            panic!()
+        };
+        assert_eq!(out.pos_ned_m, Vector3::new(1.0, 2.0, 0.0));
+        assert!((grown[(0, 0)] - 400.01).abs() < 1e-9);
+    }
+
+    #[test]
+    fn a_fix_or_a_drift_that_is_no_number_is_refused() {
+        let (s, p) = (NavState::Ins(ins_state()), spd16());
+        let bad_yaw = GapFix { yaw_rad: f64::NAN, horizontal: None };
+        assert!(coast_to_fix(&s, &p, 1.0, &CoastBounds::LAND, &DRIFT, &bad_yaw).is_err());
+        let h = HorizontalFix { pos_ne_m: [0.0, f64::INFINITY], vel_ne_m_s: [0.0, 0.0] };
+        assert!(coast_to_fix(&s, &p, 1.0, &CoastBounds::LAND, &DRIFT, &GapFix { yaw_rad: 0.0, horizontal: Some(h) }).is_err());
+        let drift = GapDrift { yaw_floor_rad: -0.1, ..DRIFT };
+        assert!(coast_to_fix(&s, &p, 1.0, &CoastBounds::LAND, &drift, &GapFix { yaw_rad: 0.0, horizontal: None }).is_err());
+    }
+
+    #[test]
+    fn an_imus_drift_comes_from_the_models_residual_errors() {
+        use crate::estimation::ins::{InsConfig, InsInitialSigma};
+        let mut initial_sigma = InsInitialSigma::for_tests();
+        initial_sigma.gyro_bias_frd_rad_s.z = 8.7e-4;
+        initial_sigma.att_ned_rad = Vector3::new(0.0087, 0.0087, 0.035);
+        initial_sigma.accel_bias_frd_m_s2 = Vector3::new(0.049, 0.049, 0.049);
+        let config = InsConfig::default();
+        let d = GapDrift::of_model(&crate::estimation::nav::NavModel::Ins { config, initial_sigma });
+        assert_eq!((d.yaw_rate_rad_s, d.yaw_floor_rad), (8.7e-4, 0.035));
+        assert_eq!(d.yaw_walk_rad_per_sqrt_s, config.gyro_noise_density_rad_s_per_sqrt_hz);
+        let tilt = config.gravity_m_s2 * 0.0087;
+        assert!((d.accel_m_s2 - (0.049f64.powi(2) + tilt * tilt).sqrt()).abs() < 1e-12);
     }
 }

@@ -119,6 +119,12 @@ impl RateRequests {
         self.requests.push(RateRequest::new(name, message_id, rate_hz));
     }
 
+    /// Asks for one more message at `rate_hz` before every other not yet sent.
+    pub fn add_first(&mut self, name: &'static str, message_id: u32, rate_hz: f64) {
+        let at = self.requests.iter().position(|r| r.outcome.is_none() && r.tries == 0).unwrap_or(self.requests.len());
+        self.requests.insert(at, RateRequest::new(name, message_id, rate_hz));
+    }
+
     fn current(&mut self) -> Option<&mut RateRequest> {
         self.requests.iter_mut().find(|r| r.outcome.is_none())
     }

@@ -626,9 +626,15 @@ impl VehicleInputs {
         self.boot_us(us)
     }
 
-    /// A `time_boot_ms` stamp of the vehicle in the team's clock, once the clock is mapped.
+    /// A `time_boot_ms` stamp of the vehicle in the team's clock, once the clock is mapped (the
+    /// boot clock itself when the team clock is the vehicle's; None while a Unix mapping is not
+    /// known yet).
     pub fn team_time_of_boot_ms(&mut self, ms: u32) -> Option<TimeUs> {
-        self.boot_ms(ms)
+        let t = self.boot_ms(ms)?;
+        match self.cfg.clock {
+            TeamClock::Vehicle => Some(t),
+            _ => self.unix_offset_us.and_then(|o| u64::try_from(t.0 as i64 + o).ok()).map(TimeUs),
+        }
     }
 
     /// A `time_boot_ms` stamp in the team's clock.

@@ -7,6 +7,7 @@
 //! | [`profile`] | the vehicle profile (`--vehicle-config`): sensor figures, which messages to read, what to send back |
 //! | [`inputs`] | what an autopilot sends (ArduPilot, PX4, the simulator), as the core's samples in the team's clock |
 //! | [`autopilot`] | rate requests (SET_MESSAGE_INTERVAL) and the estimate fed back as ODOMETRY |
+//! | [`autopilot_fix`] | the autopilot's own estimate as far as its EKF vouches for it: where a restarted node takes its heading (and position) from |
 //! | [`peers`] | where the cooperative traffic goes: given peers, team members, a few ground stations, bounded and expiring |
 //! | [`cadence`] | the retry interval, following the team's epoch cadence in wall time |
 //! | [`shell`] | the node between its sockets and its core, sans-io: datagrams and vehicle frames split, checked and decoded, the start, the ticks, what goes back; bytes and clock readings in, ordered outputs out |
@@ -16,6 +17,7 @@
 //! | [`vetting`] | which records an epoch runs on: refused when the teammates' ranges contradict them, or when a platform sent two different ones |
 //! | [`ranging`] | a ranging device on the companion (a UWB module): its line stream, as the core's own ranges |
 pub mod autopilot;
+pub mod autopilot_fix;
 pub mod cadence;
 pub mod core;
 pub mod error;

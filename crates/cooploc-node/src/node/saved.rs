@@ -15,7 +15,7 @@
 use nalgebra::DMatrix;
 use serde::{Deserialize, Serialize};
 
-use crate::estimation::coast::{CoastBounds, coast};
+use crate::estimation::coast::{CoastBounds, GapDrift, GapFix, coast, coast_to_fix};
 use crate::estimation::ins::InsState;
 use crate::estimation::nav::{NavFilter, NavModel, NavState};
 use crate::estimation::planar::PlanarState;
@@ -186,6 +186,31 @@ impl SavedState {
         t1: TimeUs,
         bounds: &CoastBounds,
     ) -> Result<(NavState, DMatrix<f64>), String> {
+        let age = self.age_at(id, model, origin, t1)?;
+        coast(&self.nav_state(), &self.covariance_matrix(), age as f64 / 1e6, bounds).map_err(|e| e.to_string())
+    }
+
+    /// The same, given what the autopilot's estimate says at `t1` ([`super::autopilot_fix`]):
+    /// its heading, and its position and velocity when it vouches for them, grown from the
+    /// saved state's by the drift of the IMU `model` describes ([`GapDrift::of_model`]), the
+    /// rest as [`Self::restore_at`] with `land`.
+    pub fn restore_to_fix(
+        &self,
+        id: PlatformId,
+        model: &NavModel,
+        origin: &GeoOrigin,
+        t1: TimeUs,
+        land: &CoastBounds,
+        fix: &GapFix,
+    ) -> Result<(NavState, DMatrix<f64>), String> {
+        let age = self.age_at(id, model, origin, t1)?;
+        let drift = GapDrift::of_model(model);
+        coast_to_fix(&self.nav_state(), &self.covariance_matrix(), age as f64 / 1e6, land, &drift, fix).map_err(|e| e.to_string())
+    }
+
+    /// How long before `t1` the state was saved, us, when it is for platform `id`, `model` and
+    /// `origin`, of this clock and at most [`MAX_RESTORE_AGE_US`] old.
+    fn age_at(&self, id: PlatformId, model: &NavModel, origin: &GeoOrigin, t1: TimeUs) -> Result<u64, String> {
         if self.platform != id {
             return Err(format!("saved by platform {}, this is {id}", self.platform));
         }
@@ -216,7 +241,7 @@ impl SavedState {
         if age > MAX_RESTORE_AGE_US {
             return Err(format!("{:.1} s old (at most {:.0} s)", age as f64 / 1e6, MAX_RESTORE_AGE_US as f64 / 1e6));
         }
-        coast(&self.nav_state(), &self.covariance_matrix(), age as f64 / 1e6, bounds).map_err(|e| e.to_string())
+        Ok(age)
     }
 }
 

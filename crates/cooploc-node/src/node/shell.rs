@@ -12,7 +12,8 @@
 //!   core's inputs ([`VehicleInputs`]);
 //! - the start: the origin and the initial state (given, from SIM_STATE, or from the
 //!   autopilot's estimate when GNSS goes, [`super::handover`]), a given state refused when the
-//!   vehicle's first sample shows it stale;
+//!   vehicle's first sample shows it stale; a saved state restored, given the autopilot's own
+//!   estimate when its EKF vouches for it ([`super::autopilot_fix`]);
 //! - the clock ticks: polls of the core, heartbeats, peer expiry, the signing state, the frozen
 //!   process, the end of the vehicle's stream;
 //! - what goes back: ODOMETRY, GPS_INPUT and LOCAL_POSITION_NED to the vehicle, the core's
@@ -25,6 +26,7 @@
 use super::autopilot::{
     GpsInputOutput, OdometryOutput, OriginOffer, RateOutcome, RateRequest, RateRequests, TimeSync, TimesyncReply,
 };
+use super::autopilot_fix::{AutopilotEstimate, FIX_STALE_MS};
 use super::core::{NodeConfig, NodeCore, NodeInput, NodeOutput, NodeStats};
 use super::error::NodeError;
 use super::handover::{Handover, HandoverEvent};
@@ -35,7 +37,7 @@ use super::peers::{Heard, PeerCounters, PeerTable};
 use super::profile::{TeamClock, VehicleProfile};
 use super::saved::{SAVE_EVERY_US, SavedState};
 use crate::estimation::PlatformId;
-use crate::estimation::coast::CoastBounds;
+use crate::estimation::coast::{CoastBounds, GapFix};
 use crate::estimation::ins::InsState;
 use crate::estimation::nav::NavState;
 use crate::protocol::MavMessage;
@@ -52,6 +54,14 @@ use std::time::Duration;
 /// How far (vehicle time) the vehicle's first sample may be after the time of a given start
 /// state ([`NodeInit::Given`]) for the state to be trusted, us.
 pub const STALE_START_US: u64 = 10_000_000;
+
+/// How long (team clock, from the vehicle's first sample) a node with a saved state waits for its
+/// autopilot's estimate before restoring without it, us (the rate requests for it, sent first,
+/// are answered within a round trip; a refusal ends the wait at once).
+pub const FIX_WAIT_US: u64 = 3_000_000;
+
+/// ATTITUDE's message id.
+const ATTITUDE_ID: u32 = 30;
 
 /// How often the signing state is written (heartbeats).
 pub const SIGNING_STATE_EVERY: u32 = 5;
@@ -337,6 +347,10 @@ pub struct NodeShell {
     saved_at: Option<TimeUs>,
     handover: Option<Handover>,
     hand_over_state: Option<InsState>,
+    /// The autopilot's estimate, followed while a saved state waits to be restored, and the
+    /// vehicle's first sample (team clock) since when it has waited.
+    fix: Option<AutopilotEstimate>,
+    fix_wait_from: Option<TimeUs>,
     last_imu_t: Option<TimeUs>,
     before_init: u64,
     sim_state_init: Option<(TimeUs, nalgebra::Vector3<f64>)>,
@@ -395,6 +409,15 @@ impl NodeShell {
             rates.add("GLOBAL_POSITION_INT", 33, 10.0);
             rates.add("ATTITUDE", 30, 10.0);
         }
+        let fix = config.restore.is_some().then(AutopilotEstimate::new);
+        if fix.is_some() && profile.inputs.request_rates {
+            // first, so that an autopilot that has none says so before the IMU's first sample
+            // has waited long
+            rates.add_first("ESTIMATOR_STATUS", 230, 10.0); // PX4's (ArduPilot refuses it)
+            rates.add_first("EKF_STATUS_REPORT", 193, 10.0); // ArduPilot's (PX4 refuses it)
+            rates.add_first("GLOBAL_POSITION_INT", 33, 10.0);
+            rates.add_first("ATTITUDE", ATTITUDE_ID, 10.0);
+        }
         let profile_origin = profile.geo_origin();
         let autopilot = Autopilot {
             rates,
@@ -433,6 +456,8 @@ impl NodeShell {
             saved_at: None,
             handover,
             hand_over_state: None,
+            fix,
+            fix_wait_from: None,
             last_imu_t: None,
             before_init: 0,
             sim_state_init: None,
@@ -699,6 +724,9 @@ impl NodeShell {
             self.on_timesync(m, (header.system_id as u8, header.component_id), now);
             return Ok(());
         }
+        if let Some(fix) = self.fix.as_mut() {
+            fix.on_message(&msg);
+        }
         self.on_handover(&msg);
         self.on_sim_state(&msg);
         self.try_init()?;
@@ -787,6 +815,9 @@ impl NodeShell {
 
     /// Makes the core once the origin and the state (and its time) are known.
     fn try_init(&mut self) -> Result<(), NodeError> {
+        if self.restore.is_some() && self.fix_wait_from.is_some() {
+            return Ok(()); // the saved state waits for the autopilot's estimate: it comes first
+        }
         let Some(Pending { config, origin: Some(origin), state: Some((t0, state)), .. }) = &self.pending else {
             return Ok(());
         };
@@ -881,12 +912,13 @@ impl NodeShell {
                 return false;
             }
         };
-        let Some(saved) = self.restore.take() else { return false };
+        let Some(saved) = self.restore.as_ref() else { return false };
         if let Some((_, t0)) = self.given_start
             && t0.0 >= saved.t_us
             && t1.0 <= t0.0.saturating_add(STALE_START_US)
         {
             println!("node {id} saved state of t {} not used: the given start state (t {t0}) is newer", saved.t_us);
+            self.restore = None;
             return false;
         }
         let refused = |why: String| {
@@ -895,11 +927,31 @@ impl NodeShell {
             false
         };
         if let Some(why) = saved.wall_age_refusal(now.unix_us()) {
+            self.restore = None;
             return refused(why);
         }
-        let (state, p) = match saved.restore_at(id, &config.model, &origin, t1, &CoastBounds::LAND) {
+        // (a state refused anyway is refused at once, not after the wait for the autopilot)
+        let plain = match saved.restore_at(id, &config.model, &origin, t1, &CoastBounds::LAND) {
             Ok(restored) => restored,
-            Err(why) => return refused(why),
+            Err(why) => {
+                self.restore = None;
+                return refused(why);
+            }
+        };
+        let Some(fix) = self.fix_at(t1, &origin) else { return false };
+        let Some(saved) = self.restore.take() else { return false };
+        let coasted = |why: &str| format!("carried at constant velocity ({why})");
+        let ((state, p), taken) = match &fix {
+            Ok((g, flags)) => match saved.restore_to_fix(id, &config.model, &origin, t1, &CoastBounds::LAND, g) {
+                Ok(restored) if g.horizontal.is_some() => {
+                    (restored, format!("the autopilot's heading, position and velocity (its EKF flags {flags:#06x})"))
+                }
+                Ok(restored) => {
+                    (restored, format!("the autopilot's heading (its EKF flags {flags:#06x}: no horizontal position)"))
+                }
+                Err(why) => (plain, coasted(&format!("the autopilot's estimate: {why}"))),
+            },
+            Err(why) => (plain, coasted(why)),
         };
         let core = match NodeCore::restored(config, t1, state, &p) {
             Ok(core) => core,
@@ -907,8 +959,9 @@ impl NodeShell {
         };
         let age_us = t1.0 - saved.t_us;
         let sigma = (p[(0, 0)] + p[(1, 1)]).sqrt();
+        let heading = core.filter().output_covariances().yaw_variance().sqrt().to_degrees();
         println!(
-            "node {id} restored from its saved state of t {} ({:.3} s before the vehicle's first sample): pos_ned_m {:?}, horizontal sigma {sigma:.2} m",
+            "node {id} restored from its saved state of t {} ({:.3} s before the vehicle's sample): {taken}; pos_ned_m {:?}, horizontal sigma {sigma:.2} m, heading sigma {heading:.1} deg",
             saved.t_us,
             age_us as f64 / 1e6,
             core.filter().position_ned_m().as_slice()
@@ -921,6 +974,60 @@ impl NodeShell {
         self.given_start = None;
         self.pending = None;
         true
+    }
+
+    /// What the autopilot's estimate says at `t1` (a sample's time), carried to it, with its EKF
+    /// flags; Err with the reason it is not used. None: wait for it (the vehicle's first sample
+    /// was less than [`FIX_WAIT_US`] ago and the autopilot has not refused ATTITUDE).
+    #[allow(clippy::type_complexity)]
+    fn fix_at(&mut self, t1: TimeUs, origin: &wire::GeoOrigin) -> Option<Result<(GapFix, u16), String>> {
+        let Some(estimate) = self.fix.as_mut() else { return Some(Err("no state to restore".into())) };
+        let id = self.id;
+        let mut why = "no estimate its EKF vouches for".to_string();
+        match estimate.fix(origin) {
+            Ok(Some(f)) => {
+                let age_s = |ms: u32, decoder: &mut VehicleInputs| {
+                    decoder.team_time_of_boot_ms(ms).map(|t| (t1.0 as f64 - t.0 as f64) / 1e6)
+                };
+                let stale = f64::from(FIX_STALE_MS) / 1e3;
+                match age_s(f.attitude_ms, &mut self.decoder) {
+                    Some(dt) if dt.abs() <= stale => {
+                        let mut f = f;
+                        let dtp = match f.horizontal {
+                            Some(h) => age_s(h.at_ms, &mut self.decoder).filter(|d| d.abs() <= stale),
+                            None => None,
+                        };
+                        if dtp.is_none() {
+                            f.horizontal = None;
+                        }
+                        return Some(Ok((f.carried(dt, dtp.unwrap_or(0.0)), f.vouched.flags)));
+                    }
+                    Some(dt) => why = format!("its estimate is {dt:.1} s from the sample"),
+                    None => why = "its clock is not mapped yet".into(),
+                }
+            }
+            Ok(None) => {}
+            Err(e) => {
+                tracing::warn!(platform = id, error = %e, "the autopilot's estimate refused");
+                why = e;
+            }
+        }
+        if self.given_start.is_some() {
+            // a state given with its time is judged at the first sample, as it always was
+            return Some(Err(why));
+        }
+        let first = *self.fix_wait_from.get_or_insert(t1);
+        let refused =
+            self.autopilot.rates.requests.iter().any(|r| {
+                r.message_id == ATTITUDE_ID && matches!(r.outcome, Some(RateOutcome::Refused(_) | RateOutcome::Unanswered))
+            });
+        if refused {
+            return Some(Err("the autopilot sends no ATTITUDE".into()));
+        }
+        if t1.0 < first.0.saturating_add(FIX_WAIT_US) {
+            return None;
+        }
+        Some(Err(format!("{why} after {:.0} s", FIX_WAIT_US as f64 / 1e6)))
     }
 
     /// A given start state against the vehicle's first sample: refused when stale.
@@ -1387,5 +1494,139 @@ mod tests {
         };
         assert_eq!(ends(false), 2_000, "1 s of silence, then 1 s of grace");
         assert_eq!(ends(true), 4_500 + 2_000, "the silence starts again after the freeze");
+    }
+
+    /// A node restarted with a saved state 10 s old, on an ArduPilot rover whose EKF3 kept
+    /// going: it waits for the autopilot's estimate, and takes its heading (and its position and
+    /// velocity when EKF_STATUS_REPORT vouches for them) instead of the saved state carried at
+    /// constant velocity; without an estimate it restores as before after [`FIX_WAIT_US`].
+    #[test]
+    fn a_restored_state_takes_the_autopilots_heading_and_position_as_far_as_its_ekf_vouches() {
+        use crate::protocol::dialect::cooploc::{
+            ATTITUDE_DATA, EKF_STATUS_REPORT_DATA, EkfStatusFlags, GLOBAL_POSITION_INT_DATA, RAW_IMU_DATA,
+        };
+        let text = include_str!("../../../../sitl/vehicles/ardupilot-rover.toml")
+            .replace("clock = \"auto\"", "clock = \"vehicle\"")
+            .replace("epoch_grid_ms = 100", "epoch_grid_ms = 0");
+        let profile = VehicleProfile::from_toml_str(&text).unwrap();
+        let origin = profile.geo_origin().unwrap();
+        let model = profile.nav_model(origin.lat_deg);
+        let (yaw0, t_saved) = (0.3f64, 60_000_000);
+        let state = InsState {
+            pos_ned_m: nalgebra::Vector3::new(10.0, 20.0, 0.0),
+            vel_ned_m_s: nalgebra::Vector3::new(2.0 * yaw0.cos(), 2.0 * yaw0.sin(), 0.0),
+            att_frd_to_ned: nalgebra::UnitQuaternion::from_euler_angles(0.0, 0.0, yaw0),
+            accel_bias_frd_m_s2: nalgebra::Vector3::zeros(),
+            gyro_bias_frd_rad_s: nalgebra::Vector3::zeros(),
+            odometer_scale_error: 0.0,
+        };
+        let filter = crate::estimation::nav::NavFilter::new(model, TimeUs(t_saved), NavState::for_model(&model, state)).unwrap();
+        let saved = SavedState::of(3, &origin, &filter);
+        let start = |restore: Option<SavedState>| {
+            let cfg = NodeConfig::for_model(3, Method::Decentralized, model, Encoding::F64, vec![1, 2, 3]);
+            let config = ShellConfig {
+                profile: profile.clone(),
+                team_key: None,
+                signing_resume_after: 0,
+                peers: Vec::new(),
+                idle_exit: None,
+                grace: Duration::ZERO,
+                ranges: false,
+                unicast: true,
+                record: false,
+                restore,
+                save_state: false,
+            };
+            // the start pose of its configuration, 40 m away, given without a time
+            let mut configured = state;
+            configured.pos_ned_m = nalgebra::Vector3::new(-10.0, 60.0, 0.0);
+            let init = NodeInit::Pending {
+                config: Box::new(cfg),
+                origin: Some(origin),
+                state: Some((None, configured)),
+                from_autopilot: false,
+            };
+            NodeShell::new(init, config, at(0)).unwrap()
+        };
+        let send = |s: &mut NodeShell, seq: &mut u8, msg: MavMessage| {
+            *seq = seq.wrapping_add(1);
+            let header = MavHeader { system_id: 3, component_id: 1, sequence: *seq };
+            s.vehicle_frame((header, Some(msg.clone()), frame(3, 1, *seq, &msg)), at(1)).unwrap();
+        };
+        let imu = |t_us: u64| MavMessage::RAW_IMU(RAW_IMU_DATA { time_usec: t_us, zacc: -1000, ..Default::default() });
+        let estimate = |flags: u16| {
+            [
+                MavMessage::ATTITUDE(ATTITUDE_DATA { time_boot_ms: 70_000, yaw: 1.0, yawspeed: 0.05, ..Default::default() }),
+                MavMessage::GLOBAL_POSITION_INT(GLOBAL_POSITION_INT_DATA {
+                    time_boot_ms: 70_000,
+                    lat: wire::deg_to_e7(origin.lat_deg + 30.0 / 111_319.49),
+                    lon: wire::deg_to_e7(origin.lon_deg),
+                    alt: (origin.alt_m * 1000.0) as i32,
+                    vx: 100,
+                    vy: 150,
+                    ..Default::default()
+                }),
+                MavMessage::EKF_STATUS_REPORT(EKF_STATUS_REPORT_DATA {
+                    flags: EkfStatusFlags::from_bits_retain(flags),
+                    ..Default::default()
+                }),
+            ]
+        };
+        let yaw_sigma_deg = |s: &NodeShell| s.core().unwrap().filter().output_covariances().yaw_variance().sqrt().to_degrees();
+        let horizontal_sigma = |s: &NodeShell| {
+            let p = s.core().unwrap().filter().output_covariances().position();
+            (p[(0, 0)] + p[(1, 1)]).sqrt()
+        };
+
+        // EKF3 without a horizontal position (0x0027): the heading alone
+        let mut s = start(Some(saved.clone()));
+        let mut seq = 0;
+        send(&mut s, &mut seq, imu(69_900_000));
+        assert!(s.core().is_none(), "the first sample waits for the autopilot's estimate");
+        send(&mut s, &mut seq, imu(69_925_000));
+        assert!(s.core().is_none(), "and does not start from the configured pose meanwhile");
+        for m in estimate(0x0027) {
+            send(&mut s, &mut seq, m);
+        }
+        send(&mut s, &mut seq, imu(70_100_000));
+        let f = s.core().expect("restored").filter();
+        assert_eq!(f.time(), TimeUs(70_100_000));
+        assert!((f.yaw_rad() - (1.0 + 0.05 * 0.1)).abs() < 1e-6, "the autopilot's heading at the sample: {}", f.yaw_rad());
+        assert!(yaw_sigma_deg(&s) < 3.0, "the saved heading's, the gyro's drift over 10 s and the floor: {}", yaw_sigma_deg(&s));
+        let coasted = nalgebra::Vector2::new(10.0, 20.0) + nalgebra::Vector2::new(2.0 * yaw0.cos(), 2.0 * yaw0.sin()) * 10.1;
+        assert!((f.position_ned_m().xy() - coasted).norm() < 1e-6, "the position extrapolated: {}", f.position_ned_m());
+        assert!(horizontal_sigma(&s) > 100.0, "with the land bound");
+        assert!((f.velocity_ned_m_s().xy().norm() - 2.0).abs() < 1e-9, "the speed kept");
+        assert!(
+            (f.velocity_ned_m_s().y.atan2(f.velocity_ned_m_s().x) - f.yaw_rad()).abs() < 1e-6,
+            "pointing where the rover points"
+        );
+
+        // EKF3 still on its position (0x033f): position and velocity too, drift-sized
+        let mut s = start(Some(saved.clone()));
+        let mut seq = 0;
+        for m in estimate(0x033f) {
+            send(&mut s, &mut seq, m);
+        }
+        send(&mut s, &mut seq, imu(70_100_000));
+        let f = s.core().expect("restored at once: the estimate was there").filter();
+        assert!((f.position_ned_m().xy() - nalgebra::Vector2::new(30.0 + 0.1, 0.15)).norm() < 0.02, "{}", f.position_ned_m());
+        assert!((f.velocity_ned_m_s().xy() - nalgebra::Vector2::new(1.0, 1.5)).norm() < 1e-9);
+        assert!(horizontal_sigma(&s) < 15.0, "the IMU's drift over 10 s, not a land vehicle's: {}", horizontal_sigma(&s));
+
+        // no estimate at all: restored as before, 3 s after the first sample
+        let mut s = start(Some(saved));
+        let mut seq = 0;
+        send(&mut s, &mut seq, imu(69_900_000));
+        send(&mut s, &mut seq, imu(69_900_000 + FIX_WAIT_US - 25_000));
+        assert!(s.core().is_none());
+        send(&mut s, &mut seq, imu(69_900_000 + FIX_WAIT_US));
+        assert!(yaw_sigma_deg(&s) > 100.0, "the heading carried 12.9 s with the land bound: {}", yaw_sigma_deg(&s));
+        // and a node without a saved state starts from its configured pose at once
+        let mut s = start(None);
+        let mut seq = 0;
+        send(&mut s, &mut seq, imu(69_900_000));
+        send(&mut s, &mut seq, imu(69_925_000));
+        assert!((s.core().expect("started").filter().position_ned_m().xy() - nalgebra::Vector2::new(-10.0, 60.0)).norm() < 0.1); // (25 ms at 2 m/s)
     }
 }
