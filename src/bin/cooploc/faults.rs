@@ -70,9 +70,10 @@ pub struct Args {
     /// With --side-by-side: the run's length, s.
     #[arg(long, requires = "side_by_side")]
     duration_s: Option<f64>,
-    /// The clock sweep instead of the standard cases: node 3's team clock ahead of its
-    /// teammates' by 1 to 100 ms (a TIMESYNC mapping or an NTP clock that is off), its ranges on
-    /// the profiles' 100 ms epoch grid; what each offset costs the team.
+    /// The clock sweep instead of the standard cases: one node's team clock ahead of its
+    /// teammates' by 1 to 100 ms (a TIMESYNC mapping or an NTP clock that is off), node 1's (which
+    /// ranges) and then node 3's (which does not), its ranges on the profiles' 100 ms epoch grid;
+    /// what each offset costs the team.
     #[arg(long, conflicts_with = "side_by_side")]
     clock_sweep: bool,
 }

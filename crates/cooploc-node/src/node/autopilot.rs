@@ -268,6 +268,9 @@ pub struct TimeSync {
     sent: std::collections::VecDeque<i64>,
     /// (round trip, offset, companion time of the answer's middle), ns, newest last.
     answers: std::collections::VecDeque<(i64, i64, i64)>,
+    /// The line through the answers and the wander beyond it, fitted at each answer (a node
+    /// maps its clock on every tick while it drifts: 40 fits a second of the same answers).
+    fitted: (Option<(i64, f64)>, f64),
     /// Answers that echo no request of ours, or are too slow or implausible.
     pub refused: u64,
     pub requests: u64,
@@ -330,6 +333,8 @@ impl TimeSync {
         if self.answers.len() > RATE_WINDOW {
             self.answers.pop_front();
         }
+        let line = self.fit_line();
+        self.fitted = (line, self.fit_wander(line.map_or(0.0, |(_, rate)| rate)));
         TimesyncReply::Sample
     }
 
@@ -341,8 +346,8 @@ impl TimeSync {
 
     /// The same at companion time `unix_ns`.
     pub fn offset_at_us(&self, unix_ns: i64) -> Option<(i64, i64)> {
-        let rate = self.rate_fit().map_or(0.0, |(_, rate)| rate);
-        let wander = self.wander(rate);
+        let (line, wander) = self.fitted;
+        let rate = line.map_or(0.0, |(_, rate)| rate);
         // the answer whose offset, moved on to now, is expected to be off the least
         let expected_error = |a: &(i64, i64, i64)| a.0 as f64 / 2.0 + wander * (unix_ns - a.2).abs() as f64;
         let recent = self.answers.iter().skip(self.answers.len().saturating_sub(TIMESYNC_WINDOW));
@@ -356,7 +361,7 @@ impl TimeSync {
     /// `rate`, less what their round trips allow. A crystal's clock does not wander (0: the
     /// quickest answer gives the offset, however old); a simulator's lockstep does (PX4's SIH
     /// wandered by tens of milliseconds a second, and a recent answer is then worth more).
-    fn wander(&self, rate: f64) -> f64 {
+    fn fit_wander(&self, rate: f64) -> f64 {
         let recent: Vec<&(i64, i64, i64)> =
             self.answers.iter().skip(self.answers.len().saturating_sub(TIMESYNC_WINDOW)).collect();
         let mut rates: Vec<f64> = recent
@@ -382,7 +387,7 @@ impl TimeSync {
 
     /// Whether the autopilot's clock wanders faster than [`WANDER_FAST`].
     pub fn wanders(&self) -> bool {
-        self.wander(self.rate_fit().map_or(0.0, |(_, rate)| rate)) > WANDER_FAST
+        self.fitted.1 > WANDER_FAST
     }
 
     /// The line through the answers: (offset at the newest answer, ns; rate, the offset's
@@ -391,6 +396,10 @@ impl TimeSync {
     /// times its standard error, each answer taken as good to half its round trip: equal
     /// crystals give no rate at all, and the quickest answer alone, rather than noise).
     pub fn rate_fit(&self) -> Option<(i64, f64)> {
+        self.fitted.0
+    }
+
+    fn fit_line(&self) -> Option<(i64, f64)> {
         let (newest, first) = (self.answers.back()?.2, self.answers.front()?);
         if self.answers.len() < RATE_FIT_MIN_ANSWERS || newest - first.2 < RATE_FIT_MIN_SPAN_NS {
             return None;
@@ -422,6 +431,7 @@ impl TimeSync {
     /// Forgets every answer (the autopilot rebooted: its boot clock started again).
     pub fn reset(&mut self) {
         self.answers.clear();
+        self.fitted = (None, 0.0);
         self.sent.clear();
         self.next_due_wall_us = 0;
     }
