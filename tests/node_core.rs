@@ -566,6 +566,7 @@ fn hostile_epochs_and_records_are_refused_and_counted() {
     // The far time is refused at once; the bare far-id claims are held (nothing contradicts
     // them yet) but block nothing.
     assert_eq!((st.epochs_implausible, st.records_implausible), (1, 1), "{st:?}");
+    assert_eq!(st.epochs_ahead, 1, "the far time is refused as ahead of the filter: {st:?}");
     // A real epoch after the forgery is still learned and broadcast.
     let range = RangeSample { t: TimeUs(1_300_000), from: 1, to: 2, range_m: 200.0, sigma_m: 0.1 };
     let before = node.stats.records_sent;

@@ -638,6 +638,10 @@ fn print_summary(
         summary.inputs
     );
     for r in &summary.rate_requests {
+        if r.rate_hz == 0.0 {
+            println!("node {} rate request {} back at its default rate: {:?}", e.platform, r.message, r.outcome);
+            continue;
+        }
         match r.stream_group {
             Some((group, stream_id, sent)) => println!(
                 "node {} rate request {} at {} Hz: {:?}; asked instead for ArduPilot's stream group {group} (REQUEST_DATA_STREAM {stream_id}, sent {sent} times), which paces all its messages",

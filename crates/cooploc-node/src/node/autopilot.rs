@@ -119,6 +119,12 @@ impl RateRequests {
         self.requests.push(RateRequest::new(name, message_id, rate_hz));
     }
 
+    /// Asks for a message at the autopilot's own default rate again (MAV_CMD_SET_MESSAGE_INTERVAL
+    /// with an interval of 0), when what the node asked for it is no longer needed.
+    pub fn add_default(&mut self, name: &'static str, message_id: u32) {
+        self.requests.push(RateRequest::new(name, message_id, 0.0));
+    }
+
     /// Asks for one more message at `rate_hz` before every other not yet sent.
     pub fn add_first(&mut self, name: &'static str, message_id: u32, rate_hz: f64) {
         let at = self.requests.iter().position(|r| r.outcome.is_none() && r.tries == 0).unwrap_or(self.requests.len());
@@ -156,7 +162,8 @@ impl RateRequests {
         Some(MavMessage::COMMAND_LONG(COMMAND_LONG_DATA {
             command: MavCmd::MAV_CMD_SET_MESSAGE_INTERVAL,
             param1: r.message_id as f32,
-            param2: (1e6 / r.rate_hz) as f32,
+            // (0: the autopilot's default)
+            param2: if r.rate_hz > 0.0 { (1e6 / r.rate_hz) as f32 } else { 0.0 },
             target_system,
             target_component: 1,
             confirmation: (r.tries - 1) as u8,
@@ -680,6 +687,26 @@ mod tests {
 
     fn ack(result: MavResult) -> COMMAND_ACK_DATA {
         COMMAND_ACK_DATA { command: MavCmd::MAV_CMD_SET_MESSAGE_INTERVAL, result, ..Default::default() }
+    }
+
+    #[test]
+    fn a_request_for_the_default_rate_sends_an_interval_of_zero_and_comes_first_when_asked_first() {
+        let mut r = RateRequests::new(&profile(), 3);
+        r.add_first("ATTITUDE", 30, 10.0);
+        r.add_default("ATTITUDE", 30);
+        let Some(MavMessage::COMMAND_LONG(c)) = r.poll(0) else { panic!("a request") };
+        assert_eq!((c.param1, c.param2), (30.0, 100_000.0), "the one asked first goes first");
+        r.on_ack(&ack(MavResult::MAV_RESULT_ACCEPTED));
+        let last = r.requests.last().unwrap();
+        assert_eq!((last.message_id, last.rate_hz), (30, 0.0));
+        let mut sent = Vec::new();
+        for k in 1..10 {
+            if let Some(MavMessage::COMMAND_LONG(c)) = r.poll(k * 100_000) {
+                sent.push((c.param1, c.param2));
+                r.on_ack(&ack(MavResult::MAV_RESULT_ACCEPTED));
+            }
+        }
+        assert_eq!(sent.last(), Some(&(30.0, 0.0)), "0 us: the autopilot's own default, last: {sent:?}");
     }
 
     #[test]

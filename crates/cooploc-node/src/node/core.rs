@@ -337,6 +337,10 @@ pub struct NodeStats {
     pub late_messages: u64,
     /// Epoch claims refused: too far ahead, an id that does not fit its time, a conflicting time.
     pub epochs_implausible: u64,
+    /// Of those, the claims more than `max_lead_us` ahead of the filter: a far-future forgery, or
+    /// this node's filter behind its teammates' (a loaded machine): a later claim of the same
+    /// epoch is taken once the filter is there. The rest are naming disagreements or forgeries.
+    pub epochs_ahead: u64,
     pub epoch_messages_sent: u64,
     pub epochs_applied: u64,
     /// Epochs run without every expected member (timeout, lag bound, end of input, or a member
@@ -1022,6 +1026,7 @@ impl NodeCore {
             && self.epochs.range(epoch + 1..).find(|(_, x)| backed(x)).is_none_or(|(&e, x)| fits(e, x.t));
         if ahead || !consistent {
             self.stats.epochs_implausible += 1;
+            self.stats.epochs_ahead += u64::from(ahead);
             return None;
         }
         let mut fresh_epoch = Epoch::new(t);

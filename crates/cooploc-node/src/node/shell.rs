@@ -63,6 +63,12 @@ pub const FIX_WAIT_US: u64 = 3_000_000;
 /// ATTITUDE's message id.
 const ATTITUDE_ID: u32 = 30;
 
+/// What a node with a saved state asks its autopilot for, at 10 Hz, until the restore is decided
+/// (then at the autopilot's default rate again: a telemetry link of 57,600 baud would spend a
+/// fifth of itself on them).
+const FIX_MESSAGES: [(&str, u32); 4] =
+    [("ATTITUDE", ATTITUDE_ID), ("GLOBAL_POSITION_INT", 33), ("EKF_STATUS_REPORT", 193), ("ESTIMATOR_STATUS", 230)];
+
 /// How often the signing state is written (heartbeats).
 pub const SIGNING_STATE_EVERY: u32 = 5;
 
@@ -413,10 +419,10 @@ impl NodeShell {
         if fix.is_some() && profile.inputs.request_rates {
             // first, so that an autopilot that has none says so before the IMU's first sample
             // has waited long
-            rates.add_first("ESTIMATOR_STATUS", 230, 10.0); // PX4's (ArduPilot refuses it)
-            rates.add_first("EKF_STATUS_REPORT", 193, 10.0); // ArduPilot's (PX4 refuses it)
-            rates.add_first("GLOBAL_POSITION_INT", 33, 10.0);
-            rates.add_first("ATTITUDE", ATTITUDE_ID, 10.0);
+            // (EKF_STATUS_REPORT is ArduPilot's, ESTIMATOR_STATUS PX4's: each refuses the other)
+            for (name, id) in FIX_MESSAGES.iter().rev() {
+                rates.add_first(name, *id, 10.0);
+            }
         }
         let profile_origin = profile.geo_origin();
         let autopilot = Autopilot {
@@ -867,6 +873,9 @@ impl NodeShell {
             match event {
                 VehicleEvent::Input(input) => {
                     let restored = self.check_restore(&input, now);
+                    if self.restore.is_none() && self.fix.take().is_some() {
+                        self.fix_messages_back_to_default();
+                    }
                     self.check_given_start(&input);
                     if self.core.is_none() || restored {
                         self.last_imu_t = input.drive_time().or(self.last_imu_t);
@@ -1028,6 +1037,25 @@ impl NodeShell {
             return None;
         }
         Some(Err(format!("{why} after {:.0} s", FIX_WAIT_US as f64 / 1e6)))
+    }
+
+    /// The restore is decided: what the node asked for its sake goes back to the autopilot's
+    /// default rates (unless the hand-over start still needs ATTITUDE and GLOBAL_POSITION_INT).
+    fn fix_messages_back_to_default(&mut self) {
+        if self.handover.is_some() {
+            return;
+        }
+        let rates = &mut self.autopilot.rates;
+        for (name, id) in FIX_MESSAGES {
+            let asked = rates.requests.iter().any(|r| {
+                r.message_id == id
+                    && r.rate_hz > 0.0
+                    && !matches!(r.outcome, Some(RateOutcome::Refused(_) | RateOutcome::Unanswered))
+            });
+            if asked {
+                rates.add_default(name, id);
+            }
+        }
     }
 
     /// A given start state against the vehicle's first sample: refused when stale.
@@ -1613,6 +1641,23 @@ mod tests {
         assert!((f.position_ned_m().xy() - nalgebra::Vector2::new(30.0 + 0.1, 0.15)).norm() < 0.02, "{}", f.position_ned_m());
         assert!((f.velocity_ned_m_s().xy() - nalgebra::Vector2::new(1.0, 1.5)).norm() < 1e-9);
         assert!(horizontal_sigma(&s) < 15.0, "the IMU's drift over 10 s, not a land vehicle's: {}", horizontal_sigma(&s));
+        // what it asked for at 10 Hz goes back to the autopilot's default rates, after the rest
+        let requests: Vec<(&str, f64)> = summary(&s).rate_requests.iter().map(|r| (r.message, r.rate_hz)).collect();
+        assert_eq!(
+            requests,
+            [
+                ("ATTITUDE", 10.0),
+                ("GLOBAL_POSITION_INT", 10.0),
+                ("EKF_STATUS_REPORT", 10.0),
+                ("ESTIMATOR_STATUS", 10.0),
+                ("RAW_IMU", 40.0),
+                ("WHEEL_DISTANCE", 20.0),
+                ("ATTITUDE", 0.0),
+                ("GLOBAL_POSITION_INT", 0.0),
+                ("EKF_STATUS_REPORT", 0.0),
+                ("ESTIMATOR_STATUS", 0.0)
+            ]
+        );
 
         // no estimate at all: restored as before, 3 s after the first sample
         let mut s = start(Some(saved));
