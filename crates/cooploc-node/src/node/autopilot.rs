@@ -140,6 +140,15 @@ impl RateRequests {
     /// [`ACK_TIMEOUT_US`] apart).
     pub fn poll(&mut self, wall_us: u64) -> Option<MavMessage> {
         let target_system = self.target_system;
+        // a message the autopilot refused to pace has no rate of ours to take back
+        let refused = |r: &RateRequest| matches!(r.outcome, Some(RateOutcome::Refused(_) | RateOutcome::Unanswered));
+        if let Some(at) = self.requests.iter().position(|r| r.outcome.is_none())
+            && self.requests[at].rate_hz == 0.0
+            && self.requests[..at].iter().any(|r| r.message_id == self.requests[at].message_id && refused(r))
+        {
+            self.requests.remove(at);
+            return self.poll(wall_us);
+        }
         let Some(r) = self.current() else {
             return self.poll_stream_groups(wall_us);
         };
@@ -707,6 +716,21 @@ mod tests {
             }
         }
         assert_eq!(sent.last(), Some(&(30.0, 0.0)), "0 us: the autopilot's own default, last: {sent:?}");
+        // one it refused is not asked back: the default request ends as the refusal did
+        let mut r = RateRequests::new(&profile(), 3);
+        r.add_first("ESTIMATOR_STATUS", 230, 10.0);
+        r.add_default("ESTIMATOR_STATUS", 230);
+        r.poll(0);
+        r.on_ack(&ack(MavResult::MAV_RESULT_DENIED));
+        let mut sent = Vec::new();
+        for k in 1..10 {
+            if let Some(MavMessage::COMMAND_LONG(c)) = r.poll(k * 100_000) {
+                sent.push(c.param1);
+                r.on_ack(&ack(MavResult::MAV_RESULT_ACCEPTED));
+            }
+        }
+        assert!(!sent.contains(&230.0), "{sent:?}");
+        assert!(r.requests.iter().all(|q| q.message_id != 230 || q.rate_hz > 0.0), "dropped: {:?}", r.requests);
     }
 
     #[test]
