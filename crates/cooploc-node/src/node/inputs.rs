@@ -637,6 +637,23 @@ impl VehicleInputs {
         }
     }
 
+    /// The same without taking the stamp in: no wrap counted, no reboot detected, nothing
+    /// counted (for an estimate the node only looks at, whose stamp may lag its samples').
+    pub fn peek_team_time_of_boot_ms(&self, ms: u32) -> Option<TimeUs> {
+        const HALF: u32 = 1 << 31;
+        let wraps = match self.boot_ms {
+            None => 0,
+            Some((last, wraps)) if ms < last && last - ms > HALF => wraps + 1,
+            Some((last, wraps)) if ms > last && ms - last > HALF => wraps.saturating_sub(1),
+            Some((_, wraps)) => wraps,
+        };
+        let us = ((wraps << 32) + u64::from(ms)) * 1000;
+        match self.cfg.clock {
+            TeamClock::Vehicle => Some(TimeUs(us)),
+            _ => self.unix_offset_us.and_then(|o| u64::try_from(us as i64 + o).ok()).map(TimeUs),
+        }
+    }
+
     /// A `time_boot_ms` stamp in the team's clock.
     fn boot_ms(&mut self, ms: u32) -> Option<TimeUs> {
         let us = self.unwrap_boot_ms(ms);

@@ -995,15 +995,15 @@ impl NodeShell {
         let mut why = "no estimate its EKF vouches for".to_string();
         match estimate.fix(origin) {
             Ok(Some(f)) => {
-                let age_s = |ms: u32, decoder: &mut VehicleInputs| {
-                    decoder.team_time_of_boot_ms(ms).map(|t| (t1.0 as f64 - t.0 as f64) / 1e6)
-                };
+                // (looked at, not taken in: a stamp a second behind the samples is no reboot)
+                let decoder = &self.decoder;
+                let age_s = |ms: u32| decoder.peek_team_time_of_boot_ms(ms).map(|t| (t1.0 as f64 - t.0 as f64) / 1e6);
                 let stale = f64::from(FIX_STALE_MS) / 1e3;
-                match age_s(f.attitude_ms, &mut self.decoder) {
+                match age_s(f.attitude_ms) {
                     Some(dt) if dt.abs() <= stale => {
                         let mut f = f;
                         let dtp = match f.horizontal {
-                            Some(h) => age_s(h.at_ms, &mut self.decoder).filter(|d| d.abs() <= stale),
+                            Some(h) => age_s(h.at_ms).filter(|d| d.abs() <= stale),
                             None => None,
                         };
                         if dtp.is_none() {

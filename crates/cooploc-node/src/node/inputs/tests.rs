@@ -148,6 +148,13 @@ fn a_unix_team_clock_maps_boot_stamps_with_system_time_and_back() {
     d.decode(&system_time(unix0 + 1_050_000, 5_050));
     assert_eq!(d.counters.clock_disagreements, 1);
     assert_eq!(imu(d.decode(&raw(5_070_000, [0, 0, -1000], [0; 3]))).t, TimeUs(unix0 + 40_000));
+    // an estimate's time_boot_ms in the team clock: taken in, or only looked at (a stamp seconds
+    // behind the samples, looked at many times, is no reboot and no stale stamp)
+    assert_eq!(d.team_time_of_boot_ms(5_060), Some(TimeUs(unix0 + 30_000)));
+    for _ in 0..5 {
+        assert_eq!(d.peek_team_time_of_boot_ms(2_070), Some(TimeUs(unix0 - 2_960_000)));
+    }
+    assert_eq!((d.counters.reboots, d.counters.stale_stamps), (0, 0));
     // a source that stamps in Unix time already needs no SYSTEM_TIME
     let mut u = inputs(|c| {
         c.imu = ImuMessage::RawImu;
