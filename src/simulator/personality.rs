@@ -296,11 +296,12 @@ pub struct Checker {
 }
 
 impl Checker {
-    /// Checks one ODOMETRY from the node, received when the vehicle's clock read `now_us`.
-    pub fn check(&mut self, autopilot: Autopilot, m: &Odometry, now_us: u64) {
+    /// Checks one ODOMETRY from the node, received when the vehicle's clock read `now_us`:
+    /// whether the autopilot would take it.
+    pub fn check(&mut self, autopilot: Autopilot, m: &Odometry, now_us: u64) -> bool {
         if let Some(reason) = Self::refusal(autopilot, m) {
             *self.ignored.entry(reason).or_default() += 1;
-            return;
+            return false;
         }
         if autopilot == Autopilot::Px4 && [0, 6, 11].iter().any(|&k| !m.pose_covariance[k].is_finite()) {
             self.without_covariance += 1;
@@ -313,6 +314,7 @@ impl Checker {
         self.accepted += 1;
         self.first_us = Some(self.first_us.map_or(m.time_usec, |f| f.min(m.time_usec)));
         self.last_us = Some(self.last_us.map_or(m.time_usec, |l| l.max(m.time_usec)));
+        true
     }
 
     /// Checks one GPS_INPUT from the node.
@@ -333,7 +335,7 @@ impl Checker {
         }
     }
 
-    pub(crate) fn refusal(autopilot: Autopilot, m: &Odometry) -> Option<&'static str> {
+    fn refusal(autopilot: Autopilot, m: &Odometry) -> Option<&'static str> {
         let q = nalgebra::Quaternion::new(m.q[0], m.q[1], m.q[2], m.q[3]);
         let finite = [m.x, m.y, m.z].iter().chain(&m.q).all(|v| v.is_finite());
         match autopilot {

@@ -628,8 +628,7 @@ impl VehicleCore {
         self.counters.frames_received += 1;
         let (command, params, target) = match message {
             MavMessage::ODOMETRY(m) => {
-                self.checker.check(self.config.autopilot, m, self.personality.clock_us(now));
-                if Checker::refusal(self.config.autopilot, m).is_none() {
+                if self.checker.check(self.config.autopilot, m, self.personality.clock_us(now)) {
                     self.take_odometry(now, m, truth);
                 }
                 return;

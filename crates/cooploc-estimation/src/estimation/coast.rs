@@ -40,16 +40,11 @@ impl CoastBounds {
     pub const LAND: CoastBounds = CoastBounds { accel_m_s2: 2.0, yaw_rate_rad_s: 0.5, speed_m_s: 5.0 };
 
     fn check(&self) -> Result<(), EstimationError> {
-        for (what, value) in [
+        non_negative(&[
             ("coast acceleration bound", self.accel_m_s2),
             ("coast yaw-rate bound", self.yaw_rate_rad_s),
             ("coast speed bound", self.speed_m_s),
-        ] {
-            if !(value.is_finite() && value >= 0.0) {
-                return Err(EstimationError::InvalidValue { what, value });
-            }
-        }
-        Ok(())
+        ])
     }
 }
 
@@ -165,17 +160,12 @@ impl GapDrift {
     }
 
     fn check(&self) -> Result<(), EstimationError> {
-        for (what, value) in [
+        non_negative(&[
             ("gap drift yaw rate", self.yaw_rate_rad_s),
             ("gap drift yaw walk", self.yaw_walk_rad_per_sqrt_s),
             ("gap drift yaw floor", self.yaw_floor_rad),
             ("gap drift acceleration", self.accel_m_s2),
-        ] {
-            if !(value.is_finite() && value >= 0.0) {
-                return Err(EstimationError::InvalidValue { what, value });
-            }
-        }
-        Ok(())
+        ])
     }
 }
 
@@ -246,6 +236,14 @@ pub fn coast_to_fix(
         }
     };
     Ok((out, p))
+}
+
+/// Every value finite and at least zero, or the first that is not, named.
+fn non_negative(values: &[(&'static str, f64)]) -> Result<(), EstimationError> {
+    match values.iter().find(|(_, v)| !(v.is_finite() && *v >= 0.0)) {
+        Some(&(what, value)) => Err(EstimationError::InvalidValue { what, value }),
+        None => Ok(()),
+    }
 }
 
 fn check_shape(p: &DMatrix<f64>, n: usize) -> Result<(), EstimationError> {

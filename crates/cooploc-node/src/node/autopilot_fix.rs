@@ -36,35 +36,27 @@ pub struct Vouched {
     pub flags: u16,
 }
 
+/// The bits both autopilots' status flags share (EKF_STATUS_FLAGS, ESTIMATOR_STATUS_FLAGS).
+const ATTITUDE: u16 = 1;
+const VELOCITY_HORIZ: u16 = 2;
+const POS_HORIZ: u16 = 8 | 16; // relative or absolute
+const CONST_POS_MODE: u16 = 128;
+
 impl Vouched {
-    /// ArduPilot's EKF_STATUS_REPORT flags (EKF_STATUS_FLAGS).
+    /// ArduPilot's EKF_STATUS_REPORT flags: 1024 uninitialised, 32768 a GNSS glitch.
     pub fn ekf_status_report(flags: u16) -> Vouched {
-        const ATTITUDE: u16 = 1;
-        const VELOCITY_HORIZ: u16 = 2;
-        const POS_HORIZ_REL: u16 = 8;
-        const POS_HORIZ_ABS: u16 = 16;
-        const CONST_POS_MODE: u16 = 128;
-        const UNINITIALIZED: u16 = 1024;
-        const GPS_GLITCH: u16 = 32768;
-        Self::of(flags, [ATTITUDE, VELOCITY_HORIZ, POS_HORIZ_REL | POS_HORIZ_ABS], CONST_POS_MODE | UNINITIALIZED | GPS_GLITCH)
+        Self::of(flags, CONST_POS_MODE | 1024 | 32768)
     }
 
-    /// PX4's ESTIMATOR_STATUS flags (ESTIMATOR_STATUS_FLAGS: the same low bits, a glitch and an
-    /// accelerometer error where ArduPilot has others).
+    /// PX4's ESTIMATOR_STATUS flags: 1024 a GNSS glitch, 2048 an accelerometer error.
     pub fn estimator_status(flags: u16) -> Vouched {
-        const ATTITUDE: u16 = 1;
-        const VELOCITY_HORIZ: u16 = 2;
-        const POS_HORIZ_REL: u16 = 8;
-        const POS_HORIZ_ABS: u16 = 16;
-        const CONST_POS_MODE: u16 = 128;
-        const GPS_GLITCH: u16 = 1024;
-        const ACCEL_ERROR: u16 = 2048;
-        Self::of(flags, [ATTITUDE, VELOCITY_HORIZ, POS_HORIZ_REL | POS_HORIZ_ABS], CONST_POS_MODE | GPS_GLITCH | ACCEL_ERROR)
+        Self::of(flags, CONST_POS_MODE | 1024 | 2048)
     }
 
-    fn of(flags: u16, [attitude, velocity, position]: [u16; 3], bad: u16) -> Vouched {
-        let attitude_ok = flags & attitude != 0 && flags & bad == 0;
-        Vouched { attitude: attitude_ok, horizontal: attitude_ok && flags & velocity != 0 && flags & position != 0, flags }
+    /// `bad`: the flags that withdraw everything.
+    fn of(flags: u16, bad: u16) -> Vouched {
+        let attitude = flags & ATTITUDE != 0 && flags & bad == 0;
+        Vouched { attitude, horizontal: attitude && flags & VELOCITY_HORIZ != 0 && flags & POS_HORIZ != 0, flags }
     }
 }
 

@@ -57,6 +57,9 @@ pub const MAX_TRAPEZOID_GAP_US: u64 = 100_000;
 /// A boot clock going back more than this, in [`REBOOT_CONFIRMATIONS`] stamps in a row, is a
 /// reboot (less: a late or reordered frame).
 const REBOOT_BACKSTEP_US: u64 = 1_000_000;
+/// Half the range of a `time_boot_ms` stamp: a step back by more is a wrap, ahead by more a
+/// frame from before the last wrap.
+const HALF_WRAP_MS: u32 = 1 << 31;
 const REBOOT_CONFIRMATIONS: u32 = 3;
 /// Inputs stamped since boot are held this long (vehicle time) for a mapping to the team clock.
 pub const MAX_HELD_US: u64 = 10_000_000;
@@ -628,26 +631,20 @@ impl VehicleInputs {
 
     /// A `time_boot_ms` stamp of the vehicle in the team's clock, once the clock is mapped (the
     /// boot clock itself when the team clock is the vehicle's; None while a Unix mapping is not
-    /// known yet).
+    /// known yet), taken in as a stamp of the vehicle's (wraps and reboots followed).
     pub fn team_time_of_boot_ms(&mut self, ms: u32) -> Option<TimeUs> {
         let t = self.boot_ms(ms)?;
-        match self.cfg.clock {
-            TeamClock::Vehicle => Some(t),
-            _ => self.unix_offset_us.and_then(|o| u64::try_from(t.0 as i64 + o).ok()).map(TimeUs),
-        }
+        self.team_of_boot_us(t.0)
     }
 
     /// The same without taking the stamp in: no wrap counted, no reboot detected, nothing
     /// counted (for an estimate the node only looks at, whose stamp may lag its samples').
     pub fn peek_team_time_of_boot_ms(&self, ms: u32) -> Option<TimeUs> {
-        const HALF: u32 = 1 << 31;
-        let wraps = match self.boot_ms {
-            None => 0,
-            Some((last, wraps)) if ms < last && last - ms > HALF => wraps + 1,
-            Some((last, wraps)) if ms > last && ms - last > HALF => wraps.saturating_sub(1),
-            Some((_, wraps)) => wraps,
-        };
-        let us = ((wraps << 32) + u64::from(ms)) * 1000;
+        self.team_of_boot_us(((self.wraps_of(ms) << 32) + u64::from(ms)) * 1000)
+    }
+
+    /// A stamp since boot (us) in the team's clock, by the mapping known.
+    fn team_of_boot_us(&self, us: u64) -> Option<TimeUs> {
         match self.cfg.clock {
             TeamClock::Vehicle => Some(TimeUs(us)),
             _ => self.unix_offset_us.and_then(|o| u64::try_from(us as i64 + o).ok()).map(TimeUs),
@@ -660,28 +657,31 @@ impl VehicleInputs {
         self.boot_us(us)
     }
 
-    /// A `time_boot_ms` stamp as microseconds since boot, unwrapped (it wraps every 2^32 ms).
+    /// How many times the 32-bit ms clock had wrapped at stamp `ms`, against the newest stamp
+    /// seen (a late frame from before the last wrap is placed before it).
+    fn wraps_of(&self, ms: u32) -> u64 {
+        match self.boot_ms {
+            None => 0,
+            Some((last, wraps)) if ms < last && last - ms > HALF_WRAP_MS => wraps + 1,
+            Some((last, wraps)) if ms > last && ms - last > HALF_WRAP_MS => wraps.saturating_sub(1),
+            Some((_, wraps)) => wraps,
+        }
+    }
+
+    /// A `time_boot_ms` stamp as microseconds since boot, unwrapped (it wraps every 2^32 ms),
+    /// the newest stamp and the wraps noted.
     fn unwrap_boot_ms(&mut self, ms: u32) -> u64 {
-        const HALF: u32 = 1 << 31;
-        let wraps = match self.boot_ms {
-            None => {
-                self.boot_ms = Some((ms, 0));
-                0
-            }
-            Some((last, wraps)) if ms < last && last - ms > HALF => {
+        let wraps = self.wraps_of(ms);
+        match self.boot_ms {
+            None => self.boot_ms = Some((ms, 0)),
+            Some((last, _)) if ms < last && last - ms > HALF_WRAP_MS => {
                 self.counters.time_wraps += 1;
-                self.boot_ms = Some((ms, wraps + 1));
-                wraps + 1
+                self.boot_ms = Some((ms, wraps));
             }
-            // a late frame from before the last wrap
-            Some((last, wraps)) if ms > last && ms - last > HALF => wraps.saturating_sub(1),
-            Some((last, wraps)) => {
-                if ms > last {
-                    self.boot_ms = Some((ms, wraps));
-                }
-                wraps
-            }
-        };
+            Some((last, before)) if ms > last && ms - last <= HALF_WRAP_MS => self.boot_ms = Some((ms, before)),
+            // (a late frame, or one from before the last wrap)
+            _ => {}
+        }
         ((wraps << 32) + u64::from(ms)) * 1000
     }
 

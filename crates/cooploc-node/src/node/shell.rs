@@ -60,12 +60,17 @@ pub const STALE_START_US: u64 = 10_000_000;
 /// are answered within a round trip; a refusal ends the wait at once).
 pub const FIX_WAIT_US: u64 = 3_000_000;
 
+/// What the autopilot's estimate says at a sample, carried to it, with its EKF flags; or why it
+/// is not used.
+type FixOutcome = Result<(GapFix, u16), String>;
+
 /// ATTITUDE's message id.
 const ATTITUDE_ID: u32 = 30;
 
 /// What a node with a saved state asks its autopilot for, at 10 Hz, until the restore is decided
-/// (then at the autopilot's default rate again: a telemetry link of 57,600 baud would spend a
-/// fifth of itself on them).
+/// (then at the autopilot's default rate again: ATTITUDE, GLOBAL_POSITION_INT and
+/// EKF_STATUS_REPORT are at most 40 + 40 + 38 B of MAVLink 2 frames, 1.18 kB/s at 10 Hz, a fifth
+/// of a 57,600-baud telemetry link's 5.76 kB/s).
 const FIX_MESSAGES: [(&str, u32); 4] =
     [("ATTITUDE", ATTITUDE_ID), ("GLOBAL_POSITION_INT", 33), ("EKF_STATUS_REPORT", 193), ("ESTIMATOR_STATUS", 230)];
 
@@ -988,8 +993,7 @@ impl NodeShell {
     /// What the autopilot's estimate says at `t1` (a sample's time), carried to it, with its EKF
     /// flags; Err with the reason it is not used. None: wait for it (the vehicle's first sample
     /// was less than [`FIX_WAIT_US`] ago and the autopilot has not refused ATTITUDE).
-    #[allow(clippy::type_complexity)]
-    fn fix_at(&mut self, t1: TimeUs, origin: &wire::GeoOrigin) -> Option<Result<(GapFix, u16), String>> {
+    fn fix_at(&mut self, t1: TimeUs, origin: &wire::GeoOrigin) -> Option<FixOutcome> {
         let Some(estimate) = self.fix.as_mut() else { return Some(Err("no state to restore".into())) };
         let id = self.id;
         let mut why = "no estimate its EKF vouches for".to_string();
@@ -1338,19 +1342,30 @@ mod tests {
         let cfg = NodeConfig::for_model(1, Method::Decentralized, model, Encoding::F64, world.platform_ids());
         let core = NodeCore::new(cfg, t0, state).unwrap();
         let config = ShellConfig {
-            profile: VehicleProfile::from_spec(&scenario.vehicle()),
             team_key: key,
-            signing_resume_after: 0,
-            peers: Vec::new(),
             idle_exit,
             grace: Duration::from_secs(1),
-            ranges: false,
-            unicast: true,
             record: true,
-            restore: None,
-            save_state: false,
+            ..bare_config(VehicleProfile::from_spec(&scenario.vehicle()))
         };
         NodeShell::new(NodeInit::Ready(Box::new(core)), config, at(0)).unwrap()
+    }
+
+    /// A shell configuration for `profile`: unsigned, no log, no peers, no saved state.
+    fn bare_config(profile: VehicleProfile) -> ShellConfig {
+        ShellConfig {
+            profile,
+            team_key: None,
+            signing_resume_after: 0,
+            peers: Vec::new(),
+            idle_exit: None,
+            grace: Duration::ZERO,
+            ranges: false,
+            unicast: true,
+            record: false,
+            restore: None,
+            save_state: false,
+        }
     }
 
     fn frame(sysid: u32, compid: u8, seq: u8, msg: &MavMessage) -> Vec<u8> {
@@ -1393,19 +1408,7 @@ mod tests {
             vec![300, 2],
         );
         cfg.id = 300;
-        let config = ShellConfig {
-            profile: VehicleProfile::from_spec(&scenario.vehicle()),
-            team_key: None,
-            signing_resume_after: 0,
-            peers: Vec::new(),
-            idle_exit: None,
-            grace: Duration::ZERO,
-            ranges: false,
-            unicast: true,
-            record: false,
-            restore: None,
-            save_state: false,
-        };
+        let config = bare_config(VehicleProfile::from_spec(&scenario.vehicle()));
         let init = NodeInit::Pending { config: Box::new(cfg), origin: None, state: None, from_autopilot: false };
         let err = NodeShell::new(init, config, at(0)).err().expect("platform 300 refused");
         assert!(err.to_string().contains("platform id 300"), "{err}");
@@ -1552,19 +1555,7 @@ mod tests {
         let saved = SavedState::of(3, &origin, &filter);
         let start = |restore: Option<SavedState>| {
             let cfg = NodeConfig::for_model(3, Method::Decentralized, model, Encoding::F64, vec![1, 2, 3]);
-            let config = ShellConfig {
-                profile: profile.clone(),
-                team_key: None,
-                signing_resume_after: 0,
-                peers: Vec::new(),
-                idle_exit: None,
-                grace: Duration::ZERO,
-                ranges: false,
-                unicast: true,
-                record: false,
-                restore,
-                save_state: false,
-            };
+            let config = ShellConfig { restore, ..bare_config(profile.clone()) };
             // the start pose of its configuration, 40 m away, given without a time
             let mut configured = state;
             configured.pos_ned_m = nalgebra::Vector3::new(-10.0, 60.0, 0.0);
