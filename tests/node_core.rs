@@ -337,8 +337,7 @@ type Reports = std::collections::BTreeMap<(u32, u16), (Vec<u16>, u64)>;
 
 fn note_report(reports: &mut Reports, msg: &MavMessage) {
     use cooploc::protocol::dialect::cooploc::CooplocEpochState as S;
-    if let MavMessage::COOPLOC_EPOCH(m) = msg
-        && let Ok(a) = wire::epoch_from_message(m)
+    if let Some(Ok(a)) = wire::epoch_of(msg)
         && matches!(a.state, S::COOPLOC_EPOCH_STATE_APPLIED | S::COOPLOC_EPOCH_STATE_PARTIAL)
     {
         reports.insert((a.epoch, a.announcer), (a.participants, a.digest));
@@ -515,6 +514,7 @@ fn hostile_epochs_and_records_are_refused_and_counted() {
             participants: vec![2],
             state: EpochState::COOPLOC_EPOCH_STATE_COLLECTING,
             digest: 0,
+            incomplete: Vec::new(),
         };
         NodeInput::Peer { from: 2, msg: Box::new(epoch_to_message(&a).unwrap()) }
     };
@@ -618,6 +618,7 @@ fn forged_store_requests_and_snapshots_change_nothing() {
                 participants: vec![1, 3],
                 state: CooplocEpochState::COOPLOC_EPOCH_STATE_STORE_WANTED,
                 digest: d,
+                incomplete: Vec::new(),
             };
             let msg = wire::epoch_to_message(&ask).unwrap();
             for _ in 0..20 {
@@ -666,6 +667,7 @@ fn a_flood_of_resend_requests_gets_a_bounded_number_of_resends() {
             participants: vec![2],
             state: CooplocEpochState::COOPLOC_EPOCH_STATE_COLLECTING,
             digest: 0,
+            incomplete: Vec::new(),
         };
         let out = node.handle(NodeInput::Peer { from: 2, msg: Box::new(wire::epoch_to_message(&ask).unwrap()) });
         frames_out += out.iter().filter(|o| matches!(o, NodeOutput::ToPeers(MavMessage::COOPLOC_STATE_FRAGMENT(_)))).count();
@@ -682,6 +684,64 @@ fn a_flood_of_resend_requests_gets_a_bounded_number_of_resends() {
     // The sent bytes: at most the limit's records' fragments.
     let per_record = frames_out / resent as usize;
     assert!(per_record > 0 && frames_out == per_record * resent as usize, "{frames_out} fragments for {resent} records");
+}
+
+/// A teammate that says which fragments of a record it holds (COOPLOC_EPOCH_SET, while
+/// collecting) gets only the others; a second teammate asking for the whole record within half a
+/// retry interval gets what has not just gone; a third request then gets nothing (every fragment
+/// went this half interval); and once that half interval is over the record goes whole again.
+#[test]
+fn a_teammate_that_holds_part_of_a_record_gets_only_the_missing_fragments() {
+    use cooploc::protocol::dialect::cooploc::CooplocEpochState;
+    use cooploc::protocol::wire::HeldFragments;
+    let world = World::new(&Scenario::from_toml_str(PAPER_TOML).unwrap()).unwrap();
+    let (mut nodes, epochs) = run_network(&world, Method::Decentralized, "1hz", 1, 0);
+    let last = epochs.len() as u32;
+    let node = &mut nodes[0];
+    let retry = node.config().retry_us;
+    let start = 10_000_000_000u64;
+    let ask = |node: &mut NodeCore, from: u16, wall: u64, incomplete: Vec<HeldFragments>| {
+        node.poll(wall);
+        let a = wire::EpochAnnouncement {
+            epoch: last,
+            t: TimeUs(u64::from(last) * 1_000_000),
+            announcer: from,
+            participants: vec![from],
+            state: CooplocEpochState::COOPLOC_EPOCH_STATE_COLLECTING,
+            digest: 0,
+            incomplete,
+        };
+        let msg = wire::epoch_to_message(&a).unwrap();
+        assert!(matches!(msg, MavMessage::COOPLOC_EPOCH_SET(_)));
+        let out = node.handle(NodeInput::Peer { from, msg: Box::new(msg) });
+        let mut sent: Vec<u8> = out
+            .iter()
+            .filter_map(|o| match o {
+                NodeOutput::ToPeers(MavMessage::COOPLOC_STATE_FRAGMENT(f)) if f.epoch == last => Some(f.frag_index),
+                _ => None,
+            })
+            .collect();
+        sent.sort();
+        sent
+    };
+    let whole = ask(node, 2, start, vec![]);
+    let count = whole.len() as u8;
+    assert!(count >= 3, "a record of several fragments: {whole:?}");
+    assert_eq!(whole, (0..count).collect::<Vec<_>>());
+    // Half a retry interval later: node 2 lacks fragment 1 only.
+    let later = start + retry;
+    let all_but_1 = ((1u32 << count) - 1) & !0b10;
+    assert_eq!(ask(node, 2, later, vec![HeldFragments { platform: 1, held: all_but_1 }]), vec![1]);
+    let partial = node.stats.resends_partial;
+    assert_eq!(partial, 1, "{:?}", node.stats);
+    // Node 3 lacks the whole record at once: everything but fragment 1, which just went.
+    assert_eq!(ask(node, 3, later + 1, vec![]), (0..count).filter(|&i| i != 1).collect::<Vec<_>>());
+    let limited = node.stats.resends_limited;
+    assert_eq!(ask(node, 3, later + 2, vec![HeldFragments { platform: 1, held: 0b1 }]), Vec::<u8>::new());
+    assert_eq!(node.stats.resends_limited, limited + 1);
+    // A holding that names another platform does not limit what goes to us.
+    assert_eq!(ask(node, 2, later + retry, vec![HeldFragments { platform: 3, held: u32::MAX }]), whole);
+    assert_eq!(node.stats.fragments_resent, u64::from(count) * 3, "{:?}", node.stats);
 }
 
 /// The compact encoding (16-bit correlation form, 29% of the f64 record's matrix bytes)

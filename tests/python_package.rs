@@ -79,8 +79,26 @@ fn the_python_package_gives_the_library_s_results_and_refuses_bad_input() {
             participants,
             state: wire::EpochState::COOPLOC_EPOCH_STATE_APPLIED,
             digest: 77,
+            incomplete: Vec::new(),
         };
         hex(&wire::to_frame(header(2, 3), &wire::epoch_to_message(&a).unwrap()))
+    };
+    // The list form (COOPLOC_EPOCH), which can name a platform twice; epoch_to_message sends
+    // a team within 64 ids as a bitmask (COOPLOC_EPOCH_SET).
+    let epoch_list = |announcer, participants: Vec<u16>| {
+        use cooploc::protocol::dialect::cooploc::COOPLOC_EPOCH_DATA;
+        let mut list = [0u16; wire::MAX_PARTICIPANTS];
+        list[..participants.len()].copy_from_slice(&participants);
+        let m = COOPLOC_EPOCH_DATA {
+            time_usec: 9_000_000,
+            epoch: 9,
+            announcer,
+            count: participants.len() as u8,
+            participants: list,
+            state: wire::EpochState::COOPLOC_EPOCH_STATE_APPLIED,
+            digest: 77,
+        };
+        hex(&wire::to_frame(header(2, 3), &cooploc::protocol::MavMessage::COOPLOC_EPOCH(m)))
     };
     let range = |from, range_m| {
         let r = cooploc::estimation::RangeSample { t: TimeUs(9_000_000), from, to: 1, range_m, sigma_m: 0.1 };
@@ -90,7 +108,8 @@ fn the_python_package_gives_the_library_s_results_and_refuses_bad_input() {
     let spec = json!({
         "palette": cooploc::view::PALETTE.map(|[r, g, b]| format!("{r:02x}{g:02x}{b:02x}")),
         "epoch_frame": epoch(2, vec![1, 2, 3]),
-        "epoch_twice": epoch(2, vec![1, 2, 2]),
+        "epoch_list_frame": epoch_list(2, vec![1, 2, 3]),
+        "epoch_twice": epoch_list(2, vec![1, 2, 2]),
         "epoch_other_announcer": epoch(3, vec![1, 2, 3]),
         "range_frame": range(2, 25.0),
         "range_negative": range(2, -1.0),

@@ -102,6 +102,7 @@ fn main() {
         participants: vec![1, 2, 3, 5],
         state: wire::EpochState::COOPLOC_EPOCH_STATE_COLLECTING,
         digest: 0x0123_4567_89ab_cdef,
+        incomplete: Vec::new(),
     })
     .expect("epoch message");
     let estimate_msg = wire::estimate_to_message(&EstimateReport {

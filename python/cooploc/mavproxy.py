@@ -9,7 +9,8 @@ What it reads
 -------------
 - The cooploc dialect (dialects/cooploc.xml): COOPLOC_STATE_FRAGMENT (61000), COOPLOC_RANGE
   (61001), COOPLOC_ESTIMATE (61002), COOPLOC_EPOCH (61003), COOPLOC_STORE_FRAGMENT (61004),
-  COOPLOC_RANGE_BEARING (61005). With ``--dialect cooploc`` MAVProxy decodes them; under another
+  COOPLOC_RANGE_BEARING (61005), COOPLOC_EPOCH_SET (61006: COOPLOC_EPOCH with its participants
+  as a bitmask, what nodes send when their ids span at most 64). With ``--dialect cooploc`` MAVProxy decodes them; under another
   dialect (MAVProxy's default ``all``, or ``ardupilotmega``) they arrive as ``UNKNOWN_610xx`` and
   the module decodes them itself with bindings mavgen makes from the cooploc XML (``$MDEF/v1.0``
   or the repository's ``dialects/``).
@@ -143,7 +144,10 @@ MSG_ESTIMATE = 61002
 MSG_EPOCH = 61003
 MSG_STORE_FRAGMENT = 61004
 MSG_RANGE_BEARING = 61005
-COOPLOC_MESSAGE_IDS = frozenset(range(61000, 61006))
+MSG_EPOCH_SET = 61006
+COOPLOC_MESSAGE_IDS = frozenset(range(61000, 61007))
+#: The two forms of an epoch announcement (the participants as a list, as a bitmask).
+EPOCH_MESSAGES = ("COOPLOC_EPOCH", "COOPLOC_EPOCH_SET")
 
 #: The cooploc messages the module only counts, and the VehicleView counter of each.
 COUNTED = {"COOPLOC_RANGE": "ranges", "COOPLOC_STATE_FRAGMENT": "state_fragments",
@@ -239,7 +243,7 @@ def check_message(m):
     """Checks a cooploc message as the node and ``cooploc gcs`` check it, on its frame's bytes
     (``cooploc.check_frame``: the library's ``protocol::wire`` checks, and that the platform it
     speaks for is the sending system); raises :class:`Rejected` naming what is wrong. Returns the
-    participants of a COOPLOC_EPOCH (None for the other messages)."""
+    participants of a COOPLOC_EPOCH or COOPLOC_EPOCH_SET (None for the other messages)."""
     try:
         return _cooploc.check_frame(bytes(m.get_msgbuf()))[1]
     except ValueError as e:
@@ -552,7 +556,7 @@ class CooplocModule(_MPModule):
         if compid == TRUTH_COMPID and mtype in ("SIM_STATE", "HIGHRES_IMU", "ODOMETRY"):
             self._truth_message(m, mtype, sysid)
             return
-        if mtype not in ("COOPLOC_ESTIMATE", "COOPLOC_EPOCH") and mtype not in COUNTED:
+        if mtype != "COOPLOC_ESTIMATE" and mtype not in EPOCH_MESSAGES and mtype not in COUNTED:
             return
         now = time.monotonic()
         try:
@@ -562,7 +566,7 @@ class CooplocModule(_MPModule):
                 return
             if mtype == "COOPLOC_ESTIMATE":
                 self._estimate(v, m, now)
-            elif mtype == "COOPLOC_EPOCH":
+            elif mtype in EPOCH_MESSAGES:
                 self.epochs.add(m.epoch, m.announcer, m.state, m.digest, participants)
             else:
                 setattr(v, COUNTED[mtype], getattr(v, COUNTED[mtype]) + 1)

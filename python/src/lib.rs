@@ -136,7 +136,7 @@ fn refused(e: impl std::fmt::Display) -> PyErr {
 /// platform listed twice, ...), and that the platform it speaks for is the frame's system id
 /// (an estimate's `platform`, an epoch's `announcer`, a range's `from_platform`, a fragment's
 /// `platform`, a range-and-bearing's `observer`). Returns `(name, participants)`: the message's
-/// name and, for COOPLOC_EPOCH, its participants (`None` otherwise). Messages outside the cooploc
+/// name and, for COOPLOC_EPOCH and COOPLOC_EPOCH_SET, its participants (`None` otherwise). Messages outside the cooploc
 /// set are not checked. `ValueError` names what is wrong (no frame, a bad CRC, a payload the
 /// dialect refuses, a field out of range, another system's platform).
 #[pyfunction]
@@ -149,8 +149,8 @@ fn check_frame(frame: &[u8]) -> PyResult<(String, Option<Vec<u16>>)> {
             speaks_for(wire::estimate_from_message(m).map_err(refused)?.platform)?;
             None
         }
-        MavMessage::COOPLOC_EPOCH(m) => {
-            let a = wire::epoch_from_message(m).map_err(refused)?;
+        MavMessage::COOPLOC_EPOCH(_) | MavMessage::COOPLOC_EPOCH_SET(_) => {
+            let a = wire::epoch_of(&msg).expect("an epoch announcement").map_err(refused)?;
             speaks_for(a.announcer)?;
             Some(a.participants)
         }
@@ -432,7 +432,15 @@ impl PyEpochTally {
             4 => EpochState::COOPLOC_EPOCH_STATE_STORE_WANTED,
             _ => return "ignored",
         };
-        let a = wire::EpochAnnouncement { epoch, t: cooploc::time::TimeUs(0), announcer, participants, state, digest };
+        let a = wire::EpochAnnouncement {
+            epoch,
+            t: cooploc::time::TimeUs(0),
+            announcer,
+            participants,
+            state,
+            digest,
+            incomplete: Vec::new(),
+        };
         self.0.on_epoch(&a).name()
     }
 

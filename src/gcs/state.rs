@@ -891,6 +891,7 @@ mod tests {
                 participants: vec![1, 2, 3],
                 state: St::COOPLOC_EPOCH_STATE_APPLIED,
                 digest,
+                incomplete: Vec::new(),
             };
             let n = &mut seq[usize::from(sysid)];
             // Node 3 loses every other frame on the way.

@@ -306,6 +306,7 @@ mod tests {
             participants: participants.to_vec(),
             state: EpochState::COOPLOC_EPOCH_STATE_APPLIED,
             digest,
+            incomplete: Vec::new(),
         }
     }
 

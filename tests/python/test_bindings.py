@@ -71,7 +71,9 @@ check("estimate: not bytes -> TypeError", raises(TypeError, cooploc.estimate_fro
 
 # Any cooploc message, checked as the node checks it.
 check("check_frame: an epoch and its participants",
-      cooploc.check_frame(bytes.fromhex(spec["epoch_frame"])) == ("COOPLOC_EPOCH", [1, 2, 3]))
+      cooploc.check_frame(bytes.fromhex(spec["epoch_frame"])) == ("COOPLOC_EPOCH_SET", [1, 2, 3]))
+check("check_frame: an epoch in the list form and its participants",
+      cooploc.check_frame(bytes.fromhex(spec["epoch_list_frame"])) == ("COOPLOC_EPOCH", [1, 2, 3]))
 check("check_frame: a range", cooploc.check_frame(bytes.fromhex(spec["range_frame"])) == ("COOPLOC_RANGE", None))
 check("check_frame: a heartbeat is not checked", cooploc.check_frame(bytes.fromhex(spec["heartbeat_frame"])) == ("HEARTBEAT", None))
 for name in ("epoch_twice", "epoch_other_announcer", "range_negative", "range_other_system", "estimate_nan"):

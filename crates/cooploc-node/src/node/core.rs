@@ -311,6 +311,10 @@ pub struct NodeStats {
     pub odometer_rejected: u64,
     pub records_sent: u64,
     pub records_resent: u64,
+    /// Of those, resends of only the fragments a teammate said it lacked (COOPLOC_EPOCH_SET's
+    /// incomplete records), and the fragments they carried.
+    pub resends_partial: u64,
+    pub fragments_resent: u64,
     /// Resend requests not answered: the epoch's record was resent less than half a retry
     /// interval ago, or [`RESENDS_PER_RETRY`] resends went out in the last retry interval, or
     /// (airtime slots) our broadcast of it may still be on the air.
@@ -496,6 +500,14 @@ const FREEZE_US: u64 = 1_000_000;
 /// more than this many records per retry interval besides its own broadcasts.
 pub const RESENDS_PER_RETRY: usize = 4;
 
+/// The fragments of one epoch's record resent since `at` (wall time): asked again within half a
+/// retry interval, only the fragments not among them go.
+#[derive(Debug, Clone)]
+struct ResendWindow {
+    at: u64,
+    fragments: BTreeSet<u8>,
+}
+
 /// Epochs remembered after they are run (resends and agreement checks).
 const EPOCHS_REMEMBERED: usize = 32;
 
@@ -621,7 +633,7 @@ pub struct NodeCore {
     /// Wall times of the resends of the last retry interval, and the last resend of each
     /// epoch still remembered (the rate limits).
     resent_at: VecDeque<u64>,
-    epoch_resent_at: BTreeMap<u32, u64>,
+    epoch_resent: BTreeMap<u32, ResendWindow>,
     /// With airtime slots: until when (wall time) our broadcast of an epoch may still be on the
     /// air; a resend asked for before then is not sent.
     on_air_until: BTreeMap<u32, u64>,
@@ -721,7 +733,7 @@ impl NodeCore {
             last_run: None,
             sent: VecDeque::new(),
             resent_at: VecDeque::new(),
-            epoch_resent_at: BTreeMap::new(),
+            epoch_resent: BTreeMap::new(),
             on_air_until: BTreeMap::new(),
             ran_on: VecDeque::new(),
             skip_through: None,
@@ -1213,7 +1225,8 @@ impl NodeCore {
             self.send_status(a.epoch, t, held, EpochState::COOPLOC_EPOCH_STATE_COLLECTING, digest, out);
         }
         if !a.participants.contains(&self.cfg.id) && a.state == EpochState::COOPLOC_EPOCH_STATE_COLLECTING {
-            self.resend(a.epoch, out);
+            let held = a.incomplete.iter().find(|h| h.platform == self.cfg.id).copied();
+            self.resend(a.epoch, held, out);
         }
     }
 
@@ -1240,24 +1253,41 @@ impl NodeCore {
         }
     }
 
-    /// Sends our record of `epoch` again: at most once per half retry interval for one epoch,
-    /// open or run, and at most [`RESENDS_PER_RETRY`] per retry interval in all.
-    fn resend(&mut self, epoch: u32, out: &mut Vec<NodeOutput>) {
+    /// Sends our record of `epoch` again, or only the fragments a teammate lacks when it said
+    /// which it holds (`held`): a fragment at most once per half retry interval for one epoch,
+    /// open or run, and at most [`RESENDS_PER_RETRY`] resends per retry interval in all.
+    fn resend(&mut self, epoch: u32, held: Option<wire::HeldFragments>, out: &mut Vec<NodeOutput>) {
         let Some((_, frags)) = self.sent.iter().find(|(e, _)| *e == epoch) else { return };
         let (wall, retry) = (self.wall_us, self.retry_us());
         while self.resent_at.front().is_some_and(|&at| wall >= at + retry) {
             self.resent_at.pop_front();
         }
-        let too_soon = self.epoch_resent_at.get(&epoch).is_some_and(|&at| wall < at + retry / 2);
+        if self.epoch_resent.get(&epoch).is_some_and(|w| wall >= w.at + retry / 2) {
+            self.epoch_resent.remove(&epoch);
+        }
+        let window = self.epoch_resent.get(&epoch);
+        let index = |m: &MavMessage| match m {
+            MavMessage::COOPLOC_STATE_FRAGMENT(f) => f.frag_index,
+            _ => 0,
+        };
+        let fresh: Vec<&MavMessage> = frags
+            .iter()
+            .filter(|m| held.is_none_or(|h| !h.holds(index(m))) && window.is_none_or(|w| !w.fragments.contains(&index(m))))
+            .collect();
         // With airtime slots: not while our broadcast may still be on the air.
         let on_air = self.on_air_until.get(&epoch).is_some_and(|&until| wall < until);
-        if too_soon || on_air || self.resent_at.len() >= RESENDS_PER_RETRY {
+        if fresh.is_empty() || on_air || self.resent_at.len() >= RESENDS_PER_RETRY {
             self.stats.resends_limited += 1;
             return;
         }
         self.resent_at.push_back(wall);
-        self.epoch_resent_at.insert(epoch, wall);
-        out.extend(frags.iter().cloned().map(NodeOutput::ToPeers));
+        let w = self.epoch_resent.entry(epoch).or_insert(ResendWindow { at: wall, fragments: BTreeSet::new() });
+        w.fragments.extend(fresh.iter().map(|m| index(m)));
+        if fresh.len() < frags.len() {
+            self.stats.resends_partial += 1;
+        }
+        self.stats.fragments_resent += fresh.len() as u64;
+        out.extend(fresh.into_iter().cloned().map(NodeOutput::ToPeers));
         self.stats.records_resent += 1;
     }
 
@@ -1525,7 +1555,22 @@ impl NodeCore {
         digest: u64,
         out: &mut Vec<NodeOutput>,
     ) {
-        let a = wire::EpochAnnouncement { epoch, t, announcer: self.cfg.id, participants, state, digest };
+        // While collecting: the fragments we hold of records still incomplete, so that their
+        // senders resend only the rest.
+        let incomplete = if state == EpochState::COOPLOC_EPOCH_STATE_COLLECTING {
+            self.reassembler
+                .incomplete(epoch)
+                .filter(|(p, have)| !participants.contains(p) && have.len() <= wire::MAX_HELD_FRAGMENTS)
+                .map(|(platform, have)| wire::HeldFragments {
+                    platform,
+                    held: have.iter().enumerate().filter(|(_, h)| **h).fold(0, |m, (i, _)| m | 1 << i),
+                })
+                .take(wire::MAX_INCOMPLETE)
+                .collect()
+        } else {
+            Vec::new()
+        };
+        let a = wire::EpochAnnouncement { epoch, t, announcer: self.cfg.id, participants, state, digest, incomplete };
         if let Ok(m) = wire::epoch_to_message(&a) {
             out.push(NodeOutput::ToPeers(m));
             self.stats.epoch_messages_sent += 1;
@@ -1580,7 +1625,7 @@ impl NodeCore {
             if self.sent.len() > EPOCHS_REMEMBERED
                 && let Some((old, _)) = self.sent.pop_front()
             {
-                self.epoch_resent_at.remove(&old);
+                self.epoch_resent.remove(&old);
                 self.on_air_until.remove(&old);
             }
         }
@@ -2149,6 +2194,7 @@ mod tests {
             participants,
             state,
             digest: 0,
+            incomplete: Vec::new(),
         };
         core.handle(NodeInput::Peer { from, msg: Box::new(wire::epoch_to_message(&a).unwrap()) })
     }
@@ -2218,6 +2264,39 @@ mod tests {
         assert_eq!(core.absent().collect::<Vec<_>>(), vec![4], "3 spoke of a recent epoch; 4 did not speak");
     }
 
+    /// While it waits, a node says which fragments it holds of a record still incomplete (its
+    /// COLLECTING status as COOPLOC_EPOCH_SET), so that the sender resends only the rest; a
+    /// record it holds whole is a participant, not an incomplete one.
+    #[test]
+    fn a_waiting_node_says_which_fragments_it_holds_of_an_incomplete_record() {
+        let mut core = NodeCore::new(config(1, vec![1, 2, 3]), TimeUs(0), start()).unwrap();
+        let record: Vec<u8> = (0..3000u32).map(|i| (i * 7 % 251) as u8).collect();
+        let frags = crate::protocol::fragment::fragment(2, 5, 5_000_000, &record).unwrap();
+        assert!(frags.len() > 8);
+        let mut statuses = Vec::new();
+        for k in 1..=600u64 {
+            let t = k * 10_000;
+            let mut out = step_at_rest(&mut core, t, k == 1);
+            if t == 5_000_000 {
+                out.extend(announce(&mut core, 3, 5, vec![3], EpochState::COOPLOC_EPOCH_STATE_COLLECTING));
+                for i in [0, 2, 8] {
+                    let msg = wire::fragment_to_message(&frags[i]).unwrap();
+                    out.extend(core.handle(NodeInput::Peer { from: 2, msg: Box::new(msg) }));
+                }
+            }
+            statuses.extend(out.iter().filter_map(|o| match o {
+                NodeOutput::ToPeers(m) => wire::epoch_of(m).and_then(Result::ok).filter(|a| a.epoch == 5),
+                _ => None,
+            }));
+        }
+        let asked: Vec<_> = statuses.iter().filter(|a| a.state == EpochState::COOPLOC_EPOCH_STATE_COLLECTING).collect();
+        assert!(!asked.is_empty(), "the node asked for what it lacks: {statuses:?}");
+        for a in asked {
+            assert_eq!(a.participants, vec![1], "only our own record is whole");
+            assert_eq!(a.incomplete, vec![wire::HeldFragments { platform: 2, held: 0b1_0000_0101 }]);
+        }
+    }
+
     /// A periodic schedule and airtime slots ([`NodeConfig::epoch_period_us`],
     /// [`NodeConfig::slot_us`]): a node learns the next epoch as its filter passes the last one,
     /// from nothing but the schedule; it broadcasts in its slot (grace plus its place in the
@@ -2259,8 +2338,8 @@ mod tests {
                         NodeOutput::ToPeers(MavMessage::COOPLOC_STATE_FRAGMENT(f)) if f.epoch == 5 => {
                             sent_at.get_or_insert(t as f64 / 1e6);
                         }
-                        NodeOutput::ToPeers(MavMessage::COOPLOC_EPOCH(m)) => {
-                            let a = wire::epoch_from_message(&m).unwrap();
+                        NodeOutput::ToPeers(m) if wire::epoch_of(&m).is_some() => {
+                            let a = wire::epoch_of(&m).unwrap().unwrap();
                             if a.epoch == 5 && a.state == EpochState::COOPLOC_EPOCH_STATE_COLLECTING {
                                 asked_at.get_or_insert(t as f64 / 1e6);
                             }

@@ -6,10 +6,10 @@
 //! of the given size with realistic, non-zero values cut into fragments, the epoch report, the
 //! estimate, the range echoes, the heartbeat), framed as MAVLink 2, signed when asked, and
 //! measured. Per node and epoch a node sends (see `node::core`): its record's fragments, one
-//! COOPLOC_EPOCH report, one COOPLOC_ESTIMATE and one COOPLOC_RANGE per range its radio measured
-//! (the echo for ground stations; the joint update takes ranges from the record); and one
-//! HEARTBEAT a second. Resends (after a loss) come on top: one resend of a record costs what
-//! its broadcast did, plus a COOPLOC_EPOCH request.
+//! COOPLOC_EPOCH_SET report, one COOPLOC_ESTIMATE and one COOPLOC_RANGE per range its radio
+//! measured (the echo for ground stations; the joint update takes ranges from the record); and
+//! one HEARTBEAT a second. Resends (after a loss) come on top: the fragments a teammate missed,
+//! plus its COOPLOC_EPOCH_SET request ([`rates_with_loss`]).
 //!
 //! On a **broadcast** medium (a radio network, IP multicast) one copy of a frame reaches the
 //! whole team, so the channel carries the sum of what the nodes send. With **unicast** IP each
@@ -184,6 +184,7 @@ pub fn epoch_frames(shape: &TeamShape) -> Result<EpochFrames, String> {
         participants,
         state: EpochState::COOPLOC_EPOCH_STATE_APPLIED,
         digest: 0x0123_4567_89ab_cdef,
+        incomplete: Vec::new(),
     };
     let epoch = frame(&wire::epoch_to_message(&report).map_err(|e| e.to_string())?);
     let estimate = frame(&wire::estimate_to_message(&EstimateReport {
@@ -220,7 +221,7 @@ pub fn epoch_frames(shape: &TeamShape) -> Result<EpochFrames, String> {
         kinds: vec![
             ("COOPLOC_STATE_FRAGMENT", record_frames.0, record_frames.1),
             ("COOPLOC_RANGE", range_sizes.len(), range_sizes.iter().sum()),
-            ("COOPLOC_EPOCH", 1, epoch),
+            ("COOPLOC_EPOCH_SET", 1, epoch),
             ("COOPLOC_ESTIMATE", 1, estimate),
         ],
         heartbeat_bytes: heartbeat,
@@ -306,21 +307,29 @@ pub fn expected_resends(loss: f64, datagrams: usize, peers: usize) -> f64 {
     (1..=200).map(|t| 1.0 - (1.0 - q.powi(t)).powi(peers as i32)).sum()
 }
 
-/// [`rates`] with the resends and requests that losing `loss` of the datagrams costs (see
-/// [`expected_resends`]): each resend costs the record's frames again and one COOPLOC_EPOCH
-/// request from the node that missed it (counted here, by symmetry, as this node's).
+/// [`rates`] with the resends and requests that losing `loss` of the datagrams costs. A node
+/// that misses part of a record says which fragments it holds (COOPLOC_EPOCH_SET), and the
+/// sender resends only the others: each datagram of the record is sent again while any peer
+/// misses it ([`expected_resends`] of one datagram, times the record's bytes). Every round of
+/// requests until every peer holds the whole record ([`expected_resends`] of the record's
+/// datagrams) costs one request from a node that missed something (counted here, by symmetry,
+/// as this node's). Approximate where a peer missed every datagram (it asks for the whole
+/// record, whose other datagrams may go to peers that had them).
 pub fn rates_with_loss(shape: &TeamShape, frames: &EpochFrames, medium: Medium, loss: f64) -> Rates {
     let base = rates(shape, frames, medium);
     let (record_frames, record_bytes) = (frames.kinds[0].1, frames.kinds[0].2);
-    let request_bytes = frames.kinds.iter().find(|k| k.0 == "COOPLOC_EPOCH").map_or(0, |k| k.2);
+    let request_bytes = frames.kinds.iter().find(|k| k.0 == "COOPLOC_EPOCH_SET").map_or(0, |k| k.2);
     let (copies, ip) = medium.copies_and_packing(shape.team);
     let record_datagrams = match ip {
         Some(true) => frames.record_datagrams(true),
         _ => record_frames,
     };
-    let resends = expected_resends(loss, record_datagrams, shape.team.saturating_sub(1)) * shape.epoch_hz;
-    let extra_datagrams = if ip.is_some() { resends * (record_datagrams + 1) as f64 } else { 0.0 };
-    let extra = copies * (resends * (record_bytes + request_bytes) as f64 + extra_datagrams * IP_UDP_OVERHEAD as f64);
+    let peers = shape.team.saturating_sub(1);
+    let rounds = expected_resends(loss, record_datagrams, peers) * shape.epoch_hz;
+    let each_datagram = expected_resends(loss, 1, peers) * shape.epoch_hz;
+    let extra_datagrams = if ip.is_some() { each_datagram * record_datagrams as f64 + rounds } else { 0.0 };
+    let extra =
+        copies * (each_datagram * record_bytes as f64 + rounds * request_bytes as f64 + extra_datagrams * IP_UDP_OVERHEAD as f64);
     Rates {
         node_bytes_per_s: base.node_bytes_per_s + extra,
         team_bytes_per_s: base.team_bytes_per_s + extra * shape.team as f64,

@@ -19,7 +19,7 @@ pub enum CoopMessage {
     StoreFragment(Fragment),
     /// A range a peer's radio measured at `epoch` (COOPLOC_RANGE).
     Range { epoch: u32, range: RangeSample },
-    /// Where a peer is with an epoch (COOPLOC_EPOCH).
+    /// Where a peer is with an epoch (COOPLOC_EPOCH or COOPLOC_EPOCH_SET).
     Epoch(EpochAnnouncement),
     /// A node's estimate (COOPLOC_ESTIMATE).
     Estimate(EstimateReport),
@@ -53,7 +53,7 @@ impl CoopKind {
             MavMessage::COOPLOC_STATE_FRAGMENT(_) => CoopKind::StateFragment,
             MavMessage::COOPLOC_STORE_FRAGMENT(_) => CoopKind::StoreFragment,
             MavMessage::COOPLOC_RANGE(_) => CoopKind::Range,
-            MavMessage::COOPLOC_EPOCH(_) => CoopKind::Epoch,
+            MavMessage::COOPLOC_EPOCH(_) | MavMessage::COOPLOC_EPOCH_SET(_) => CoopKind::Epoch,
             MavMessage::COOPLOC_ESTIMATE(_) => CoopKind::Estimate,
             _ => return None,
         })
@@ -78,6 +78,7 @@ impl CoopMessage {
             MavMessage::COOPLOC_STORE_FRAGMENT(m) => wire::store_fragment_from_message(m).map(CoopMessage::StoreFragment),
             MavMessage::COOPLOC_RANGE(m) => wire::range_from_message(m).map(|(epoch, range)| CoopMessage::Range { epoch, range }),
             MavMessage::COOPLOC_EPOCH(m) => wire::epoch_from_message(m).map(CoopMessage::Epoch),
+            MavMessage::COOPLOC_EPOCH_SET(m) => wire::epoch_set_from_message(m).map(CoopMessage::Epoch),
             MavMessage::COOPLOC_ESTIMATE(m) => wire::estimate_from_message(m).map(CoopMessage::Estimate),
             _ => return None,
         };

@@ -206,6 +206,12 @@ impl Reassembler {
         self.partials.len()
     }
 
+    /// The records of `epoch` in progress: each one's platform and the fragments held of it
+    /// (`true` at the index of each fragment received), by platform.
+    pub fn incomplete(&self, epoch: u32) -> impl Iterator<Item = (PlatformId, &[bool])> {
+        self.partials.range((epoch, 0, 0)..=(epoch, PlatformId::MAX, u32::MAX)).map(|(k, p)| (k.1, &p.have[..]))
+    }
+
     /// Records dropped incomplete since the last call (taken).
     pub fn take_dropped(&mut self) -> Vec<Incomplete> {
         std::mem::take(&mut self.dropped)

@@ -11,11 +11,11 @@ use mavlink_core::{MavHeader, MavlinkVersion, Message};
 use nalgebra::{Matrix3, Vector3};
 
 use super::dialect::cooploc::{
-    ATTITUDE_DATA, COMMAND_ACK_DATA, COOPLOC_EPOCH_DATA, COOPLOC_ESTIMATE_DATA, COOPLOC_RANGE_BEARING_DATA, COOPLOC_RANGE_DATA,
-    COOPLOC_STATE_FRAGMENT_DATA, COOPLOC_STORE_FRAGMENT_DATA, CooplocEpochState, CooplocMethod, GLOBAL_POSITION_INT_DATA,
-    HEARTBEAT_DATA, HIGHRES_IMU_DATA, LOCAL_POSITION_NED_DATA, MavAutopilot, MavCmd, MavEstimatorType, MavFrame, MavMessage,
-    MavModeFlag, MavResult, MavState, MavType, ODOMETRY_DATA, RAW_IMU_DATA, SCALED_IMU2_DATA, SIM_STATE_DATA,
-    WHEEL_DISTANCE_DATA,
+    ATTITUDE_DATA, COMMAND_ACK_DATA, COOPLOC_EPOCH_DATA, COOPLOC_EPOCH_SET_DATA, COOPLOC_ESTIMATE_DATA,
+    COOPLOC_RANGE_BEARING_DATA, COOPLOC_RANGE_DATA, COOPLOC_STATE_FRAGMENT_DATA, COOPLOC_STORE_FRAGMENT_DATA, CooplocEpochState,
+    CooplocMethod, GLOBAL_POSITION_INT_DATA, HEARTBEAT_DATA, HIGHRES_IMU_DATA, LOCAL_POSITION_NED_DATA, MavAutopilot, MavCmd,
+    MavEstimatorType, MavFrame, MavMessage, MavModeFlag, MavResult, MavState, MavType, ODOMETRY_DATA, RAW_IMU_DATA,
+    SCALED_IMU2_DATA, SIM_STATE_DATA, WHEEL_DISTANCE_DATA,
 };
 use super::fragment::{FRAGMENT_DATA, Fragment, Payload};
 use crate::estimation::{ImuSample, Method, OdometerSample, PlatformId, RangeSample};
@@ -303,7 +303,7 @@ pub fn range_as_sent(r: &RangeSample) -> RangeSample {
 // ---- epoch announcement ----
 
 /// A node's view of an epoch: the platforms whose complete record it holds (collecting) or used
-/// (applied, partial). See COOPLOC_EPOCH in dialects/cooploc.xml.
+/// (applied, partial). See COOPLOC_EPOCH and COOPLOC_EPOCH_SET in dialects/cooploc.xml.
 #[derive(Debug, Clone, PartialEq)]
 pub struct EpochAnnouncement {
     pub epoch: u32,
@@ -313,6 +313,26 @@ pub struct EpochAnnouncement {
     pub state: EpochState,
     /// The announcer's store digest (see COOPLOC_EPOCH.digest); 0 when it keeps none.
     pub digest: u64,
+    /// While collecting: the fragments the announcer holds of records still incomplete (at most
+    /// [`MAX_INCOMPLETE`]), so that their senders resend only what is missing. Carried by
+    /// COOPLOC_EPOCH_SET only: an announcement sent as COOPLOC_EPOCH goes without them (its
+    /// senders then resend whole records).
+    pub incomplete: Vec<HeldFragments>,
+}
+
+/// The fragments a node holds of one platform's record still incomplete: bit `i` of `held` is
+/// fragment `i` (COOPLOC_EPOCH_SET.incomplete and .held).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct HeldFragments {
+    pub platform: PlatformId,
+    pub held: u32,
+}
+
+impl HeldFragments {
+    /// Whether fragment `index` is held.
+    pub fn holds(&self, index: u8) -> bool {
+        index < 32 && self.held & (1 << index) != 0
+    }
 }
 
 /// Where a node is with an epoch (COOPLOC_EPOCH_STATE).
@@ -320,10 +340,40 @@ pub type EpochState = CooplocEpochState;
 
 /// Most participants one COOPLOC_EPOCH can name.
 pub const MAX_PARTICIPANTS: usize = 64;
+/// Most incomplete records one COOPLOC_EPOCH_SET describes.
+pub const MAX_INCOMPLETE: usize = 4;
+/// Most fragments of a record whose holding COOPLOC_EPOCH_SET can describe.
+pub const MAX_HELD_FRAGMENTS: usize = 32;
 
+/// An epoch announcement as a message: COOPLOC_EPOCH_SET (participants as a bitmask, incomplete
+/// records described) when every participant and incomplete record's platform lies within 64 of
+/// the lowest of them, COOPLOC_EPOCH (the list, no incomplete records) otherwise.
 pub fn epoch_to_message(a: &EpochAnnouncement) -> Result<MavMessage, WireError> {
     if a.participants.len() > MAX_PARTICIPANTS {
         return Err(bad("COOPLOC_EPOCH", "participants", format!("{} > {MAX_PARTICIPANTS}", a.participants.len())));
+    }
+    if a.incomplete.len() > MAX_INCOMPLETE {
+        return Err(bad("COOPLOC_EPOCH_SET", "incomplete", format!("{} > {MAX_INCOMPLETE}", a.incomplete.len())));
+    }
+    let ids = || a.participants.iter().copied().chain(a.incomplete.iter().map(|h| h.platform));
+    let base = ids().min().unwrap_or(a.announcer);
+    if ids().all(|p| p - base < 64) {
+        let mut set = COOPLOC_EPOCH_SET_DATA {
+            time_usec: a.t.0,
+            epoch: a.epoch,
+            announcer: a.announcer,
+            base,
+            participants: a.participants.iter().fold(0u64, |m, p| m | 1 << (p - base)),
+            state: a.state,
+            digest: a.digest,
+            incomplete: [0; MAX_INCOMPLETE],
+            held: [0; MAX_INCOMPLETE],
+        };
+        for (k, h) in a.incomplete.iter().enumerate() {
+            set.incomplete[k] = (h.platform - base + 1) as u8;
+            set.held[k] = h.held;
+        }
+        return Ok(MavMessage::COOPLOC_EPOCH_SET(set));
     }
     let mut participants = [0u16; MAX_PARTICIPANTS];
     participants[..a.participants.len()].copy_from_slice(&a.participants);
@@ -336,6 +386,15 @@ pub fn epoch_to_message(a: &EpochAnnouncement) -> Result<MavMessage, WireError> 
         state: a.state,
         digest: a.digest,
     }))
+}
+
+/// The epoch announcement `msg` carries, in either form; None for any other message.
+pub fn epoch_of(msg: &MavMessage) -> Option<Result<EpochAnnouncement, WireError>> {
+    match msg {
+        MavMessage::COOPLOC_EPOCH(m) => Some(epoch_from_message(m)),
+        MavMessage::COOPLOC_EPOCH_SET(m) => Some(epoch_set_from_message(m)),
+        _ => None,
+    }
 }
 
 pub fn epoch_from_message(m: &COOPLOC_EPOCH_DATA) -> Result<EpochAnnouncement, WireError> {
@@ -356,6 +415,40 @@ pub fn epoch_from_message(m: &COOPLOC_EPOCH_DATA) -> Result<EpochAnnouncement, W
         participants,
         state: m.state,
         digest: m.digest,
+        incomplete: Vec::new(),
+    })
+}
+
+pub fn epoch_set_from_message(m: &COOPLOC_EPOCH_SET_DATA) -> Result<EpochAnnouncement, WireError> {
+    let id = |offset: u64, field| {
+        u16::try_from(u64::from(m.base) + offset)
+            .map_err(|_| bad("COOPLOC_EPOCH_SET", field, format!("platform {} + {offset} beyond 65535", m.base)))
+    };
+    let participants =
+        (0..64).filter(|k| m.participants & (1 << k) != 0).map(|k| id(k, "participants")).collect::<Result<_, _>>()?;
+    let mut incomplete: Vec<HeldFragments> = Vec::new();
+    for (&k, &held) in m.incomplete.iter().zip(&m.held) {
+        match k {
+            0 if held != 0 => return Err(bad("COOPLOC_EPOCH_SET", "held", format!("fragments {held:#x} held of no platform"))),
+            0 => {}
+            65.. => return Err(bad("COOPLOC_EPOCH_SET", "incomplete", format!("offset {k} > 64"))),
+            _ => {
+                let platform = id(u64::from(k) - 1, "incomplete")?;
+                if incomplete.iter().any(|h| h.platform == platform) {
+                    return Err(bad("COOPLOC_EPOCH_SET", "incomplete", format!("platform {platform} listed twice")));
+                }
+                incomplete.push(HeldFragments { platform, held });
+            }
+        }
+    }
+    Ok(EpochAnnouncement {
+        epoch: m.epoch,
+        t: TimeUs(m.time_usec),
+        announcer: m.announcer,
+        participants,
+        state: m.state,
+        digest: m.digest,
+        incomplete,
     })
 }
 
@@ -1032,5 +1125,70 @@ mod tests {
         let s = ins_state_from_sim_state(&sim_state(), &origin).unwrap();
         assert_eq!(s.vel_ned_m_s, ok.vel_ned_m_s);
         assert_eq!(s.odometer_scale_error, 0.0);
+    }
+
+    fn announcement(participants: Vec<PlatformId>, incomplete: Vec<HeldFragments>) -> EpochAnnouncement {
+        EpochAnnouncement {
+            epoch: 7,
+            t: TimeUs(7_000_000),
+            announcer: 2,
+            participants,
+            state: EpochState::COOPLOC_EPOCH_STATE_COLLECTING,
+            digest: 0xfeed,
+            incomplete,
+        }
+    }
+
+    fn signed_len(m: &MavMessage) -> usize {
+        // A MAVLink 2 frame: 10 header and 2 CRC bytes, the payload with its trailing zeros
+        // trimmed, 13 signature bytes.
+        let mut payload = [0u8; 255];
+        let n = m.ser(MavlinkVersion::V2, &mut payload);
+        12 + n + 13
+    }
+
+    #[test]
+    fn an_epoch_announcement_goes_as_a_bitmask_within_64_ids_and_as_a_list_beyond() {
+        let held = |platform, held| HeldFragments { platform, held };
+        let a = announcement(vec![1, 2, 64], vec![held(3, 0b101101)]);
+        let m = epoch_to_message(&a).unwrap();
+        assert!(matches!(&m, MavMessage::COOPLOC_EPOCH_SET(s) if s.base == 1 && s.participants == 1 | 2 | 1 << 63));
+        assert_eq!(epoch_of(&m), Some(Ok(a)));
+        // No incomplete record: the trailing arrays are trimmed (58 bytes signed; the list form
+        // keeps its 64-entry array whole before the digest).
+        let applied = EpochAnnouncement { state: EpochState::COOPLOC_EPOCH_STATE_APPLIED, ..announcement(vec![1, 2, 3], vec![]) };
+        let plain = epoch_to_message(&applied).unwrap();
+        assert_eq!(signed_len(&plain), 58);
+        // Ids more than 63 apart: the list, without the incomplete records.
+        let far = EpochAnnouncement { digest: u64::MAX, ..announcement(vec![1, 65], vec![held(3, 1)]) };
+        let m = epoch_to_message(&far).unwrap();
+        assert!(matches!(m, MavMessage::COOPLOC_EPOCH(_)));
+        assert_eq!(signed_len(&m), 177);
+        assert_eq!(epoch_of(&m), Some(Ok(EpochAnnouncement { incomplete: vec![], ..far })));
+        // Near the top of the id space, and nobody at all.
+        let top = announcement(vec![u16::MAX - 1, u16::MAX], vec![]);
+        assert_eq!(epoch_of(&epoch_to_message(&top).unwrap()), Some(Ok(top)));
+        let empty = announcement(vec![], vec![]);
+        assert_eq!(epoch_of(&epoch_to_message(&empty).unwrap()), Some(Ok(empty)));
+        let five = announcement(vec![1], (2..7).map(|p| held(p, 1)).collect());
+        assert!(epoch_to_message(&five).unwrap_err().to_string().contains("COOPLOC_EPOCH_SET.incomplete"));
+        assert!(held(3, 1 << 31).holds(31) && !held(3, 1 << 31).holds(30) && !held(3, u32::MAX).holds(32));
+    }
+
+    #[test]
+    fn an_epoch_set_is_checked_field_by_field() {
+        let MavMessage::COOPLOC_EPOCH_SET(ok) = epoch_to_message(&announcement(vec![1, 2], vec![])).unwrap() else {
+            unreachable!()
+        };
+        for (field, m) in [
+            ("participants", COOPLOC_EPOCH_SET_DATA { base: u16::MAX, participants: 0b10, ..ok.clone() }),
+            ("held", COOPLOC_EPOCH_SET_DATA { held: [0, 5, 0, 0], ..ok.clone() }),
+            ("incomplete", COOPLOC_EPOCH_SET_DATA { incomplete: [65, 0, 0, 0], held: [1, 0, 0, 0], ..ok.clone() }),
+            ("incomplete", COOPLOC_EPOCH_SET_DATA { incomplete: [3, 3, 0, 0], held: [1, 2, 0, 0], ..ok.clone() }),
+            ("incomplete", COOPLOC_EPOCH_SET_DATA { base: u16::MAX, participants: 1, incomplete: [2, 0, 0, 0], ..ok.clone() }),
+        ] {
+            let e = epoch_set_from_message(&m).unwrap_err().to_string();
+            assert!(e.starts_with(&format!("COOPLOC_EPOCH_SET.{field}:")), "{field}: {e}");
+        }
     }
 }
