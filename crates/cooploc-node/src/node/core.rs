@@ -315,6 +315,9 @@ pub struct NodeStats {
     /// incomplete records), and the fragments they carried.
     pub resends_partial: u64,
     pub fragments_resent: u64,
+    /// With airtime slots: first requests for a whole record of ours, not answered until
+    /// repeated (a shared channel may have delivered them after the record).
+    pub requests_deferred: u64,
     /// Resend requests not answered: the epoch's record was resent less than half a retry
     /// interval ago, or [`RESENDS_PER_RETRY`] resends went out in the last retry interval, or
     /// (airtime slots) our broadcast of it may still be on the air.
@@ -634,6 +637,9 @@ pub struct NodeCore {
     /// epoch still remembered (the rate limits).
     resent_at: VecDeque<u64>,
     epoch_resent: BTreeMap<u32, ResendWindow>,
+    /// With airtime slots: the teammates that asked once for a whole record of ours, by epoch
+    /// (the request may have been stale; answered when repeated).
+    asked_once: BTreeSet<(u32, PlatformId)>,
     /// With airtime slots: until when (wall time) our broadcast of an epoch may still be on the
     /// air; a resend asked for before then is not sent.
     on_air_until: BTreeMap<u32, u64>,
@@ -647,6 +653,10 @@ pub struct NodeCore {
     absent: BTreeSet<PlatformId>,
     /// Wall time of the last message heard from each member.
     heard_at: BTreeMap<PlatformId, u64>,
+    /// With airtime slots: the last wall time the shared channel was known busy: a message of
+    /// any kind heard from another system then, or our own record still on the air (the earliest
+    /// its air time could end: we hear nothing while we send).
+    channel_busy_at: u64,
     /// Platforms whose id came with two different records for one epoch (a forger's, or a
     /// relabelled replay): flagged for the operator, for the rest of the run.
     flagged: BTreeSet<PlatformId>,
@@ -734,12 +744,14 @@ impl NodeCore {
             sent: VecDeque::new(),
             resent_at: VecDeque::new(),
             epoch_resent: BTreeMap::new(),
+            asked_once: BTreeSet::new(),
             on_air_until: BTreeMap::new(),
             ran_on: VecDeque::new(),
             skip_through: None,
             behind_at_broadcast: None,
             absent: BTreeSet::new(),
             heard_at: BTreeMap::new(),
+            channel_busy_at: 0,
             flagged: BTreeSet::new(),
             gap_since: None,
             scheduled_up_to: None,
@@ -1068,6 +1080,9 @@ impl NodeCore {
     }
 
     fn peer_message(&mut self, from: PlatformId, msg: MavMessage, out: &mut Vec<NodeOutput>) {
+        if from != self.cfg.id {
+            self.channel_busy_at = self.channel_busy_at.max(self.wall_us);
+        }
         if let Some(asks_estimate) = wire::estimate_request(&msg, self.cfg.id) {
             self.estimate_request(from, asks_estimate, out);
             return;
@@ -1226,6 +1241,15 @@ impl NodeCore {
         }
         if !a.participants.contains(&self.cfg.id) && a.state == EpochState::COOPLOC_EPOCH_STATE_COLLECTING {
             let held = a.incomplete.iter().find(|h| h.platform == self.cfg.id).copied();
+            // With airtime slots, a teammate that holds nothing of our record may have asked
+            // before our record reached it: a shared channel delivers in order, and its request
+            // came behind our record. Answered when it asks again (it still lacks the record a
+            // retry interval later); a request that was stale is followed by its report instead.
+            let sent = self.sent.iter().any(|(e, _)| *e == a.epoch);
+            if self.cfg.slot_us > 0 && held.is_none() && sent && self.asked_once.insert((a.epoch, from)) {
+                self.stats.requests_deferred += 1;
+                return;
+            }
             self.resend(a.epoch, held, out);
         }
     }
@@ -1490,14 +1514,18 @@ impl NodeCore {
     /// Every member's record of `epoch` should have arrived by now, if nothing was lost: the
     /// filter has passed the end of the plan by a quarter slot; if we broadcast late (the team
     /// running late sends everything at once, as soon as the epoch before is resolved), the air
-    /// time of every slot and one more has passed since; and no fragment of a missing record
-    /// came for a quarter slot (the channel is still delivering).
+    /// time of every slot and one more has passed since; no fragment of a missing record came
+    /// for a quarter slot; and nothing at all came for a quarter slot, or every slot's air time
+    /// and one more have passed since our broadcast (a shared radio delivers what it holds in
+    /// order: while it is busy, a missing record may still be queued behind what it carries).
     fn plan_over(&self, epoch: u32) -> bool {
         let Some(e) = self.epochs.get(&epoch) else { return true };
         let margin = self.cfg.slot_us / 4;
         let late_air_us = self.to_wall_us((self.cfg.team.len() as u64 + 1) * self.cfg.slot_us);
-        let aired = !e.broadcast_late || self.wall_us >= e.broadcast_at.unwrap_or(0).saturating_add(late_air_us);
-        let quiet = self.wall_us >= e.progress_at.saturating_add(self.to_wall_us(margin));
+        let aired_all = self.wall_us >= e.broadcast_at.unwrap_or(0).saturating_add(late_air_us);
+        let aired = !e.broadcast_late || aired_all;
+        let idle = self.wall_us >= self.channel_busy_at.saturating_add(self.to_wall_us(margin));
+        let quiet = self.wall_us >= e.progress_at.saturating_add(self.to_wall_us(margin)) && (idle || aired_all);
         self.rewind.ended() || self.rewind.filter.time().0 >= self.plan_end_us(e.t) + margin && aired && quiet
     }
 
@@ -1621,11 +1649,13 @@ impl NodeCore {
             self.sent.push_back((epoch, msgs));
             if slot > 0 {
                 self.on_air_until.insert(epoch, wall + on_air_us);
+                self.channel_busy_at = self.channel_busy_at.max(wall + self.to_wall_us(slot));
             }
             if self.sent.len() > EPOCHS_REMEMBERED
                 && let Some((old, _)) = self.sent.pop_front()
             {
                 self.epoch_resent.remove(&old);
+                self.asked_once.retain(|(e, _)| *e > old);
                 self.on_air_until.remove(&old);
             }
         }
@@ -2295,6 +2325,52 @@ mod tests {
             assert_eq!(a.participants, vec![1], "only our own record is whole");
             assert_eq!(a.incomplete, vec![wire::HeldFragments { platform: 2, held: 0b1_0000_0101 }]);
         }
+    }
+
+    /// With airtime slots a teammate's first request for the whole of our record waits for a
+    /// second one (on a shared channel it may have been sent before our record reached it, and
+    /// delivered after it); a request that names the fragments held is answered at once, with
+    /// the fragments missing; and a request also counts as busy air for our own asking.
+    #[test]
+    fn with_slots_a_request_for_a_whole_record_is_answered_when_it_comes_again() {
+        let slot = 200_000;
+        let cfg = NodeConfig { epoch_period_us: Some(1_000_000), slot_us: slot, ..config(1, vec![1, 2, 3]) };
+        let mut core = NodeCore::new(cfg, TimeUs(0), start()).unwrap();
+        core.last_applied = Some((4, TimeUs(4_000_000)));
+        let mut count = 0usize;
+        for k in 1..=560u64 {
+            let out = step_at_rest(&mut core, k * 10_000, k == 1);
+            count += out
+                .iter()
+                .filter(|o| matches!(o, NodeOutput::ToPeers(MavMessage::COOPLOC_STATE_FRAGMENT(f)) if f.epoch == 5))
+                .count();
+        }
+        assert!(count > 2, "our record of epoch 5 went out in our slot: {count} fragments");
+        let ask = |core: &mut NodeCore, from: PlatformId, incomplete: Vec<wire::HeldFragments>| -> Vec<u8> {
+            let a = wire::EpochAnnouncement {
+                epoch: 5,
+                t: TimeUs(5_000_000),
+                announcer: from,
+                participants: vec![from],
+                state: EpochState::COOPLOC_EPOCH_STATE_COLLECTING,
+                digest: 0,
+                incomplete,
+            };
+            let out = core.handle(NodeInput::Peer { from, msg: Box::new(wire::epoch_to_message(&a).unwrap()) });
+            assert_eq!(core.channel_busy_at, core.wall_us);
+            out.iter()
+                .filter_map(|o| match o {
+                    NodeOutput::ToPeers(MavMessage::COOPLOC_STATE_FRAGMENT(f)) if f.epoch == 5 => Some(f.frag_index),
+                    _ => None,
+                })
+                .collect()
+        };
+        assert_eq!(ask(&mut core, 2, vec![]), Vec::<u8>::new(), "the first request for the whole record waits");
+        assert_eq!(core.stats.requests_deferred, 1);
+        let all_but_0 = ((1u32 << count) - 1) & !1;
+        assert_eq!(ask(&mut core, 3, vec![wire::HeldFragments { platform: 1, held: all_but_0 }]), vec![0]);
+        assert_eq!(ask(&mut core, 2, vec![]), (1..count as u8).collect::<Vec<_>>(), "asked again: the rest of it");
+        assert_eq!((core.stats.requests_deferred, core.stats.resends_partial), (1, 2), "{:?}", core.stats);
     }
 
     /// A periodic schedule and airtime slots ([`NodeConfig::epoch_period_us`],
