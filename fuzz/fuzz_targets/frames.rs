@@ -47,7 +47,7 @@
 #![no_main]
 
 use cooploc::protocol::dialect::cooploc::MavMessage;
-use cooploc::protocol::fragment::{self, FRAGMENT_DATA, Fragment, MAX_RECORD_LEN, Pushed, Reassembler};
+use cooploc::protocol::fragment::{self, FRAGMENT_DATA, Fragment, MAX_RECORD_LEN, Payload, Pushed, Reassembler};
 use cooploc::protocol::record::{self, Encoding};
 use cooploc::protocol::wire;
 use libfuzzer_sys::fuzz_target;
@@ -295,6 +295,7 @@ fn script(data: &[u8], re: &mut Reassembler) {
                     index: index as u8,
                     count,
                     data: chunk,
+                    payload: Payload::Record,
                 };
                 push(re, &f);
             }
@@ -308,7 +309,20 @@ fn script(data: &[u8], re: &mut Reassembler) {
                 let count = r.u8();
                 let data_len = r.u8() as usize;
                 let data = r.take(data_len).to_vec();
-                push(re, &Fragment { platform, epoch, time_usec, record_crc32, record_len, index, count, data });
+                push(
+                    re,
+                    &Fragment {
+                        platform,
+                        epoch,
+                        time_usec,
+                        record_crc32,
+                        record_len,
+                        index,
+                        count,
+                        data,
+                        payload: Payload::Record,
+                    },
+                );
             }
             6 => whole_record(&mut r, re),
             _ => {
@@ -330,6 +344,7 @@ fn script(data: &[u8], re: &mut Reassembler) {
                     index: index as u8,
                     count: count as u8,
                     data,
+                    payload: Payload::Record,
                 };
                 push(re, &f);
             }
