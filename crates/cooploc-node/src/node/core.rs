@@ -669,8 +669,10 @@ pub struct NodeCore {
     /// The last epoch id [`Self::schedule_next`] took up (learned or refused), so that it tries
     /// each id once.
     scheduled_up_to: Option<u32>,
-    /// Wall time the last epoch was resolved (run, passed over or skipped).
+    /// Wall time the last epoch was resolved (run or passed over).
     resolved_at: Option<u64>,
+    /// Wall time a teammate's record fragment or epoch report last arrived.
+    team_said_at: Option<u64>,
     /// Wall clock, us, as last given to [`NodeCore::poll`].
     wall_us: u64,
     /// Wall time we woke from the last freeze of our own.
@@ -761,6 +763,7 @@ impl NodeCore {
             gap_since: None,
             scheduled_up_to: None,
             resolved_at: None,
+            team_said_at: None,
             wall_us: 0,
             woke_at: None,
             last_estimate_answer: None,
@@ -1108,7 +1111,12 @@ impl NodeCore {
         }
         self.heard_at.insert(from, self.wall_us);
         let m = match decoded {
-            Ok(m) => m,
+            Ok(m) => {
+                if matches!(m.kind(), CoopKind::StateFragment | CoopKind::Epoch) {
+                    self.team_said_at = Some(self.wall_us);
+                }
+                m
+            }
             Err(e) => {
                 match e.kind {
                     CoopKind::StateFragment | CoopKind::StoreFragment => self.stats.fragments_rejected += 1,
@@ -1325,6 +1333,42 @@ impl NodeCore {
         self.rewind.checkpoint_at(t)
     }
 
+    /// Whether epoch `epoch`, the lowest open one, waits (a timeout at most, from when the gap
+    /// was first seen) for an epoch before it that we have not heard of. Epoch ids are
+    /// consecutive: one we have not heard of lies before this one, and our record of this one
+    /// would not carry its update, so we wait for it to become known rather than broadcast too
+    /// early. Not after a longer silence (our radio was out of range, we were dead): those epochs
+    /// are over, and waiting would only make us late for this one. Epochs the team agreed to
+    /// pass over are no gap: nobody says them.
+    ///
+    /// A node *in step* (it had resolved an epoch within a timeout when it saw the gap) waits
+    /// for a wider gap: its team resolves epochs more slowly than the vehicles move (a lossy
+    /// link at 5x), a node that measures no range learns the epochs in between only from its
+    /// teammates, and those messages were lost. Broadcasting this one at once would leave the
+    /// team waiting a timeout for our records of the ones in between, which we could then no
+    /// longer send (50% datagram loss, packed, 5x: 85 partial epochs in 20 runs).
+    ///
+    /// A node *back from a silence* (no epoch resolved for a timeout) that has not heard its team
+    /// since knows only the epochs of range echoes (or its own ranges), which go out as the
+    /// vehicles measure them, while the team may be resolving epochs well behind (a link with
+    /// loss and 0-300 ms of delay at 5x: 13). Broadcasting the newest would close every epoch
+    /// before it to us, and the team would wait a timeout for our records of those, epoch after
+    /// epoch. The team's reports, every retry interval, name the epoch it is at: it waits for
+    /// one.
+    fn waits_for_a_gap(&mut self, epoch: u32) -> bool {
+        let timeout = self.cfg.epoch_timeout_us;
+        let seen = self.gap_since.unwrap_or(self.wall_us);
+        let in_step = self.resolved_at.is_some_and(|at| seen < at.saturating_add(timeout));
+        let widest = if in_step { MAX_GAP_IN_STEP } else { RECENT_EPOCHS };
+        let unheard =
+            !in_step && self.resolved_at.is_some_and(|at| self.team_said_at.is_none_or(|said| said < at.saturating_add(timeout)));
+        let gap = self.last_applied.is_some_and(|(last, _)| {
+            let last = last.max(self.skip_through.unwrap_or(0));
+            epoch > last.saturating_add(1) && (epoch <= last.saturating_add(widest) || unheard)
+        });
+        gap && self.wall_us < *self.gap_since.get_or_insert(self.wall_us) + timeout
+    }
+
     /// Broadcasts, resolves and retries until nothing more can be done now. Epochs go strictly
     /// in order: only the lowest open epoch is broadcast or run.
     fn advance(&mut self, out: &mut Vec<NodeOutput>) {
@@ -1337,32 +1381,8 @@ impl NodeCore {
                 continue;
             }
             if e.broadcast_at.is_none() {
-                // Epoch ids are consecutive: one we have not heard of lies before this one. Our
-                // record of this one would not carry its update, so wait (a timeout at most)
-                // for it to become known rather than broadcast too early. Not after a longer
-                // silence (our radio was out of range, we were dead): those epochs are over, and
-                // waiting would only make us late for this one.
-                // Epochs the team agreed to pass over are no gap: nobody says them.
-                // A node in step (it had resolved an epoch within a timeout) waits for a wider
-                // gap: its team resolves epochs more slowly than the vehicles move (a lossy
-                // link at 5x), a node that measures no range learns the epochs in between only
-                // from its teammates, and those messages were lost. Broadcasting this one at
-                // once would leave the team waiting a timeout for our records of the ones in
-                // between, which we could then no longer send (50% datagram loss, packed, 5x:
-                // 85 partial epochs in 20 runs).
-                // (In step when the gap was first seen: the wait is one timeout either way.)
-                let seen = self.gap_since.unwrap_or(self.wall_us);
-                let in_step = self.resolved_at.is_some_and(|at| seen < at.saturating_add(self.cfg.epoch_timeout_us));
-                let widest = if in_step { MAX_GAP_IN_STEP } else { RECENT_EPOCHS };
-                let gap = self.last_applied.is_some_and(|(last, _)| {
-                    let last = last.max(self.skip_through.unwrap_or(0));
-                    epoch > last.saturating_add(1) && epoch <= last.saturating_add(widest)
-                });
-                if gap {
-                    let since = *self.gap_since.get_or_insert(self.wall_us);
-                    if self.wall_us < since + self.cfg.epoch_timeout_us {
-                        return;
-                    }
+                if self.waits_for_a_gap(epoch) {
+                    return;
                 }
                 self.gap_since = None;
                 if self.awaiting_store(out) {
@@ -2561,6 +2581,48 @@ mod tests {
         // after a silence (epoch 4 resolved at 5 s, or never by this run), at once
         assert_eq!(run(Some(5), false), BTreeMap::from([(8, 8.2)]));
         assert_eq!(run(None, false), BTreeMap::from([(8, 8.2)]));
+    }
+
+    /// Back from a silence (no epoch resolved for a timeout), a node that knows a later epoch
+    /// only from a range echo waits for its team to say which epoch it is at, rather than
+    /// broadcast the later one and close every epoch before it to itself (`cooploc faults
+    /// --only "leaves for 60 s, 10%" --speed 5`: node 3 came back with its team 13 epochs
+    /// behind the echoes; 4 runs of 20 did not recover, 1 with the rule).
+    #[test]
+    fn a_node_back_from_a_silence_waits_to_hear_which_epoch_its_team_is_at() {
+        // node 3 resolved epoch 4 at wall time 4.5 s and heard its team then; IMU samples every
+        // 10 ms, the wall clock running with them; node 2's echo of its range at epoch 12 comes
+        // at 12.2 s, and node 2's report of epoch 10 (collecting) at 12.3 s when `team_says`:
+        // the epochs node 3 sent a fragment of, each with when it first did
+        let run = |team_says: bool| -> BTreeMap<u32, f64> {
+            let mut core = NodeCore::new(config(3, vec![1, 2, 3]), TimeUs(0), start()).unwrap();
+            let mut sent = BTreeMap::new();
+            core.last_applied = Some((4, TimeUs(4_000_000)));
+            core.last_run = Some(4);
+            (core.resolved_at, core.team_said_at) = (Some(4_500_000), Some(4_500_000));
+            for k in 1..=1_500 {
+                let t = k * 10_000;
+                let mut out = step_at_rest(&mut core, t, k == 1);
+                if t == 12_200_000 {
+                    let r = RangeSample { t: TimeUs(12_000_000), from: 2, to: 1, range_m: 10.0, sigma_m: 0.1 };
+                    let msg = Box::new(wire::range_to_message(&r, 12));
+                    out.extend(core.handle(NodeInput::Peer { from: 2, msg }));
+                }
+                if t == 12_300_000 && team_says {
+                    out.extend(announce(&mut core, 2, 10, vec![2], EpochState::COOPLOC_EPOCH_STATE_COLLECTING));
+                }
+                for o in out {
+                    if let NodeOutput::ToPeers(MavMessage::COOPLOC_STATE_FRAGMENT(f)) = o {
+                        sent.entry(f.epoch).or_insert(t as f64 / 1e6);
+                    }
+                }
+            }
+            sent
+        };
+        // the team says it is at epoch 10: node 3 broadcasts that one first, as soon as it hears
+        assert_eq!(run(true).first_key_value(), Some((&10, &12.3)));
+        // nobody says: epoch 12 after the 2 s wait
+        assert_eq!(run(false), BTreeMap::from([(12, 14.2)]));
     }
 
     #[test]
