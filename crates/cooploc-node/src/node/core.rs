@@ -524,7 +524,7 @@ const FOLLOW_WAIT_FACTOR: u64 = 2;
 /// A record this many epochs behind the last one run still shows its sender is in step.
 const RECENT_EPOCHS: u32 = 3;
 
-/// The widest gap below an epoch that a node in step waits for ([`NodeCore::advance`]).
+/// The widest gap below an epoch that a node in step waits for ([`NodeCore::waits_for_a_gap`]).
 const MAX_GAP_IN_STEP: u32 = 16;
 
 /// Most epochs per second of vehicle time an epoch id may run ahead of the last one run.
@@ -2545,7 +2545,8 @@ mod tests {
     /// gap: broadcasting at once would leave the team waiting a timeout for its records of
     /// those, which it could then no longer send (`cooploc faults --only "loss 50%, packed,
     /// 5x"`: 85 partial epochs and 2 diverged runs in 20, none with the rule). After a silence
-    /// it does not wait: those epochs are over.
+    /// it does not wait once it has heard its team (here the report that names epoch 8): those
+    /// epochs are over.
     #[test]
     fn a_node_in_step_waits_for_the_epochs_before_a_later_one_it_heard_of() {
         // node 3 resolved epoch 4 (t = 4 s) at wall time `resolved_s`; IMU samples every 10 ms,
