@@ -2247,6 +2247,15 @@ mod tests {
         out
     }
 
+    /// Notes, per epoch, when (s) the first fragment of our record among `out` went out at `t_us`.
+    fn first_fragments(out: Vec<NodeOutput>, t_us: u64, sent: &mut BTreeMap<u32, f64>) {
+        for o in out {
+            if let NodeOutput::ToPeers(MavMessage::COOPLOC_STATE_FRAGMENT(f)) = o {
+                sent.entry(f.epoch).or_insert(t_us as f64 / 1e6);
+            }
+        }
+    }
+
     /// Teammate `from` announces `epoch` (at `epoch` seconds) in `state`, holding `participants`.
     fn announce(
         core: &mut NodeCore,
@@ -2512,11 +2521,7 @@ mod tests {
                 if t == 7_200_000 {
                     out.extend(say(core, 7));
                 }
-                for o in out {
-                    if let NodeOutput::ToPeers(MavMessage::COOPLOC_STATE_FRAGMENT(f)) = o {
-                        sent.entry(f.epoch).or_insert(t as f64 / 1e6);
-                    }
-                }
+                first_fragments(out, t, &mut sent);
             }
             sent
         };
@@ -2567,11 +2572,7 @@ mod tests {
                         out.extend(announce(&mut core, 2, epoch, vec![2], EpochState::COOPLOC_EPOCH_STATE_COLLECTING));
                     }
                 }
-                for o in out {
-                    if let NodeOutput::ToPeers(MavMessage::COOPLOC_STATE_FRAGMENT(f)) = o {
-                        sent.entry(f.epoch).or_insert(t as f64 / 1e6);
-                    }
-                }
+                first_fragments(out, t, &mut sent);
             }
             sent
         };
@@ -2612,11 +2613,7 @@ mod tests {
                 if t == 12_300_000 && team_says {
                     out.extend(announce(&mut core, 2, 10, vec![2], EpochState::COOPLOC_EPOCH_STATE_COLLECTING));
                 }
-                for o in out {
-                    if let NodeOutput::ToPeers(MavMessage::COOPLOC_STATE_FRAGMENT(f)) = o {
-                        sent.entry(f.epoch).or_insert(t as f64 / 1e6);
-                    }
-                }
+                first_fragments(out, t, &mut sent);
             }
             sent
         };
