@@ -1,16 +1,19 @@
 //! The decentralized filter against brute force, on random linear-Gaussian teams.
 //!
 //! Reference: one joint filter over the stacked states of all platforms in which a local
-//! measurement corrects its own platform only (gain nonzero in that platform's rows), a
+//! measurement (random, or a GNSS fix of its position) corrects its own platform only (gain nonzero in that platform's rows), a
 //! cooperative event corrects the platforms that broadcast (gain nonzero in their rows), and
 //! every covariance update is the textbook Joseph form on the whole stacked covariance. The
 //! decentralized filter never forms that matrix: each platform keeps `P_ii` and `Psi_i`, the
 //! team keeps the cross blocks of the last event, and Eq. 10 rebuilds the rest. Why the two are
 //! equal is explained in `crates/cooploc-estimation/src/estimation/coop.rs`.
 
+use cooploc::estimation::PositionFixSample;
+use cooploc::estimation::fix::{FixOutcome, position_fix_measurement, update_position_fix};
 use cooploc::estimation::linear::LinearPlatform;
 use cooploc::estimation::{CoopMeasurement, CrossCovariances, CrossMode, PlatformFilter, cooperative_update};
-use nalgebra::{DMatrix, DVector};
+use cooploc::time::TimeUs;
+use nalgebra::{DMatrix, DVector, Vector3};
 use proptest::prelude::*;
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
@@ -103,8 +106,25 @@ fn run_random_team(seed: u64, platforms: usize, ops: usize) -> Result<(), TestCa
                 team[i].propagate(&phi, &q).unwrap();
                 joint.propagate(i, &phi, &q);
             }
+            // A GNSS fix of one platform (its position rows, gated): a local update like any other.
+            4 => {
+                let i = rng.random_range(0..platforms);
+                let fix = PositionFixSample {
+                    t: TimeUs(0),
+                    pos_ned_m: Vector3::new(rng.random_range(-5.0..5.0), rng.random_range(-5.0..5.0), 0.0),
+                    sigma_h_m: rng.random_range(0.3..3.0),
+                    sigma_v_m: None,
+                };
+                let meas = position_fix_measurement(&team[i], &fix).unwrap();
+                if let FixOutcome::Applied { .. } = update_position_fix(&mut team[i], &fix).unwrap() {
+                    let (o, d) = offsets[i];
+                    let mut big_h = DMatrix::zeros(2, total);
+                    big_h.view_mut((0, o), (2, d)).copy_from(&meas.h);
+                    joint.update(&big_h, &DVector::from_column_slice(&fix.pos_ned_m.as_slice()[..2]), &meas.r, &[i]);
+                }
+            }
             // Local measurement of one platform.
-            4..=6 => {
+            5..=6 => {
                 let i = rng.random_range(0..platforms);
                 let m = rng.random_range(1..=2);
                 let h = random_matrix(&mut rng, m, dims[i], 1.0);

@@ -26,6 +26,35 @@ pub struct OdometerSample {
     pub speed_m_s: f64,
 }
 
+/// An absolute position fix (a GNSS receiver's, GPS_RAW_INT) in the team's NED frame: where the
+/// vehicle was at `t`, with the receiver's one-sigma accuracy, horizontal and (when it gives
+/// one) vertical. Applied as a local update ([`super::fix`]).
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct PositionFixSample {
+    pub t: TimeUs,
+    pub pos_ned_m: Vector3<f64>,
+    /// Horizontal one-sigma, m, on north and on east.
+    pub sigma_h_m: f64,
+    /// Vertical one-sigma, m; `None`: the fix's height is not used.
+    pub sigma_v_m: Option<f64>,
+}
+
+impl PositionFixSample {
+    /// Finite position; sigmas above 0 and at most [`super::fix::MAX_FIX_SIGMA_M`].
+    pub fn validate(&self) -> Result<(), crate::estimation::EstimationError> {
+        use crate::estimation::EstimationError;
+        if !self.pos_ned_m.iter().all(|v| v.is_finite()) {
+            return Err(EstimationError::NonFinite { what: "position fix" });
+        }
+        for sigma in std::iter::once(self.sigma_h_m).chain(self.sigma_v_m) {
+            if !(sigma > 0.0 && sigma <= super::fix::MAX_FIX_SIGMA_M) {
+                return Err(EstimationError::InvalidValue { what: "position fix sigma, m", value: sigma });
+            }
+        }
+        Ok(())
+    }
+}
+
 /// One wheel-odometry drive sample of a planar robot: the mean forward speed and yaw rate over
 /// the interval that ends at `t` (WHEEL_DISTANCE of a differential drive, differentiated).
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]

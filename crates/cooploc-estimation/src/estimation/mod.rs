@@ -4,6 +4,7 @@
 //! |---|---|
 //! | [`kalman`] | shared update and propagation routines (Joseph local update, joint update, `Psi`) |
 //! | [`platform`] | the [`PlatformFilter`] trait every platform model implements; broadcasts |
+//! | [`fix`] | an absolute position fix (GNSS) as a gated local update |
 //! | [`ins`] | strapdown INS error-state EKF for land vehicles (odometer + non-holonomic constraints) |
 //! | [`unicycle`] | planar unicycle robot |
 //! | [`planar`] | a wheeled robot on the team's clock, driven by wheel odometry (what a node runs without an IMU) |
@@ -27,6 +28,7 @@ pub mod consistency;
 pub mod coop;
 pub mod dense;
 mod error;
+pub mod fix;
 pub mod inputs;
 pub mod ins;
 pub mod kalman;
@@ -43,7 +45,7 @@ pub use coop::{
     UpdateOptions, cooperative_update, cooperative_update_with,
 };
 pub use error::EstimationError;
-pub use inputs::{ImuSample, OdometerSample, RangeSample, WheelSample};
+pub use inputs::{ImuSample, OdometerSample, PositionFixSample, RangeSample, WheelSample};
 pub use kalman::{LinearizedMeasurement, UpdateDiagnostics};
 pub use platform::{Geometry, Heading, PlatformFilter, PlatformId, Snapshot};
 pub use team::{Method, Team};
