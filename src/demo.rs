@@ -168,6 +168,7 @@ pub async fn run_demo(cfg: DemoConfig, ready: impl FnOnce(&DemoAddresses)) -> Re
         stream_rates: Vec::new(),
         gnss_time: false,
         gnss_lost_at: None,
+        gnss_back_at: None,
     };
     let sim = Simulator::bind(world.clone(), sitl).await.step("starting the simulator")?;
     let vehicles: Vec<(PlatformId, SocketAddr)> = sim

@@ -164,7 +164,7 @@ fn core_at_init(
     init: (u64, Option<[f64; 3]>, Option<crate::node::log::StartState>),
     start: &LogStart,
     last_sim_state: Option<&crate::protocol::dialect::cooploc::SIM_STATE_DATA>,
-) -> Result<NodeCore, String> {
+) -> Result<(NodeCore, GeoOrigin), String> {
     let (t0_us, from_vehicle, hand_over) = init;
     let mut cfg = h.cfg.clone();
     let origin = match (from_vehicle, h.origin) {
@@ -185,7 +185,7 @@ fn core_at_init(
         }
     };
     let state = NavState::for_model(&cfg.model, state);
-    NodeCore::new(cfg, TimeUs(t0_us), state).map_err(|e| e.to_string())
+    Ok((NodeCore::new(cfg, TimeUs(t0_us), state).map_err(|e| e.to_string())?, origin))
 }
 
 fn replay_node(log: &Log, world: Option<&World>, id: PlatformId) -> Result<NodeReplay, ReplayError> {
@@ -270,8 +270,14 @@ fn replay_node(log: &Log, world: Option<&World>, id: PlatformId) -> Result<NodeR
                     continue;
                 }
                 (NodeEvent::Init { t0_us, origin: from_vehicle, state: hand_over }, None) => {
+                    let hand_over_start = hand_over.is_some();
                     let init = (t0_us, from_vehicle, hand_over);
-                    core = Some(core_at_init(&h, init, &start, last_sim_state.as_ref()).map_err(node_err)?);
+                    let (made, origin) = core_at_init(&h, init, &start, last_sim_state.as_ref()).map_err(node_err)?;
+                    if hand_over_start {
+                        // as the node: the team's filter runs on the autopilot's GNSS fixes
+                        decoder.fuse_gnss(origin);
+                    }
+                    core = Some(made);
                     continue;
                 }
                 (NodeEvent::Poll { wall_us }, Some(c)) => c.poll(wall_us),

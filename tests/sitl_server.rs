@@ -103,6 +103,7 @@ fn config(world: &World, speed: Speed) -> SitlConfig {
         stream_rates: Vec::new(),
         gnss_time: false,
         gnss_lost_at: None,
+        gnss_back_at: None,
     }
 }
 

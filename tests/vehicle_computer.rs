@@ -224,41 +224,70 @@ fn nodes_on_bare_vehicle_computers_navigate_the_ardupilot_personality_without_gn
     let _ = std::fs::remove_dir_all(&root);
 }
 
-/// The other start: vehicles with GNSS until 8 s into a 25 s run (`cooploc sitl --gnss-time
-/// --gnss-lost-at-s 8`); nodes told `init_from_autopilot` stay out of the way until the
-/// autopilots report no fix, then start from their estimates (exact here: the personality's
-/// autopilot on GNSS reports the truth), switch each EKF to source set 2 and navigate together.
+/// The other start: vehicles with GNSS that goes 8 s into a 25 s run and comes back at 18 s
+/// (`cooploc sitl --gnss-time --gnss-lost-at-s 8 --gnss-back-at-s 18`, the personality's GPS as
+/// ArduPilot SITL's: exact, 5 Hz, 100 ms old, 0.3 m); nodes told `init_from_autopilot` start
+/// from their autopilots' estimates once these have held a fix, run the team's filters on the
+/// GNSS fixes (and the epochs) while the autopilots navigate on GNSS, take over when GNSS goes
+/// (each EKF switched to source set 2 and fed ODOMETRY that continues the node's GNSS-aided
+/// estimate) and hand back when it has been back 2 s (source set 1, no more ODOMETRY).
 #[test]
-fn nodes_take_over_from_the_ardupilot_personality_when_gnss_goes() {
+fn nodes_run_on_the_ardupilot_personalitys_gnss_take_over_when_it_goes_and_hand_back() {
     let repo = Path::new(env!("CARGO_MANIFEST_DIR"));
     let root = std::env::temp_dir().join(format!("cooploc-hand-over-{}", std::process::id()));
-    // (the profile's last section is [output])
+    // (the profile's last section is [output]; its GNSS lag is a u-blox M8's, the personality's
+    // SITL's: a 20 ms mismatch puts every fix 0.2 m behind a vehicle at 10 m/s)
     let profile = std::fs::read_to_string(repo.join("sitl/vehicles/ardupilot-rover.toml")).unwrap() + "takeover_source_set = 2\n";
-    let (scenario_path, kill, sitl_out, outs) =
-        bare_team(&root, "1", &profile, &["--gnss-time", "--gnss-lost-at-s", "8"], "init_from_autopilot = true\n");
+    assert!(profile.contains("gnss_lag_ms = 120"));
+    let profile = profile.replacen("gnss_lag_ms = 120", "gnss_lag_ms = 100", 1);
+    let gnss = ["--gnss-time", "--gnss-lost-at-s", "8", "--gnss-back-at-s", "18"];
+    let (scenario_path, kill, sitl_out, outs) = bare_team(&root, "1", &profile, &gnss, "init_from_autopilot = true\n");
     let world = cooploc::sitl::World::new(&cooploc::sitl::Scenario::from_path(&scenario_path).unwrap()).unwrap();
     for (id, dir, out) in &outs {
         let done = wait_line(out, &format!("node {id} done:"), Duration::from_secs(120));
+        let vehicle = wait_line(out, &format!("node {id} vehicle "), Duration::from_secs(5));
         let hand_over = wait_line(out, &format!("node {id} hand_over "), Duration::from_secs(5));
         let origin = wait_line(out, &format!("node {id} origin "), Duration::from_secs(5));
-        eprintln!("{done}\n{hand_over}\n{origin}");
+        eprintln!("{done}\n{vehicle}\n{hand_over}\n{origin}");
         // it had its own origin (from GNSS): none given
         assert!(origin.contains("the autopilot's is the team's") && origin.ends_with("sets 0"), "{origin}");
-        assert!(hand_over.ends_with("source_set MAV_RESULT_ACCEPTED"), "{hand_over}");
-        // started where the autopilot was when GNSS went (8 s, reported at 10 Hz)
+        assert!(hand_over.ends_with("navigating false source_set MAV_RESULT_ACCEPTED"), "{hand_over}");
+        // started within the first 3 s (a fix held 1 s), where the autopilot was then
         let start = common::numbers_after(&hand_over, "started_at_ned_m");
-        let at_loss = world.trajectory(*id).unwrap().truth_at(cooploc::time::TimeUs(8_000_000)).pos_ned_m;
-        let apart = ((start[0] - at_loss[0]).powi(2) + (start[1] - at_loss[1]).powi(2)).sqrt();
-        assert!(apart < 2.0, "node {id} started {apart:.2} m from where it was at the loss: {hand_over}");
-        // no epoch before the loss, one a second after it
+        let trajectory = world.trajectory(*id).unwrap();
+        let apart = (0..=30)
+            .map(|k| trajectory.truth_at(cooploc::time::TimeUs(k * 100_000)).pos_ned_m)
+            .map(|p| ((start[0] - p[0]).powi(2) + (start[1] - p[1]).powi(2)).sqrt())
+            .fold(f64::INFINITY, f64::min);
+        assert!(apart < 0.5, "node {id} started {apart:.2} m from anywhere it was in the first 3 s: {hand_over}");
+        // every 5 Hz fix the filter's, before the loss and after the return, once (streamed at
+        // 10 Hz: most fixes come twice; 15 s of GNSS at 5 Hz is 75 fixes at most)
+        let fixes: u64 = field(&hand_over, "fixes").parse().unwrap();
+        assert!((50..=75).contains(&fixes), "{hand_over}");
+        assert!(count(&vehicle, "gnss_repeats") > fixes / 2, "{vehicle}");
+        assert_eq!(field(&hand_over, "fixes_rejected"), "0", "{hand_over}");
+        assert_eq!((field(&hand_over, "losses"), field(&hand_over, "returns")), ("1", "1"), "{hand_over}");
+        // epochs from the start, GNSS or not (the schedule: one a second)
         let applied: u64 = field(&done, "epochs_applied").parse().unwrap();
-        assert!((12..=17).contains(&applied), "{done}");
+        assert!(applied >= 20, "{done}");
         assert_eq!(field(&done, "epochs_skipped"), "0", "{done}");
-        // the start from the autopilot's estimate is in the log: replay is exact
+        // ODOMETRY only while the node navigates: from 8 s to the hand-back 2 s after 18 s, 20 Hz
+        let odometry: u64 = field(&vehicle, "odometry_sent").parse().unwrap();
+        assert!((200..=270).contains(&odometry), "{vehicle}");
+        // the start and the fixes are in the log: replay is exact
         near_the_truth_and_replayed(&world, *id, dir, &done);
     }
     for id in [1u16, 2, 3] {
+        // the take-over, then the hand-back
         wait_line(&sitl_out, &format!("vehicle {id} EKF source set 2 (MAV_CMD_SET_EKF_SOURCE_SET)"), Duration::from_secs(30));
+        wait_line(&sitl_out, &format!("vehicle {id} EKF source set 1 (MAV_CMD_SET_EKF_SOURCE_SET)"), Duration::from_secs(5));
+        // no step in what the autopilot navigates on at the take-over (the node's estimate ran on
+        // the same fixes: 0.03-0.06 m in one run, 0.20-0.24 m with the lag 20 ms off), and 12 s
+        // later, without GNSS, still near the truth (0.02-0.03 m)
+        let odometry = wait_line(&sitl_out, &format!("vehicle {id} odometry first "), Duration::from_secs(5));
+        eprintln!("{odometry}");
+        let (first, last): (f64, f64) = (field(&odometry, "first").parse().unwrap(), field(&odometry, "last").parse().unwrap());
+        assert!(first < 0.15 && last < 0.5, "{odometry}");
     }
     drop(kill);
     let _ = std::fs::remove_dir_all(&root);
@@ -284,8 +313,11 @@ fn a_team_whose_autopilots_clocks_run_slow_names_every_epoch_alike() {
         // (the simulator's ranging schedule runs on its slow clock, so its ranges drift off the
         // companions' grid, 8 ms a second, and are counted off the grid: every node alike)
         // (a claim refused because this node's filter was behind, on a loaded machine, is taken
-        // later and names nothing differently: CI saw one in a run where all 25 epochs applied)
+        // later and names nothing differently; CI saw one other refusal in a run where all 25
+        // epochs applied, which 21 runs since, loaded or not, did not repeat: the stats now say
+        // which kind, `epochs_misnamed` or `epochs_unfit`)
         let misnamed = count(&stats, "epochs_implausible") - count(&stats, "epochs_ahead");
+        assert_eq!(misnamed, count(&stats, "epochs_misnamed") + count(&stats, "epochs_unfit"), "{stats}");
         assert_eq!(misnamed, 0, "every node names every epoch alike: {stats}");
         assert_eq!(count(&stats, "epoch_disagreements"), 0, "{stats}");
         assert_eq!(count(&stats, "epochs_partial"), 0, "{stats}");

@@ -125,6 +125,7 @@ mod tests {
             unix_time: true,
             gnss: true,
             gnss_lost_at: None,
+            gnss_back_at: None,
         }
     }
 

@@ -103,6 +103,8 @@ pub struct SitlConfig {
     /// With `gnss_time`: the GNSS fix goes at this simulated time (the autopilots keep their Unix
     /// time and origin, and report no fix).
     pub gnss_lost_at: Option<TimeUs>,
+    /// After `gnss_lost_at`: the fix comes back at this simulated time.
+    pub gnss_back_at: Option<TimeUs>,
 }
 
 /// What can stop a simulator.
@@ -198,6 +200,7 @@ pub fn vehicle_config(
         // report none of it
         gnss: autopilot == Autopilot::Cooploc,
         gnss_lost_at: None,
+        gnss_back_at: None,
     }
 }
 
@@ -399,6 +402,7 @@ impl Simulator {
             vehicle.unix_time |= config.gnss_time;
             vehicle.gnss |= config.gnss_time;
             vehicle.gnss_lost_at = config.gnss_lost_at;
+            vehicle.gnss_back_at = config.gnss_back_at;
             let core = VehicleCore::new(vehicle).map_err(|e| SimError::Config(e.to_string()))?;
             let mut core = core;
             for &(message_id, hz) in &config.stream_rates {

@@ -33,6 +33,12 @@ const CLOCK_STREAMS: [Stream; 5] =
 
 /// Shortest interval a periodic (clock-driven) stream accepts, us (1 kHz).
 pub const MIN_PERIODIC_INTERVAL_US: u64 = 1_000;
+/// ArduPilot SITL's GPS: its fixes arrive this old (`SIM_GPS1_LAG_MS`, default 100 ms), us ...
+const GPS_LAG_US: u64 = 100_000;
+/// ... at this interval (`SIM_GPS1_HZ`, default 5 Hz), us ...
+const GPS_INTERVAL_US: u64 = 200_000;
+/// ... and report this accuracy, horizontal and vertical (`SIM_GPS1_ACC`, default 0.3 m), mm.
+const GPS_ACCURACY_MM: u32 = 300;
 
 /// The messages a vehicle streams.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
@@ -152,6 +158,8 @@ pub struct VehicleConfig {
     /// It has GNSS from power-on (an origin, a fix); `gnss_lost_at`: until then (simulated time).
     pub gnss: bool,
     pub gnss_lost_at: Option<TimeUs>,
+    /// After `gnss_lost_at`: the fix is back from then on.
+    pub gnss_back_at: Option<TimeUs>,
 }
 
 /// Where an outgoing message goes.
@@ -208,8 +216,14 @@ pub struct VehicleCounters {
     pub param_requests: u64,
     /// SET_GPS_GLOBAL_ORIGIN taken (the vehicle had no origin).
     pub origins_set: u64,
-    /// The EKF source set last switched to by MAV_CMD_SET_EKF_SOURCE_SET (ArduPilot).
-    pub source_set: Option<u8>,
+    /// The EKF source sets switched to by MAV_CMD_SET_EKF_SOURCE_SET (ArduPilot), in order (a
+    /// repeat of the set in use not counted).
+    pub source_sets: Vec<u8>,
+    /// The horizontal distance from the truth of the first ODOMETRY taken, mm (after a
+    /// hand-over: the step in what the autopilot navigates on).
+    pub first_odometry_error_mm: Option<u64>,
+    /// ... and of the last one, mm.
+    pub last_odometry_error_mm: Option<u64>,
 }
 
 #[derive(Debug, Clone, Copy)]
@@ -807,7 +821,9 @@ impl VehicleCore {
             // ArduPilot's EKF source sets 1-3 (EK3_SRCn_*)
             MavCmd::MAV_CMD_SET_EKF_SOURCE_SET if self.config.autopilot == Autopilot::ArduPilot => {
                 if (1.0..=3.0).contains(&p[0]) && p[0].fract() == 0.0 {
-                    self.counters.source_set = Some(p[0] as u8);
+                    if self.counters.source_sets.last() != Some(&(p[0] as u8)) {
+                        self.counters.source_sets.push(p[0] as u8);
+                    }
                     (MAV_RESULT_ACCEPTED, vec![])
                 } else {
                     (MAV_RESULT_DENIED, vec![])
@@ -971,11 +987,15 @@ impl VehicleCore {
         let pos = nalgebra::Vector3::new(f64::from(m.x), f64::from(m.y), f64::from(m.z));
         let yaw_error = crate::estimation::unicycle::wrap_angle(q.euler_angles().2 - tr.attitude.euler_angles().2);
         self.odometry_error = Some((now, pos - tr.pos_ned_m, yaw_error));
+        let error_mm = ((pos - tr.pos_ned_m).xy().norm() * 1e3).round() as u64;
+        self.counters.first_odometry_error_mm.get_or_insert(error_mm);
+        self.counters.last_odometry_error_mm = Some(error_mm);
     }
 
     /// Whether the EKF has a GNSS fix at `t`.
     fn gnss_fix(&self, t: TimeUs) -> bool {
-        self.config.gnss && self.config.gnss_lost_at.is_none_or(|lost| t < lost)
+        self.config.gnss
+            && (self.config.gnss_lost_at.is_none_or(|lost| t < lost) || self.config.gnss_back_at.is_some_and(|back| t >= back))
     }
 
     /// The autopilot's fix and estimate at `t`: on GNSS, exact; without, the truth plus the
@@ -997,7 +1017,23 @@ impl VehicleCore {
             motion.attitude = turn * motion.attitude;
         }
         let time_boot_ms = ((self.personality.clock_us(t) / 1000) % (1 << 32)) as u32;
-        wire::truth_to_autopilot_estimate(&motion, &self.config.origin, time_boot_ms, fix)
+        let mut out = wire::truth_to_autopilot_estimate(&motion, &self.config.origin, time_boot_ms, fix);
+        if let (true, MavMessage::GPS_RAW_INT(g)) = (fix, &mut out[0]) {
+            // as ArduPilot's SITL GPS: the true position SIM_GPS1_LAG_MS old, stamped when the
+            // autopilot received it (`last_fix_time_ms`, ms), with SIM_GPS1_ACC's accuracy
+            // (SIM_GPS1_HZ: a new fix every 200 ms; a faster stream repeats the last)
+            let clock = self.personality.clock_us(t);
+            let since_fix = clock % GPS_INTERVAL_US;
+            let lagged = truth.truth_at(TimeUs(t.0.saturating_sub(since_fix + GPS_LAG_US)));
+            let geo = wire::ned_to_geodetic(&self.config.origin, &lagged.pos_ned_m);
+            g.lat = wire::deg_to_e7(geo.lat_deg);
+            g.lon = wire::deg_to_e7(geo.lon_deg);
+            g.alt = (geo.alt_m * 1e3).round() as i32;
+            g.time_usec = clock - since_fix;
+            g.h_acc = GPS_ACCURACY_MM;
+            g.v_acc = GPS_ACCURACY_MM;
+        }
+        out
     }
 
     /// The EKF origin, if it has one.
@@ -1066,6 +1102,7 @@ mod tests {
             unix_time: true,
             gnss: true,
             gnss_lost_at: None,
+            gnss_back_at: None,
         })
         .unwrap()
     }

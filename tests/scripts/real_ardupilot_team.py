@@ -476,11 +476,12 @@ def main():
             with rv.lock:
                 ekf = [x for x in rv.ekf if gnss_lost_at <= x[0] <= end]
                 truth = list(rv.truth)
-            errs = []
+            errs, windows = [], {}
             for (t, n, e) in ekf:
                 p = rv.truth_at(t)
                 if p is not None:
                     errs.append(math.hypot(n - p[0], e - p[1]))
+                    windows.setdefault(int((t - gnss_lost_at) // 10), []).append(errs[-1])
             path = 0.0
             tr = [x for x in truth if gnss_lost_at <= x[0] <= end]
             for a, b in zip(tr, tr[1:]):
@@ -488,7 +489,10 @@ def main():
             rms = math.sqrt(sum(x * x for x in errs) / len(errs)) if errs else float("nan")
             result["rovers"].append({"sysid": rv.sysid, "path_m": path, "rms_m": rms, "final_m": errs[-1] if errs else float("nan"),
                                      "samples": len(errs), "external_nav": any("external nav" in t for t in rv.texts),
-                                     "mission_complete": "Mission Complete" in " ".join(rv.texts)})
+                                     "mission_complete": "Mission Complete" in " ".join(rv.texts),
+                                     # the error's RMS over each 10 s since the loss (or the start), m
+                                     "rms_by_10_s_m": [round(math.sqrt(sum(x * x for x in w) / len(w)), 3)
+                                                       for _, w in sorted(windows.items())]})
             rv.say("%s %s: %.0f m without GNSS, EKF3 error RMS %.2f m, final %.2f m (%d samples)"
                    % (args.setup, args.method, path, rms, result["rovers"][-1]["final_m"], len(errs)))
         all_errs = [r["rms_m"] for r in result["rovers"]]

@@ -656,14 +656,20 @@ fn print_summary(
             e.platform, c.ranges, c.other_lines, c.malformed, c.bad_peer, c.too_long, c.off_grid
         );
     }
-    if let Some((pos, answer)) = &summary.hand_over {
+    if let Some(h) = &summary.hand_over {
+        let p = h.started_at_ned_m;
         println!(
-            "node {} hand_over started_at_ned_m [{:.2}, {:.2}, {:.2}] source_set {}",
+            "node {} hand_over started_at_ned_m [{:.2}, {:.2}, {:.2}] fixes {} fixes_rejected {} losses {} returns {} navigating {} source_set {}",
             e.platform,
-            pos.x,
-            pos.y,
-            pos.z,
-            answer.map_or("not asked or unanswered".into(), |r| format!("{r:?}"))
+            p.x,
+            p.y,
+            p.z,
+            h.fixes,
+            h.fixes_rejected,
+            h.losses,
+            h.returns,
+            h.navigating,
+            h.source_set.map_or("not asked or unanswered".into(), |r| format!("{r:?}"))
         );
     }
     if let Some(o) = &summary.origin_offer {

@@ -78,6 +78,10 @@ pub struct Args {
     /// start of `cooploc node --init-from-autopilot`)
     #[arg(long, requires = "gnss_time")]
     gnss_lost_at_s: Option<f64>,
+    /// With --gnss-lost-at-s: the fix comes back at this simulated time (s), after the loss (the
+    /// hand-back)
+    #[arg(long, requires = "gnss_lost_at_s")]
+    gnss_back_at_s: Option<f64>,
 }
 
 pub(crate) fn parse_stream_rate(s: &str) -> Result<(u32, f64), String> {
@@ -233,6 +237,11 @@ fn validate(args: Args) -> anyhow::Result<Validated> {
             Some(s) => anyhow::bail!("--gnss-lost-at-s: a time in seconds, at least 0, got {s}"),
             None => None,
         },
+        gnss_back_at: match (args.gnss_back_at_s, args.gnss_lost_at_s) {
+            (Some(b), Some(l)) if b.is_finite() && b > l => Some(TimeUs::from_secs_f64(b)),
+            (Some(b), _) => anyhow::bail!("--gnss-back-at-s: a time in seconds after --gnss-lost-at-s, got {b}"),
+            (None, _) => None,
+        },
     };
     Ok(Validated { world, config })
 }
@@ -290,8 +299,16 @@ pub fn run(args: Args) -> anyhow::Result<()> {
             if c.origins_set > 0 {
                 println!("vehicle {} origin set by SET_GPS_GLOBAL_ORIGIN", v.platform);
             }
-            if let Some(set) = c.source_set {
+            for set in &c.source_sets {
                 println!("vehicle {} EKF source set {set} (MAV_CMD_SET_EKF_SOURCE_SET)", v.platform);
+            }
+            if let (Some(first), Some(last)) = (c.first_odometry_error_mm, c.last_odometry_error_mm) {
+                println!(
+                    "vehicle {} odometry first {:.3} last {:.3} m from the truth",
+                    v.platform,
+                    first as f64 * 1e-3,
+                    last as f64 * 1e-3
+                );
             }
             let k = &v.checker;
             if k.gps_input_accepted + k.gps_input_ignored > 0 {

@@ -114,7 +114,8 @@ use crate::estimation::ins::{InsConfig, InsInitialSigma};
 use crate::estimation::nav::{Drive, NavFilter, NavModel, NavState};
 use crate::estimation::{
     BoundScope, CoopMeasurement, Correction, CrossCovariances, CrossMode, EstimationError, ImuSample, JointPrior, Method,
-    OdometerSample, PlatformFilter, PlatformId, RangeSample, StoreRef, UpdateOptions, WheelSample, cooperative_update_with,
+    OdometerSample, PlatformFilter, PlatformId, PositionFixSample, RangeSample, StoreRef, UpdateOptions, WheelSample,
+    cooperative_update_with,
 };
 use crate::protocol::MavMessage;
 use crate::protocol::coop::{CoopKind, CoopMessage};
@@ -123,7 +124,7 @@ use crate::protocol::fragment::{Payload, Pushed, Reassembler, fragment};
 use crate::protocol::record::{self, Encoding, FLAG_FRESH, StateRecord};
 use crate::protocol::wire::{self, EpochState};
 use crate::time::TimeUs;
-use rewind::{OdometerFate, Rewind, WriteBack};
+use rewind::{Local, LocalFate, Rewind, WriteBack};
 use store_sync::{Awaiting, StoreChoice, StoreRequest, StoreSync, choose_store};
 
 /// How a node runs.
@@ -257,6 +258,8 @@ pub enum NodeInput {
     /// What drives a planar node (a wheeled robot without IMU).
     Wheel(WheelSample),
     Odometer(OdometerSample),
+    /// A GNSS fix of the node's own vehicle (before GNSS is lost, or a teammate that keeps it).
+    PositionFix(PositionFixSample),
     /// A range the node's own vehicle measured (its radio), with its epoch id.
     OwnRange {
         epoch: u32,
@@ -309,6 +312,13 @@ pub struct NodeStats {
     pub odometer_unmatched: u64,
     /// Odometer samples the filter refused (gated or invalid).
     pub odometer_rejected: u64,
+    /// GNSS fixes matched to the filter's history (applied, refused, or waiting for the IMU
+    /// sample that covers them).
+    pub fixes: u64,
+    /// Of those, the fixes beyond their gate (or invalid): not applied.
+    pub fixes_rejected: u64,
+    /// GNSS fixes older than the history, or implausibly far ahead of the IMU.
+    pub fixes_unmatched: u64,
     pub records_sent: u64,
     pub records_resent: u64,
     /// Of those, resends of only the fragments a teammate said it lacked (COOPLOC_EPOCH_SET's
@@ -344,6 +354,12 @@ pub struct NodeStats {
     pub late_messages: u64,
     /// Epoch claims refused: too far ahead, an id that does not fit its time, a conflicting time.
     pub epochs_implausible: u64,
+    /// Of those, the claims naming an epoch known at another instant (two nodes' clock mappings
+    /// put one range on neighbouring instants of the epoch grid, or a forgery).
+    pub epochs_misnamed: u64,
+    /// Of those, the claims (and open epochs, once a later one ran) whose id does not fit its
+    /// time among the epochs known.
+    pub epochs_unfit: u64,
     /// Of those, the claims more than `max_lead_us` ahead of the filter: a far-future forgery, or
     /// this node's filter behind its teammates' (a loaded machine): a later claim of the same
     /// epoch is taken once the filter is there. The rest are naming disagreements or forgeries.
@@ -850,6 +866,7 @@ impl NodeCore {
             NodeInput::Imu(s) => self.vehicle_drive(Drive::Imu(s), &mut out),
             NodeInput::Wheel(s) => self.vehicle_drive(Drive::Wheel(s), &mut out),
             NodeInput::Odometer(s) => self.vehicle_odometer(s, &mut out),
+            NodeInput::PositionFix(s) => self.vehicle_fix(s, &mut out),
             NodeInput::OwnRange { epoch, range } => {
                 if range.from != self.cfg.id || range.to == self.cfg.id || !self.in_team(range.to) {
                     self.stats.ranges_rejected += 1;
@@ -932,28 +949,54 @@ impl NodeCore {
 
     fn take_imu(&mut self, s: Drive) {
         match self.rewind.take_imu(s) {
-            Ok(odometers_refused) => {
+            Ok(refused) => {
                 self.stats.imu += 1;
-                self.stats.odometer_rejected += odometers_refused;
+                self.stats.odometer_rejected += refused.odometer;
+                self.stats.fixes_rejected += refused.fixes;
             }
             Err(_) => self.stats.imu_rejected += 1,
         }
     }
 
     fn vehicle_odometer(&mut self, s: OdometerSample, out: &mut Vec<NodeOutput>) {
-        let fate = self.rewind.odometer(s, self.cfg.max_lead_us.min(1_000_000));
+        let fate = self.rewind.local(Local::Odometer(s), self.cfg.max_lead_us.min(1_000_000));
         let st = &mut self.stats;
         match fate {
-            OdometerFate::Unmatched => {
+            LocalFate::Unmatched => {
                 // Far ahead of its own vehicle's IMU, or older than anything kept.
                 st.odometer_unmatched += 1;
                 return;
             }
-            OdometerFate::Applied | OdometerFate::Waits => st.odometer += 1,
-            OdometerFate::Rejected => st.odometer_rejected += 1,
-            OdometerFate::Late { replayed } => {
-                st.odometer += 1;
+            LocalFate::Applied | LocalFate::Waits => st.odometer += 1,
+            LocalFate::Rejected => st.odometer_rejected += 1,
+            LocalFate::Late { replayed, refused } => {
+                st.odometer += u64::from(!refused);
+                st.odometer_rejected += u64::from(refused);
                 st.odometer_late += 1;
+                st.replayed_inputs += replayed;
+            }
+        }
+        self.after_input(out);
+    }
+
+    /// A GNSS fix of our own vehicle: a local update at its time, as an odometer sample is (a
+    /// late one is written into the past). Gated ([`crate::estimation::fix`]).
+    fn vehicle_fix(&mut self, s: PositionFixSample, out: &mut Vec<NodeOutput>) {
+        let fate = self.rewind.local(Local::Fix(s), self.cfg.max_lead_us.min(1_000_000));
+        let st = &mut self.stats;
+        match fate {
+            LocalFate::Unmatched => {
+                st.fixes_unmatched += 1;
+                return;
+            }
+            LocalFate::Applied | LocalFate::Waits => st.fixes += 1,
+            LocalFate::Rejected => {
+                st.fixes += 1;
+                st.fixes_rejected += 1;
+            }
+            LocalFate::Late { replayed, refused } => {
+                st.fixes += 1;
+                st.fixes_rejected += u64::from(refused);
                 st.replayed_inputs += replayed;
             }
         }
@@ -1045,6 +1088,7 @@ impl NodeCore {
         if let Some(known) = self.epochs.get(&epoch) {
             if known.t != t {
                 self.stats.epochs_implausible += 1;
+                self.stats.epochs_misnamed += 1;
                 return None;
             }
             return self.epochs.get_mut(&epoch);
@@ -1060,6 +1104,7 @@ impl NodeCore {
         if ahead || !consistent {
             self.stats.epochs_implausible += 1;
             self.stats.epochs_ahead += u64::from(ahead);
+            self.stats.epochs_unfit += u64::from(!ahead);
             return None;
         }
         let mut fresh_epoch = Epoch::new(t);
@@ -1715,8 +1760,10 @@ impl NodeCore {
             let open = self.epochs.len();
             self.epochs.retain(|&id, x| epochs_fit(last, (id, x.t)));
             self.stats.epochs_implausible += (open - self.epochs.len()) as u64;
+            self.stats.epochs_unfit += (open - self.epochs.len()) as u64;
         } else {
             self.stats.epochs_implausible += 1;
+            self.stats.epochs_unfit += 1;
         }
     }
 
@@ -2139,6 +2186,9 @@ impl NodeCore {
     fn replay_from_epoch(&mut self, t: TimeUs, write_back: WriteBack<'_>) -> Result<(), EstimationError> {
         let replay = self.rewind.replay_from_checkpoint_at(t, write_back);
         self.stats.replayed_inputs += replay.samples;
+        // (none: every local measurement behind the filter has been judged already)
+        self.stats.odometer_rejected += replay.refused.odometer;
+        self.stats.fixes_rejected += replay.refused.fixes;
         replay.result
     }
 

@@ -37,6 +37,13 @@
 //!   grid makes them name an epoch by the same instant). [`VehicleInputs::to_vehicle_time`]
 //!   maps back, for what the node sends.
 //! - **Origin**: GPS_GLOBAL_ORIGIN, else HOME_POSITION, when the profile gives none.
+//! - **GNSS fixes** (only once [`VehicleInputs::fuse_gnss`] gave the team's origin: the hand-over,
+//!   `super::handover`): GPS_RAW_INT with a 3D fix, its position about the origin with the
+//!   receiver's accuracy ([`wire::position_fix_from_gps_raw`]), stamped `time_usec` (the
+//!   autopilot's boot clock when it received the fix) less the profile's `gnss_lag_ms`; a
+//!   repeat of the fix last taken (same stamp) is dropped. A fix stamp is only looked at: it
+//!   takes no part in the wrap and reboot detection, and a fix before the team clock is
+//!   mapped, or more than [`MAX_FIX_AGE_US`] older than the newest stamp, is dropped (counted).
 
 use nalgebra::Vector3;
 
@@ -44,7 +51,7 @@ use super::core::NodeInput;
 use std::collections::VecDeque;
 
 use super::profile::{ImuMessage, Inputs, OdometerMessage, SampleKind, TeamClock, YawRateSource};
-use crate::estimation::{ImuSample, OdometerSample, WheelSample};
+use crate::estimation::{ImuSample, OdometerSample, PositionFixSample, WheelSample};
 use crate::protocol::MavMessage;
 use crate::protocol::dialect::cooploc::{COMMAND_ACK_DATA, MavEstimatorType};
 use crate::protocol::wire::{self, GeoOrigin};
@@ -66,6 +73,8 @@ pub const MAX_HELD_US: u64 = 10_000_000;
 /// With `clock = "auto"`, held inputs spanning this long (vehicle time) without a TIMESYNC
 /// answer take SYSTEM_TIME's Unix time, when the autopilot has it.
 pub const AUTO_CLOCK_WAIT_US: u64 = 3_000_000;
+/// A GNSS fix stamped this much before the newest stamp of the vehicle is dropped, us.
+pub const MAX_FIX_AGE_US: u64 = 2_000_000;
 /// Two mappings of the boot clock further apart than this disagree (counted).
 const CLOCK_DISAGREEMENT_US: i64 = 50_000;
 
@@ -139,6 +148,15 @@ pub struct InputCounters {
     /// Range stamps moved to the epoch grid by more than a quarter of it (mappings that do
     /// not agree well enough for the grid).
     pub ranges_off_grid: u64,
+    /// GNSS fixes decoded (with [`VehicleInputs::fuse_gnss`]).
+    pub gnss_fixes: u64,
+    /// GPS_RAW_INT with a 3D fix refused: no position or accuracy, far from the origin.
+    pub gnss_invalid: u64,
+    /// GNSS fixes dropped: before the team clock was mapped, or older than [`MAX_FIX_AGE_US`].
+    pub gnss_stale: u64,
+    /// GPS_RAW_INT repeating a fix already taken (its stamp not after the last one's: an
+    /// autopilot that streams the message faster than its receiver's rate).
+    pub gnss_repeats: u64,
     /// A planar robot's wheel intervals the yaw-rate gyro did not cover within
     /// [`MAX_GYRO_WAIT_US`]: the wheels' own yaw rate taken (two wheels), or the sample dropped.
     pub gyro_missing: u64,
@@ -192,6 +210,10 @@ pub struct VehicleInputs {
     /// Events released by the last message beside the one it returns (wheel samples the gyro
     /// now covers).
     released: Vec<VehicleEvent>,
+    /// The team's origin, once GNSS fixes are to be taken ([`Self::fuse_gnss`]).
+    gnss_origin: Option<GeoOrigin>,
+    /// The stamp of the last GNSS fix taken (`time_usec` as sent), and the reboots counted then.
+    last_fix: Option<(u64, u64)>,
     pub counters: InputCounters,
 }
 
@@ -215,7 +237,49 @@ impl VehicleInputs {
             gyro: VecDeque::new(),
             pending_wheels: VecDeque::new(),
             released: Vec::new(),
+            gnss_origin: None,
+            last_fix: None,
             counters: InputCounters::default(),
+        }
+    }
+
+    /// From now on GPS_RAW_INT fixes are inputs: positions about `origin`, the team's frame (see
+    /// the module documentation).
+    pub fn fuse_gnss(&mut self, origin: GeoOrigin) {
+        self.gnss_origin = Some(origin);
+    }
+
+    /// A GPS_RAW_INT as a fix for the core, when fixes are taken.
+    fn gnss_fix(&mut self, m: &crate::protocol::dialect::cooploc::GPS_RAW_INT_DATA) -> VehicleEvent {
+        let Some(origin) = self.gnss_origin else { return VehicleEvent::Nothing };
+        if (m.fix_type as u8) < super::handover::FIX_3D {
+            return VehicleEvent::Nothing;
+        }
+        let fix = match wire::position_fix_from_gps_raw(m, &origin) {
+            Ok(fix) => fix,
+            Err(_) => {
+                self.counters.gnss_invalid += 1;
+                return VehicleEvent::Nothing;
+            }
+        };
+        let reboots = self.counters.reboots;
+        if self.last_fix.is_some_and(|(last, at)| m.time_usec <= last && at == reboots) {
+            self.counters.gnss_repeats += 1;
+            return VehicleEvent::Nothing;
+        }
+        let us = m.time_usec.saturating_sub(u64::from(self.cfg.gnss_lag_ms) * 1000);
+        let stale = us < UNIX_TIME_FROM_US && self.last_boot_us.is_some_and(|last| us.saturating_add(MAX_FIX_AGE_US) < last);
+        let t = if us >= UNIX_TIME_FROM_US { Some(TimeUs(us)) } else { self.team_of_boot_us(us) };
+        match t {
+            Some(t) if !stale => {
+                self.counters.gnss_fixes += 1;
+                self.last_fix = Some((m.time_usec, reboots));
+                VehicleEvent::Input(NodeInput::PositionFix(PositionFixSample { t, ..fix }))
+            }
+            _ => {
+                self.counters.gnss_stale += 1;
+                VehicleEvent::Nothing
+            }
         }
     }
 
@@ -399,6 +463,7 @@ impl VehicleInputs {
                     }
                 }
             }
+            MavMessage::GPS_RAW_INT(m) => self.gnss_fix(m),
             MavMessage::WHEEL_DISTANCE(m) => {
                 if self.cfg.odometer != OdometerMessage::WheelDistance {
                     return VehicleEvent::Nothing;
@@ -749,6 +814,7 @@ fn event_time(e: &VehicleEvent) -> Option<TimeUs> {
     match e {
         VehicleEvent::Input(NodeInput::Imu(s)) => Some(s.t),
         VehicleEvent::Input(NodeInput::Odometer(s)) => Some(s.t),
+        VehicleEvent::Input(NodeInput::PositionFix(s)) => Some(s.t),
         VehicleEvent::Input(NodeInput::Wheel(s)) => Some(s.t),
         VehicleEvent::Input(NodeInput::OwnRange { range, .. }) => Some(range.t),
         _ => None,

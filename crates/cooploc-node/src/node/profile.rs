@@ -260,6 +260,11 @@ pub struct Inputs {
     /// `imu` names (a yaw-rate gyro; the wheels then give the speed only).
     #[serde(default)]
     pub yaw_rate: YawRateSource,
+    /// How much older a GNSS fix is than its GPS_RAW_INT stamp, ms (the hand-over's fixes): the
+    /// autopilot stamps a fix when it receives it, the receiver's own latency before (ArduPilot
+    /// SITL: `SIM_GPS1_LAG_MS`, 100 ms by default; a u-blox M8 about 100-120 ms).
+    #[serde(default)]
+    pub gnss_lag_ms: u32,
 }
 
 /// Where a planar robot's yaw rate comes from.
@@ -311,6 +316,7 @@ impl Default for Inputs {
             epoch_grid_ms: 0,
             request_rates: true,
             yaw_rate: YawRateSource::Wheels,
+            gnss_lag_ms: 0,
         }
     }
 }
@@ -348,7 +354,8 @@ pub struct Output {
     pub set_origin: bool,
     /// When the node takes over at a GNSS loss (`cooploc node --init-from-autopilot`), switch
     /// the autopilot's EKF to this source set (ArduPilot's MAV_CMD_SET_EKF_SOURCE_SET: the set
-    /// whose EK3_SRCn_* say ExternalNav, e.g. 2); none: the autopilot switches by itself.
+    /// whose EK3_SRCn_* say ExternalNav, e.g. 2), and back to set 1 (its GNSS set) when it hands
+    /// back; none: the autopilot switches by itself.
     #[serde(default)]
     pub takeover_source_set: Option<u8>,
 }
@@ -655,6 +662,9 @@ impl VehicleProfile {
         }
         if i.epoch_grid_ms > 10_000 {
             return Err(invalid("inputs.epoch_grid_ms", format!("0 (none) up to 10000 ms, got {}", i.epoch_grid_ms)));
+        }
+        if i.gnss_lag_ms > 1_000 {
+            return Err(invalid("inputs.gnss_lag_ms", format!("0 up to 1000 ms, got {}", i.gnss_lag_ms)));
         }
         if i.epoch_grid_ms > 0 && i.clock == TeamClock::Vehicle {
             return Err(invalid(

@@ -11,7 +11,9 @@
 //!   sampled, the origin offer, the rate requests and their acknowledgements, decoding into the
 //!   core's inputs ([`VehicleInputs`]);
 //! - the start: the origin and the initial state (given, from SIM_STATE, or from the
-//!   autopilot's estimate when GNSS goes, [`super::handover`]), a given state refused when the
+//!   autopilot's estimate once it has GNSS, [`super::handover`]: then the GNSS fixes go to the
+//!   core, and ODOMETRY and the EKF source set follow the take-over and the hand-back), a
+//!   given state refused when the
 //!   vehicle's first sample shows it stale; a saved state restored, given the autopilot's own
 //!   estimate when its EKF vouches for it ([`super::autopilot_fix`]);
 //! - the clock ticks: polls of the core, heartbeats, peer expiry, the signing state, the frozen
@@ -105,8 +107,8 @@ pub enum NodeInit {
     /// taken at the last IMU (or wheel) sample before the origin and the team clock are known
     /// (a real vehicle started where its configuration says).
     ///
-    /// `from_autopilot`: the state comes from the autopilot's own estimate when its GNSS goes
-    /// (the hand-over start, [`super::handover`]), not from SIM_STATE.
+    /// `from_autopilot`: the state comes from the autopilot's own estimate once it has GNSS (the
+    /// hand-over, [`super::handover`]), not from SIM_STATE.
     Pending {
         config: Box<NodeConfig>,
         origin: Option<wire::GeoOrigin>,
@@ -228,6 +230,21 @@ pub struct LinkFacts {
     pub wall_s: f64,
 }
 
+/// The hand-over, at the end: where the node started, the GNSS fixes its filter took, the
+/// losses and returns of the fix after the start, and the autopilot's answer to the last
+/// source-set command.
+#[derive(Debug, Clone, PartialEq)]
+pub struct HandOverSummary {
+    pub started_at_ned_m: nalgebra::Vector3<f64>,
+    pub source_set: Option<MavResult>,
+    pub fixes: u64,
+    pub fixes_rejected: u64,
+    pub losses: u64,
+    pub returns: u64,
+    /// The node navigates the vehicle now (GNSS gone).
+    pub navigating: bool,
+}
+
 /// What a node did, when it stops.
 #[derive(Debug, Clone)]
 pub struct NodeSummary {
@@ -287,9 +304,8 @@ pub struct NodeSummary {
     /// The team's origin offered to an autopilot without one (None: the profile has no
     /// `[origin]`, or says `set_origin = false`).
     pub origin_offer: Option<OriginOffer>,
-    /// A hand-over start: where the node started (NED, m) and how the autopilot answered the
-    /// EKF source-set switch (None: not asked, or unanswered).
-    pub hand_over: Option<(nalgebra::Vector3<f64>, Option<MavResult>)>,
+    /// With the hand-over (`init_from_autopilot`): see [`HandOverSummary`].
+    pub hand_over: Option<HandOverSummary>,
 }
 
 /// One sequence counter per link (MAVLink numbers each link on its own) and the signer.
@@ -358,6 +374,8 @@ pub struct NodeShell {
     saved_at: Option<TimeUs>,
     handover: Option<Handover>,
     hand_over_state: Option<InsState>,
+    /// The hand-over: GNSS is gone and the node navigates the vehicle (ODOMETRY goes out).
+    taken_over: bool,
     /// The autopilot's estimate, followed while a saved state waits to be restored, and the
     /// vehicle's first sample (team clock) since when it has waited.
     fix: Option<AutopilotEstimate>,
@@ -467,6 +485,7 @@ impl NodeShell {
             saved_at: None,
             handover,
             hand_over_state: None,
+            taken_over: false,
             fix,
             fix_wait_from: None,
             last_imu_t: None,
@@ -771,33 +790,45 @@ impl NodeShell {
         }
     }
 
-    /// The hand-over start: the autopilot's estimate when its GNSS goes.
+    /// The hand-over: the start from the autopilot's estimate once it has GNSS, the take-over
+    /// when GNSS goes and the hand-back when it returns (`super::handover`).
     fn on_handover(&mut self, msg: &MavMessage) {
         let id = self.id;
-        let (Some(h), Some(Pending { origin: Some(origin), state: state @ None, from_autopilot: true, .. })) =
-            (self.handover.as_mut(), self.pending.as_mut())
-        else {
-            return;
+        let Some(h) = self.handover.as_mut() else { return };
+        let origin = match (&self.pending, &self.nav_origin) {
+            (Some(Pending { origin: Some(o), .. }), _) | (None, Some(o)) => *o,
+            _ => return,
         };
-        match h.on_message(msg, origin) {
-            Some(HandoverEvent::GnssLost { time_boot_ms, state: s }) => match self.decoder.team_time_of_boot_ms(time_boot_ms) {
-                Some(t0) => {
-                    tracing::info!(platform = id, pos = ?s.pos_ned_m, "GNSS lost: starting from the autopilot's estimate");
-                    *state = Some((Some(t0), *s));
-                    self.hand_over_state = Some(*s);
-                    if let Some(set) = self.autopilot.takeover_source_set {
-                        self.autopilot.source_set = Some((set, 0, 0));
+        match h.on_message(msg, &origin) {
+            Some(HandoverEvent::Start { time_boot_ms, state: s }) => {
+                let Some(Pending { state: state @ None, from_autopilot: true, .. }) = self.pending.as_mut() else { return };
+                match self.decoder.team_time_of_boot_ms(time_boot_ms) {
+                    Some(t0) => {
+                        tracing::info!(platform = id, pos = ?s.pos_ned_m, gnss = !h.lost(), "starting from the autopilot's estimate");
+                        *state = Some((Some(t0), *s));
+                        self.hand_over_state = Some(*s);
+                    }
+                    None => {
+                        tracing::warn!(platform = id, "the autopilot's estimate before the team clock is known: waiting for it");
+                        h.retry();
                     }
                 }
-                None => {
-                    tracing::warn!(platform = id, "GNSS lost before the team clock is known: waiting for it");
-                    h.retry();
-                }
-            },
-            Some(HandoverEvent::GnssLostWithoutEstimate) => {
-                tracing::warn!(platform = id, "GNSS lost, and no estimate of the autopilot's to start from yet")
             }
+            Some(HandoverEvent::NoEstimate) => {
+                tracing::warn!(platform = id, "GNSS, and no estimate of the autopilot's to start from yet")
+            }
+            Some(HandoverEvent::Lost) => tracing::info!(platform = id, "GNSS lost: the team's filter takes over"),
+            Some(HandoverEvent::Back) => tracing::info!(platform = id, "GNSS back: handing back to the autopilot's own"),
             None => {}
+        }
+        // the source set follows who navigates, once the node has its start
+        let lost = h.lost();
+        if self.hand_over_state.is_some() && lost != self.taken_over {
+            self.taken_over = lost;
+            let set = if lost { self.autopilot.takeover_source_set } else { self.autopilot.takeover_source_set.map(|_| 1) };
+            if let Some(set) = set {
+                self.autopilot.source_set = Some((set, 0, 0));
+            }
         }
     }
 
@@ -841,6 +872,10 @@ impl NodeShell {
         self.event(NodeEvent::Init { t0_us: t0.0, origin: o, state: start });
         self.core = Some(made);
         self.nav_origin = Some(origin);
+        if self.handover.is_some() {
+            // the hand-over start: the team's filter runs on the autopilot's GNSS fixes
+            self.decoder.fuse_gnss(origin);
+        }
         self.pending = None;
         Ok(())
     }
@@ -1237,7 +1272,10 @@ impl NodeShell {
         }
         // (the navigation solution only when something goes back to the vehicle: not on every
         // IMU sample of a node that sends nothing back)
-        if vehicle_input && (self.autopilot.odometry.is_some() || self.autopilot.gps_input.is_some()) {
+        // (with the hand-over, only once the node has taken over: before, the autopilot
+        // navigates on its GNSS)
+        let navigates = self.handover.is_none() || self.taken_over;
+        if vehicle_input && navigates && (self.autopilot.odometry.is_some() || self.autopilot.gps_input.is_some()) {
             let nav = core.navigation();
             let decoder = &self.decoder;
             let odo = self.autopilot.odometry.as_mut().and_then(|o| o.poll(&nav, |t| decoder.to_vehicle_time(t)));
@@ -1310,7 +1348,15 @@ impl NodeShell {
             timesync_refused: self.clock.timesync.refused,
             range_input: self.range_lines.as_ref().map(|l| l.counters.clone()),
             origin_offer: ap.origin_offer.clone(),
-            hand_over: self.hand_over_state.map(|s| (s.pos_ned_m, ap.source_set_result)),
+            hand_over: self.hand_over_state.map(|s| HandOverSummary {
+                started_at_ned_m: s.pos_ned_m,
+                source_set: ap.source_set_result,
+                fixes: self.core.as_ref().map_or(0, |c| c.stats.fixes),
+                fixes_rejected: self.core.as_ref().map_or(0, |c| c.stats.fixes_rejected),
+                losses: self.handover.as_ref().map_or(0, |h| h.losses),
+                returns: self.handover.as_ref().map_or(0, |h| h.returns),
+                navigating: self.taken_over,
+            }),
         }
     }
 }

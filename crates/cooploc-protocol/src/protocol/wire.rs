@@ -1077,6 +1077,48 @@ pub fn ins_state_from_autopilot(
     })
 }
 
+/// Horizontal one-sigma per unit of HDOP, m, for a GPS_RAW_INT without `h_acc` (a receiver
+/// that gives only its dilution of precision: a typical single-frequency user range error).
+pub const GNSS_UERE_M: f64 = 3.0;
+
+/// A GPS_RAW_INT with a 3D fix (or better) as a position fix in the local NED frame of `origin`,
+/// its time left at 0 (the caller maps `time_usec`, the autopilot's boot clock on ArduPilot and
+/// PX4). The horizontal sigma is `h_acc`, else HDOP (`eph`) times [`GNSS_UERE_M`]; the vertical
+/// one `v_acc` when given (else the height is not used). Refused: no 3D fix, no position, no
+/// accuracy at all, more than 100 km from the origin.
+pub fn position_fix_from_gps_raw(
+    m: &super::dialect::cooploc::GPS_RAW_INT_DATA,
+    origin: &GeoOrigin,
+) -> Result<crate::estimation::PositionFixSample, WireError> {
+    const MSG: &str = "GPS_RAW_INT";
+    if (m.fix_type as u8) < 3 {
+        return Err(bad(MSG, "fix_type", format!("{:?}: no 3D fix", m.fix_type)));
+    }
+    let (lat_deg, lon_deg) = (e7_to_deg(m.lat), e7_to_deg(m.lon));
+    if !(-90.0..=90.0).contains(&lat_deg) || !(-180.0..=180.0).contains(&lon_deg) || (m.lat == 0 && m.lon == 0) {
+        return Err(bad(MSG, "lat", format!("{lat_deg}, {lon_deg}: no position")));
+    }
+    let sigma_h_m = if m.h_acc > 0 {
+        f64::from(m.h_acc) * 1e-3
+    } else if m.eph != u16::MAX && m.eph > 0 {
+        f64::from(m.eph) * 0.01 * GNSS_UERE_M
+    } else {
+        return Err(bad(MSG, "h_acc", "no accuracy (h_acc 0, eph unknown)"));
+    };
+    let pos = geodetic_to_ned(origin, &Geodetic { lat_deg, lon_deg, alt_m: f64::from(m.alt) * 1e-3 });
+    if pos.xy().norm() > 100_000.0 {
+        return Err(bad(MSG, "lat", format!("{:.0} km from the origin", pos.xy().norm() * 1e-3)));
+    }
+    let fix = crate::estimation::PositionFixSample {
+        t: TimeUs(0),
+        pos_ned_m: pos,
+        sigma_h_m,
+        sigma_v_m: (m.v_acc > 0).then(|| f64::from(m.v_acc) * 1e-3),
+    };
+    fix.validate().map_err(|e| bad(MSG, "h_acc", e.to_string()))?;
+    Ok(fix)
+}
+
 /// The position of a SIM_STATE (the integer fields when set, as MAVLink prescribes) in the local
 /// NED frame of `origin`.
 pub fn sim_state_position_ned(m: &SIM_STATE_DATA, origin: &GeoOrigin) -> Result<Vector3<f64>, WireError> {
@@ -1093,6 +1135,26 @@ pub fn sim_state_position_ned(m: &SIM_STATE_DATA, origin: &GeoOrigin) -> Result<
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// A GPS_RAW_INT as the real ArduPilot firmware sends it (Rover 4.7.0-dev 90700977, SITL,
+    /// a 3D fix at its first position; captured from a node's log): its MAVLink 2 payload trimmed
+    /// to 40 bytes after `v_acc`.
+    const ARDUPILOT_GPS_RAW_INT: &str =
+        "fd280000a40101180000f8119600000000009efeebeacbcee85840e908007900c80000000000060a40e908002c0100002c011447";
+
+    #[test]
+    fn the_real_firmwares_gps_raw_int_is_a_fix_with_its_accuracy() {
+        let bytes: Vec<u8> = (0..ARDUPILOT_GPS_RAW_INT.len())
+            .step_by(2)
+            .map(|i| u8::from_str_radix(&ARDUPILOT_GPS_RAW_INT[i..i + 2], 16).unwrap())
+            .collect();
+        let (_, MavMessage::GPS_RAW_INT(m)) = from_any_frame(&bytes).unwrap() else { panic!("not GPS_RAW_INT") };
+        assert_eq!((m.time_usec, m.alt, m.h_acc, m.v_acc, m.eph), (9_835_000, 584_000, 300, 300, 121));
+        let origin = GeoOrigin { lat_deg: -35.363261, lon_deg: 149.16523, alt_m: 584.0 };
+        let fix = position_fix_from_gps_raw(&m, &origin).unwrap();
+        assert_eq!((fix.sigma_h_m, fix.sigma_v_m), (0.3, Some(0.3)));
+        assert!(fix.pos_ned_m.norm() < 0.05, "{:?}", fix.pos_ned_m);
+    }
 
     fn sim_state() -> SIM_STATE_DATA {
         let origin = GeoOrigin { lat_deg: 43.0, lon_deg: -79.0, alt_m: 0.0 };

@@ -1,8 +1,9 @@
 //! The rewind buffer of a node's core: its filter, the filter's checkpoints at recent instants
 //! and the vehicle's inputs since the oldest of them. A joint update belongs to an epoch's time,
-//! which is already past when the team's records are in; an odometer sample may arrive after the
-//! IMU sample that covers it. Both are written into the past here and the inputs since are
-//! replayed to the present ([`Rewind::replay_from_checkpoint_at`], [`Rewind::odometer`]).
+//! which is already past when the team's records are in; a local measurement (an odometer sample,
+//! a GNSS fix) may arrive after the IMU sample that covers it. Both are written into the past here
+//! and the inputs since are replayed to the present ([`Rewind::replay_from_checkpoint_at`],
+//! [`Rewind::local`]).
 //!
 //! The instants the filter must stop at (the epochs' times) are *marks*: every IMU interval is cut
 //! at them, and the filter is checkpointed there, so that an epoch's joint update finds the filter
@@ -17,8 +18,9 @@
 use std::collections::{BTreeSet, VecDeque};
 
 use crate::estimation::PlatformFilter;
+use crate::estimation::fix::{FixOutcome, update_position_fix};
 use crate::estimation::nav::{Drive, NavFilter};
-use crate::estimation::{EstimationError, OdometerSample};
+use crate::estimation::{EstimationError, OdometerSample, PositionFixSample};
 use crate::time::TimeUs;
 
 /// How many freed checkpoint slots a node keeps for the next checkpoints (a slot is one
@@ -38,26 +40,60 @@ struct Checkpoint {
     filter: Box<NavFilter>,
 }
 
-/// A vehicle input kept for replays.
+/// A local measurement of the vehicle's own: applied at its instant, after the drive sample.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub(super) enum Local {
+    Odometer(OdometerSample),
+    Fix(PositionFixSample),
+}
+
+impl Local {
+    pub(super) fn t(&self) -> TimeUs {
+        match self {
+            Local::Odometer(s) => s.t,
+            Local::Fix(s) => s.t,
+        }
+    }
+
+    /// Applies it to `filter`: whether it was taken (a fix beyond its gate, or a sample the
+    /// filter refuses, changes nothing).
+    fn apply(&self, filter: &mut NavFilter) -> bool {
+        match self {
+            Local::Odometer(s) => filter.update_odometer(s).is_ok(),
+            Local::Fix(s) => matches!(update_position_fix(filter, s), Ok(FixOutcome::Applied { .. })),
+        }
+    }
+}
+
+/// Local measurements the filter refused as their IMU sample came, by kind.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
+pub(super) struct Refused {
+    pub(super) odometer: u64,
+    pub(super) fixes: u64,
+}
+
+/// A vehicle input kept for replays. A local measurement carries whether the filter has judged
+/// it yet (applied, or refused and counted): a late or waiting one is judged in the
+/// integration or replay that first reaches its instant, and counted there once.
 #[derive(Debug, Clone)]
 enum Stamped {
     Drive(Drive),
-    Odometer(OdometerSample),
+    Local(Local, bool),
 }
 
 impl Stamped {
     fn t(&self) -> TimeUs {
         match self {
             Stamped::Drive(s) => s.t(),
-            Stamped::Odometer(s) => s.t,
+            Stamped::Local(s, _) => s.t(),
         }
     }
 
-    /// Order within one instant: the IMU sample, then the odometer.
+    /// Order within one instant: the IMU sample, then the local measurements.
     fn key(&self) -> (TimeUs, u8) {
         match self {
             Stamped::Drive(s) => (s.t(), 0),
-            Stamped::Odometer(s) => (s.t, 1),
+            Stamped::Local(s, _) => (s.t(), 1),
         }
     }
 }
@@ -71,9 +107,9 @@ pub(super) enum WriteBack<'a> {
     Noise(&'a nalgebra::DMatrix<f64>),
 }
 
-/// What became of an odometer sample ([`Rewind::odometer`]).
+/// What became of a local measurement ([`Rewind::local`]).
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub(super) enum OdometerFate {
+pub(super) enum LocalFate {
     /// Far ahead of the vehicle's IMU, or older than anything kept: dropped.
     Unmatched,
     /// Applied at the open instant, its own.
@@ -83,8 +119,8 @@ pub(super) enum OdometerFate {
     /// Ahead of the filter: kept until the IMU sample that covers it.
     Waits,
     /// Behind the filter: kept, and the filter rebuilt from the checkpoint before it (this many
-    /// IMU samples replayed).
-    Late { replayed: u64 },
+    /// IMU samples replayed; `refused`: the filter refused it there).
+    Late { replayed: u64, refused: bool },
 }
 
 /// How a replay went: the IMU samples it went through (those before a failure included) and
@@ -94,11 +130,13 @@ pub(super) enum OdometerFate {
 pub(super) struct Replay {
     pub(super) samples: u64,
     pub(super) result: Result<(), EstimationError>,
+    /// Local measurements judged for the first time on the way, and refused.
+    pub(super) refused: Refused,
 }
 
 impl Replay {
     fn failed(e: EstimationError) -> Self {
-        Replay { samples: 0, result: Err(e) }
+        Replay { samples: 0, result: Err(e), refused: Refused::default() }
     }
 }
 
@@ -180,38 +218,40 @@ impl Rewind {
             && self.open_instant != Some(t)
             && self.checkpoint_at(t).is_none()
         {
-            return self.rebuild_from_before(t);
+            return self.rebuild_from_before(t).samples;
         }
         0
     }
 
-    /// One IMU sample through the filter, kept for replays; returns the odometer samples of its
-    /// interval that the filter refused. On error nothing changes.
-    pub(super) fn take_imu(&mut self, s: Drive) -> Result<u64, EstimationError> {
-        let refused = self.integrate(&s, true)?;
+    /// One IMU sample through the filter, kept for replays; returns the local measurements of
+    /// its interval that the filter refused. On error nothing changes.
+    pub(super) fn take_imu(&mut self, s: Drive) -> Result<Refused, EstimationError> {
+        let refused = self.integrate(&s)?;
         self.insert_input(Stamped::Drive(s));
         Ok(refused)
     }
 
-    /// One odometer sample: applied now, kept for the IMU sample that covers it, or written into
-    /// the past (see [`OdometerFate`]). `max_lead_us`: how far ahead of the filter a sample may be.
-    pub(super) fn odometer(&mut self, s: OdometerSample, max_lead_us: u64) -> OdometerFate {
+    /// One local measurement: applied now, kept for the IMU sample that covers it, or written
+    /// into the past (see [`LocalFate`]). `max_lead_us`: how far ahead of the filter it may be.
+    pub(super) fn local(&mut self, s: Local, max_lead_us: u64) -> LocalFate {
         let now = self.filter.time();
-        if s.t.0 > now.0.saturating_add(max_lead_us) || s.t <= self.oldest() {
-            return OdometerFate::Unmatched;
+        if s.t().0 > now.0.saturating_add(max_lead_us) || s.t() <= self.oldest() {
+            return LocalFate::Unmatched;
         }
-        if self.open_instant == Some(s.t) {
-            let fate = if self.filter.update_odometer(&s).is_ok() { OdometerFate::Applied } else { OdometerFate::Rejected };
-            if fate == OdometerFate::Applied {
-                self.insert_input(Stamped::Odometer(s));
+        if self.open_instant == Some(s.t()) {
+            let fate = if s.apply(&mut self.filter) { LocalFate::Applied } else { LocalFate::Rejected };
+            if fate == LocalFate::Applied {
+                self.insert_input(Stamped::Local(s, true));
             }
             return fate;
         }
-        self.insert_input(Stamped::Odometer(s));
-        if s.t > now {
-            return OdometerFate::Waits;
+        self.insert_input(Stamped::Local(s, false));
+        if s.t() > now {
+            return LocalFate::Waits;
         }
-        OdometerFate::Late { replayed: self.rebuild_from_before(s.t) }
+        // (the replay judges it: the only local measurement not judged behind the filter)
+        let replay = self.rebuild_from_before(s.t());
+        LocalFate::Late { replayed: replay.samples, refused: replay.refused != Refused::default() }
     }
 
     fn insert_input(&mut self, item: Stamped) {
@@ -227,13 +267,14 @@ impl Rewind {
     /// One IMU sample through the filter: the interval up to it is cut at every mark, every
     /// odometer sample and, for a gap, every step the filter takes; each piece holds the sample's
     /// rates; the odometer samples of each instant are applied at its end. Checkpoints every
-    /// instant it closes. Returns the odometer samples the filter refused when `live` (0 in a
+    /// instant it closes. Returns the local measurements judged here for the first time that the
+    /// filter refused (see [`Stamped`]) (none in a
     /// replay). On error the filter, its checkpoints and its open instant are as they were (the
     /// filter is copied only when the interval is cut: one propagation that fails changes
     /// nothing by itself).
-    fn integrate(&mut self, s: &Drive, live: bool) -> Result<u64, EstimationError> {
+    fn integrate(&mut self, s: &Drive) -> Result<Refused, EstimationError> {
         let (history_len, open, unsaved) = (self.history.len(), self.open_instant, self.unsaved);
-        self.integrate_pieces(s, live).map_err(|(e, before)| {
+        self.integrate_pieces(s).map_err(|(e, before)| {
             if let Some(f) = before {
                 self.filter = *f;
             }
@@ -246,20 +287,17 @@ impl Rewind {
 
     /// [`Self::integrate`]'s work; on error, the filter from before the first piece when there
     /// were several.
-    fn integrate_pieces(&mut self, s: &Drive, live: bool) -> Result<u64, (EstimationError, Option<Box<NavFilter>>)> {
+    fn integrate_pieces(&mut self, s: &Drive) -> Result<Refused, (EstimationError, Option<Box<NavFilter>>)> {
         let t0 = self.filter.time();
         let from = self.inputs.partition_point(|i| i.t() <= t0);
-        let odometers: Vec<OdometerSample> = self
-            .inputs
-            .range(from..)
-            .take_while(|i| i.t() <= s.t())
-            .filter_map(|i| match i {
-                Stamped::Odometer(o) => Some(*o),
-                Stamped::Drive(_) => None,
-            })
+        // the local measurements of the interval: their places in `inputs`, and instants
+        let locals: Vec<(usize, TimeUs)> = (from..self.inputs.len())
+            .take_while(|&k| self.inputs[k].t() <= s.t())
+            .filter(|&k| matches!(self.inputs[k], Stamped::Local(..)))
+            .map(|k| (k, self.inputs[k].t()))
             .collect();
         let mut cuts: Vec<TimeUs> = self.marks.range(TimeUs(t0.0 + 1)..s.t()).copied().collect();
-        cuts.extend(odometers.iter().map(|o| o.t).filter(|t| *t < s.t()));
+        cuts.extend(locals.iter().map(|&(_, t)| t).filter(|t| *t < s.t()));
         let step_us = ((self.filter.max_gap_s() * 1e6) as u64 / 2).max(1);
         if s.t().0 - t0.0 > 2 * step_us {
             let mut t = t0.0 + step_us;
@@ -272,16 +310,21 @@ impl Rewind {
         cuts.dedup();
         cuts.push(s.t());
         let before = (cuts.len() > 1).then(|| Box::new(self.filter.clone()));
-        let mut refused = 0;
+        let mut refused = Refused::default();
         for t in cuts {
             self.checkpoint_open();
             if let Err(e) = self.filter.propagate(&s.at(t)) {
                 return Err((e, before));
             }
             self.open_instant = Some(t);
-            for o in odometers.iter().filter(|o| o.t == t) {
-                if self.filter.update_odometer(o).is_err() && live {
-                    refused += 1;
+            for &(k, _) in locals.iter().filter(|&&(_, at)| at == t) {
+                let Stamped::Local(o, judged) = &mut self.inputs[k] else { continue };
+                let applied = o.apply(&mut self.filter);
+                if !std::mem::replace(judged, true) && !applied {
+                    match o {
+                        Local::Odometer(_) => refused.odometer += 1,
+                        Local::Fix(_) => refused.fixes += 1,
+                    }
                 }
             }
         }
@@ -336,9 +379,11 @@ impl Rewind {
     /// Rebuilds the filter from the last checkpoint strictly before `t` (a late input or a new
     /// mark at `t`); returns the IMU samples replayed. Nothing changes when there is none or the
     /// replay fails.
-    fn rebuild_from_before(&mut self, t: TimeUs) -> u64 {
-        let Some(pos) = self.history.iter().rposition(|c| c.t < t) else { return 0 };
-        self.replay_from(pos, WriteBack::Nothing).samples
+    fn rebuild_from_before(&mut self, t: TimeUs) -> Replay {
+        let Some(pos) = self.history.iter().rposition(|c| c.t < t) else {
+            return Replay { samples: 0, result: Ok(()), refused: Refused::default() };
+        };
+        self.replay_from(pos, WriteBack::Nothing)
     }
 
     /// Restores the checkpoint at `t`, writes back `write_back`, and replays the inputs after
@@ -382,15 +427,21 @@ impl Rewind {
                 _ => None,
             })
             .collect();
-        let mut samples = 0;
+        let (mut samples, mut refused) = (0, Refused::default());
         for s in &replay {
-            if let Err(e) = self.integrate(s, false) {
-                self.filter = saved_filter;
-                self.history.truncate(pos);
-                self.history.extend(saved_tail);
-                self.open_instant = saved_open;
-                self.unsaved = saved_unsaved;
-                return Replay { samples, result: Err(e) };
+            match self.integrate(s) {
+                Ok(r) => {
+                    refused.odometer += r.odometer;
+                    refused.fixes += r.fixes;
+                }
+                Err(e) => {
+                    self.filter = saved_filter;
+                    self.history.truncate(pos);
+                    self.history.extend(saved_tail);
+                    self.open_instant = saved_open;
+                    self.unsaved = saved_unsaved;
+                    return Replay { samples, result: Err(e), refused };
+                }
             }
             samples += 1;
         }
@@ -400,7 +451,7 @@ impl Rewind {
         if self.ended {
             self.checkpoint_open();
         }
-        Replay { samples, result: Ok(()) }
+        Replay { samples, result: Ok(()), refused }
     }
 }
 
@@ -464,27 +515,71 @@ mod tests {
         for ms in (5..=300).step_by(5) {
             in_order.take_imu(imu(ms)).unwrap();
             if ms % 20 == 0 {
-                assert_eq!(in_order.odometer(odometer(ms), 1_000_000), OdometerFate::Applied, "{ms} ms");
+                assert_eq!(in_order.local(Local::Odometer(odometer(ms)), 1_000_000), LocalFate::Applied, "{ms} ms");
             }
             late.take_imu(imu(ms)).unwrap();
         }
         assert_ne!(bits(&in_order.filter), bits(&late.filter), "the odometer changes the filter");
         for ms in (20..300).step_by(20) {
-            let OdometerFate::Late { replayed } = late.odometer(odometer(ms), 1_000_000) else { panic!("{ms} ms is late") };
+            let LocalFate::Late { replayed, refused: false } = late.local(Local::Odometer(odometer(ms)), 1_000_000) else {
+                panic!("{ms} ms is late, and taken")
+            };
             // from the checkpoint before it (every 8th instant) to the present
             assert!((1..=60).contains(&replayed), "{ms} ms: {replayed} samples replayed");
         }
-        assert_eq!(late.odometer(odometer(300), 1_000_000), OdometerFate::Applied, "the open instant's own");
+        assert_eq!(late.local(Local::Odometer(odometer(300)), 1_000_000), LocalFate::Applied, "the open instant's own");
         assert_eq!(bits(&in_order.filter), bits(&late.filter));
         // Ahead of the filter: kept for the IMU sample that covers it; far ahead or too old: dropped.
-        assert_eq!(late.odometer(odometer(310), 1_000_000), OdometerFate::Waits);
-        assert_eq!(late.odometer(odometer(5_000), 1_000_000), OdometerFate::Unmatched);
-        assert_eq!(late.odometer(OdometerSample { t: TimeUs(T0), speed_m_s: 5.0 }, 1_000_000), OdometerFate::Unmatched);
+        assert_eq!(late.local(Local::Odometer(odometer(310)), 1_000_000), LocalFate::Waits);
+        assert_eq!(late.local(Local::Odometer(odometer(5_000)), 1_000_000), LocalFate::Unmatched);
+        assert_eq!(
+            late.local(Local::Odometer(OdometerSample { t: TimeUs(T0), speed_m_s: 5.0 }), 1_000_000),
+            LocalFate::Unmatched
+        );
         in_order.take_imu(imu(305)).unwrap();
         in_order.take_imu(imu(310)).unwrap();
-        assert_eq!(in_order.odometer(odometer(310), 1_000_000), OdometerFate::Applied);
+        assert_eq!(in_order.local(Local::Odometer(odometer(310)), 1_000_000), LocalFate::Applied);
         drive(&mut late, 305, 310);
         assert_eq!(bits(&in_order.filter), bits(&late.filter), "the waiting sample is applied at its instant");
+    }
+
+    /// A GNSS fix `ms` after the start, where the vehicle was (about), `off_m` north of it.
+    fn fix(ms: u64, off_m: f64) -> Local {
+        let north = 10.0 + 5.0 * ms as f64 * 1e-3 + off_m;
+        Local::Fix(PositionFixSample { t: at(ms), pos_ned_m: Vector3::new(north, -4.3, 0.0), sigma_h_m: 0.3, sigma_v_m: None })
+    }
+
+    #[test]
+    fn a_late_gnss_fix_rebuilds_the_filter_and_one_beyond_its_gate_changes_nothing() {
+        let (mut in_order, mut late) = (rewind(), rewind());
+        for ms in (5..=400).step_by(5) {
+            in_order.take_imu(imu(ms)).unwrap();
+            if ms % 200 == 0 {
+                assert_eq!(in_order.local(fix(ms, 0.0), 1_000_000), LocalFate::Applied, "{ms} ms");
+            }
+            late.take_imu(imu(ms)).unwrap();
+        }
+        assert_ne!(bits(&in_order.filter), bits(&late.filter), "the fix changes the filter");
+        assert!(matches!(late.local(fix(200, 0.0), 1_000_000), LocalFate::Late { refused: false, .. }));
+        assert_eq!(late.local(fix(400, 0.0), 1_000_000), LocalFate::Applied);
+        assert_eq!(bits(&in_order.filter), bits(&late.filter));
+        // 50 m off and late: judged in the replay it starts, refused, and said so (once: the
+        // replay of a joint update after it judges it again without counting it)
+        assert!(matches!(late.local(fix(300, 50.0), 1_000_000), LocalFate::Late { refused: true, .. }));
+        assert_eq!(bits(&in_order.filter), bits(&late.filter), "nothing of it applied");
+        let checkpoint = late.history[0].t;
+        let again = late.replay_from_checkpoint_at(checkpoint, WriteBack::Nothing);
+        assert!(again.result.is_ok() && again.refused == Refused::default());
+        assert_eq!(bits(&in_order.filter), bits(&late.filter));
+        // 50 m off at its instant: refused there
+        in_order.take_imu(imu(405)).unwrap();
+        late.take_imu(imu(405)).unwrap();
+        assert_eq!(late.local(fix(405, 50.0), 1_000_000), LocalFate::Rejected);
+        assert_eq!(bits(&in_order.filter), bits(&late.filter), "nothing of it applied");
+        assert_eq!(late.local(fix(410, 50.0), 1_000_000), LocalFate::Waits);
+        assert_eq!(late.take_imu(imu(410)).unwrap(), Refused { odometer: 0, fixes: 1 });
+        assert_eq!(in_order.take_imu(imu(410)).unwrap(), Refused::default());
+        assert_eq!(bits(&in_order.filter), bits(&late.filter));
     }
 
     #[test]

@@ -487,3 +487,71 @@ fn ranges_are_put_on_the_epoch_grid() {
     plain.set_companion_offset(unix0 - 10_000_000 + 3_200);
     assert_eq!(times(plain.decode(&own_range(11_000_000))), [TimeUs(unix0 as u64 + 1_003_200)]);
 }
+
+fn gps(time_usec: u64, fix_type: crate::protocol::dialect::cooploc::GpsFixType, north_m: f64, h_acc: u32) -> MavMessage {
+    const O: GeoOrigin = GeoOrigin { lat_deg: -35.363261, lon_deg: 149.16523, alt_m: 584.0 };
+    MavMessage::GPS_RAW_INT(crate::protocol::dialect::cooploc::GPS_RAW_INT_DATA {
+        time_usec,
+        fix_type,
+        lat: wire::deg_to_e7(O.lat_deg + north_m / 111_319.49),
+        lon: wire::deg_to_e7(O.lon_deg),
+        alt: 584_000,
+        eph: u16::MAX,
+        h_acc,
+        v_acc: 2 * h_acc,
+        ..Default::default()
+    })
+}
+
+fn fixes(e: Vec<VehicleEvent>) -> Vec<crate::estimation::PositionFixSample> {
+    e.into_iter()
+        .filter_map(|e| match e {
+            VehicleEvent::Input(NodeInput::PositionFix(s)) => Some(s),
+            _ => None,
+        })
+        .collect()
+}
+
+/// GNSS fixes are inputs only once the hand-over asked for them (the team's origin given): a
+/// 3D fix about the origin, its stamp less the receiver's lag, in the team's clock; a repeat
+/// of the same fix, a fix without accuracy, one before the clock is mapped or long stale are
+/// dropped and counted, and no fix stamp takes part in the reboot detection.
+#[test]
+fn gnss_fixes_are_taken_once_asked_for_once_each_and_in_the_team_clock() {
+    use crate::protocol::dialect::cooploc::GpsFixType::{GPS_FIX_TYPE_2D_FIX, GPS_FIX_TYPE_3D_FIX, GPS_FIX_TYPE_RTK_FIXED};
+    let origin = GeoOrigin { lat_deg: -35.363261, lon_deg: 149.16523, alt_m: 584.0 };
+    let mut d = inputs(|c| {
+        c.imu = ImuMessage::RawImu;
+        c.clock = TeamClock::Companion;
+        c.gnss_lag_ms = 100;
+    });
+    assert!(fixes(d.decode(&gps(5_000_000, GPS_FIX_TYPE_3D_FIX, 10.0, 300))).is_empty(), "not asked for");
+    assert_eq!(d.counters.gnss_fixes, 0);
+    d.fuse_gnss(origin);
+    assert!(fixes(d.decode(&gps(5_000_000, GPS_FIX_TYPE_3D_FIX, 10.0, 300))).is_empty(), "no team clock yet");
+    assert_eq!(d.counters.gnss_stale, 1);
+    let unix0 = 1_795_000_000_000_000u64;
+    d.set_companion_offset(unix0 as i64);
+    d.decode(&raw(5_150_000, [0, 0, -1000], [0; 3]));
+    let got = fixes(d.decode(&gps(5_200_000, GPS_FIX_TYPE_3D_FIX, 10.0, 300)));
+    assert_eq!(got.len(), 1);
+    assert_eq!(got[0].t, TimeUs(unix0 + 5_100_000), "stamped on arrival, less the 100 ms lag");
+    assert!((got[0].pos_ned_m.x - 10.0).abs() < 0.01 && got[0].pos_ned_m.y.abs() < 0.01, "{:?}", got[0]);
+    assert_eq!((got[0].sigma_h_m, got[0].sigma_v_m), (0.3, Some(0.6)));
+    // the same fix streamed again: once
+    assert!(fixes(d.decode(&gps(5_200_000, GPS_FIX_TYPE_3D_FIX, 10.0, 300))).is_empty());
+    assert_eq!(d.counters.gnss_repeats, 1);
+    // no 3D fix: nothing, and not counted as bad
+    assert!(fixes(d.decode(&gps(5_400_000, GPS_FIX_TYPE_2D_FIX, 10.0, 300))).is_empty());
+    // no accuracy at all: refused
+    assert!(fixes(d.decode(&gps(5_600_000, GPS_FIX_TYPE_RTK_FIXED, 10.0, 0))).is_empty());
+    assert_eq!(d.counters.gnss_invalid, 1);
+    // a fix stamped 3 s before the IMU: stale; three of them are no reboot
+    d.decode(&raw(9_000_000, [0, 0, -1000], [0; 3]));
+    for k in 0..3 {
+        assert!(fixes(d.decode(&gps(5_800_000 + k, GPS_FIX_TYPE_3D_FIX, 10.0, 300))).is_empty());
+    }
+    assert_eq!((d.counters.gnss_stale, d.counters.reboots), (4, 0));
+    assert_eq!(fixes(d.decode(&gps(8_900_000, GPS_FIX_TYPE_3D_FIX, 12.0, 300))).len(), 1);
+    assert_eq!(d.counters.gnss_fixes, 2);
+}
