@@ -72,13 +72,23 @@ pub(super) struct Refused {
     pub(super) fixes: u64,
 }
 
-/// A vehicle input kept for replays. A local measurement carries whether the filter has judged
-/// it yet (applied, or refused and counted): a late or waiting one is judged in the
-/// integration or replay that first reaches its instant, and counted there once.
+/// A vehicle input kept for replays. A local measurement carries its [`Judgement`].
 #[derive(Debug, Clone)]
 enum Stamped {
     Drive(Drive),
-    Local(Local, bool),
+    Local(Local, Judgement),
+}
+
+/// Whether the filter has judged a kept local measurement yet. A late or waiting one is judged
+/// in the integration or replay that first reaches its instant, and counted there once. A GNSS
+/// fix refused then stays refused in later replays, as one refused at its own instant is never
+/// kept (an odometer sample, which only a value that is no number makes the filter refuse, is
+/// offered again: the logs of earlier releases replay so).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum Judgement {
+    Pending,
+    Taken,
+    Refused,
 }
 
 impl Stamped {
@@ -241,11 +251,11 @@ impl Rewind {
         if self.open_instant == Some(s.t()) {
             let fate = if s.apply(&mut self.filter) { LocalFate::Applied } else { LocalFate::Rejected };
             if fate == LocalFate::Applied {
-                self.insert_input(Stamped::Local(s, true));
+                self.insert_input(Stamped::Local(s, Judgement::Taken));
             }
             return fate;
         }
-        self.insert_input(Stamped::Local(s, false));
+        self.insert_input(Stamped::Local(s, Judgement::Pending));
         if s.t() > now {
             return LocalFate::Waits;
         }
@@ -265,13 +275,12 @@ impl Rewind {
     }
 
     /// One IMU sample through the filter: the interval up to it is cut at every mark, every
-    /// odometer sample and, for a gap, every step the filter takes; each piece holds the sample's
-    /// rates; the odometer samples of each instant are applied at its end. Checkpoints every
-    /// instant it closes. Returns the local measurements judged here for the first time that the
-    /// filter refused (see [`Stamped`]) (none in a
-    /// replay). On error the filter, its checkpoints and its open instant are as they were (the
-    /// filter is copied only when the interval is cut: one propagation that fails changes
-    /// nothing by itself).
+    /// local measurement and, for a gap, every step the filter takes; each piece holds the
+    /// sample's rates; the local measurements of each instant are applied at its end.
+    /// Checkpoints every instant it closes. Returns the local measurements judged here for the
+    /// first time that the filter refused ([`Judgement`]). On error the filter, its checkpoints
+    /// and its open instant are as they were (the filter is copied only when the interval is
+    /// cut: one propagation that fails changes nothing by itself).
     fn integrate(&mut self, s: &Drive) -> Result<Refused, EstimationError> {
         let (history_len, open, unsaved) = (self.history.len(), self.open_instant, self.unsaved);
         self.integrate_pieces(s).map_err(|(e, before)| {
@@ -318,12 +327,17 @@ impl Rewind {
             }
             self.open_instant = Some(t);
             for &(k, _) in locals.iter().filter(|&&(_, at)| at == t) {
-                let Stamped::Local(o, judged) = &mut self.inputs[k] else { continue };
+                let Stamped::Local(o, judgement) = &mut self.inputs[k] else { continue };
+                if matches!((*o, *judgement), (Local::Fix(_), Judgement::Refused)) {
+                    continue;
+                }
                 let applied = o.apply(&mut self.filter);
-                if !std::mem::replace(judged, true) && !applied {
-                    match o {
-                        Local::Odometer(_) => refused.odometer += 1,
-                        Local::Fix(_) => refused.fixes += 1,
+                if *judgement == Judgement::Pending {
+                    *judgement = if applied { Judgement::Taken } else { Judgement::Refused };
+                    match (applied, o) {
+                        (true, _) => {}
+                        (false, Local::Odometer(_)) => refused.odometer += 1,
+                        (false, Local::Fix(_)) => refused.fixes += 1,
                     }
                 }
             }
@@ -571,6 +585,14 @@ mod tests {
         let again = late.replay_from_checkpoint_at(checkpoint, WriteBack::Nothing);
         assert!(again.result.is_ok() && again.refused == Refused::default());
         assert_eq!(bits(&in_order.filter), bits(&late.filter));
+        // and a replay whose filter would now take it (its covariance grown by 10^4 m^2 of noise)
+        // still leaves it out, as a fix refused at its own instant is
+        let noise = DMatrix::identity(16, 16) * 1e4;
+        let (mut with, mut without) = (late, in_order);
+        assert!(with.replay_from_checkpoint_at(checkpoint, WriteBack::Noise(&noise)).result.is_ok());
+        assert!(without.replay_from_checkpoint_at(checkpoint, WriteBack::Noise(&noise)).result.is_ok());
+        assert_eq!(bits(&with.filter), bits(&without.filter), "the refused fix stayed out");
+        let (mut late, mut in_order) = (with, without);
         // 50 m off at its instant: refused there
         in_order.take_imu(imu(405)).unwrap();
         late.take_imu(imu(405)).unwrap();
