@@ -89,10 +89,13 @@ impl Handover {
                     self.had_fix = true;
                     self.without_fix = 0;
                     self.fixes_in_row = self.fixes_in_row.saturating_add(1);
-                    if self.started && self.lost && self.fixes_in_row >= BACK_AFTER {
+                    if self.lost && self.fixes_in_row >= BACK_AFTER {
+                        // (back before the node could start: nothing to hand back)
                         self.lost = false;
-                        self.returns += 1;
-                        return Some(HandoverEvent::Back);
+                        if self.started {
+                            self.returns += 1;
+                            return Some(HandoverEvent::Back);
+                        }
                     }
                 } else {
                     self.fixes_in_row = 0;
@@ -264,6 +267,13 @@ mod tests {
         assert_eq!(time_boot_ms, 1_010);
         assert!((state.pos_ned_m.x - 5.0).abs() < 0.02);
         assert!(h.lost(), "lost before it started: no Lost event, the node reads lost()");
+        // back before the node could start: no longer lost, and no Back to hand back
+        let mut back = h.clone();
+        back.retry();
+        back.attitude = None;
+        assert_eq!(fixes(&mut back, GpsFixType::GPS_FIX_TYPE_3D_FIX, BACK_AFTER as usize), vec![]);
+        assert!(!back.lost());
+        assert_eq!(back.returns, 0);
         // unless the node could not take it (its clock not mapped yet): then the next estimate
         h.retry();
         let Some(HandoverEvent::Start { time_boot_ms, .. }) = h.on_message(&attitude(1_110, 0.5), &ORIGIN) else {
