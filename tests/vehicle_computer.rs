@@ -314,7 +314,7 @@ fn a_team_whose_autopilots_clocks_run_slow_names_every_epoch_alike() {
         // companions' grid, 8 ms a second, and are counted off the grid: every node alike)
         // (a claim refused because this node's filter was behind, on a loaded machine, is taken
         // later and names nothing differently; CI saw one other refusal in a run where all 25
-        // epochs applied, which 21 runs since, loaded or not, did not repeat: the stats now say
+        // epochs applied, which 15 runs since, loaded or not, did not repeat: the stats now say
         // which kind, `epochs_misnamed` or `epochs_unfit`)
         let misnamed = count(&stats, "epochs_implausible") - count(&stats, "epochs_ahead");
         assert_eq!(misnamed, count(&stats, "epochs_misnamed") + count(&stats, "epochs_unfit"), "{stats}");
