@@ -39,7 +39,9 @@ pub struct Vouched {
 /// The bits both autopilots' status flags share (EKF_STATUS_FLAGS, ESTIMATOR_STATUS_FLAGS).
 const ATTITUDE: u16 = 1;
 const VELOCITY_HORIZ: u16 = 2;
-const POS_HORIZ: u16 = 8 | 16; // relative or absolute
+/// The bit of an absolute horizontal position (a relative one is 8).
+pub const POS_HORIZ_ABS: u16 = 16;
+const POS_HORIZ: u16 = 8 | POS_HORIZ_ABS; // relative or absolute
 const CONST_POS_MODE: u16 = 128;
 
 impl Vouched {

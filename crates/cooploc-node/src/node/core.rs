@@ -312,10 +312,10 @@ pub struct NodeStats {
     pub odometer_unmatched: u64,
     /// Odometer samples the filter refused (gated or invalid).
     pub odometer_rejected: u64,
-    /// GNSS fixes matched to the filter's history (applied, refused, or waiting for the IMU
-    /// sample that covers them).
+    /// GNSS fixes taken (applied, or waiting for the IMU sample that covers them), as
+    /// `odometer` counts odometer samples.
     pub fixes: u64,
-    /// Of those, the fixes beyond their gate (or invalid): not applied.
+    /// GNSS fixes beyond their gate (or invalid): not applied.
     pub fixes_rejected: u64,
     /// GNSS fixes older than the history, or implausibly far ahead of the IMU.
     pub fixes_unmatched: u64,
@@ -865,8 +865,8 @@ impl NodeCore {
         match input {
             NodeInput::Imu(s) => self.vehicle_drive(Drive::Imu(s), &mut out),
             NodeInput::Wheel(s) => self.vehicle_drive(Drive::Wheel(s), &mut out),
-            NodeInput::Odometer(s) => self.vehicle_odometer(s, &mut out),
-            NodeInput::PositionFix(s) => self.vehicle_fix(s, &mut out),
+            NodeInput::Odometer(s) => self.vehicle_local(Local::Odometer(s), &mut out),
+            NodeInput::PositionFix(s) => self.vehicle_local(Local::Fix(s), &mut out),
             NodeInput::OwnRange { epoch, range } => {
                 if range.from != self.cfg.id || range.to == self.cfg.id || !self.in_team(range.to) {
                     self.stats.ranges_rejected += 1;
@@ -958,45 +958,28 @@ impl NodeCore {
         }
     }
 
-    fn vehicle_odometer(&mut self, s: OdometerSample, out: &mut Vec<NodeOutput>) {
-        let fate = self.rewind.local(Local::Odometer(s), self.cfg.max_lead_us.min(1_000_000));
+    /// A local measurement of our own vehicle (an odometer sample, a GNSS fix): a local update
+    /// at its time, or written into the past when late ([`rewind::Rewind::local`]). Counted by
+    /// kind: taken (applied or waiting), refused, unmatched (far ahead of the IMU, or older than
+    /// anything kept).
+    fn vehicle_local(&mut self, s: Local, out: &mut Vec<NodeOutput>) {
+        let fate = self.rewind.local(s, self.cfg.max_lead_us.min(1_000_000));
         let st = &mut self.stats;
+        let (taken, refused_count, unmatched) = match s {
+            Local::Odometer(_) => (&mut st.odometer, &mut st.odometer_rejected, &mut st.odometer_unmatched),
+            Local::Fix(_) => (&mut st.fixes, &mut st.fixes_rejected, &mut st.fixes_unmatched),
+        };
         match fate {
             LocalFate::Unmatched => {
-                // Far ahead of its own vehicle's IMU, or older than anything kept.
-                st.odometer_unmatched += 1;
+                *unmatched += 1;
                 return;
             }
-            LocalFate::Applied | LocalFate::Waits => st.odometer += 1,
-            LocalFate::Rejected => st.odometer_rejected += 1,
+            LocalFate::Applied | LocalFate::Waits => *taken += 1,
+            LocalFate::Rejected => *refused_count += 1,
             LocalFate::Late { replayed, refused } => {
-                st.odometer += u64::from(!refused);
-                st.odometer_rejected += u64::from(refused);
-                st.odometer_late += 1;
-                st.replayed_inputs += replayed;
-            }
-        }
-        self.after_input(out);
-    }
-
-    /// A GNSS fix of our own vehicle: a local update at its time, as an odometer sample is (a
-    /// late one is written into the past). Gated ([`crate::estimation::fix`]).
-    fn vehicle_fix(&mut self, s: PositionFixSample, out: &mut Vec<NodeOutput>) {
-        let fate = self.rewind.local(Local::Fix(s), self.cfg.max_lead_us.min(1_000_000));
-        let st = &mut self.stats;
-        match fate {
-            LocalFate::Unmatched => {
-                st.fixes_unmatched += 1;
-                return;
-            }
-            LocalFate::Applied | LocalFate::Waits => st.fixes += 1,
-            LocalFate::Rejected => {
-                st.fixes += 1;
-                st.fixes_rejected += 1;
-            }
-            LocalFate::Late { replayed, refused } => {
-                st.fixes += 1;
-                st.fixes_rejected += u64::from(refused);
+                *taken += u64::from(!refused);
+                *refused_count += u64::from(refused);
+                st.odometer_late += u64::from(matches!(s, Local::Odometer(_)));
                 st.replayed_inputs += replayed;
             }
         }

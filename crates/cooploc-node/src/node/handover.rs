@@ -21,7 +21,7 @@
 //! - when a fix is back for [`BACK_AFTER`] messages in a row, `lost` turns false again: the node
 //!   hands back (the source set on GNSS) and takes the fixes again.
 
-use super::autopilot_fix::Vouched;
+use super::autopilot_fix::{POS_HORIZ_ABS, Vouched};
 use crate::estimation::ins::InsState;
 use crate::protocol::MavMessage;
 use crate::protocol::dialect::cooploc::{ATTITUDE_DATA, COMMAND_LONG_DATA, GLOBAL_POSITION_INT_DATA, MavCmd};
@@ -40,8 +40,6 @@ pub const BACK_AFTER: u32 = 10;
 pub const STALE_MS: u32 = 1_000;
 /// GPS_RAW_INT `fix_type` of a 3D fix.
 pub const FIX_3D: u8 = 3;
-/// The status bit of an absolute horizontal position (EKF_STATUS_REPORT's and ESTIMATOR_STATUS's).
-const POS_HORIZ_ABS: u16 = 16;
 
 /// What the autopilot's messages say about the hand-over.
 #[derive(Debug, Clone, PartialEq)]

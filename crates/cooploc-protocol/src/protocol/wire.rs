@@ -1055,15 +1055,7 @@ pub fn ins_state_from_autopilot(
     a: &ATTITUDE_DATA,
     origin: &GeoOrigin,
 ) -> Result<crate::estimation::ins::InsState, WireError> {
-    const MSG: &str = "GLOBAL_POSITION_INT";
-    let (lat_deg, lon_deg) = (e7_to_deg(p.lat), e7_to_deg(p.lon));
-    if !(-90.0..=90.0).contains(&lat_deg) || !(-180.0..=180.0).contains(&lon_deg) || (p.lat == 0 && p.lon == 0) {
-        return Err(bad(MSG, "lat", format!("{lat_deg}, {lon_deg}: no position")));
-    }
-    let pos = geodetic_to_ned(origin, &Geodetic { lat_deg, lon_deg, alt_m: f64::from(p.alt) * 1e-3 });
-    if pos.xy().norm() > 100_000.0 {
-        return Err(bad(MSG, "lat", format!("{:.0} km from the origin", pos.xy().norm() * 1e-3)));
-    }
+    let pos = position_about("GLOBAL_POSITION_INT", (p.lat, p.lon, p.alt), origin)?;
     let vel = Vector3::new(f64::from(p.vx), f64::from(p.vy), f64::from(p.vz)) * 0.01;
     let (roll, pitch, yaw) =
         (finite("ATTITUDE", "roll", a.roll)?, finite("ATTITUDE", "pitch", a.pitch)?, finite("ATTITUDE", "yaw", a.yaw)?);
@@ -1075,6 +1067,20 @@ pub fn ins_state_from_autopilot(
         gyro_bias_frd_rad_s: Vector3::zeros(),
         odometer_scale_error: 0.0,
     })
+}
+
+/// A latitude, longitude (1e-7 deg) and altitude (mm) of message `msg` in the local NED frame of
+/// `origin`. Refused: outside the globe, 0, 0 (no position), more than 100 km from the origin.
+fn position_about(msg: &'static str, (lat, lon, alt_mm): (i32, i32, i32), origin: &GeoOrigin) -> Result<Vector3<f64>, WireError> {
+    let (lat_deg, lon_deg) = (e7_to_deg(lat), e7_to_deg(lon));
+    if !(-90.0..=90.0).contains(&lat_deg) || !(-180.0..=180.0).contains(&lon_deg) || (lat == 0 && lon == 0) {
+        return Err(bad(msg, "lat", format!("{lat_deg}, {lon_deg}: no position")));
+    }
+    let pos = geodetic_to_ned(origin, &Geodetic { lat_deg, lon_deg, alt_m: f64::from(alt_mm) * 1e-3 });
+    if pos.xy().norm() > 100_000.0 {
+        return Err(bad(msg, "lat", format!("{:.0} km from the origin", pos.xy().norm() * 1e-3)));
+    }
+    Ok(pos)
 }
 
 /// Horizontal one-sigma per unit of HDOP, m, for a GPS_RAW_INT without `h_acc` (a receiver
@@ -1094,10 +1100,7 @@ pub fn position_fix_from_gps_raw(
     if (m.fix_type as u8) < 3 {
         return Err(bad(MSG, "fix_type", format!("{:?}: no 3D fix", m.fix_type)));
     }
-    let (lat_deg, lon_deg) = (e7_to_deg(m.lat), e7_to_deg(m.lon));
-    if !(-90.0..=90.0).contains(&lat_deg) || !(-180.0..=180.0).contains(&lon_deg) || (m.lat == 0 && m.lon == 0) {
-        return Err(bad(MSG, "lat", format!("{lat_deg}, {lon_deg}: no position")));
-    }
+    let pos = position_about(MSG, (m.lat, m.lon, m.alt), origin)?;
     let sigma_h_m = if m.h_acc > 0 {
         f64::from(m.h_acc) * 1e-3
     } else if m.eph != u16::MAX && m.eph > 0 {
@@ -1105,10 +1108,6 @@ pub fn position_fix_from_gps_raw(
     } else {
         return Err(bad(MSG, "h_acc", "no accuracy (h_acc 0, eph unknown)"));
     };
-    let pos = geodetic_to_ned(origin, &Geodetic { lat_deg, lon_deg, alt_m: f64::from(m.alt) * 1e-3 });
-    if pos.xy().norm() > 100_000.0 {
-        return Err(bad(MSG, "lat", format!("{:.0} km from the origin", pos.xy().norm() * 1e-3)));
-    }
     let fix = crate::estimation::PositionFixSample {
         t: TimeUs(0),
         pos_ned_m: pos,
