@@ -6,8 +6,13 @@
 //! once ([`TEAMS_AT_ONCE`]), so that the nodes are not starved of the CPU.
 //!
 //! - datagram loss of 30% and 50%: the team within 1.6x of its loss-free final error (30%), no
-//!   node worse than its dead reckoning (50%), and the same ratios to the fault-free run as the
-//!   harness's cases at 5x (`coop loss 30%/50%, packed, 5x real time`), within 20%;
+//!   node worse than its dead reckoning (50%), and the same cost of the loss as the harness's
+//!   cases at 5x (`coop loss 30%/50%, packed, 5x real time`): the team's whole-run RMS error as a
+//!   ratio to its fault-free run within 20% of the harness's. (Final errors are printed but not
+//!   compared: at 50% loss the processes' final ratio spread 0.89-1.29x over five runs, one of
+//!   them in CI with one heal per node near the end, where the harness over 12 link seeds spread
+//!   0.95-1.00x: the processes' timing, wall time on a shared CPU, varies more than the
+//!   harness's link seeds, and one late heal moves a final error by a third.)
 //! - a forged record (platform 2's genuine record of the epoch before, moved 30 m and labelled
 //!   as the attack epoch, sent to the others before the genuine one) and a relabelled replay
 //!   (platform 2's record of ten epochs earlier under the current epoch's number), on the
@@ -83,6 +88,22 @@ struct Outcome {
 impl Outcome {
     fn rms(&self) -> f64 {
         (self.finals.iter().map(|e| e * e).sum::<f64>() / self.finals.len() as f64).sqrt()
+    }
+
+    /// The team's whole-run RMS horizontal error, m: each node's error at every epoch whose
+    /// record the relay saw (the estimate the record carries), root-mean-squared per node, then
+    /// over the team. A final error is one draw; at 50% loss, one heal near the end moves it by
+    /// a third, while the whole run's error measures what the loss cost throughout.
+    fn run_rms(&self, world: &World) -> f64 {
+        let mut per_node: BTreeMap<u16, (f64, u32)> = BTreeMap::new();
+        for ((p, _), r) in &self.estimates {
+            let truth = world.trajectory(*p).unwrap().truth_at(r.t).pos_ned_m;
+            let e = per_node.entry(*p).or_default();
+            e.0 += (truth - r.position_ned_m).xy().norm_squared();
+            e.1 += 1;
+        }
+        assert_eq!(per_node.len(), self.finals.len(), "the relay saw records from {} nodes", per_node.len());
+        (per_node.values().map(|(s, n)| s / f64::from(*n)).sum::<f64>() / per_node.len() as f64).sqrt()
     }
 
     /// Node `k`'s counter `name` in its `NodeStats` line (`name: N`).
@@ -325,10 +346,21 @@ fn run_team(loss: f64, attack: Attack, signed: bool, restart: bool) -> Outcome {
     outcome
 }
 
-/// The harness's team RMS for `loss` at 5x with packed datagrams, and the fault-free one, over
-/// the same seed and run as the processes (one run each, the link faults to the end).
-fn harness_ratio(loss: f64) -> f64 {
-    harness_case_ratio(Faults { coop_loss: loss, links_until_s: 1e9, ..Faults::default() })
+/// The harness's cost of `loss` at 5x with packed datagrams, against its fault-free run, over
+/// the same seed and run as the processes (one run each, the link faults to the end): the ratio
+/// of the team's final RMS and of its whole-run RMS (each node's error sampled every second).
+fn harness_ratios(loss: f64) -> (f64, f64) {
+    let world = World::new(&Scenario::from_toml_str(PAPER_TOML).unwrap()).unwrap();
+    let team = |faults: &Faults| {
+        let out = run_case(&world, faults, Method::Decentralized, "1hz", SEED, 0, Encoding::F64).unwrap();
+        let rms = |f: &dyn Fn(&cooploc::experiment::faults::NodeOutcome) -> f64| {
+            (out.nodes.iter().map(|n| f(n).powi(2)).sum::<f64>() / out.nodes.len() as f64).sqrt()
+        };
+        (rms(&|n| n.final_err_m), rms(&|n| n.rms_err_m))
+    };
+    let lossy = team(&Faults { coop_loss: loss, links_until_s: 1e9, packed: true, speed: SPEED, ..Faults::default() });
+    let clean = team(&Faults { speed: SPEED, ..Faults::default() });
+    (lossy.0 / clean.0, lossy.1 / clean.1)
 }
 
 /// The harness's team RMS for `faults` at 5x with packed datagrams, against its fault-free run,
@@ -368,14 +400,20 @@ fn print(name: &str, o: &Outcome) {
 #[test]
 fn datagram_loss_on_the_sockets_costs_what_the_core_harness_says() {
     let [clean, thirty, fifty] = at_once([(0.0, Attack::None, true), (0.3, Attack::None, true), (0.5, Attack::None, true)]);
+    let world = World::new(&Scenario::from_toml_str(PAPER_TOML).unwrap()).unwrap();
     print("clean", &clean);
     let mut problems = Vec::new();
     for (loss, bound, lossy) in [(0.3, Some(1.6), thirty), (0.5, None, fifty)] {
         let name = format!("{:.0}% loss", loss * 100.0);
         print(&name, &lossy);
         let before = problems.len();
-        let (processes, harness) = (lossy.rms() / clean.rms(), harness_ratio(loss));
-        eprintln!("{:.0}% loss: processes {processes:.3}x their clean run, harness {harness:.3}x", loss * 100.0);
+        let (finals, (harness_finals, harness)) = (lossy.rms() / clean.rms(), harness_ratios(loss));
+        let processes = lossy.run_rms(&world) / clean.run_rms(&world);
+        eprintln!(
+            "{:.0}% loss: whole run processes {processes:.3}x their clean run, harness {harness:.3}x; \
+             final errors processes {finals:.3}x, harness {harness_finals:.3}x",
+            loss * 100.0
+        );
         eprintln!("{}", lossy.epochs_line(&name));
         if let Some(bound) = bound
             && processes > bound
@@ -393,7 +431,10 @@ fn datagram_loss_on_the_sockets_costs_what_the_core_harness_says() {
             }
         }
         if (processes / harness - 1.0).abs() > 0.2 {
-            problems.push(format!("{:.0}% loss: processes {processes:.3}x, harness {harness:.3}x: not within 20%", loss * 100.0));
+            problems.push(format!(
+                "{:.0}% loss: the whole run's error processes {processes:.3}x, harness {harness:.3}x: not within 20%",
+                loss * 100.0
+            ));
         }
         if problems.len() > before {
             problems.push(lossy.epochs_line(&name));
