@@ -169,6 +169,7 @@ pub async fn run_demo(cfg: DemoConfig, ready: impl FnOnce(&DemoAddresses)) -> Re
         gnss_time: false,
         gnss_lost_at: None,
         gnss_back_at: None,
+        gnss_glitch_m: None,
     };
     let sim = Simulator::bind(world.clone(), sitl).await.step("starting the simulator")?;
     let vehicles: Vec<(PlatformId, SocketAddr)> = sim

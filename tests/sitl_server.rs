@@ -104,6 +104,7 @@ fn config(world: &World, speed: Speed) -> SitlConfig {
         gnss_time: false,
         gnss_lost_at: None,
         gnss_back_at: None,
+        gnss_glitch_m: None,
     }
 }
 

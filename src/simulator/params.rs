@@ -126,6 +126,7 @@ mod tests {
             gnss: true,
             gnss_lost_at: None,
             gnss_back_at: None,
+            gnss_glitch_m: None,
         }
     }
 

@@ -105,6 +105,9 @@ pub struct SitlConfig {
     pub gnss_lost_at: Option<TimeUs>,
     /// After `gnss_lost_at`: the fix comes back at this simulated time.
     pub gnss_back_at: Option<TimeUs>,
+    /// From `gnss_lost_at` to `gnss_back_at`: no loss but a glitch, the fix's position this far
+    /// north of the truth, m.
+    pub gnss_glitch_m: Option<f64>,
 }
 
 /// What can stop a simulator.
@@ -201,6 +204,7 @@ pub fn vehicle_config(
         gnss: autopilot == Autopilot::Cooploc,
         gnss_lost_at: None,
         gnss_back_at: None,
+        gnss_glitch_m: None,
     }
 }
 
@@ -403,6 +407,7 @@ impl Simulator {
             vehicle.gnss |= config.gnss_time;
             vehicle.gnss_lost_at = config.gnss_lost_at;
             vehicle.gnss_back_at = config.gnss_back_at;
+            vehicle.gnss_glitch_m = config.gnss_glitch_m;
             let core = VehicleCore::new(vehicle).map_err(|e| SimError::Config(e.to_string()))?;
             let mut core = core;
             for &(message_id, hz) in &config.stream_rates {

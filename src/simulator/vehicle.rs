@@ -160,6 +160,28 @@ pub struct VehicleConfig {
     pub gnss_lost_at: Option<TimeUs>,
     /// After `gnss_lost_at`: the fix is back from then on.
     pub gnss_back_at: Option<TimeUs>,
+    /// From `gnss_lost_at` to `gnss_back_at` the fix stays 3D but its position is this far north
+    /// of the truth, m: a glitch (ArduPilot SITL's SIM_GPS1_GLTCH_X), not a loss. The EKF as
+    /// ArduPilot's EKF3 did on its SITL with 33 m ([`glitch_flagged`]).
+    pub gnss_glitch_m: Option<f64>,
+}
+
+/// ArduPilot's EKF3 at a GNSS glitch of 33 m on its SITL (one run, three rovers, alike to 0.2 s):
+/// EKF_GPS_GLITCHING 1.1-1.3 s after the offset came, the position reset to the glitched GNSS
+/// 10 s after it, the flag cleared 10 s after the reset; and the same again when the offset went.
+/// The flag is raised only while the EKF's position source is GNSS (`AP_NavEKF3_Control.cpp`).
+/// The personality models the EKF that never leaves GNSS (no take-over): once a node switches it
+/// to external navigation (ArduPilot's source set 2), the glitch is over for the EKF: it
+/// navigates on the node's ODOMETRY, and when it is handed back, GNSS agrees with it (not
+/// modelled: a take-over after the reset, whose hand-back would meet a jump).
+const GLITCH_FLAG_AFTER_US: u64 = 1_300_000;
+const GLITCH_RESET_AFTER_US: u64 = 10_000_000;
+const GLITCH_CLEARED_AFTER_US: u64 = 20_000_000;
+
+/// Whether the EKF on GNSS flags a glitch at `t`, for a glitch from `from` to `to` (each jump of
+/// the receiver's position, in and out, is one).
+fn glitch_flagged(t: TimeUs, from: TimeUs, to: TimeUs) -> bool {
+    [from, to].iter().any(|jump| t.0 >= jump.0 + GLITCH_FLAG_AFTER_US && t.0 < jump.0 + GLITCH_CLEARED_AFTER_US)
 }
 
 /// Where an outgoing message goes.
@@ -520,6 +542,12 @@ impl VehicleCore {
             self.gnss_fix(t) || self.odometry_error.is_some_and(|(at, _, _)| t.0 <= at.0.saturating_add(EKF_DEAD_RECKONING_US));
         if self.ekf_origin.is_some() && aided {
             flags |= EkfStatusFlags::EKF_POS_HORIZ_REL | EkfStatusFlags::EKF_POS_HORIZ_ABS;
+        }
+        if let Some((from, to, _)) = self.glitch()
+            && self.glitch_followed()
+            && glitch_flagged(t, from, to)
+        {
+            flags |= EkfStatusFlags::from_bits_retain(0x8000); // EKF_GPS_GLITCHING (ardupilotmega)
         }
         MavMessage::EKF_STATUS_REPORT(EKF_STATUS_REPORT_DATA { flags, ..Default::default() })
     }
@@ -992,10 +1020,23 @@ impl VehicleCore {
         self.counters.last_odometry_error_mm = Some(error_mm);
     }
 
-    /// Whether the EKF has a GNSS fix at `t`.
+    /// Whether the EKF has a GNSS fix at `t` (a glitch keeps it).
     fn gnss_fix(&self, t: TimeUs) -> bool {
         self.config.gnss
-            && (self.config.gnss_lost_at.is_none_or(|lost| t < lost) || self.config.gnss_back_at.is_some_and(|back| t >= back))
+            && (self.config.gnss_glitch_m.is_some()
+                || self.config.gnss_lost_at.is_none_or(|lost| t < lost)
+                || self.config.gnss_back_at.is_some_and(|back| t >= back))
+    }
+
+    /// The glitch (from, to, metres north), if the vehicle has one.
+    fn glitch(&self) -> Option<(TimeUs, TimeUs, f64)> {
+        let (from, m) = (self.config.gnss_lost_at?, self.config.gnss_glitch_m?);
+        Some((from, self.config.gnss_back_at.unwrap_or(TimeUs(u64::MAX / 2)), m))
+    }
+
+    /// The EKF has stayed on GNSS (no source set asked for): it follows a glitch as EKF3 did.
+    fn glitch_followed(&self) -> bool {
+        self.counters.source_sets.is_empty()
     }
 
     /// The autopilot's fix and estimate at `t`: on GNSS, exact; without, the truth plus the
@@ -1010,7 +1051,18 @@ impl VehicleCore {
             body_rate_rad_s: nalgebra::Vector3::new(0.0, 0.0, tr.yaw_rate_rad_s),
         };
         let fix = self.gnss_fix(t);
-        if let (false, Some((_, pos_error, yaw_error))) = (fix, self.odometry_error) {
+        // on GNSS at a glitch: the EKF refuses the jump, then resets to it (and back when it
+        // goes); on external navigation it navigates on the node's ODOMETRY, as without a fix
+        let glitch = self.glitch().filter(|_| fix);
+        let on_gnss = fix && !(glitch.is_some() && self.counters.source_sets.last() == Some(&2));
+        if let Some((from, to, north_m)) = glitch
+            && self.glitch_followed()
+            && t.0 >= from.0 + GLITCH_RESET_AFTER_US
+            && t.0 < to.0 + GLITCH_RESET_AFTER_US
+        {
+            motion.pos_ned_m.x += north_m;
+        }
+        if let (false, Some((_, pos_error, yaw_error))) = (on_gnss, self.odometry_error) {
             let turn = nalgebra::UnitQuaternion::from_axis_angle(&nalgebra::Vector3::z_axis(), yaw_error);
             motion.pos_ned_m += pos_error;
             motion.vel_ned_m_s = turn * motion.vel_ned_m_s;
@@ -1025,7 +1077,14 @@ impl VehicleCore {
             let clock = self.personality.clock_us(t);
             let since_fix = clock % GPS_INTERVAL_US;
             let lagged = truth.truth_at(TimeUs(t.0.saturating_sub(since_fix + GPS_LAG_US)));
-            let geo = wire::ned_to_geodetic(&self.config.origin, &lagged.pos_ned_m);
+            let mut at = lagged.pos_ned_m;
+            if let Some((from, to, north_m)) = glitch
+                && t >= from
+                && t < to
+            {
+                at.x += north_m;
+            }
+            let geo = wire::ned_to_geodetic(&self.config.origin, &at);
             g.lat = wire::deg_to_e7(geo.lat_deg);
             g.lon = wire::deg_to_e7(geo.lon_deg);
             g.alt = (geo.alt_m * 1e3).round() as i32;
@@ -1103,6 +1162,7 @@ mod tests {
             gnss: true,
             gnss_lost_at: None,
             gnss_back_at: None,
+            gnss_glitch_m: None,
         })
         .unwrap()
     }
@@ -1482,6 +1542,47 @@ mod tests {
         gnss.config.autopilot = Autopilot::ArduPilot;
         let MavMessage::EKF_STATUS_REPORT(m) = gnss.ekf_status(TimeUs(1_000_000)) else { panic!() };
         assert_eq!(m.flags.bits() & 0x0018, 0x0018);
+    }
+
+    /// A 33 m glitch from 60 s to 120 s, as the real EKF3 met it (SIM_GPS1_GLTCH_X 0.0003 on
+    /// ArduPilot's SITL): the fix stays 3D and jumps; the EKF flags it 1.3 s later, resets to it
+    /// at 10 s, clears at 20 s, and the same when it goes; a take-over (source set 2) ends it
+    /// for the EKF.
+    #[test]
+    fn a_glitch_jumps_the_fix_and_the_ardupilot_ekf_flags_and_follows_it_as_the_firmware_did() {
+        let w = world();
+        let truth = w.trajectory(1).unwrap();
+        let mut ap = core(1);
+        ap.config.autopilot = Autopilot::ArduPilot;
+        (ap.config.gnss_lost_at, ap.config.gnss_back_at, ap.config.gnss_glitch_m) =
+            (Some(TimeUs(60_000_000)), Some(TimeUs(120_000_000)), Some(33.0));
+        let glitch = |ap: &VehicleCore, s: f64| {
+            let t = TimeUs::from_secs_f64(s);
+            let MavMessage::EKF_STATUS_REPORT(m) = ap.ekf_status(t) else { panic!() };
+            let [MavMessage::GPS_RAW_INT(g), MavMessage::GLOBAL_POSITION_INT(p), _] = ap.estimate(t, truth) else { panic!() };
+            // (to 10 m: the fix is up to 0.3 s old, the vehicle moving)
+            let north = |lat: i32| {
+                let m = (f64::from(lat) * 1e-7 - ap.config.origin.lat_deg) * 111_000.0 - truth.truth_at(t).pos_ned_m.x;
+                (m / 10.0).round() * 10.0 + 0.0
+            };
+            (m.flags.bits() & 0x8000 != 0, g.fix_type as u8, north(g.lat), north(p.lat))
+        };
+        // (flagged, fix type, GPS_RAW_INT's and GLOBAL_POSITION_INT's error north, m)
+        assert_eq!(glitch(&ap, 59.0), (false, 3, 0.0, 0.0));
+        assert_eq!(glitch(&ap, 61.0), (false, 3, 30.0, 0.0), "not flagged yet");
+        assert_eq!(glitch(&ap, 62.0), (true, 3, 30.0, 0.0), "flagged, the jump refused");
+        assert_eq!(glitch(&ap, 71.0), (true, 3, 30.0, 30.0), "reset to it");
+        assert_eq!(glitch(&ap, 81.0), (false, 3, 30.0, 30.0), "cleared: the EKF is on the glitch");
+        assert_eq!(glitch(&ap, 122.0), (true, 3, 0.0, 30.0), "the jump back, flagged and refused");
+        assert_eq!(glitch(&ap, 131.0), (true, 3, 0.0, 0.0));
+        assert_eq!(glitch(&ap, 141.0), (false, 3, 0.0, 0.0));
+        // a node takes over at 62 s: the EKF off GNSS, no flag, its estimate the truth (no
+        // ODOMETRY yet) and no reset to the glitch; handed back, none either
+        let (r, _) = ask(&mut ap, &w, long(1, MavCmd::MAV_CMD_SET_EKF_SOURCE_SET, 2.0, 0.0)).unwrap();
+        assert_eq!(r, MavResult::MAV_RESULT_ACCEPTED);
+        assert_eq!(glitch(&ap, 71.0), (false, 3, 30.0, 0.0));
+        ask(&mut ap, &w, long(1, MavCmd::MAV_CMD_SET_EKF_SOURCE_SET, 1.0, 0.0)).unwrap();
+        assert_eq!(glitch(&ap, 122.0), (false, 3, 0.0, 0.0));
     }
 
     /// Without GNSS the autopilot's estimate is the node's last ODOMETRY carried on (its error

@@ -11,7 +11,12 @@ final. It builds nothing: it runs the `ardurover` binary it is given.
   autopilot the team's origin by SET_GPS_GLOBAL_ORIGIN and starts from its known start pose);
   `gnss-lost`: GNSS (and a compass for its yaw) until 60 s into the mission, then
   SIM_GPS1_ENABLE 0; each node starts from the autopilot's estimate then
-  (`init_from_autopilot`) and switches EKF3 to source set 2 (ExternalNav).
+  (`init_from_autopilot`) and switches EKF3 to source set 2 (ExternalNav);
+  `gnss-glitch`: GNSS throughout, but from 60 s into the mission to 120 s the simulator's receiver
+  reports every rover 0.0003 deg of latitude (33 m) north of where it is (SIM_GPS1_GLTCH_X), its
+  fix still 3D: the nodes start as with `gnss-lost`; what they do at the glitch is theirs (a
+  node takes over when its autopilot's EKF reports the glitch) and ArduPilot alone keeps its
+  GNSS set, as without a companion. Scored from the glitch on.
 - Methods: `dcl` and `dr` (cooploc nodes; EKF3 fuses their ODOMETRY as external navigation),
   `alone` (no cooploc: EKF3 on its own wheel encoders and IMU, EK3_SRC1_VELXY 7).
 - Equal terms: the same sensors on both sides (IMU and wheel encoders, no compass: COMPASS_USE 0,
@@ -39,7 +44,7 @@ final. It builds nothing: it runs the `ardurover` binary it is given.
   second (its error and its EKF_STATUS_REPORT flags), and what the node does when it comes back
   with nothing but its start-up configuration.
 
-usage: real_ardupilot_team.py --ardurover PATH --setup nognss|gnss-lost --method dcl|dr|alone
+usage: real_ardupilot_team.py --ardurover PATH --setup nognss|gnss-lost|gnss-glitch --method dcl|dr|alone
        [--defaults rover.parm] [--cooploc PATH] [--out DIR] [--seed N] [--json FILE]
        [--restart-node K --restart-at-s S [--down-s D] [--without-state]]
 """
@@ -64,7 +69,9 @@ from real_team_common import free_udp_port, geo_to_ned, ned_to_geo, stop_all, un
 
 ORIGIN = (-35.363261, 149.165230, 584.0)  # ArduPilot's SITL home (CMAC), the team's origin
 RANGE_SIGMA_M = 0.1  # the paper's Table 1
-GNSS_LOSS_S = 60.0  # into the mission, set-up gnss-lost
+GNSS_LOSS_S = 60.0  # into the mission, set-ups gnss-lost and gnss-glitch
+GLITCH_S = 60.0  # how long the glitch lasts (gnss-glitch)
+GLITCH_DEG = 0.0003  # its offset, degrees of latitude (33 m north)
 # Each rover: start (north, east, m), heading (deg), its rectangle (north, east sides, m, signed:
 # negative east turns left), and the simulator's sensor errors.
 ROVERS = [
@@ -73,7 +80,7 @@ ROVERS = [
     dict(start=(-10.0, 60.0), heading=0.0, rect=(70.0, 25.0), drift=(0.03, 4), acc_bias=(0.03, 0.04)),
 ]
 # Laps: the GNSS-less part at least 300 m (with GNSS lost at 60 s, a third lap)
-LAPS = {"nognss": 2, "gnss-lost": 3}
+LAPS = {"nognss": 2, "gnss-lost": 3, "gnss-glitch": 3}
 
 
 
@@ -104,13 +111,13 @@ def params_for(i, setup, method):
     if method == "alone":
         # EKF3 alone: wheel encoders for velocity, no position or yaw source but its gyros
         p.update({"EK3_SRC1_POSXY": 0, "EK3_SRC1_VELXY": 7, "EK3_SRC1_YAW": 0, "EK3_SRC1_POSZ": 1})
-        if setup == "gnss-lost":
+        if setup != "nognss":
             p.update({"EK3_SRC1_POSXY": 3, "EK3_SRC1_VELXY": 3, "EK3_SRC1_YAW": 1,
                       "EK3_SRC2_POSXY": 0, "EK3_SRC2_VELXY": 7, "EK3_SRC2_YAW": 0, "EK3_SRC2_POSZ": 1})
     else:
         # external navigation: cooploc's ODOMETRY (VISO_TYPE 1: MAVLink)
         p.update({"VISO_TYPE": 1, "EK3_SRC1_POSXY": 6, "EK3_SRC1_VELXY": 6, "EK3_SRC1_YAW": 6, "EK3_SRC1_POSZ": 1})
-        if setup == "gnss-lost":
+        if setup != "nognss":
             p.update({"EK3_SRC1_POSXY": 3, "EK3_SRC1_VELXY": 3, "EK3_SRC1_YAW": 1,
                       "EK3_SRC2_POSXY": 6, "EK3_SRC2_VELXY": 6, "EK3_SRC2_YAW": 6, "EK3_SRC2_POSZ": 1,
                       # the node sends no ODOMETRY before the hand-over, and ArduPilot refuses to
@@ -274,7 +281,7 @@ def main():
     ap.add_argument("--ardurover", required=True, help="the ArduRover SITL binary (build/sitl/bin/ardurover)")
     ap.add_argument("--defaults", help="ArduPilot's rover.parm (default: Tools/autotest/default_params/rover.parm beside the binary's tree)")
     ap.add_argument("--cooploc", default=None, help="the cooploc binary (default: target/release/cooploc)")
-    ap.add_argument("--setup", choices=["nognss", "gnss-lost"], required=True)
+    ap.add_argument("--setup", choices=["nognss", "gnss-lost", "gnss-glitch"], required=True)
     ap.add_argument("--method", choices=["dcl", "dr", "alone"], required=True)
     ap.add_argument("--out", default=None, help="run folder (default: a new one under /tmp)")
     ap.add_argument("--seed", type=int, default=1, help="seed of the range noise")
@@ -415,8 +422,9 @@ def main():
 
         # the range emulator, on the team's 1 s grid of Unix time, until every rover is home
         dev = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-        gnss_lost_at = start + GNSS_LOSS_S if args.setup == "gnss-lost" else start
+        gnss_lost_at = start + GNSS_LOSS_S if args.setup != "nognss" else start
         gnss_off = args.setup == "nognss"
+        glitch_ends_at = gnss_lost_at + GLITCH_S if args.setup == "gnss-glitch" else None
         epochs = 0
         done_at = None
         restart_at = start + args.restart_at_s if args.restart_node is not None else None
@@ -424,6 +432,16 @@ def main():
         next_epoch = math.floor(time.time()) + 1
         while True:
             now = time.time()
+            if glitch_ends_at is not None and not gnss_off and now >= gnss_lost_at:
+                for rv in rovers:
+                    rv.set_param("SIM_GPS1_GLTCH_X", GLITCH_DEG)
+                    rv.say("GNSS glitch: %.0f m north" % (GLITCH_DEG * 111_319.49))
+                gnss_off = True
+            if glitch_ends_at is not None and now >= glitch_ends_at:
+                for rv in rovers:
+                    rv.set_param("SIM_GPS1_GLTCH_X", 0)
+                    rv.say("GNSS glitch over")
+                glitch_ends_at = None
             if not gnss_off and now >= gnss_lost_at:
                 for rv in rovers:
                     rv.set_param("SIM_GPS1_ENABLE", 0)

@@ -659,7 +659,7 @@ fn print_summary(
     if let Some(h) = &summary.hand_over {
         let p = h.started_at_ned_m;
         println!(
-            "node {} hand_over started_at_ned_m [{:.2}, {:.2}, {:.2}] fixes {} fixes_rejected {} losses {} returns {} navigating {} source_set {}",
+            "node {} hand_over started_at_ned_m [{:.2}, {:.2}, {:.2}] fixes {} fixes_rejected {} losses {} glitches {} returns {} navigating {} source_set {}",
             e.platform,
             p.x,
             p.y,
@@ -667,6 +667,7 @@ fn print_summary(
             h.fixes,
             h.fixes_rejected,
             h.losses,
+            h.glitches,
             h.returns,
             h.navigating,
             h.source_set.map_or("not asked or unanswered".into(), |r| format!("{r:?}"))

@@ -82,6 +82,12 @@ pub struct Args {
     /// hand-back)
     #[arg(long, requires = "gnss_lost_at_s")]
     gnss_back_at_s: Option<f64>,
+    /// With --gnss-lost-at-s: no loss but a glitch, from then to --gnss-back-at-s: the fix stays
+    /// 3D and its position is this many metres north of the truth (ArduPilot SITL's
+    /// SIM_GPS1_GLTCH_X); the ArduPilot personality's EKF flags it and resets to it as the real
+    /// EKF3 did
+    #[arg(long, requires = "gnss_lost_at_s")]
+    gnss_glitch_m: Option<f64>,
 }
 
 pub(crate) fn parse_stream_rate(s: &str) -> Result<(u32, f64), String> {
@@ -241,6 +247,11 @@ fn validate(args: Args) -> anyhow::Result<Validated> {
             (Some(b), Some(l)) if b.is_finite() && b > l => Some(TimeUs::from_secs_f64(b)),
             (Some(b), _) => anyhow::bail!("--gnss-back-at-s: a time in seconds after --gnss-lost-at-s, got {b}"),
             (None, _) => None,
+        },
+        gnss_glitch_m: match args.gnss_glitch_m {
+            Some(m) if m.is_finite() && m.abs() <= 10_000.0 => Some(m),
+            Some(m) => anyhow::bail!("--gnss-glitch-m: an offset in metres, at most 10 km, got {m}"),
+            None => None,
         },
     };
     Ok(Validated { world, config })

@@ -32,6 +32,9 @@ pub const FIX_STALE_MS: u32 = 1_000;
 pub struct Vouched {
     pub attitude: bool,
     pub horizontal: bool,
+    /// The EKF says its GNSS glitches (its innovations fail): ArduPilot's EKF_GPS_GLITCHING
+    /// (32768, while its position source is GNSS), PX4's ESTIMATOR_GPS_GLITCH (1024).
+    pub gnss_glitch: bool,
     /// The raw flags, for the log.
     pub flags: u16,
 }
@@ -47,18 +50,23 @@ const CONST_POS_MODE: u16 = 128;
 impl Vouched {
     /// ArduPilot's EKF_STATUS_REPORT flags: 1024 uninitialised, 32768 a GNSS glitch.
     pub fn ekf_status_report(flags: u16) -> Vouched {
-        Self::of(flags, CONST_POS_MODE | 1024 | 32768)
+        Vouched { gnss_glitch: flags & 32768 != 0, ..Self::of(flags, CONST_POS_MODE | 1024 | 32768) }
     }
 
     /// PX4's ESTIMATOR_STATUS flags: 1024 a GNSS glitch, 2048 an accelerometer error.
     pub fn estimator_status(flags: u16) -> Vouched {
-        Self::of(flags, CONST_POS_MODE | 1024 | 2048)
+        Vouched { gnss_glitch: flags & 1024 != 0, ..Self::of(flags, CONST_POS_MODE | 1024 | 2048) }
     }
 
     /// `bad`: the flags that withdraw everything.
     fn of(flags: u16, bad: u16) -> Vouched {
         let attitude = flags & ATTITUDE != 0 && flags & bad == 0;
-        Vouched { attitude, horizontal: attitude && flags & VELOCITY_HORIZ != 0 && flags & POS_HORIZ != 0, flags }
+        Vouched {
+            attitude,
+            horizontal: attitude && flags & VELOCITY_HORIZ != 0 && flags & POS_HORIZ != 0,
+            gnss_glitch: false,
+            flags,
+        }
     }
 }
 
@@ -214,15 +222,21 @@ mod tests {
     #[test]
     fn the_real_firmwares_flags_read_as_it_meant_them() {
         // ArduPilot 4.7 Rover on external navigation, then 7 s after its ODOMETRY stopped
-        assert_eq!(Vouched::ekf_status_report(0x033f), Vouched { attitude: true, horizontal: true, flags: 0x033f });
-        assert_eq!(Vouched::ekf_status_report(0x0027), Vouched { attitude: true, horizontal: false, flags: 0x0027 });
+        let v = |attitude, horizontal, flags| Vouched { attitude, horizontal, gnss_glitch: false, flags };
+        assert_eq!(Vouched::ekf_status_report(0x033f), v(true, true, 0x033f));
+        assert_eq!(Vouched::ekf_status_report(0x0027), v(true, false, 0x0027));
         // uninitialised, a GNSS glitch, a position held constant: nothing
         for flags in [0x0400 | 0x033f, 0x8000 | 0x033f] {
             assert!(!Vouched::ekf_status_report(flags).attitude, "{flags:#x}");
         }
         assert!(!Vouched::ekf_status_report(0x0080 | 0x001f).horizontal);
+        // the glitch, each autopilot's own bit
+        assert!(Vouched::ekf_status_report(0x8000 | 0x033f).gnss_glitch);
+        assert!(!Vouched::ekf_status_report(0x0400 | 0x033f).gnss_glitch, "uninitialised is no glitch");
         // PX4: 1024 is a glitch there, not "uninitialised"
         assert!(!Vouched::estimator_status(0x041f).attitude);
+        assert!(Vouched::estimator_status(0x041f).gnss_glitch);
+        assert!(!Vouched::estimator_status(0x801f).gnss_glitch);
         assert!(Vouched::estimator_status(0x001f).horizontal);
         assert!(!Vouched::estimator_status(0x0003).horizontal, "velocity without a position");
     }

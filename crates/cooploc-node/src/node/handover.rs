@@ -12,14 +12,21 @@
 //!   the autopilot's latest estimate: the node initialises from it, at its time, and from then
 //!   on takes each GNSS fix as a local update of its filter (`crate::estimation::fix`), so its
 //!   filter, its recursive coefficient matrix and the team's epochs run while GNSS is there;
-//! - when the fix is gone for [`LOST_AFTER`] messages in a row, [`Handover::lost`] turns true:
+//! - when the fix is gone for [`LOST_AFTER`] messages in a row, or the autopilot's EKF reports a
+//!   GNSS glitch (its fix still 3D: the receiver's position is wrong and the EKF's innovations
+//!   fail; ArduPilot's EKF_GPS_GLITCHING, PX4's ESTIMATOR_GPS_GLITCH), [`Handover::lost`] turns true:
 //!   the node takes over (its ODOMETRY, and the autopilot asked to change its EKF source set:
 //!   ArduPilot's MAV_CMD_SET_EKF_SOURCE_SET, from a set on GNSS to one on external navigation,
 //!   as ArduPilot's own source-switching scripts do). Its estimate then is the one it ran on
 //!   the same fixes the autopilot had, so what the autopilot fuses does not step by more than
 //!   the two filters differ;
 //! - when a fix is back for [`BACK_AFTER`] messages in a row, `lost` turns false again: the node
-//!   hands back (the source set on GNSS) and takes the fixes again.
+//!   hands back (the source set on GNSS) and takes the fixes again. After a glitch the fix never
+//!   went, and the autopilot cannot say when its GNSS is right again (ArduPilot reports the
+//!   glitch only while its position source is GNSS, and the take-over switched it away): the
+//!   node's own filter judges, through its gate, every fix while it navigates
+//!   ([`Handover::judged`]), and hands back once it has taken [`BACK_AFTER`] in a row, none
+//!   refused, and the autopilot's last status reports no glitch.
 
 use super::autopilot_fix::{POS_HORIZ_ABS, Vouched};
 use crate::estimation::ins::InsState;
@@ -67,11 +74,19 @@ pub struct Handover {
     attitude: Option<ATTITUDE_DATA>,
     /// The EKF's last status, if it sends one.
     status: Option<Vouched>,
+    /// The loss was a glitch the EKF reported (the fix stayed).
+    glitch_loss: bool,
+    /// Fixes the node's filter took in a row, none refused by its gate since, and the totals
+    /// (taken, refused) it last said.
+    gate_takes_in_row: u32,
+    judged: (u64, u64),
     /// Estimates refused (no position, not finite, far from the origin).
     pub refused: u64,
-    /// Losses of the fix after the start, and returns.
+    /// Losses of the fix after the start (glitches included), and returns.
     pub losses: u64,
     pub returns: u64,
+    /// Losses that were glitches the EKF reported.
+    pub glitches: u64,
 }
 
 impl Handover {
@@ -87,9 +102,11 @@ impl Handover {
                     self.had_fix = true;
                     self.without_fix = 0;
                     self.fixes_in_row = self.fixes_in_row.saturating_add(1);
-                    if self.lost && self.fixes_in_row >= BACK_AFTER {
+                    let trusted = !self.glitch_loss || self.gate_takes_in_row >= BACK_AFTER && !self.glitching();
+                    if self.lost && self.fixes_in_row >= BACK_AFTER && trusted {
                         // (back before the node could start: nothing to hand back)
                         self.lost = false;
+                        self.glitch_loss = false;
                         if self.started {
                             self.returns += 1;
                             return Some(HandoverEvent::Back);
@@ -112,6 +129,15 @@ impl Handover {
             MavMessage::EKF_STATUS_REPORT(m) => self.status = Some(Vouched::ekf_status_report(m.flags.bits())),
             MavMessage::ESTIMATOR_STATUS(m) => self.status = Some(Vouched::estimator_status(m.flags.bits())),
             _ => return None,
+        }
+        if self.glitching() && self.started && !self.lost {
+            // (before the start a glitch only delays it: the status does not vouch)
+            self.lost = true;
+            self.glitch_loss = true;
+            self.gate_takes_in_row = 0;
+            self.losses += 1;
+            self.glitches += 1;
+            return Some(HandoverEvent::Lost);
         }
         // (ArduPilot reports a position before its EKF has taken the fix: on the real firmware,
         // at its first fix, its start's latitude and longitude with an altitude of 0.05 m)
@@ -143,9 +169,29 @@ impl Handover {
         self.started = false;
     }
 
-    /// The fix is gone (after one was seen), and not back yet: the node navigates the vehicle.
+    /// The fix is gone (after one was seen), or the EKF reported it glitching, and GNSS is not
+    /// back yet: the node navigates the vehicle.
     pub fn lost(&self) -> bool {
         self.lost
+    }
+
+    /// The autopilot's last status says its GNSS glitches.
+    fn glitching(&self) -> bool {
+        self.status.is_some_and(|v| v.gnss_glitch)
+    }
+
+    /// What the node's filter has done with the GNSS fixes so far: `taken` and `refused` (by
+    /// its gate) in all. A refusal starts the count of fixes taken in a row again (of several
+    /// judged since the last call, the order is not known: counted as refused last).
+    pub fn judged(&mut self, taken: u64, refused: u64) {
+        let (taken_before, refused_before) = self.judged;
+        if refused > refused_before {
+            self.gate_takes_in_row = 0;
+        } else {
+            let more = u32::try_from(taken.saturating_sub(taken_before)).unwrap_or(u32::MAX);
+            self.gate_takes_in_row = self.gate_takes_in_row.saturating_add(more);
+        }
+        self.judged = (taken, refused);
     }
 }
 
@@ -250,6 +296,90 @@ mod tests {
         // relative only: not yet
         assert_eq!(h.on_message(&status(0x00a7 & !0x80 | 0x08), &ORIGIN), None);
         let Some(HandoverEvent::Start { .. }) = h.on_message(&status(0x033f), &ORIGIN) else { panic!("a start") };
+    }
+
+    /// A GNSS glitch (the receiver's position jumps, its fix stays 3D): the EKF's report of it
+    /// takes over; the hand-back waits for the node's own filter to take BACK_AFTER fixes in a
+    /// row and the EKF to report no glitch.
+    #[test]
+    fn a_glitch_the_ekf_reports_is_taken_over_and_handed_back_when_the_nodes_gate_takes_the_fixes_again() {
+        use crate::protocol::dialect::cooploc::{
+            EKF_STATUS_REPORT_DATA, ESTIMATOR_STATUS_DATA, EkfStatusFlags, EstimatorStatusFlags,
+        };
+        let ekf = |flags: u16| {
+            MavMessage::EKF_STATUS_REPORT(EKF_STATUS_REPORT_DATA {
+                flags: EkfStatusFlags::from_bits_retain(flags),
+                ..Default::default()
+            })
+        };
+        let px4 = |flags: u16| {
+            MavMessage::ESTIMATOR_STATUS(ESTIMATOR_STATUS_DATA {
+                flags: EstimatorStatusFlags::from_bits_retain(flags),
+                ..Default::default()
+            })
+        };
+        for (good, glitch) in [(ekf(0x033f), ekf(0x833f)), (px4(0x003f), px4(0x043f))] {
+            let mut h = Handover::new();
+            h.on_message(&good, &ORIGIN);
+            h.on_message(&position(1_000, 5.0), &ORIGIN);
+            h.on_message(&attitude(1_000, 0.0), &ORIGIN);
+            assert!(matches!(
+                fixes(&mut h, GpsFixType::GPS_FIX_TYPE_3D_FIX, START_AFTER as usize)[..],
+                [HandoverEvent::Start { .. }]
+            ));
+            let (mut taken, mut refused) = (0, 0);
+            let mut judge = |h: &mut Handover, t: u64, r: u64| {
+                (taken, refused) = (taken + t, refused + r);
+                h.judged(taken, refused);
+            };
+            judge(&mut h, 20, 0);
+            assert_eq!(h.on_message(&glitch, &ORIGIN), Some(HandoverEvent::Lost));
+            assert_eq!(h.on_message(&glitch, &ORIGIN), None, "once");
+            assert!(h.lost());
+            // the fix stays 3D and the node's gate refuses the glitched fixes: no hand-back
+            for _ in 0..3 * BACK_AFTER {
+                judge(&mut h, 0, 1);
+                assert_eq!(h.on_message(&fix(GpsFixType::GPS_FIX_TYPE_3D_FIX), &ORIGIN), None);
+            }
+            // the glitch ends; the node's gate takes the fixes again, but one is refused midway
+            h.on_message(&good, &ORIGIN);
+            for k in 0..2 * BACK_AFTER - 2 {
+                judge(&mut h, 1, u64::from(k == BACK_AFTER - 2));
+                assert_eq!(h.on_message(&fix(GpsFixType::GPS_FIX_TYPE_3D_FIX), &ORIGIN), None, "fix {k}");
+            }
+            // BACK_AFTER taken in a row, yet the EKF still says glitch (PX4 checks its GNSS while
+            // not on it): not yet
+            h.on_message(&glitch, &ORIGIN);
+            judge(&mut h, 1, 0);
+            assert_eq!(h.on_message(&fix(GpsFixType::GPS_FIX_TYPE_3D_FIX), &ORIGIN), None);
+            h.on_message(&good, &ORIGIN);
+            assert_eq!(h.on_message(&fix(GpsFixType::GPS_FIX_TYPE_3D_FIX), &ORIGIN), Some(HandoverEvent::Back));
+            assert!(!h.lost());
+            assert_eq!((h.losses, h.glitches, h.returns), (1, 1, 1));
+            // a loss of the fix after that hands back on the fix alone, as before
+            assert_eq!(fixes(&mut h, GpsFixType::GPS_FIX_TYPE_NO_FIX, LOST_AFTER as usize), vec![HandoverEvent::Lost]);
+            assert_eq!(fixes(&mut h, GpsFixType::GPS_FIX_TYPE_3D_FIX, BACK_AFTER as usize), vec![HandoverEvent::Back]);
+            assert_eq!((h.losses, h.glitches, h.returns), (2, 1, 2));
+        }
+    }
+
+    #[test]
+    fn a_glitch_before_the_start_only_delays_it() {
+        use crate::protocol::dialect::cooploc::{EKF_STATUS_REPORT_DATA, EkfStatusFlags};
+        let ekf = |flags: u16| {
+            MavMessage::EKF_STATUS_REPORT(EKF_STATUS_REPORT_DATA {
+                flags: EkfStatusFlags::from_bits_retain(flags),
+                ..Default::default()
+            })
+        };
+        let mut h = Handover::new();
+        h.on_message(&ekf(0x833f), &ORIGIN);
+        h.on_message(&position(1_000, 5.0), &ORIGIN);
+        h.on_message(&attitude(1_000, 0.0), &ORIGIN);
+        assert_eq!(fixes(&mut h, GpsFixType::GPS_FIX_TYPE_3D_FIX, 2 * START_AFTER as usize), vec![]);
+        assert!(!h.lost());
+        assert!(matches!(h.on_message(&ekf(0x033f), &ORIGIN), Some(HandoverEvent::Start { .. })));
+        assert!(!h.lost());
     }
 
     #[test]

@@ -241,6 +241,8 @@ pub struct HandOverSummary {
     pub fixes_rejected: u64,
     pub losses: u64,
     pub returns: u64,
+    /// Losses that were GNSS glitches the autopilot's EKF reported (the fix stayed).
+    pub glitches: u64,
     /// The node navigates the vehicle now (GNSS gone).
     pub navigating: bool,
 }
@@ -765,6 +767,10 @@ impl NodeShell {
         }
         let inputs = self.decode(&msg, now);
         self.feed(inputs, now);
+        if let (Some(h), Some(core)) = (self.handover.as_mut(), self.core.as_ref()) {
+            // what the filter's gate made of the GNSS fixes: the hand-back after a glitch
+            h.judged(core.stats.fixes, core.stats.fixes_rejected);
+        }
         Ok(())
     }
 
@@ -817,7 +823,9 @@ impl NodeShell {
             Some(HandoverEvent::NoEstimate) => {
                 tracing::warn!(platform = id, "GNSS, and no estimate of the autopilot's to start from yet")
             }
-            Some(HandoverEvent::Lost) => tracing::info!(platform = id, "GNSS lost: the team's filter takes over"),
+            Some(HandoverEvent::Lost) => {
+                tracing::info!(platform = id, glitch = h.glitches > 0 && h.lost(), "GNSS lost: the team's filter takes over")
+            }
             Some(HandoverEvent::Back) => tracing::info!(platform = id, "GNSS back: handing back to the autopilot's own"),
             None => {}
         }
@@ -1355,6 +1363,7 @@ impl NodeShell {
                 fixes_rejected: self.core.as_ref().map_or(0, |c| c.stats.fixes_rejected),
                 losses: self.handover.as_ref().map_or(0, |h| h.losses),
                 returns: self.handover.as_ref().map_or(0, |h| h.returns),
+                glitches: self.handover.as_ref().map_or(0, |h| h.glitches),
                 navigating: self.taken_over,
             }),
         }
