@@ -301,12 +301,16 @@ fn nodes_run_on_the_ardupilot_personalitys_gnss_take_over_when_it_goes_and_hand_
 /// and lies 30 m north; the personality's EKF flags it 1.3 s later, as ArduPilot's EKF3 did on
 /// its SITL with 33 m, and would reset to it at 10 s): the nodes' gates refuse the glitched
 /// fixes, the EKF's flag makes them take over (source set 2, ODOMETRY that never saw the
-/// glitch), and they hand back once their gates have taken 10 fixes in a row after it.
+/// glitch), and they hand back once their gates have taken 10 fixes in a row after it. With
+/// `odometry_with_gnss` their ODOMETRY goes out from the start (the EKF on its GNSS set leaves
+/// it out).
 #[test]
 fn nodes_take_over_at_a_gnss_glitch_the_ardupilot_personalitys_ekf_reports_and_hand_back_after_it() {
     let repo = Path::new(env!("CARGO_MANIFEST_DIR"));
     let root = std::env::temp_dir().join(format!("cooploc-glitch-{}", std::process::id()));
-    let profile = std::fs::read_to_string(repo.join("sitl/vehicles/ardupilot-rover.toml")).unwrap() + "takeover_source_set = 2\n";
+    // (and ODOMETRY from the start, as the real-firmware runs send it: `odometry_with_gnss`)
+    let profile = std::fs::read_to_string(repo.join("sitl/vehicles/ardupilot-rover.toml")).unwrap()
+        + "takeover_source_set = 2\nodometry_with_gnss = true\n";
     let profile = profile.replacen("gnss_lag_ms = 120", "gnss_lag_ms = 100", 1);
     let gnss = ["--gnss-time", "--gnss-lost-at-s", "8", "--gnss-back-at-s", "18", "--gnss-glitch-m", "30"];
     let (scenario_path, kill, sitl_out, outs) = bare_team(&root, "1", &profile, &gnss, "init_from_autopilot = true\n");
@@ -323,9 +327,10 @@ fn nodes_take_over_at_a_gnss_glitch_the_ardupilot_personalitys_ekf_reports_and_h
         // never saw them), the rest taken
         assert!((45..=52).contains(&got("fixes_rejected")), "{hand_over}");
         assert!((60..=80).contains(&got("fixes")), "{hand_over}");
-        // ODOMETRY from the flag (9.3 s) to the hand-back 2 s after 18 s, at 20 Hz
+        // ODOMETRY at 20 Hz from the node's start (within the first 3 s) to the end at 25 s,
+        // the autopilot on GNSS or not (without `odometry_with_gnss`: 200-270, the take-over's)
         let odometry: u64 = field(&vehicle, "odometry_sent").parse().unwrap();
-        assert!((200..=250).contains(&odometry), "{vehicle}");
+        assert!((420..=501).contains(&odometry), "{vehicle}");
         let applied: u64 = field(&done, "epochs_applied").parse().unwrap();
         assert!(applied >= 20, "{done}");
         near_the_truth_and_replayed(&world, *id, dir, &done);
@@ -333,8 +338,8 @@ fn nodes_take_over_at_a_gnss_glitch_the_ardupilot_personalitys_ekf_reports_and_h
     for id in [1u16, 2, 3] {
         wait_line(&sitl_out, &format!("vehicle {id} EKF source set 2 (MAV_CMD_SET_EKF_SOURCE_SET)"), Duration::from_secs(30));
         wait_line(&sitl_out, &format!("vehicle {id} EKF source set 1 (MAV_CMD_SET_EKF_SOURCE_SET)"), Duration::from_secs(5));
-        // what the autopilot navigated on from the take-over: the node's estimate, which never
-        // took the glitch (30 m away)
+        // the node's ODOMETRY, from its start to the end, the take-over included: it never took
+        // the glitch (30 m away)
         let odometry = wait_line(&sitl_out, &format!("vehicle {id} odometry first "), Duration::from_secs(5));
         eprintln!("{odometry}");
         let (first, last): (f64, f64) = (field(&odometry, "first").parse().unwrap(), field(&odometry, "last").parse().unwrap());

@@ -303,6 +303,10 @@ fn yes() -> bool {
     true
 }
 
+fn one() -> u8 {
+    1
+}
+
 impl Default for Inputs {
     fn default() -> Self {
         Inputs {
@@ -354,10 +358,21 @@ pub struct Output {
     pub set_origin: bool,
     /// When the node takes over at a GNSS loss (`cooploc node --init-from-autopilot`), switch
     /// the autopilot's EKF to this source set (ArduPilot's MAV_CMD_SET_EKF_SOURCE_SET: the set
-    /// whose EK3_SRCn_* say ExternalNav, e.g. 2), and back to set 1 (its GNSS set) when it hands
+    /// whose EK3_SRCn_* say ExternalNav, e.g. 2), and back to `gnss_source_set` when it hands
     /// back; none: the autopilot switches by itself.
     #[serde(default)]
     pub takeover_source_set: Option<u8>,
+    /// The source set on GNSS that the node hands back to (1-3; default 1).
+    #[serde(default = "one")]
+    pub gnss_source_set: u8,
+    /// With the hand-over: ODOMETRY also while the autopilot still navigates on GNSS (needs
+    /// `takeover_source_set`). ArduPilot's EKF3 fuses only the sources of its selected set, so it
+    /// ignores them until the take-over switches to the ExternalNav set, and its "VisOdom: not
+    /// healthy" arming check passes meanwhile (without them it refuses to arm, as measured on its
+    /// SITL). Not for an autopilot whose EKF fuses whatever comes (PX4's EKF2 would fuse the
+    /// node's GNSS-aided estimate beside the same GNSS).
+    #[serde(default)]
+    pub odometry_with_gnss: bool,
 }
 
 /// The pose frame of the ODOMETRY a node sends (see [`Output::odometry_frame`]).
@@ -382,6 +397,8 @@ impl Default for Output {
             gps_input_rate_hz: 0.0,
             set_origin: true,
             takeover_source_set: None,
+            gnss_source_set: 1,
+            odometry_with_gnss: false,
         }
     }
 }
@@ -696,6 +713,23 @@ impl VehicleProfile {
                 "GPS_INPUT needs [origin] (positions go out as latitude and longitude)",
             ));
         }
+        for (field, set) in
+            [("output.takeover_source_set", o.takeover_source_set), ("output.gnss_source_set", Some(o.gnss_source_set))]
+        {
+            if set.is_some_and(|s| !(1..=3).contains(&s)) {
+                return Err(invalid(field, format!("an EKF source set, 1-3, got {}", set.unwrap_or(0))));
+            }
+        }
+        if o.takeover_source_set == Some(o.gnss_source_set) {
+            return Err(invalid("output.gnss_source_set", "the set handed back to must not be the take-over's"));
+        }
+        if o.odometry_with_gnss && (o.takeover_source_set.is_none() || o.odometry_rate_hz == 0.0) {
+            return Err(invalid(
+                "output.odometry_with_gnss",
+                "needs takeover_source_set and odometry_rate_hz: ODOMETRY beside GNSS is safe only for an EKF whose \
+                 selected source set leaves it out until the take-over",
+            ));
+        }
         Ok(())
     }
 
@@ -849,6 +883,16 @@ mod tests {
         assert_eq!(field_of(with("gravity_m_s2 = ", "gravity_m_s2 = 1.0 #")), "gravity_m_s2");
         let bad_msg = with("imu = \"highres_imu\"", "imu = \"highres\"").unwrap_err();
         assert!(bad_msg.to_string().contains("highres"), "{bad_msg}");
+        // ODOMETRY beside GNSS only for an EKF whose source set leaves it out
+        let output = "[output]\n";
+        assert_eq!(field_of(with(output, "[output]\nodometry_with_gnss = true\n")), "output.odometry_with_gnss");
+        with(output, "[output]\nodometry_with_gnss = true\ntakeover_source_set = 2\n").unwrap();
+        // source sets are 1-3, and the hand-back's is not the take-over's
+        assert_eq!(field_of(with(output, "[output]\ntakeover_source_set = 4\n")), "output.takeover_source_set");
+        assert_eq!(field_of(with(output, "[output]\ngnss_source_set = 0\n")), "output.gnss_source_set");
+        assert_eq!(field_of(with(output, "[output]\ntakeover_source_set = 1\n")), "output.gnss_source_set");
+        let p = with(output, "[output]\ntakeover_source_set = 1\ngnss_source_set = 3\n").unwrap();
+        assert_eq!((p.output.takeover_source_set, p.output.gnss_source_set), (Some(1), 3));
     }
 
     #[test]

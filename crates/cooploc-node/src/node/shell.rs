@@ -357,6 +357,9 @@ struct Autopilot {
     source_set: Option<(u8, u32, u64)>,
     source_set_result: Option<MavResult>,
     takeover_source_set: Option<u8>,
+    gnss_source_set: u8,
+    /// ODOMETRY also while the autopilot navigates on GNSS (the profile's `odometry_with_gnss`).
+    odometry_with_gnss: bool,
 }
 
 /// The sans-io node: see the module documentation.
@@ -462,6 +465,8 @@ impl NodeShell {
             source_set: None,
             source_set_result: None,
             takeover_source_set: profile.output.takeover_source_set,
+            gnss_source_set: profile.output.gnss_source_set,
+            odometry_with_gnss: profile.output.odometry_with_gnss,
         };
         let clock = Clock {
             wanted: matches!(profile.inputs.clock, TeamClock::Companion | TeamClock::Auto),
@@ -833,7 +838,8 @@ impl NodeShell {
         let lost = h.lost();
         if self.hand_over_state.is_some() && lost != self.taken_over {
             self.taken_over = lost;
-            let set = if lost { self.autopilot.takeover_source_set } else { self.autopilot.takeover_source_set.map(|_| 1) };
+            let (takeover, gnss) = (self.autopilot.takeover_source_set, self.autopilot.gnss_source_set);
+            let set = if lost { takeover } else { takeover.map(|_| gnss) };
             if let Some(set) = set {
                 self.autopilot.source_set = Some((set, 0, 0));
             }
@@ -1281,13 +1287,18 @@ impl NodeShell {
         // (the navigation solution only when something goes back to the vehicle: not on every
         // IMU sample of a node that sends nothing back)
         // (with the hand-over, only once the node has taken over: before, the autopilot
-        // navigates on its GNSS)
+        // navigates on its GNSS; ODOMETRY from the start with `odometry_with_gnss`, which its
+        // EKF leaves out until the take-over switches its source set)
         let navigates = self.handover.is_none() || self.taken_over;
-        if vehicle_input && navigates && (self.autopilot.odometry.is_some() || self.autopilot.gps_input.is_some()) {
+        let odometry = navigates || self.autopilot.odometry_with_gnss && self.hand_over_state.is_some();
+        if vehicle_input && odometry && (self.autopilot.odometry.is_some() || self.autopilot.gps_input.is_some()) {
             let nav = core.navigation();
             let decoder = &self.decoder;
             let odo = self.autopilot.odometry.as_mut().and_then(|o| o.poll(&nav, |t| decoder.to_vehicle_time(t)));
-            let gps = self.autopilot.gps_input.as_mut().and_then(|g| g.poll(&nav, |t| decoder.to_vehicle_time(t)));
+            let gps = match self.autopilot.gps_input.as_mut() {
+                Some(g) if navigates => g.poll(&nav, |t| decoder.to_vehicle_time(t)),
+                _ => None,
+            };
             for msg in odo.into_iter().chain(gps) {
                 self.send_vehicle(msg);
             }
