@@ -72,7 +72,7 @@ fixed in the node, back on):
 
 usage: real_px4_team.py --px4 PATH --setup nognss|gnss-lost --method dcl|dr|alone [--out DIR] [--cooploc PATH]
        [--origin driver|node] [--px4-timesync pass|drop] [--odometry-frame as-sent|ned]
-       [--ekf2-bias off|on] [--sim-speed F] [--seed N] [--json FILE]
+       [--ekf2-bias off|on] [--sim-speed F] [--profile FILE] [--seed N] [--json FILE]
 """
 import argparse
 import bisect
@@ -469,6 +469,7 @@ def main():
                          "on a 1.0; a slow simulated clock drifts from the companion's (see the docstring)")
     ap.add_argument("--ekf2-bias", choices=["off", "on"], default="off",
                     help="dcl, dr: EKF2's IMU bias estimation (EKF2_IMU_CTRL 7) or none (4, the default; see params_for)")
+    ap.add_argument("--profile", default=None, help="the nodes' vehicle profile (default: sitl/vehicles/px4-sih-rover.toml)")
     ap.add_argument("--out", default=None, help="run folder (default: a new one under /tmp)")
     ap.add_argument("--seed", type=int, default=1, help="seed of the range and odometry noise")
     ap.add_argument("--json", default=None, help="write the result here too")
@@ -486,7 +487,7 @@ def main():
     if not os.path.isfile(px4) or not os.path.isdir(etc):
         sys.exit("error: need the px4 binary (%s) and its etc/ (%s)" % (px4, etc))
     cooploc = os.path.abspath(args.cooploc or os.path.join(root, "target", "release", "cooploc"))
-    profile = os.path.join(root, "sitl", "vehicles", "px4-sih-rover.toml")
+    profile = os.path.abspath(args.profile or os.path.join(root, "sitl", "vehicles", "px4-sih-rover.toml"))
     out = os.path.abspath(args.out or "/tmp/real-px4-%s-%s-%d" % (args.setup, args.method, os.getpid()))
     shutil.rmtree(out, ignore_errors=True)
     os.makedirs(out)

@@ -175,6 +175,11 @@ impl Handover {
         self.lost
     }
 
+    /// The node navigates because the EKF reported a glitch (the fix stayed).
+    pub fn lost_to_glitch(&self) -> bool {
+        self.lost && self.glitch_loss
+    }
+
     /// The autopilot's last status says its GNSS glitches.
     fn glitching(&self) -> bool {
         self.status.is_some_and(|v| v.gnss_glitch)
@@ -335,7 +340,7 @@ mod tests {
             judge(&mut h, 20, 0);
             assert_eq!(h.on_message(&glitch, &ORIGIN), Some(HandoverEvent::Lost));
             assert_eq!(h.on_message(&glitch, &ORIGIN), None, "once");
-            assert!(h.lost());
+            assert!(h.lost() && h.lost_to_glitch());
             // the fix stays 3D and the node's gate refuses the glitched fixes: no hand-back
             for _ in 0..3 * BACK_AFTER {
                 judge(&mut h, 0, 1);

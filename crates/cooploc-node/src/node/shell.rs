@@ -829,7 +829,7 @@ impl NodeShell {
                 tracing::warn!(platform = id, "GNSS, and no estimate of the autopilot's to start from yet")
             }
             Some(HandoverEvent::Lost) => {
-                tracing::info!(platform = id, glitch = h.glitches > 0 && h.lost(), "GNSS lost: the team's filter takes over")
+                tracing::info!(platform = id, glitch = h.lost_to_glitch(), "GNSS lost: the team's filter takes over")
             }
             Some(HandoverEvent::Back) => tracing::info!(platform = id, "GNSS back: handing back to the autopilot's own"),
             None => {}
@@ -968,7 +968,7 @@ impl NodeShell {
                     let why = if self.core.is_some() {
                         "the node had its state before the vehicle's first sample"
                     } else {
-                        "the node starts from the autopilot's estimate when its GNSS goes"
+                        "the node starts from the autopilot's estimate (the hand-over: once it has held a fix, or at once after a loss)"
                     };
                     println!("node {id} saved state not used: {why}");
                 }
