@@ -224,6 +224,52 @@ fn nodes_on_bare_vehicle_computers_navigate_the_ardupilot_personality_without_gn
     let _ = std::fs::remove_dir_all(&root);
 }
 
+/// A team on GNSS with the hand-over (`init_from_autopilot`), the profile's `[output]` given
+/// `output_extra`, GNSS as `gnss` says (`cooploc sitl` arguments), run to its end: the world, the
+/// processes, the simulator's lines, and each node's id, folder and closing lines (done, vehicle,
+/// hand_over).
+type HandOverTeam = (cooploc::sitl::World, Kill, Lines, Vec<(u16, PathBuf, [String; 3], Lines)>);
+
+type Lines = std::sync::mpsc::Receiver<String>;
+
+fn hand_over_team(name: &str, output_extra: &str, gnss: &[&str]) -> (HandOverTeam, PathBuf) {
+    let repo = Path::new(env!("CARGO_MANIFEST_DIR"));
+    let root = std::env::temp_dir().join(format!("cooploc-{name}-{}", std::process::id()));
+    // (the profile's last section is [output]; its GNSS lag is a u-blox M8's, the personality's
+    // SITL's: a 20 ms mismatch puts every fix 0.2 m behind a vehicle at 10 m/s)
+    let profile = std::fs::read_to_string(repo.join("sitl/vehicles/ardupilot-rover.toml")).unwrap() + output_extra;
+    assert!(profile.contains("gnss_lag_ms = 120"));
+    let profile = profile.replacen("gnss_lag_ms = 120", "gnss_lag_ms = 100", 1);
+    let (scenario_path, kill, sitl_out, outs) = bare_team(&root, "1", &profile, gnss, "init_from_autopilot = true\n");
+    let world = cooploc::sitl::World::new(&cooploc::sitl::Scenario::from_path(&scenario_path).unwrap()).unwrap();
+    let nodes = outs
+        .into_iter()
+        .map(|(id, dir, out)| {
+            let done = wait_line(&out, &format!("node {id} done:"), Duration::from_secs(120));
+            let vehicle = wait_line(&out, &format!("node {id} vehicle "), Duration::from_secs(5));
+            let hand_over = wait_line(&out, &format!("node {id} hand_over "), Duration::from_secs(5));
+            eprintln!("{done}\n{vehicle}\n{hand_over}");
+            assert!(hand_over.ends_with("navigating false source_set MAV_RESULT_ACCEPTED"), "{hand_over}");
+            (id, dir, [done, vehicle, hand_over], out)
+        })
+        .collect();
+    ((world, kill, sitl_out, nodes), root)
+}
+
+/// Each vehicle's EKF switched to source set 2 at the take-over and back to 1, and how far the
+/// node's first and last ODOMETRY were from the truth, m.
+fn taken_over_and_handed_back(sitl_out: &Lines) -> Vec<(f64, f64)> {
+    [1u16, 2, 3]
+        .map(|id| {
+            wait_line(sitl_out, &format!("vehicle {id} EKF source set 2 (MAV_CMD_SET_EKF_SOURCE_SET)"), Duration::from_secs(30));
+            wait_line(sitl_out, &format!("vehicle {id} EKF source set 1 (MAV_CMD_SET_EKF_SOURCE_SET)"), Duration::from_secs(5));
+            let odometry = wait_line(sitl_out, &format!("vehicle {id} odometry first "), Duration::from_secs(5));
+            eprintln!("{odometry}");
+            (field(&odometry, "first").parse().unwrap(), field(&odometry, "last").parse().unwrap())
+        })
+        .to_vec()
+}
+
 /// The other start: vehicles with GNSS that goes 8 s into a 25 s run and comes back at 18 s
 /// (`cooploc sitl --gnss-time --gnss-lost-at-s 8 --gnss-back-at-s 18`, the personality's GPS as
 /// ArduPilot SITL's: exact, 5 Hz, 100 ms old, 0.3 m); nodes told `init_from_autopilot` start
@@ -233,27 +279,15 @@ fn nodes_on_bare_vehicle_computers_navigate_the_ardupilot_personality_without_gn
 /// estimate) and hand back when it has been back 2 s (source set 1, no more ODOMETRY).
 #[test]
 fn nodes_run_on_the_ardupilot_personalitys_gnss_take_over_when_it_goes_and_hand_back() {
-    let repo = Path::new(env!("CARGO_MANIFEST_DIR"));
-    let root = std::env::temp_dir().join(format!("cooploc-hand-over-{}", std::process::id()));
-    // (the profile's last section is [output]; its GNSS lag is a u-blox M8's, the personality's
-    // SITL's: a 20 ms mismatch puts every fix 0.2 m behind a vehicle at 10 m/s)
-    let profile = std::fs::read_to_string(repo.join("sitl/vehicles/ardupilot-rover.toml")).unwrap() + "takeover_source_set = 2\n";
-    assert!(profile.contains("gnss_lag_ms = 120"));
-    let profile = profile.replacen("gnss_lag_ms = 120", "gnss_lag_ms = 100", 1);
     let gnss = ["--gnss-time", "--gnss-lost-at-s", "8", "--gnss-back-at-s", "18"];
-    let (scenario_path, kill, sitl_out, outs) = bare_team(&root, "1", &profile, &gnss, "init_from_autopilot = true\n");
-    let world = cooploc::sitl::World::new(&cooploc::sitl::Scenario::from_path(&scenario_path).unwrap()).unwrap();
-    for (id, dir, out) in &outs {
-        let done = wait_line(out, &format!("node {id} done:"), Duration::from_secs(120));
-        let vehicle = wait_line(out, &format!("node {id} vehicle "), Duration::from_secs(5));
-        let hand_over = wait_line(out, &format!("node {id} hand_over "), Duration::from_secs(5));
+    let ((world, kill, sitl_out, nodes), root) = hand_over_team("hand-over", "takeover_source_set = 2\n", &gnss);
+    for (id, dir, [done, vehicle, hand_over], out) in &nodes {
         let origin = wait_line(out, &format!("node {id} origin "), Duration::from_secs(5));
-        eprintln!("{done}\n{vehicle}\n{hand_over}\n{origin}");
+        eprintln!("{origin}");
         // it had its own origin (from GNSS): none given
         assert!(origin.contains("the autopilot's is the team's") && origin.ends_with("sets 0"), "{origin}");
-        assert!(hand_over.ends_with("navigating false source_set MAV_RESULT_ACCEPTED"), "{hand_over}");
         // started within the first 3 s (a fix held 1 s), where the autopilot was then
-        let start = common::numbers_after(&hand_over, "started_at_ned_m");
+        let start = common::numbers_after(hand_over, "started_at_ned_m");
         let trajectory = world.trajectory(*id).unwrap();
         let apart = (0..=30)
             .map(|k| trajectory.truth_at(cooploc::time::TimeUs(k * 100_000)).pos_ned_m)
@@ -262,36 +296,30 @@ fn nodes_run_on_the_ardupilot_personalitys_gnss_take_over_when_it_goes_and_hand_
         assert!(apart < 0.5, "node {id} started {apart:.2} m from anywhere it was in the first 3 s: {hand_over}");
         // every 5 Hz fix the filter's, before the loss and after the return, once (streamed at
         // 10 Hz: most fixes come twice; 15 s of GNSS at 5 Hz is 75 fixes at most)
-        let fixes: u64 = field(&hand_over, "fixes").parse().unwrap();
+        let fixes: u64 = field(hand_over, "fixes").parse().unwrap();
         assert!((50..=75).contains(&fixes), "{hand_over}");
-        assert!(count(&vehicle, "gnss_repeats") > fixes / 2, "{vehicle}");
-        assert_eq!(field(&hand_over, "fixes_rejected"), "0", "{hand_over}");
+        assert!(count(vehicle, "gnss_repeats") > fixes / 2, "{vehicle}");
+        assert_eq!(field(hand_over, "fixes_rejected"), "0", "{hand_over}");
         assert_eq!(
-            (field(&hand_over, "losses"), field(&hand_over, "glitches"), field(&hand_over, "returns")),
+            (field(hand_over, "losses"), field(hand_over, "glitches"), field(hand_over, "returns")),
             ("1", "0", "1"),
             "{hand_over}"
         );
         // epochs from the start, GNSS or not (the schedule: one a second)
-        let applied: u64 = field(&done, "epochs_applied").parse().unwrap();
+        let applied: u64 = field(done, "epochs_applied").parse().unwrap();
         assert!(applied >= 20, "{done}");
-        assert_eq!(field(&done, "epochs_skipped"), "0", "{done}");
+        assert_eq!(field(done, "epochs_skipped"), "0", "{done}");
         // ODOMETRY only while the node navigates: from 8 s to the hand-back 2 s after 18 s, 20 Hz
-        let odometry: u64 = field(&vehicle, "odometry_sent").parse().unwrap();
+        let odometry: u64 = field(vehicle, "odometry_sent").parse().unwrap();
         assert!((200..=270).contains(&odometry), "{vehicle}");
         // the start and the fixes are in the log: replay is exact
-        near_the_truth_and_replayed(&world, *id, dir, &done);
+        near_the_truth_and_replayed(&world, *id, dir, done);
     }
-    for id in [1u16, 2, 3] {
-        // the take-over, then the hand-back
-        wait_line(&sitl_out, &format!("vehicle {id} EKF source set 2 (MAV_CMD_SET_EKF_SOURCE_SET)"), Duration::from_secs(30));
-        wait_line(&sitl_out, &format!("vehicle {id} EKF source set 1 (MAV_CMD_SET_EKF_SOURCE_SET)"), Duration::from_secs(5));
-        // no step in what the autopilot navigates on at the take-over (the node's estimate ran on
-        // the same fixes: 0.03-0.06 m in one run, 0.20-0.24 m with the lag 20 ms off), and 12 s
-        // later, without GNSS, still near the truth (0.02-0.03 m)
-        let odometry = wait_line(&sitl_out, &format!("vehicle {id} odometry first "), Duration::from_secs(5));
-        eprintln!("{odometry}");
-        let (first, last): (f64, f64) = (field(&odometry, "first").parse().unwrap(), field(&odometry, "last").parse().unwrap());
-        assert!(first < 0.15 && last < 0.5, "{odometry}");
+    // the take-over, then the hand-back; no step in what the autopilot navigates on at the
+    // take-over (the node's estimate ran on the same fixes: 0.03-0.06 m in one run, 0.20-0.24 m
+    // with the lag 20 ms off), and 12 s later, without GNSS, still near the truth (0.02-0.03 m)
+    for (first, last) in taken_over_and_handed_back(&sitl_out) {
+        assert!(first < 0.15 && last < 0.5, "first {first} last {last} m");
     }
     drop(kill);
     let _ = std::fs::remove_dir_all(&root);
@@ -306,22 +334,12 @@ fn nodes_run_on_the_ardupilot_personalitys_gnss_take_over_when_it_goes_and_hand_
 /// it out).
 #[test]
 fn nodes_take_over_at_a_gnss_glitch_the_ardupilot_personalitys_ekf_reports_and_hand_back_after_it() {
-    let repo = Path::new(env!("CARGO_MANIFEST_DIR"));
-    let root = std::env::temp_dir().join(format!("cooploc-glitch-{}", std::process::id()));
-    // (and ODOMETRY from the start, as the real-firmware runs send it: `odometry_with_gnss`)
-    let profile = std::fs::read_to_string(repo.join("sitl/vehicles/ardupilot-rover.toml")).unwrap()
-        + "takeover_source_set = 2\nodometry_with_gnss = true\n";
-    let profile = profile.replacen("gnss_lag_ms = 120", "gnss_lag_ms = 100", 1);
     let gnss = ["--gnss-time", "--gnss-lost-at-s", "8", "--gnss-back-at-s", "18", "--gnss-glitch-m", "30"];
-    let (scenario_path, kill, sitl_out, outs) = bare_team(&root, "1", &profile, &gnss, "init_from_autopilot = true\n");
-    let world = cooploc::sitl::World::new(&cooploc::sitl::Scenario::from_path(&scenario_path).unwrap()).unwrap();
-    for (id, dir, out) in &outs {
-        let done = wait_line(out, &format!("node {id} done:"), Duration::from_secs(120));
-        let vehicle = wait_line(out, &format!("node {id} vehicle "), Duration::from_secs(5));
-        let hand_over = wait_line(out, &format!("node {id} hand_over "), Duration::from_secs(5));
-        eprintln!("{done}\n{vehicle}\n{hand_over}");
-        assert!(hand_over.ends_with("navigating false source_set MAV_RESULT_ACCEPTED"), "{hand_over}");
-        let got = |name| field(&hand_over, name).parse::<u64>().unwrap();
+    // (and ODOMETRY from the start, as the real-firmware runs send it: `odometry_with_gnss`)
+    let extra = "takeover_source_set = 2\nodometry_with_gnss = true\n";
+    let ((world, kill, sitl_out, nodes), root) = hand_over_team("glitch", extra, &gnss);
+    for (id, dir, [done, vehicle, hand_over], _) in &nodes {
+        let got = |name| field(hand_over, name).parse::<u64>().unwrap();
         assert_eq!((got("losses"), got("glitches"), got("returns")), (1, 1, 1), "{hand_over}");
         // the 10 s of glitched fixes at 5 Hz refused by the gate (none taken: the ODOMETRY below
         // never saw them), the rest taken
@@ -329,21 +347,16 @@ fn nodes_take_over_at_a_gnss_glitch_the_ardupilot_personalitys_ekf_reports_and_h
         assert!((60..=80).contains(&got("fixes")), "{hand_over}");
         // ODOMETRY at 20 Hz from the node's start (within the first 3 s) to the end at 25 s,
         // the autopilot on GNSS or not (without `odometry_with_gnss`: 200-270, the take-over's)
-        let odometry: u64 = field(&vehicle, "odometry_sent").parse().unwrap();
+        let odometry: u64 = field(vehicle, "odometry_sent").parse().unwrap();
         assert!((420..=501).contains(&odometry), "{vehicle}");
-        let applied: u64 = field(&done, "epochs_applied").parse().unwrap();
+        let applied: u64 = field(done, "epochs_applied").parse().unwrap();
         assert!(applied >= 20, "{done}");
-        near_the_truth_and_replayed(&world, *id, dir, &done);
+        near_the_truth_and_replayed(&world, *id, dir, done);
     }
-    for id in [1u16, 2, 3] {
-        wait_line(&sitl_out, &format!("vehicle {id} EKF source set 2 (MAV_CMD_SET_EKF_SOURCE_SET)"), Duration::from_secs(30));
-        wait_line(&sitl_out, &format!("vehicle {id} EKF source set 1 (MAV_CMD_SET_EKF_SOURCE_SET)"), Duration::from_secs(5));
-        // the node's ODOMETRY, from its start to the end, the take-over included: it never took
-        // the glitch (30 m away)
-        let odometry = wait_line(&sitl_out, &format!("vehicle {id} odometry first "), Duration::from_secs(5));
-        eprintln!("{odometry}");
-        let (first, last): (f64, f64) = (field(&odometry, "first").parse().unwrap(), field(&odometry, "last").parse().unwrap());
-        assert!(first < 0.3 && last < 0.5, "{odometry}");
+    // the node's ODOMETRY, from its start to the end, the take-over included: it never took the
+    // glitch (30 m away)
+    for (first, last) in taken_over_and_handed_back(&sitl_out) {
+        assert!(first < 0.3 && last < 0.5, "first {first} last {last} m");
     }
     drop(kill);
     let _ = std::fs::remove_dir_all(&root);
