@@ -239,6 +239,24 @@ mod tests {
         MavMessage::ATTITUDE(ATTITUDE_DATA { time_boot_ms, yaw, ..Default::default() })
     }
 
+    /// ArduPilot's EKF_STATUS_REPORT with `flags`.
+    fn ekf(flags: u16) -> MavMessage {
+        use crate::protocol::dialect::cooploc::{EKF_STATUS_REPORT_DATA, EkfStatusFlags};
+        MavMessage::EKF_STATUS_REPORT(EKF_STATUS_REPORT_DATA {
+            flags: EkfStatusFlags::from_bits_retain(flags),
+            ..Default::default()
+        })
+    }
+
+    /// PX4's ESTIMATOR_STATUS with `flags`.
+    fn px4(flags: u16) -> MavMessage {
+        use crate::protocol::dialect::cooploc::{ESTIMATOR_STATUS_DATA, EstimatorStatusFlags};
+        MavMessage::ESTIMATOR_STATUS(ESTIMATOR_STATUS_DATA {
+            flags: EstimatorStatusFlags::from_bits_retain(flags),
+            ..Default::default()
+        })
+    }
+
     /// `n` GPS_RAW_INT messages of `fix_type`: the events they gave.
     fn fixes(h: &mut Handover, fix_type: GpsFixType, n: usize) -> Vec<HandoverEvent> {
         (0..n).filter_map(|_| h.on_message(&fix(fix_type), &ORIGIN)).collect()
@@ -286,13 +304,7 @@ mod tests {
     /// under the ground. It starts once the EKF says 0x033f (horizontal position, absolute).
     #[test]
     fn the_start_waits_for_the_ekf_to_vouch_for_an_absolute_position() {
-        use crate::protocol::dialect::cooploc::{EKF_STATUS_REPORT_DATA, EkfStatusFlags};
-        let status = |flags: u16| {
-            MavMessage::EKF_STATUS_REPORT(EKF_STATUS_REPORT_DATA {
-                flags: EkfStatusFlags::from_bits_truncate(flags),
-                ..Default::default()
-            })
-        };
+        let status = ekf;
         let mut h = Handover::new();
         h.on_message(&status(0x00a7), &ORIGIN);
         h.on_message(&position(9_951, 0.0), &ORIGIN);
@@ -308,21 +320,6 @@ mod tests {
     /// row and the EKF to report no glitch.
     #[test]
     fn a_glitch_the_ekf_reports_is_taken_over_and_handed_back_when_the_nodes_gate_takes_the_fixes_again() {
-        use crate::protocol::dialect::cooploc::{
-            EKF_STATUS_REPORT_DATA, ESTIMATOR_STATUS_DATA, EkfStatusFlags, EstimatorStatusFlags,
-        };
-        let ekf = |flags: u16| {
-            MavMessage::EKF_STATUS_REPORT(EKF_STATUS_REPORT_DATA {
-                flags: EkfStatusFlags::from_bits_retain(flags),
-                ..Default::default()
-            })
-        };
-        let px4 = |flags: u16| {
-            MavMessage::ESTIMATOR_STATUS(ESTIMATOR_STATUS_DATA {
-                flags: EstimatorStatusFlags::from_bits_retain(flags),
-                ..Default::default()
-            })
-        };
         for (good, glitch) in [(ekf(0x033f), ekf(0x833f)), (px4(0x003f), px4(0x043f))] {
             let mut h = Handover::new();
             h.on_message(&good, &ORIGIN);
@@ -370,13 +367,6 @@ mod tests {
 
     #[test]
     fn a_glitch_before_the_start_only_delays_it() {
-        use crate::protocol::dialect::cooploc::{EKF_STATUS_REPORT_DATA, EkfStatusFlags};
-        let ekf = |flags: u16| {
-            MavMessage::EKF_STATUS_REPORT(EKF_STATUS_REPORT_DATA {
-                flags: EkfStatusFlags::from_bits_retain(flags),
-                ..Default::default()
-            })
-        };
         let mut h = Handover::new();
         h.on_message(&ekf(0x833f), &ORIGIN);
         h.on_message(&position(1_000, 5.0), &ORIGIN);
