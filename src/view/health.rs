@@ -121,7 +121,9 @@ impl EpochTally {
             return EpochOutcome::Dropped;
         }
         match a.state {
-            EpochState::COOPLOC_EPOCH_STATE_COLLECTING => return EpochOutcome::Ignored,
+            EpochState::COOPLOC_EPOCH_STATE_COLLECTING | EpochState::COOPLOC_EPOCH_STATE_NO_RECORD => {
+                return EpochOutcome::Ignored;
+            }
             EpochState::COOPLOC_EPOCH_STATE_STORE_WANTED => {
                 let first = self.wanted.entry(a.epoch).or_default().insert(a.announcer);
                 if first {
@@ -357,6 +359,10 @@ mod tests {
         let mut collecting = report(3, 2, 1, &[1]);
         collecting.state = EpochState::COOPLOC_EPOCH_STATE_COLLECTING;
         t.on_epoch(&collecting);
+        // "no record from me" is an answer to a request, not a report of a run epoch
+        let mut none = report(4, 3, 1, &[]);
+        none.state = EpochState::COOPLOC_EPOCH_STATE_NO_RECORD;
+        assert_eq!(t.on_epoch(&none), EpochOutcome::Ignored);
         assert_eq!((t.disagreements, t.heals), (0, 0));
         assert_eq!((t.nodes[&1].partial, t.nodes[&2].store_wanted, t.last_epoch), (1, 1, Some(2)));
     }

@@ -171,8 +171,9 @@ pub struct NodeConfig {
     /// sets it with `--team-key`; the fault harness, whose network carries only its nodes'
     /// records). What a record says of its sender is then believed before vetting: a teammate
     /// whose record of a later epoch says it first broadcast after the epoch we wait on (it
-    /// restarted) is not waited for. False on an unsigned team, where a forger could say the
-    /// same of a genuine teammate.
+    /// restarted) is not waited for, nor one that answers our request for its record "no
+    /// record" (COOPLOC_EPOCH_STATE_NO_RECORD). False on an unsigned team, where a forger could
+    /// say the same of a genuine teammate.
     pub authenticated_peers: bool,
     /// The team's ranging schedule, when it is periodic: an epoch every `epoch_period_us` of the
     /// team clock, ids consecutive. A node then knows the next epoch from the last one it knows
@@ -403,6 +404,11 @@ pub struct NodeStats {
     /// had fallen behind the epochs: [`NodeCore`] docs, step 1), and our records that asked.
     pub epochs_strided: u64,
     pub skips_asked: u64,
+    /// Teammates' requests for our record of an epoch we resolved without one, answered
+    /// "no record" (COOPLOC_EPOCH_STATE_NO_RECORD), and such answers that ended a wait of ours
+    /// for a teammate's record.
+    pub no_record_said: u64,
+    pub no_record_heard: u64,
     /// Store snapshots sent to a teammate that asked, and adopted from one.
     pub stores_sent: u64,
     pub stores_adopted: u64,
@@ -465,6 +471,8 @@ struct Epoch {
     /// With airtime slots: we broadcast after our slot had passed (the epoch before resolved
     /// late), when every member late alike sends at once.
     broadcast_late: bool,
+    /// Members that said they have no record of this epoch and will send none: not waited for.
+    no_record: BTreeSet<PlatformId>,
 }
 
 impl Epoch {
@@ -485,6 +493,7 @@ impl Epoch {
             followed: false,
             plan_over_at: None,
             broadcast_late: false,
+            no_record: BTreeSet::new(),
         }
     }
 
@@ -656,6 +665,8 @@ pub struct NodeCore {
     /// epoch still remembered (the rate limits).
     resent_at: VecDeque<u64>,
     epoch_resent: BTreeMap<u32, ResendWindow>,
+    /// Wall time we last said "no record" of each epoch (within half a retry interval).
+    no_record_said_at: BTreeMap<u32, u64>,
     /// With airtime slots: the teammates that asked once for a whole record of ours, by epoch
     /// (the request may have been stale; answered when repeated).
     asked_once: BTreeSet<(u32, PlatformId)>,
@@ -767,6 +778,7 @@ impl NodeCore {
             sent: VecDeque::new(),
             resent_at: VecDeque::new(),
             epoch_resent: BTreeMap::new(),
+            no_record_said_at: BTreeMap::new(),
             asked_once: BTreeSet::new(),
             on_air_until: BTreeMap::new(),
             ran_on: VecDeque::new(),
@@ -1252,6 +1264,21 @@ impl NodeCore {
             }
             return;
         }
+        if a.state == EpochState::COOPLOC_EPOCH_STATE_NO_RECORD {
+            // The member resolved this epoch without a record: waiting for one is waiting for
+            // nothing. (A record of it that we hold still counts: it was sent, after all.) Not
+            // believed from unsigned peers, as a record's word on its sender is not
+            // ([`NodeConfig::authenticated_peers`]): a forger could say it of a genuine member.
+            if self.cfg.authenticated_peers
+                && let Some(e) = self.epochs.get_mut(&a.epoch)
+                && e.t == a.t
+                && !e.records.contains_key(&from)
+                && e.no_record.insert(from)
+            {
+                self.stats.no_record_heard += 1;
+            }
+            return;
+        }
         if a.state == EpochState::COOPLOC_EPOCH_STATE_COLLECTING {
             self.learn_epoch(a.epoch, a.t);
         } else if let Some(ours) = self.ran_on.iter().find(|r| r.epoch == a.epoch) {
@@ -1290,6 +1317,10 @@ impl NodeCore {
             let sent = self.sent.iter().any(|(e, _)| *e == a.epoch);
             if self.cfg.slot_us > 0 && held.is_none() && sent && self.asked_once.insert((a.epoch, from)) {
                 self.stats.requests_deferred += 1;
+                return;
+            }
+            if !sent && self.resolved_without_record(a.epoch) {
+                self.say_no_record(a.epoch, a.t, out);
                 return;
             }
             self.resend(a.epoch, held, out);
@@ -1355,6 +1386,35 @@ impl NodeCore {
         self.stats.fragments_resent += fresh.len() as u64;
         out.extend(fresh.into_iter().cloned().map(NodeOutput::ToPeers));
         self.stats.records_resent += 1;
+    }
+
+    /// Whether `epoch` is behind us and we sent no record of it that we still keep: passed over
+    /// (or agreed to be), skipped while we were away or before our history, run as a bystander.
+    fn resolved_without_record(&self, epoch: u32) -> bool {
+        let open = self.epochs.get(&epoch);
+        let resolved = open.is_none() && !self.is_open(epoch);
+        let passing_over = self.agreed_to_pass_over(epoch) && open.is_none_or(|e| e.broadcast_at.is_none());
+        (resolved || passing_over) && !self.sent.iter().any(|(e, _)| *e == epoch)
+    }
+
+    /// Tells the team we have no record of `epoch` at `t` and will send none (a teammate asked
+    /// for it): once per epoch per half retry interval, within the resends' own limit of
+    /// [`RESENDS_PER_RETRY`] per retry interval.
+    fn say_no_record(&mut self, epoch: u32, t: TimeUs, out: &mut Vec<NodeOutput>) {
+        let (wall, retry) = (self.wall_us, self.retry_us());
+        while self.resent_at.front().is_some_and(|&at| wall >= at + retry) {
+            self.resent_at.pop_front();
+        }
+        self.no_record_said_at.retain(|_, at| wall < *at + retry / 2);
+        if self.no_record_said_at.contains_key(&epoch) || self.resent_at.len() >= RESENDS_PER_RETRY {
+            self.stats.resends_limited += 1;
+            return;
+        }
+        self.resent_at.push_back(wall);
+        self.no_record_said_at.insert(epoch, wall);
+        self.stats.no_record_said += 1;
+        let digest = self.store_digest();
+        self.send_status(epoch, t, Vec::new(), EpochState::COOPLOC_EPOCH_STATE_NO_RECORD, digest, out);
     }
 
     fn checkpoint_at(&self, t: TimeUs) -> Option<&NavFilter> {
@@ -1457,7 +1517,7 @@ impl NodeCore {
                 .iter()
                 .copied()
                 .filter(|p| !self.absent.contains(p) && !e.records.contains_key(p))
-                .partition(|&p| !self.born_after(epoch, p));
+                .partition(|&p| !self.born_after(epoch, p) && !e.no_record.contains(&p));
             let complete = missing.is_empty();
             if !complete && self.cfg.slot_us > 0 && e.plan_over_at.is_none() {
                 // Slots still to come: nothing is missing yet.
@@ -2623,6 +2683,71 @@ mod tests {
     /// broadcast the later one and close every epoch before it to itself (`cooploc faults
     /// --only "leaves for 60 s, 10%" --speed 5`: node 3 came back with its team 13 epochs
     /// behind the echoes; 4 runs of 20 did not recover, 1 with the rule).
+    /// The "no record" answers among `out`: (epoch, participants named).
+    fn no_records(out: &[NodeOutput]) -> Vec<(u32, usize)> {
+        out.iter()
+            .filter_map(|o| match o {
+                NodeOutput::ToPeers(m) => wire::epoch_of(m).and_then(Result::ok),
+                NodeOutput::Update(_) => None,
+            })
+            .filter(|a| a.state == EpochState::COOPLOC_EPOCH_STATE_NO_RECORD)
+            .map(|a| (a.epoch, a.participants.len()))
+            .collect()
+    }
+
+    #[test]
+    fn asked_for_a_record_it_never_sent_a_node_says_none_will_come() {
+        // node 2 resolved epochs up to 9 and sent no record of any (it was away, say)
+        let mut core = NodeCore::new(config(2, vec![1, 2, 3]), TimeUs(0), start()).unwrap();
+        core.last_applied = Some((9, TimeUs(9_000_000)));
+        step_at_rest(&mut core, 10_000_000, true);
+        let collecting = EpochState::COOPLOC_EPOCH_STATE_COLLECTING;
+        // node 1 waits for node 2's record of epoch 8: told at once that none will come
+        let out = announce(&mut core, 1, 8, vec![1], collecting);
+        assert_eq!(no_records(&out), vec![(8, 0)]);
+        // node 3 asks within half a retry interval: the answer went to every peer already
+        assert_eq!(no_records(&announce(&mut core, 3, 8, vec![3], collecting)), vec![]);
+        // a request that holds our record, or one for an epoch not resolved yet: no answer
+        assert_eq!(no_records(&announce(&mut core, 1, 7, vec![1, 2], collecting)), vec![]);
+        assert_eq!(no_records(&announce(&mut core, 1, 11, vec![1], collecting)), vec![]);
+        assert_eq!(core.stats.no_record_said, 1);
+        // asked again a retry interval later: answered again (the first answer may be lost)
+        let later = 10_000_000 + core.retry_us();
+        step_at_rest(&mut core, later, false);
+        assert_eq!(no_records(&announce(&mut core, 1, 8, vec![1], collecting)), vec![(8, 0)]);
+    }
+
+    #[test]
+    fn a_signed_teammate_that_says_it_has_no_record_is_not_waited_for() {
+        // node 1 of [1, 3] learns epoch 5 from node 3, broadcasts its record and waits for node
+        // 3's; at 5.5 s node 3 says it has none (when `told`): the wall time node 1 resolves 5
+        let run = |told: bool, signed: bool| -> Option<f64> {
+            let cfg = NodeConfig { authenticated_peers: signed, ..config(1, vec![1, 3]) };
+            let mut core = NodeCore::new(cfg, TimeUs(0), start()).unwrap();
+            for k in 1..=800 {
+                let t = k * 10_000;
+                step_at_rest(&mut core, t, k == 1);
+                if t == 4_000_000 {
+                    announce(&mut core, 3, 5, vec![], EpochState::COOPLOC_EPOCH_STATE_COLLECTING);
+                }
+                if t == 5_500_000 && told {
+                    announce(&mut core, 3, 5, vec![], EpochState::COOPLOC_EPOCH_STATE_NO_RECORD);
+                }
+                if core.last_epoch() == Some(5) {
+                    return Some(t as f64 / 1e6);
+                }
+            }
+            None
+        };
+        assert_eq!(run(true, true), Some(5.5));
+        // not told: the epoch timeout (2 s) from the broadcast; nor when told on an unsigned
+        // team, where anyone could have said it
+        for (told, signed) in [(false, true), (true, false)] {
+            let waited = run(told, signed).expect("resolved at the timeout");
+            assert!(waited > 7.0, "told {told}, signed {signed}: resolved at {waited} s");
+        }
+    }
+
     #[test]
     fn a_node_back_from_a_silence_waits_to_hear_which_epoch_its_team_is_at() {
         // node 3 resolved epoch 4 at wall time 4.5 s and heard its team then; IMU samples every
