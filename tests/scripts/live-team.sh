@@ -8,6 +8,8 @@
 #
 #   bash tests/scripts/live-team.sh [N] [DUR]       (N=32, DUR=60 by default)
 #   BIN=path/to/cooploc bash tests/scripts/live-team.sh 64 60
+#   MULTICAST=1 bash tests/scripts/live-team.sh 32 60   (no peer lists: every node on the
+#       default multicast group over loopback, `--multicast on --multicast-interface 127.0.0.1`)
 #
 # Not a CI test: it needs N+1 processes at real time (a 2-core machine saturates near 32 nodes).
 set -u
@@ -43,13 +45,15 @@ awk -v n="$N" '
 SP=$!
 for k in $(seq 300); do [ "$(grep -c '^vehicle ' "$D/sitl.out")" -ge "$N" ] && break; sleep 0.1; done
 PEERS=(); PIDS=()
+MC=()
+[ -n "${MULTICAST:-}" ] && MC=(--multicast on --multicast-interface 127.0.0.1)
 for i in $(seq "$N"); do
   A=$(grep "^vehicle $i " "$D/sitl.out" | awk '{print $4}')
   "$BIN" node --scenario "$D/team.toml" --id "$i" --vehicle "udpout:$A" --init-from-run 1:0 --encoding compact \
-    --team-key "$D/team.key" --signing-state "$D/signing$i" "${PEERS[@]}" > "$D/node$i.out" 2> "$D/node$i.err" &
+    --team-key "$D/team.key" --signing-state "$D/signing$i" "${PEERS[@]}" "${MC[@]}" > "$D/node$i.out" 2> "$D/node$i.err" &
   PIDS+=($!)
   for k in $(seq 100); do grep -q "coop udp" "$D/node$i.out" 2>/dev/null && break; sleep 0.1; done
-  PEERS+=(--peer "$(grep "coop udp" "$D/node$i.out" | awk '{print $NF}')")
+  [ -z "${MULTICAST:-}" ] && PEERS+=(--peer "$(grep "coop udp" "$D/node$i.out" | awk '{print $NF}')")
 done
 TCK=$(getconf CLK_TCK)
 cpu() { awk '{print $14+$15}' "/proc/$1/stat"; }
