@@ -44,7 +44,8 @@
 //!    --delay-ms 0-1000`).
 //! 2. **Agreement**: the node waits for the record of every expected team member, sending a
 //!    COOPLOC_EPOCH (COLLECTING, the records it holds) every `retry_us` of wall time; a member
-//!    not listed resends its record. The retry interval follows the team's epoch cadence (at
+//!    not listed resends its record, or, when it resolved the epoch without one (passed it over,
+//!    was away), answers NO_RECORD, and a signed team stops waiting for it. The retry interval follows the team's epoch cadence (at
 //!    most `retry_us`, at most a tenth of the epoch period in wall time: [`super::cadence`]),
 //!    unless configured not to.
 //!    After `epoch_timeout_us` it runs without the missing members, marks them absent until
@@ -661,8 +662,8 @@ pub struct NodeCore {
     last_run: Option<u32>,
     /// Our fragments of recent epochs, for resends.
     sent: VecDeque<(u32, Vec<MavMessage>)>,
-    /// Wall times of the resends of the last retry interval, and the last resend of each
-    /// epoch still remembered (the rate limits).
+    /// Wall times of the resends and "no record" answers of the last retry interval, and the
+    /// last resend of each epoch still remembered (the rate limits).
     resent_at: VecDeque<u64>,
     epoch_resent: BTreeMap<u32, ResendWindow>,
     /// Wall time we last said "no record" of each epoch (within half a retry interval).
@@ -1354,11 +1355,9 @@ impl NodeCore {
     /// which it holds (`held`): a fragment at most once per half retry interval for one epoch,
     /// open or run, and at most [`RESENDS_PER_RETRY`] resends per retry interval in all.
     fn resend(&mut self, epoch: u32, held: Option<wire::HeldFragments>, out: &mut Vec<NodeOutput>) {
+        let answered = self.answers_this_interval();
         let Some((_, frags)) = self.sent.iter().find(|(e, _)| *e == epoch) else { return };
         let (wall, retry) = (self.wall_us, self.retry_us());
-        while self.resent_at.front().is_some_and(|&at| wall >= at + retry) {
-            self.resent_at.pop_front();
-        }
         if self.epoch_resent.get(&epoch).is_some_and(|w| wall >= w.at + retry / 2) {
             self.epoch_resent.remove(&epoch);
         }
@@ -1373,7 +1372,7 @@ impl NodeCore {
             .collect();
         // With airtime slots: not while our broadcast may still be on the air.
         let on_air = self.on_air_until.get(&epoch).is_some_and(|&until| wall < until);
-        if fresh.is_empty() || on_air || self.resent_at.len() >= RESENDS_PER_RETRY {
+        if fresh.is_empty() || on_air || answered >= RESENDS_PER_RETRY {
             self.stats.resends_limited += 1;
             return;
         }
@@ -1386,6 +1385,16 @@ impl NodeCore {
         self.stats.fragments_resent += fresh.len() as u64;
         out.extend(fresh.into_iter().cloned().map(NodeOutput::ToPeers));
         self.stats.records_resent += 1;
+    }
+
+    /// Resends and "no record" answers sent in the last retry interval (the older ones are
+    /// forgotten).
+    fn answers_this_interval(&mut self) -> usize {
+        let (wall, retry) = (self.wall_us, self.retry_us());
+        while self.resent_at.front().is_some_and(|&at| wall >= at + retry) {
+            self.resent_at.pop_front();
+        }
+        self.resent_at.len()
     }
 
     /// Whether `epoch` is behind us and we sent no record of it that we still keep: passed over
@@ -1402,11 +1411,9 @@ impl NodeCore {
     /// [`RESENDS_PER_RETRY`] per retry interval.
     fn say_no_record(&mut self, epoch: u32, t: TimeUs, out: &mut Vec<NodeOutput>) {
         let (wall, retry) = (self.wall_us, self.retry_us());
-        while self.resent_at.front().is_some_and(|&at| wall >= at + retry) {
-            self.resent_at.pop_front();
-        }
+        let answered = self.answers_this_interval();
         self.no_record_said_at.retain(|_, at| wall < *at + retry / 2);
-        if self.no_record_said_at.contains_key(&epoch) || self.resent_at.len() >= RESENDS_PER_RETRY {
+        if self.no_record_said_at.contains_key(&epoch) || answered >= RESENDS_PER_RETRY {
             self.stats.resends_limited += 1;
             return;
         }
@@ -2678,11 +2685,6 @@ mod tests {
         assert_eq!(run(None, false), BTreeMap::from([(8, 8.2)]));
     }
 
-    /// Back from a silence (no epoch resolved for a timeout), a node that knows a later epoch
-    /// only from a range echo waits for its team to say which epoch it is at, rather than
-    /// broadcast the later one and close every epoch before it to itself (`cooploc faults
-    /// --only "leaves for 60 s, 10%" --speed 5`: node 3 came back with its team 13 epochs
-    /// behind the echoes; 4 runs of 20 did not recover, 1 with the rule).
     /// The "no record" answers among `out`: (epoch, participants named).
     fn no_records(out: &[NodeOutput]) -> Vec<(u32, usize)> {
         out.iter()
@@ -2748,6 +2750,12 @@ mod tests {
         }
     }
 
+    /// Back from a silence (no epoch resolved for a timeout), a node that knows a later epoch
+    /// only from a range echo waits for its team to say which epoch it is at, rather than
+    /// broadcast the later one and close every epoch before it to itself (`cooploc faults
+    /// --only "leaves for 60 s, 10%" --speed 5`: node 3 came back with its team 13 epochs
+    /// behind the echoes; 4 runs of 20 did not recover, 1 with the rule, none since the "no
+    /// record" answer).
     #[test]
     fn a_node_back_from_a_silence_waits_to_hear_which_epoch_its_team_is_at() {
         // node 3 resolved epoch 4 at wall time 4.5 s and heard its team then; IMU samples every
