@@ -43,7 +43,8 @@
 //!   autopilot's boot clock when it received the fix) less the profile's `gnss_lag_ms`; a
 //!   repeat of the fix last taken (same stamp) is dropped. A fix stamp is only looked at: it
 //!   takes no part in the wrap and reboot detection, and a fix before the team clock is
-//!   mapped, or more than [`MAX_FIX_AGE_US`] older than the newest stamp, is dropped (counted).
+//!   mapped, or more than [`MAX_FIX_AGE_US`] older than the newest stamp (a fix stamped in Unix
+//!   time: than the newest stamp in the team's clock), is dropped (counted).
 
 use nalgebra::Vector3;
 
@@ -268,7 +269,14 @@ impl VehicleInputs {
             return VehicleEvent::Nothing;
         }
         let us = m.time_usec.saturating_sub(u64::from(self.cfg.gnss_lag_ms) * 1000);
-        let stale = us < UNIX_TIME_FROM_US && self.last_boot_us.is_some_and(|last| us.saturating_add(MAX_FIX_AGE_US) < last);
+        // A fix is held to its age against the newest boot-clock stamp: in that clock, or, when
+        // it is stamped in Unix time, against that stamp in the team's clock.
+        let newest_us = if us >= UNIX_TIME_FROM_US {
+            self.last_boot_us.zip(self.unix_offset_us).and_then(|(b, o)| u64::try_from(b as i64 + o).ok())
+        } else {
+            self.last_boot_us
+        };
+        let stale = newest_us.is_some_and(|newest| us.saturating_add(MAX_FIX_AGE_US) < newest);
         let t = if us >= UNIX_TIME_FROM_US { Some(TimeUs(us)) } else { self.team_of_boot_us(us) };
         match t {
             Some(t) if !stale => {

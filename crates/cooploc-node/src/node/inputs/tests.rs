@@ -554,4 +554,10 @@ fn gnss_fixes_are_taken_once_asked_for_once_each_and_in_the_team_clock() {
     assert_eq!((d.counters.gnss_stale, d.counters.reboots), (4, 0));
     assert_eq!(fixes(d.decode(&gps(8_900_000, GPS_FIX_TYPE_3D_FIX, 12.0, 300))).len(), 1);
     assert_eq!(d.counters.gnss_fixes, 2);
+    // a fix stamped in Unix time is held to the same age, against the newest IMU stamp in the
+    // team's clock (unix0 + 9 s): 3.3 s old, stale; 0.15 s old, taken as stamped
+    assert!(fixes(d.decode(&gps(unix0 + 5_800_000, GPS_FIX_TYPE_3D_FIX, 12.0, 300))).is_empty());
+    assert_eq!(d.counters.gnss_stale, 5);
+    let got = fixes(d.decode(&gps(unix0 + 8_950_000, GPS_FIX_TYPE_3D_FIX, 12.0, 300)));
+    assert_eq!(got.iter().map(|f| f.t).collect::<Vec<_>>(), vec![TimeUs(unix0 + 8_850_000)]);
 }
