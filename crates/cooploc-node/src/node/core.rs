@@ -1320,7 +1320,7 @@ impl NodeCore {
                 self.stats.requests_deferred += 1;
                 return;
             }
-            if !sent && self.resolved_without_record(a.epoch) {
+            if !sent && self.resolved_before(a.epoch) {
                 self.say_no_record(a.epoch, a.t, out);
                 return;
             }
@@ -1397,13 +1397,13 @@ impl NodeCore {
         self.resent_at.len()
     }
 
-    /// Whether `epoch` is behind us and we sent no record of it that we still keep: passed over
-    /// (or agreed to be), skipped while we were away or before our history, run as a bystander.
-    fn resolved_without_record(&self, epoch: u32) -> bool {
+    /// Whether `epoch` is behind us: resolved (run, passed over, skipped while we were away or
+    /// before our history, run as a bystander), or agreed to be passed over before we broadcast
+    /// it. Without a record of ours in `sent`, none will come.
+    fn resolved_before(&self, epoch: u32) -> bool {
         let open = self.epochs.get(&epoch);
         let resolved = open.is_none() && !self.is_open(epoch);
-        let passing_over = self.agreed_to_pass_over(epoch) && open.is_none_or(|e| e.broadcast_at.is_none());
-        (resolved || passing_over) && !self.sent.iter().any(|(e, _)| *e == epoch)
+        resolved || (self.agreed_to_pass_over(epoch) && open.is_none_or(|e| e.broadcast_at.is_none()))
     }
 
     /// Tells the team we have no record of `epoch` at `t` and will send none (a teammate asked

@@ -304,15 +304,14 @@ mod tests {
     /// under the ground. It starts once the EKF says 0x033f (horizontal position, absolute).
     #[test]
     fn the_start_waits_for_the_ekf_to_vouch_for_an_absolute_position() {
-        let status = ekf;
         let mut h = Handover::new();
-        h.on_message(&status(0x00a7), &ORIGIN);
+        h.on_message(&ekf(0x00a7), &ORIGIN);
         h.on_message(&position(9_951, 0.0), &ORIGIN);
         h.on_message(&attitude(9_951, 0.5), &ORIGIN);
         assert_eq!(fixes(&mut h, GpsFixType::GPS_FIX_TYPE_3D_FIX, 3 * START_AFTER as usize), vec![]);
         // relative only: not yet
-        assert_eq!(h.on_message(&status(0x00a7 & !0x80 | 0x08), &ORIGIN), None);
-        let Some(HandoverEvent::Start { .. }) = h.on_message(&status(0x033f), &ORIGIN) else { panic!("a start") };
+        assert_eq!(h.on_message(&ekf(0x00a7 & !0x80 | 0x08), &ORIGIN), None);
+        let Some(HandoverEvent::Start { .. }) = h.on_message(&ekf(0x033f), &ORIGIN) else { panic!("a start") };
     }
 
     /// A GNSS glitch (the receiver's position jumps, its fix stays 3D): the EKF's report of it
