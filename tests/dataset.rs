@@ -147,7 +147,7 @@ fn golden_summary_of_every_method_on_the_excerpt_after_a_log_round_trip() {
 /// figures with every later truth pose moved 100 m, and a lower innovation cost than its start.
 #[test]
 fn identification_lowers_the_innovation_cost_and_reads_no_ground_truth() {
-    use cooploc::dataset::identify::{Options, identify, start};
+    use cooploc::dataset::identify::{MAX_CORRELATION_S, Options, fit_correlation, identify, start};
     let dir = excerpt("identify");
     let ds = mrclam::read_folder(&dir).unwrap().excerpt(60.0);
     let mut moved = ds.clone();
@@ -164,7 +164,35 @@ fn identification_lowers_the_innovation_cost_and_reads_no_ground_truth() {
     assert_eq!(a.best.model, b.best.model);
     assert_eq!(a.best.cost, b.best.cost);
     assert!(a.best.cost < a.start.cost - 1.0, "{} vs {}", a.best.cost, a.start.cost);
-    assert_eq!(a.evaluations, 1 + 2 * 19);
+    // The likelihood search (19 candidates an iteration), then the correlation time: the fresh
+    // observations' NIS with white errors, its bisection (20 steps) and the NIS at the time found;
+    // or the first alone when white errors are already consistent.
+    // (On this minute, two iterations from round figures leave the sigmas so small that even
+    // the longest correlation time leaves the fresh NIS above 1; the fit says so.)
+    let (t, nis, white) = (a.best.model.observation_correlation_s, a.fresh_nis, a.fresh_nis_white);
+    assert_eq!((t, nis), (b.best.model.observation_correlation_s, b.fresh_nis));
+    let search = 1 + 2 * 19;
+    if white <= 1.0 {
+        assert!(t == 0.0 && nis == white && a.evaluations == search + 1);
+    } else if t == MAX_CORRELATION_S {
+        assert!(nis > 1.0 && nis < white && a.evaluations == search + 2, "white {white}, at {t} s {nis}");
+    } else {
+        assert!((nis - 1.0).abs() < 1e-3 && a.evaluations == search + 23, "white {white}, at {t} s {nis}");
+    }
+    // From the committed figures (white errors), on the whole excerpt, the bisection: the fresh
+    // NIS made 1.
+    let white_model = cooploc::dataset::noise::NoiseModel { observation_correlation_s: 0.0, ..base };
+    let whole = mrclam::read_folder(&dir).unwrap();
+    let fit = fit_correlation(&whole, &white_model).unwrap();
+    assert!(fit.white_nis > 1.0, "{fit:?}");
+    assert!(fit.correlation_s > 0.0 && fit.correlation_s < MAX_CORRELATION_S && (fit.nis - 1.0).abs() < 1e-3, "{fit:?}");
+    let mut moved = whole.clone();
+    for r in &mut moved.robots {
+        for p in r.truth.iter_mut().skip(1) {
+            p.n_m += 100.0;
+        }
+    }
+    assert_eq!(fit, fit_correlation(&moved, &white_model).unwrap());
     std::fs::remove_dir_all(&dir).unwrap();
 }
 

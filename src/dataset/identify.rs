@@ -22,6 +22,11 @@
 //! the EM step for a mean). The filter that produces the innovations is the decentralized one
 //! (what a robot of the team runs) with every observation (the full-map regime).
 //!
+//! A second stage finds the correlation time of the observation errors
+//! ([`NoiseModel::observation_correlation_s`], [`fit_correlation`]), which the likelihood of
+//! every innovation cannot see: it makes the NIS of the fresh observations (a target not seen by
+//! its observer for [`super::run::FRESH_AFTER_S`]) 1 per scalar, as for a consistent filter.
+//!
 //! Left as given, not identified: the gate probability, the stale-command rule, the initial
 //! sigmas (of the start pose, and the prior sigmas of the speed scale and the bias), and whether
 //! first-estimate Jacobians are used. The search starts from [`start`]: round figures, none read
@@ -109,6 +114,7 @@ pub fn start(base: &NoiseModel) -> NoiseModel {
         robot_range_sigma_m: 0.1,
         robot_bearing_sigma_rad: 0.02,
         command_lag_s: 0.1,
+        observation_correlation_s: 0.0,
         landmark_range_bias_m: 0.0,
         robot_range_bias_m: 0.0,
         ..*base
@@ -138,9 +144,16 @@ pub struct Evaluation {
 #[derive(Debug, Clone, PartialEq)]
 pub struct Identified {
     pub start: Evaluation,
+    /// The figures of the likelihood search with the correlation time found after it
+    /// ([`fit_correlation`]); its other fields are those of the search's best point (white
+    /// errors).
     pub best: Evaluation,
     pub iterations: usize,
     pub evaluations: usize,
+    /// The fresh observations' NIS per scalar with white errors and with the correlation time
+    /// found (1 when consistent).
+    pub fresh_nis_white: f64,
+    pub fresh_nis: f64,
 }
 
 /// The objective at `model` (module documentation).
@@ -188,6 +201,7 @@ fn evaluation(model: &NoiseModel, o: &Outcome) -> Evaluation {
 /// Identifies the noise model on `ds` from `initial` (module documentation).
 pub fn identify(ds: &Dataset, initial: &NoiseModel, opts: &Options) -> Result<Identified, RunError> {
     initial.validate().map_err(RunError::Settings)?;
+    let initial = &NoiseModel { observation_correlation_s: 0.0, ..*initial };
     let mut best = evaluate(ds, initial)?;
     let start = best.clone();
     let mut step = opts.initial_step;
@@ -216,7 +230,78 @@ pub fn identify(ds: &Dataset, initial: &NoiseModel, opts: &Options) -> Result<Id
             step *= 0.5;
         }
     }
-    Ok(Identified { start, best, iterations, evaluations })
+    let fit = fit_correlation(ds, &best.model)?;
+    best.model.observation_correlation_s = fit.correlation_s;
+    Ok(Identified {
+        start,
+        best,
+        iterations,
+        evaluations: evaluations + fit.runs,
+        fresh_nis_white: fit.white_nis,
+        fresh_nis: fit.nis,
+    })
+}
+
+/// The NIS per scalar of the fresh observations (landmarks and teammates pooled; see
+/// [`super::run::FRESH_AFTER_S`]) in the identification's run (dcl, full map), and their count.
+pub fn fresh_nis(ds: &Dataset, model: &NoiseModel) -> Result<(f64, usize), RunError> {
+    let settings = Settings::new(NoiseModel { gate_probability: IDENTIFICATION_GATE_PROBABILITY, huber_nis: 0.0, ..*model });
+    let o = run(ds, &settings, Regime::FullMap, Method::Decentralized)?;
+    let (l, r) = (&o.landmark_fresh, &o.robot_fresh);
+    Ok(((l.nis_sum + r.nis_sum) / (l.scalars + r.scalars).max(1) as f64, l.observations + r.observations))
+}
+
+/// The correlation time of the observation errors ([`NoiseModel::observation_correlation_s`]),
+/// found after the likelihood search: the likelihood of every innovation cannot see it (within
+/// a burst of correlated errors the innovations after the first are small, and the search then
+/// prefers white errors with small sigmas, which leaves the filter over-confident). An
+/// observation of a target its observer has not seen for a while
+/// ([`super::run::FRESH_AFTER_S`]) has an error nearly independent of what the filter has taken
+/// in, so its innovation tests the filter's covariance: a consistent filter's NIS per scalar on
+/// those is 1. The correlation time is the one that makes it 1 (bisection in log time between
+/// 0.01 and [`MAX_CORRELATION_S`]; the NIS falls as the time grows, the filter trusting each
+/// burst less); 0 when the white filter's is already at most 1, and the longest when even that
+/// leaves it above 1 (the fit's NIS then says so).
+pub fn fit_correlation(ds: &Dataset, model: &NoiseModel) -> Result<CorrelationFit, RunError> {
+    let at = |t: f64| fresh_nis(ds, &NoiseModel { observation_correlation_s: t, ..*model }).map(|(nis, _)| nis);
+    let white = at(0.0)?;
+    if white <= 1.0 {
+        return Ok(CorrelationFit { correlation_s: 0.0, nis: white, white_nis: white, runs: 1 });
+    }
+    let longest = at(MAX_CORRELATION_S)?;
+    if longest > 1.0 {
+        // Even errors this correlated leave the filter over-confident: the sigmas are too small
+        // for the correlation to make up (the NIS says by how much).
+        return Ok(CorrelationFit { correlation_s: MAX_CORRELATION_S, nis: longest, white_nis: white, runs: 2 });
+    }
+    let (mut lo, mut hi) = (0.01f64.ln(), MAX_CORRELATION_S.ln());
+    let mut runs = 2;
+    for _ in 0..20 {
+        let mid = 0.5 * (lo + hi);
+        runs += 1;
+        if at(mid.exp())? > 1.0 {
+            lo = mid;
+        } else {
+            hi = mid;
+        }
+    }
+    let t = (0.5 * (lo + hi)).exp();
+    Ok(CorrelationFit { correlation_s: t, nis: at(t)?, white_nis: white, runs: runs + 1 })
+}
+
+/// The longest correlation time [`fit_correlation`] tries, s.
+pub const MAX_CORRELATION_S: f64 = 1000.0;
+
+/// What [`fit_correlation`] found.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct CorrelationFit {
+    /// s; 0: white.
+    pub correlation_s: f64,
+    /// The fresh observations' NIS per scalar there, and with white errors.
+    pub nis: f64,
+    pub white_nis: f64,
+    /// Runs of the data set made.
+    pub runs: usize,
 }
 
 /// The figures as lines of TOML with a comment each, for `--write-noise` and the committed file.
@@ -226,6 +311,10 @@ pub fn describe(id: &Identified) -> Vec<String> {
     for (k, name) in FIGURES.iter().enumerate() {
         out.push(format!("{name} = {:.4e}   # start {:.1e}", get(m, k), get(&id.start.model, k)));
     }
+    out.push(format!(
+        "observation_correlation_s = {:.4e}   # fresh observations' NIS per scalar {:.2} with white errors, {:.2} with it",
+        m.observation_correlation_s, id.fresh_nis_white, id.fresh_nis
+    ));
     out.push(format!("landmark_range_bias_m = {:.4}", m.landmark_range_bias_m));
     out.push(format!("robot_range_bias_m = {:.4}", m.robot_range_bias_m));
     out

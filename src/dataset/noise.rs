@@ -82,6 +82,13 @@ pub struct NoiseModel {
     /// (see [`super::run::lagged`]); 0: none.
     #[serde(default)]
     pub command_lag_s: f64,
+    /// Correlation time of an observer's errors on one target (landmark or teammate), s: the
+    /// errors of successive observations of the same target are taken as correlated by
+    /// `exp(-dt / T)`, and each observation's noise is inflated by the variance inflation factor
+    /// of that correlation with the target's earlier observations (see
+    /// [`super::run::CorrelatedErrors`]); 0: white errors, no inflation.
+    #[serde(default)]
+    pub observation_correlation_s: f64,
 }
 
 /// The MRCLAM figures, as committed.
@@ -135,6 +142,7 @@ impl NoiseModel {
             ("initial_yaw_rate_bias_sigma_rad_s", self.initial_yaw_rate_bias_sigma_rad_s),
             ("huber_nis", self.huber_nis),
             ("command_lag_s", self.command_lag_s),
+            ("observation_correlation_s", self.observation_correlation_s),
         ] {
             if !(v.is_finite() && v >= 0.0) {
                 return Err(format!("{name} = {v}: must be a number >= 0"));

@@ -158,6 +158,11 @@ pub struct Outcome {
     /// applied: what [`super::identify`] fits the noise to, with no ground truth.
     pub landmark_innovations: InnovationStats,
     pub robot_innovations: InnovationStats,
+    /// The same for the fresh observations only ([`FRESH_AFTER_S`]; a teammate update when
+    /// every observation of its image is fresh): a consistent filter's NIS per scalar is 1 on
+    /// them whatever the correlation of a burst's errors.
+    pub landmark_fresh: InnovationStats,
+    pub robot_fresh: InnovationStats,
     /// Per robot, its estimate at every scoring instant (with [`Settings::keep_track`]).
     pub track: Vec<(PlatformId, Vec<TrackPoint>)>,
 }
@@ -386,6 +391,44 @@ pub fn robot_measurement(
     Some(CoopMeasurement::Linear { blocks: vec![(observer, h_from), (to, h_to)], residual, r })
 }
 
+/// An observation is fresh when its observer has not seen its target for this long, s: its error
+/// is then nearly independent of the errors the filter has taken in, so its innovation tests the
+/// filter's covariance (see [`Outcome::landmark_fresh`]).
+pub const FRESH_AFTER_S: f64 = 10.0;
+
+/// Errors that are correlated in time, per observer and target: the errors of an observer's
+/// successive observations of one target are taken as a first-order Gauss-Markov sequence,
+/// correlated by `exp(-dt / T)` ([`NoiseModel::observation_correlation_s`]). A filter that takes
+/// each observation as independent counts the shared part of a burst's errors once per
+/// observation; instead each observation's noise covariance is multiplied by the variance
+/// inflation factor of the correlation with the target's earlier observations,
+/// `1 + 2 sum_j exp(-(t - t_j) / T)` (the effective-sample-size rule: in a long regular sequence
+/// with neighbour correlation `c` it tends to `(1 + c) / (1 - c)`, so that `N` observations carry
+/// the information of `N (1 - c) / (1 + c)` independent ones; the first observation of a target
+/// after a long gap counts fully).
+#[derive(Debug, Default)]
+pub struct CorrelatedErrors {
+    /// Per (observer, target): the last observation's time and `1 + sum_j exp(-(t_last - t_j) / T)`
+    /// over the earlier ones.
+    last: std::collections::HashMap<(PlatformId, Target), (TimeUs, f64)>,
+}
+
+impl CorrelatedErrors {
+    /// The factor for `observer`'s observation of `target` at `t`, which it records (1 when `T`
+    /// is 0), and whether the observation is fresh: the first of that target by that observer
+    /// for [`FRESH_AFTER_S`] or more. Observations of one target come in time order.
+    pub fn inflation(&mut self, observer: PlatformId, target: Target, t: TimeUs, correlation_s: f64) -> (f64, bool) {
+        let last = self.last.get(&(observer, target)).copied();
+        let gap_s = last.map_or(f64::INFINITY, |(t_last, _)| t.0.saturating_sub(t_last.0) as f64 * 1e-6);
+        let earlier = match last {
+            Some((_, sum)) if correlation_s > 0.0 => sum * (-gap_s / correlation_s).exp(),
+            _ => 0.0,
+        };
+        self.last.insert((observer, target), (t, 1.0 + earlier));
+        (1.0 + 2.0 * earlier, gap_s >= FRESH_AFTER_S)
+    }
+}
+
 /// One camera image: an observer's observations at one time stamp.
 struct Image<'a> {
     t: TimeUs,
@@ -447,6 +490,8 @@ impl Outcome {
             refused: 0,
             landmark_innovations: InnovationStats::default(),
             robot_innovations: InnovationStats::default(),
+            landmark_fresh: InnovationStats::default(),
+            robot_fresh: InnovationStats::default(),
             track: ids.iter().map(|&id| (id, Vec::new())).collect(),
         }
     }
@@ -487,18 +532,20 @@ fn apply_landmarks(
     observer: PlatformId,
     im: &Image<'_>,
     ds: &Dataset,
-    noise: &NoiseModel,
-    gate: [f64; 3],
+    (noise, gate): (&NoiseModel, [f64; 3]),
+    correlated: &mut CorrelatedErrors,
     out: &mut Outcome,
 ) -> bool {
     let mut applied = false;
     for o in im.observations {
         let Target::Landmark(l) = o.target else { continue };
         let Some(lm) = ds.landmark(l) else { continue };
-        let Some(meas) = landmark_measurement(team.filter(observer).expect("member"), lm, o, noise) else {
+        let (inflation, fresh) = correlated.inflation(observer, o.target, im.t, noise.observation_correlation_s);
+        let Some(mut meas) = landmark_measurement(team.filter(observer).expect("member"), lm, o, noise) else {
             out.refused += 1;
             continue;
         };
+        meas.r *= inflation;
         match team.robust_local_update(observer, &meas, gate, noise.huber()) {
             Ok(Some((d, w))) => {
                 applied = true;
@@ -506,12 +553,63 @@ fn apply_landmarks(
                 out.landmark_weighted += usize::from(w < 1.0);
                 out.landmark_weight_below_half += usize::from(w < 0.5);
                 out.landmark_innovations.add(&d);
+                if fresh {
+                    out.landmark_fresh.add(&d);
+                }
             }
             Ok(None) => out.landmark_gated += 1,
             Err(_) => out.refused += 1,
         }
     }
     applied
+}
+
+/// One image's teammate observations, one robust joint update of the team (an epoch); false when
+/// none could be made into a measurement.
+fn apply_teammates(
+    team: &mut Team<CommandedFilter>,
+    observer: PlatformId,
+    im: &Image<'_>,
+    (noise, gate): (&NoiseModel, [f64; 3]),
+    correlated: &mut CorrelatedErrors,
+    out: &mut Outcome,
+) -> bool {
+    let mut meas = Vec::new();
+    let mut all_fresh = true;
+    for o in im.observations {
+        let Target::Robot(to) = o.target else { continue };
+        let Some(target) = team.filter(to) else { continue };
+        let (inflation, fresh) = correlated.inflation(observer, o.target, im.t, noise.observation_correlation_s);
+        all_fresh &= fresh;
+        match robot_measurement(team.filter(observer).expect("member"), target, observer, to, o, noise) {
+            Some(CoopMeasurement::Linear { blocks, residual, r }) => {
+                meas.push(CoopMeasurement::Linear { blocks, residual, r: r * inflation })
+            }
+            Some(m) => meas.push(m),
+            None => out.refused += 1,
+        }
+    }
+    if meas.is_empty() {
+        return false;
+    }
+    out.epochs += 1;
+    match team.robust_cooperative_event(&meas, gate, noise.huber()) {
+        Ok((d, weights)) => {
+            let gated = weights.iter().filter(|&&w| w == 0.0).count();
+            out.robot_weighted += weights.iter().filter(|&&w| w > 0.0 && w < 1.0).count();
+            out.robot_weight_below_half += weights.iter().filter(|&&w| w > 0.0 && w < 0.5).count();
+            if let Some(d) = d.filter(|d| !d.innovation.is_empty()) {
+                out.robot_innovations.add(&d);
+                if all_fresh {
+                    out.robot_fresh.add(&d);
+                }
+            }
+            out.robot_updates += meas.len() - gated;
+            out.robot_gated += gated;
+        }
+        Err(_) => out.refused += meas.len(),
+    }
+    true
 }
 
 /// Every method of `methods` in every regime of `regimes` (regime-major order), in parallel
@@ -583,6 +681,7 @@ pub fn run(ds: &Dataset, settings: &Settings, regime: Regime, method: Method) ->
     let images = if method == Method::DeadReckoning { Vec::new() } else { images(ds) };
     let mut k_image = 0;
     let mut absolute_seen = false;
+    let mut correlated = CorrelatedErrors::default();
     let mut t_score = ds.t0;
     while t_score <= ds.t_end || k_image < images.len() {
         let t_image = images.get(k_image).map(|im| im.t);
@@ -597,7 +696,7 @@ pub fn run(ds: &Dataset, settings: &Settings, regime: Regime, method: Method) ->
             };
             if sees_landmarks && im.observations.iter().any(|o| matches!(o.target, Target::Landmark(_))) {
                 advance(&mut team, im.observer, t)?;
-                absolute_seen |= apply_landmarks(&mut team, observer, im, ds, noise, gate, &mut out);
+                absolute_seen |= apply_landmarks(&mut team, observer, im, ds, (noise, gate), &mut correlated, &mut out);
                 if absolute_seen {
                     for &id in &ids {
                         team.filter_mut(id).expect("member").reanchor_first_estimate();
@@ -608,31 +707,8 @@ pub fn run(ds: &Dataset, settings: &Settings, regime: Regime, method: Method) ->
                 for i in 0..ids.len() {
                     advance(&mut team, i, t)?;
                 }
-                let mut meas = Vec::new();
-                for o in im.observations {
-                    let Target::Robot(to) = o.target else { continue };
-                    let Some(target) = team.filter(to) else { continue };
-                    match robot_measurement(team.filter(observer).expect("member"), target, observer, to, o, noise) {
-                        Some(m) => meas.push(m),
-                        None => out.refused += 1,
-                    }
-                }
-                if meas.is_empty() {
+                if !apply_teammates(&mut team, observer, im, (noise, gate), &mut correlated, &mut out) {
                     continue;
-                }
-                out.epochs += 1;
-                match team.robust_cooperative_event(&meas, gate, noise.huber()) {
-                    Ok((d, weights)) => {
-                        let gated = weights.iter().filter(|&&w| w == 0.0).count();
-                        out.robot_weighted += weights.iter().filter(|&&w| w > 0.0 && w < 1.0).count();
-                        out.robot_weight_below_half += weights.iter().filter(|&&w| w > 0.0 && w < 0.5).count();
-                        if let Some(d) = d.filter(|d| !d.innovation.is_empty()) {
-                            out.robot_innovations.add(&d);
-                        }
-                        out.robot_updates += meas.len() - gated;
-                        out.robot_gated += gated;
-                    }
-                    Err(_) => out.refused += meas.len(),
                 }
             }
             // Once the team has observed a landmark its absolute pose is observable: no null
@@ -726,6 +802,35 @@ mod tests {
 
     fn secs(s: f64) -> TimeUs {
         TimeUs((s * 1e6).round() as u64)
+    }
+
+    #[test]
+    fn correlated_errors_inflate_a_burst_and_not_its_first_observation() {
+        let mut c = CorrelatedErrors::default();
+        let (lm, other) = (Target::Landmark(7), Target::Landmark(8));
+        let at = |s: f64| TimeUs((s * 1e6) as u64);
+        // White errors: no inflation, freshness still tracked.
+        assert_eq!(c.inflation(1, lm, at(0.0), 0.0), (1.0, true));
+        assert_eq!(c.inflation(1, lm, at(1.0), 0.0), (1.0, false));
+        let mut c = CorrelatedErrors::default();
+        let t = 2.0;
+        assert_eq!(c.inflation(1, lm, at(0.0), t), (1.0, true), "the first observation counts fully");
+        // Second one 1 s later: 1 + 2 exp(-1/2).
+        let (f, fresh) = c.inflation(1, lm, at(1.0), t);
+        assert!((f - (1.0 + 2.0 * (-0.5f64).exp())).abs() < 1e-12 && !fresh, "{f}");
+        // Another target, and the same target by another observer, are separate sequences.
+        assert_eq!(c.inflation(1, other, at(1.0), t), (1.0, true));
+        assert_eq!(c.inflation(2, lm, at(1.0), t), (1.0, true));
+        // A long regular sequence tends to (1 + c) / (1 - c), c the neighbours' correlation.
+        let mut f = 0.0;
+        for k in 2..400 {
+            f = c.inflation(1, lm, at(k as f64), t).0;
+        }
+        let corr = (-0.5f64).exp();
+        assert!((f - (1.0 + corr) / (1.0 - corr)).abs() < 1e-9, "{f}");
+        // After a gap of FRESH_AFTER_S the observation is fresh and nearly uninflated.
+        let (f, fresh) = c.inflation(1, lm, at(399.0 + FRESH_AFTER_S + 20.0), t);
+        assert!(fresh && f < 1.0 + 1e-3, "{f}");
     }
 
     #[test]
