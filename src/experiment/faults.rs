@@ -619,6 +619,8 @@ impl Maker<'_> {
         let model = nav_model(self.world, id);
         let mut cfg = NodeConfig::for_model(id, self.method, model, self.encoding, self.ids.clone());
         cfg.authenticated_peers = !self.case.unsigned;
+        // as `cooploc node` with a profile's range grid (the harness puts ranges on it too)
+        cfg.range_snap_us = EPOCH_GRID_US;
         let restored = match (saved, at) {
             (Some(saved), Some(t)) => saved
                 .restore_at(id, &model, &HARNESS_ORIGIN, t, &crate::estimation::coast::CoastBounds::LAND)

@@ -267,6 +267,8 @@ pub fn run_cmd(args: Args) -> anyhow::Result<()> {
     cfg.gate_probability = args.gate_probability;
     cfg.epoch_period_us = args.epoch_period_ms.map(|ms| ms.saturating_mul(1000));
     cfg.slot_us = airtime_slot_us(&args, (budget_team, budget_dim, encoding))?;
+    // the grid the decoder puts the vehicle's ranges on (the profile's)
+    cfg.range_snap_us = u64::from(profile.inputs.epoch_grid_ms) * 1000;
     // signed: every record the core sees is a teammate's own (the shell drops the others)
     cfg.authenticated_peers = args.team_key.is_some();
     let origin = profile.geo_origin().or(latitude.map(|lat_deg| GeoOrigin { lat_deg, lon_deg: args.origin_lon_deg, alt_m: 0.0 }));

@@ -189,6 +189,14 @@ pub struct NodeConfig {
     /// starts when the plan has run). Every member computes the same plan from the team list.
     /// 0: everyone at once, asking from its own broadcast on.
     pub slot_us: u64,
+    /// The grid the vehicle's ranges are put on (the profile's `inputs.epoch_grid_ms`), us. A
+    /// range of this node's vehicle that names an epoch the node already knows at an instant one
+    /// grid step or less away is taken at the known instant (`NodeStats::ranges_restamped`),
+    /// not refused: near the middle between two grid instants two nodes' clock mappings,
+    /// microseconds apart, can put the same ranging on neighbouring instants, and the epoch's
+    /// id, which the ranging system gave both, says which it is. 0: no grid, an own range at
+    /// another instant is refused like any claim.
+    pub range_snap_us: u64,
 }
 
 impl NodeConfig {
@@ -227,6 +235,7 @@ impl NodeConfig {
             authenticated_peers: false,
             epoch_period_us: None,
             slot_us: 0,
+            range_snap_us: 0,
         }
     }
 }
@@ -351,6 +360,9 @@ pub struct NodeStats {
     pub ranges_gated: u64,
     /// Own ranges that came after the node had broadcast that epoch's record.
     pub ranges_late: u64,
+    /// Own ranges taken at their epoch's known instant, a grid step away from their own
+    /// ([`NodeConfig::range_snap_us`]).
+    pub ranges_restamped: u64,
     /// Messages from platforms outside the team.
     pub unknown_platforms: u64,
     pub late_messages: u64,
@@ -885,10 +897,17 @@ impl NodeCore {
                     self.stats.ranges_rejected += 1;
                     return out;
                 }
-                let sent = wire::range_as_sent(&range);
+                let mut sent = wire::range_as_sent(&range);
                 if !(sent.range_m.is_finite() && sent.range_m >= 0.0 && sent.sigma_m.is_finite() && sent.sigma_m > 0.0) {
                     self.stats.ranges_rejected += 1;
                     return out;
+                }
+                if let Some(known) = self.epochs.get(&epoch).map(|e| e.t)
+                    && known != sent.t
+                    && known.0.abs_diff(sent.t.0) <= self.cfg.range_snap_us
+                {
+                    sent.t = known;
+                    self.stats.ranges_restamped += 1;
                 }
                 if let Some(e) = self.learn_epoch(epoch, sent.t) {
                     if e.broadcast_at.is_some() {
@@ -2396,6 +2415,55 @@ mod tests {
         for p in [1.0, -0.1, f64::NAN] {
             assert!(matches!(refused(NodeConfig { gate_probability: p, ..config(1, vec![1, 2]) }), NodeConfigError::Gate(_)));
         }
+    }
+
+    /// An own range that names an epoch the node knows at a neighbouring grid instant (two
+    /// nodes' clock mappings put one ranging on either side of the middle between two grid
+    /// instants) is taken at the known instant when the node has a range grid; without one, or
+    /// further than a grid step, it is refused as before, and a teammate's claim is never moved.
+    #[test]
+    fn an_own_range_a_grid_step_from_its_known_epoch_is_taken_at_the_known_instant() {
+        let range = |t_us: u64| NodeInput::OwnRange {
+            epoch: 5,
+            range: crate::estimation::RangeSample { t: TimeUs(t_us), from: 1, to: 2, range_m: 10.0, sigma_m: 0.1 },
+        };
+        for (snap_us, own_us, taken) in
+            [(100_000, 5_100_000, true), (100_000, 4_900_000, true), (0, 5_100_000, false), (100_000, 5_200_000, false)]
+        {
+            let mut core =
+                NodeCore::new(NodeConfig { range_snap_us: snap_us, ..config(1, vec![1, 2, 3]) }, TimeUs(0), start()).unwrap();
+            step_at_rest(&mut core, 10_000, true);
+            // Teammate 2 names epoch 5 at 5 s first.
+            announce(&mut core, 2, 5, vec![2], EpochState::COOPLOC_EPOCH_STATE_COLLECTING);
+            assert_eq!(core.epochs.get(&5).map(|e| e.t), Some(TimeUs(5_000_000)));
+            core.handle(range(own_us));
+            let e = core.epochs.get(&5).unwrap();
+            let case = format!("grid {snap_us} us, own range at {own_us} us");
+            assert_eq!(e.t, TimeUs(5_000_000), "the epoch keeps its instant: {case}");
+            if taken {
+                assert_eq!(e.own_ranges.iter().map(|r| r.t).collect::<Vec<_>>(), vec![TimeUs(5_000_000)], "{case}");
+                assert_eq!((core.stats.ranges_restamped, core.stats.epochs_misnamed), (1, 0), "{case}");
+            } else {
+                assert!(e.own_ranges.is_empty(), "{case}");
+                assert_eq!((core.stats.ranges_restamped, core.stats.epochs_misnamed), (0, 1), "{case}");
+            }
+        }
+        // A teammate's claim at a neighbouring instant is refused, grid or not.
+        let mut core =
+            NodeCore::new(NodeConfig { range_snap_us: 100_000, ..config(1, vec![1, 2, 3]) }, TimeUs(0), start()).unwrap();
+        step_at_rest(&mut core, 10_000, true);
+        core.handle(range(5_000_000));
+        let a = wire::EpochAnnouncement {
+            epoch: 5,
+            t: TimeUs(5_100_000),
+            announcer: 3,
+            participants: vec![3],
+            state: EpochState::COOPLOC_EPOCH_STATE_COLLECTING,
+            digest: 0,
+            incomplete: Vec::new(),
+        };
+        core.handle(NodeInput::Peer { from: 3, msg: Box::new(wire::epoch_to_message(&a).unwrap()) });
+        assert_eq!((core.epochs[&5].t, core.stats.epochs_misnamed, core.stats.ranges_restamped), (TimeUs(5_000_000), 1, 0));
     }
 
     /// What a node follows at a timeout ([`NodeCore::advance`]): the largest set a peer reported

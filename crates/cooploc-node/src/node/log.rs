@@ -158,6 +158,9 @@ pub struct NodeLogHeader {
     /// schedule, no airtime slots ([`NodeConfig::epoch_period_us`], [`NodeConfig::slot_us`]).
     pub epoch_period_us: Option<u64>,
     pub slot_us: Option<u64>,
+    /// None in a log written before it existed, and when the node ran without a range grid:
+    /// own ranges at another instant refused ([`NodeConfig::range_snap_us`]).
+    pub range_snap_us: Option<u64>,
     pub start: LogStart,
     pub origin: Option<crate::protocol::wire::GeoOrigin>,
 }
@@ -192,6 +195,7 @@ impl NodeLogHeader {
             authenticated_peers: Some(cfg.authenticated_peers),
             epoch_period_us: cfg.epoch_period_us,
             slot_us: (cfg.slot_us > 0).then_some(cfg.slot_us),
+            range_snap_us: (cfg.range_snap_us > 0).then_some(cfg.range_snap_us),
             start,
             origin,
         }
@@ -213,6 +217,7 @@ impl NodeLogHeader {
         cfg.authenticated_peers = self.authenticated_peers.unwrap_or(false);
         cfg.epoch_period_us = self.epoch_period_us;
         cfg.slot_us = self.slot_us.unwrap_or(0);
+        cfg.range_snap_us = self.range_snap_us.unwrap_or(0);
         cfg
     }
 
@@ -252,6 +257,9 @@ impl NodeLogHeader {
         }
         if let Some(v) = self.epoch_period_us {
             put("epoch_period_us", v.to_string());
+        }
+        if let Some(v) = self.range_snap_us {
+            put("range_snap_us", v.to_string());
         }
         if let Some(v) = self.slot_us {
             put("slot_us", v.to_string());
@@ -345,6 +353,7 @@ impl NodeLogHeader {
             authenticated_peers: opt(m, "authenticated_peers")?,
             epoch_period_us: opt(m, "epoch_period_us")?,
             slot_us: opt(m, "slot_us")?,
+            range_snap_us: opt(m, "range_snap_us")?,
             start,
             origin,
         })
@@ -462,6 +471,7 @@ mod tests {
             authenticated_peers: Some(true),
             epoch_period_us: Some(1_000_000),
             slot_us: Some(270_000),
+            range_snap_us: Some(100_000),
             start: LogStart::Given { t0: Some(TimeUs(1_500_000)), state },
             origin: Some(crate::protocol::wire::GeoOrigin { lat_deg: 43.07, lon_deg: -79.5, alt_m: 12.5 }),
         }
@@ -490,6 +500,7 @@ mod tests {
             "authenticated_peers",
             "epoch_period_us",
             "slot_us",
+            "range_snap_us",
             "retry_follows_cadence",
             "model",
             "origin_alt_m",
@@ -506,6 +517,7 @@ mod tests {
         let cfg = h.config(model);
         assert!(!cfg.authenticated_peers, "an old log's node believed no record");
         assert_eq!((cfg.epoch_period_us, cfg.slot_us), (None, 0), "nor kept a schedule");
+        assert_eq!(cfg.range_snap_us, 0, "nor took an own range at another instant");
         assert_eq!(h.origin.unwrap().alt_m, 0.0);
     }
 
