@@ -194,8 +194,10 @@ pub struct NodeConfig {
     /// grid step or less away is taken at the known instant (`NodeStats::ranges_restamped`),
     /// not refused: near the middle between two grid instants two nodes' clock mappings,
     /// microseconds apart, can put the same ranging on neighbouring instants, and the epoch's
-    /// id, which the ranging system gave both, says which it is. 0: no grid, an own range at
-    /// another instant is refused like any claim.
+    /// id, which the ranging system gave both, says which it is. Only on a signed team
+    /// ([`NodeConfig::authenticated_peers`]): on an unsigned one the known instant may be a
+    /// forger's bare claim, which must not move the node's own ranges. 0: no grid, an own range
+    /// at another instant is refused like any claim.
     pub range_snap_us: u64,
 }
 
@@ -905,6 +907,7 @@ impl NodeCore {
                 if let Some(known) = self.epochs.get(&epoch).map(|e| e.t)
                     && known != sent.t
                     && known.0.abs_diff(sent.t.0) <= self.cfg.range_snap_us
+                    && self.cfg.authenticated_peers
                 {
                     sent.t = known;
                     self.stats.ranges_restamped += 1;
@@ -2419,26 +2422,31 @@ mod tests {
 
     /// An own range that names an epoch the node knows at a neighbouring grid instant (two
     /// nodes' clock mappings put one ranging on either side of the middle between two grid
-    /// instants) is taken at the known instant when the node has a range grid; without one, or
-    /// further than a grid step, it is refused as before, and a teammate's claim is never moved.
+    /// instants) is taken at the known instant when the node has a range grid and a signed team;
+    /// without a grid, further than a grid step, or on an unsigned team (the known instant may
+    /// be a forger's), it is refused as before, and a teammate's claim is never moved.
     #[test]
     fn an_own_range_a_grid_step_from_its_known_epoch_is_taken_at_the_known_instant() {
         let range = |t_us: u64| NodeInput::OwnRange {
             epoch: 5,
             range: crate::estimation::RangeSample { t: TimeUs(t_us), from: 1, to: 2, range_m: 10.0, sigma_m: 0.1 },
         };
-        for (snap_us, own_us, taken) in
-            [(100_000, 5_100_000, true), (100_000, 4_900_000, true), (0, 5_100_000, false), (100_000, 5_200_000, false)]
-        {
-            let mut core =
-                NodeCore::new(NodeConfig { range_snap_us: snap_us, ..config(1, vec![1, 2, 3]) }, TimeUs(0), start()).unwrap();
+        for (snap_us, own_us, signed, taken) in [
+            (100_000, 5_100_000, true, true),
+            (100_000, 4_900_000, true, true),
+            (0, 5_100_000, true, false),
+            (100_000, 5_200_000, true, false),
+            (100_000, 5_100_000, false, false),
+        ] {
+            let cfg = NodeConfig { range_snap_us: snap_us, authenticated_peers: signed, ..config(1, vec![1, 2, 3]) };
+            let mut core = NodeCore::new(cfg, TimeUs(0), start()).unwrap();
             step_at_rest(&mut core, 10_000, true);
             // Teammate 2 names epoch 5 at 5 s first.
             announce(&mut core, 2, 5, vec![2], EpochState::COOPLOC_EPOCH_STATE_COLLECTING);
             assert_eq!(core.epochs.get(&5).map(|e| e.t), Some(TimeUs(5_000_000)));
             core.handle(range(own_us));
             let e = core.epochs.get(&5).unwrap();
-            let case = format!("grid {snap_us} us, own range at {own_us} us");
+            let case = format!("grid {snap_us} us, own range at {own_us} us, signed {signed}");
             assert_eq!(e.t, TimeUs(5_000_000), "the epoch keeps its instant: {case}");
             if taken {
                 assert_eq!(e.own_ranges.iter().map(|r| r.t).collect::<Vec<_>>(), vec![TimeUs(5_000_000)], "{case}");
@@ -2449,8 +2457,8 @@ mod tests {
             }
         }
         // A teammate's claim at a neighbouring instant is refused, grid or not.
-        let mut core =
-            NodeCore::new(NodeConfig { range_snap_us: 100_000, ..config(1, vec![1, 2, 3]) }, TimeUs(0), start()).unwrap();
+        let cfg = NodeConfig { range_snap_us: 100_000, authenticated_peers: true, ..config(1, vec![1, 2, 3]) };
+        let mut core = NodeCore::new(cfg, TimeUs(0), start()).unwrap();
         step_at_rest(&mut core, 10_000, true);
         core.handle(range(5_000_000));
         let a = wire::EpochAnnouncement {
