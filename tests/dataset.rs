@@ -150,13 +150,18 @@ fn identification_lowers_the_innovation_cost_and_reads_no_ground_truth() {
     use cooploc::dataset::identify::{MAX_CORRELATION_S, Options, fit_correlation, identify, start};
     let dir = excerpt("identify");
     let ds = mrclam::read_folder(&dir).unwrap().excerpt(60.0);
-    let mut moved = ds.clone();
-    for r in &mut moved.robots {
-        for p in r.truth.iter_mut().skip(1) {
-            p.n_m += 100.0;
-            p.e_m -= 100.0;
+    // Every ground-truth pose but each robot's first moved by 100 m.
+    let truth_moved = |ds: &cooploc::dataset::Dataset| {
+        let mut moved = ds.clone();
+        for r in &mut moved.robots {
+            for p in r.truth.iter_mut().skip(1) {
+                p.n_m += 100.0;
+                p.e_m -= 100.0;
+            }
         }
-    }
+        moved
+    };
+    let moved = truth_moved(&ds);
     let base = cooploc::dataset::noise::NoiseModel::mrclam();
     let opts = Options { max_iterations: 2, ..Options::default() };
     let a = identify(&ds, &start(&base), &opts).unwrap();
@@ -186,13 +191,7 @@ fn identification_lowers_the_innovation_cost_and_reads_no_ground_truth() {
     let fit = fit_correlation(&whole, &white_model).unwrap();
     assert!(fit.white_nis > 1.0, "{fit:?}");
     assert!(fit.correlation_s > 0.0 && fit.correlation_s < MAX_CORRELATION_S && (fit.nis - 1.0).abs() < 1e-3, "{fit:?}");
-    let mut moved = whole.clone();
-    for r in &mut moved.robots {
-        for p in r.truth.iter_mut().skip(1) {
-            p.n_m += 100.0;
-        }
-    }
-    assert_eq!(fit, fit_correlation(&moved, &white_model).unwrap());
+    assert_eq!(fit, fit_correlation(&truth_moved(&whole), &white_model).unwrap());
     std::fs::remove_dir_all(&dir).unwrap();
 }
 

@@ -158,9 +158,14 @@ pub struct Identified {
 
 /// The objective at `model` (module documentation).
 pub fn evaluate(ds: &Dataset, model: &NoiseModel) -> Result<Evaluation, RunError> {
+    Ok(evaluation(model, &identification_run(ds, model)?))
+}
+
+/// The run the identification reads its innovations from: dcl with every observation (full
+/// map), gating only gross outliers, no Huber weights.
+fn identification_run(ds: &Dataset, model: &NoiseModel) -> Result<Outcome, RunError> {
     let settings = Settings::new(NoiseModel { gate_probability: IDENTIFICATION_GATE_PROBABILITY, huber_nis: 0.0, ..*model });
-    let o = run(ds, &settings, Regime::FullMap, Method::Decentralized)?;
-    Ok(evaluation(model, &o))
+    run(ds, &settings, Regime::FullMap, Method::Decentralized)
 }
 
 /// The gate of the identification runs: gross outliers only, so that the likelihood sees
@@ -243,12 +248,11 @@ pub fn identify(ds: &Dataset, initial: &NoiseModel, opts: &Options) -> Result<Id
 }
 
 /// The NIS per scalar of the fresh observations (landmarks and teammates pooled; see
-/// [`super::run::FRESH_AFTER_S`]) in the identification's run (dcl, full map), and their count.
-pub fn fresh_nis(ds: &Dataset, model: &NoiseModel) -> Result<(f64, usize), RunError> {
-    let settings = Settings::new(NoiseModel { gate_probability: IDENTIFICATION_GATE_PROBABILITY, huber_nis: 0.0, ..*model });
-    let o = run(ds, &settings, Regime::FullMap, Method::Decentralized)?;
+/// [`super::run::FRESH_AFTER_S`]) in the identification's run (dcl, full map).
+pub fn fresh_nis(ds: &Dataset, model: &NoiseModel) -> Result<f64, RunError> {
+    let o = identification_run(ds, model)?;
     let (l, r) = (&o.landmark_fresh, &o.robot_fresh);
-    Ok(((l.nis_sum + r.nis_sum) / (l.scalars + r.scalars).max(1) as f64, l.observations + r.observations))
+    Ok((l.nis_sum + r.nis_sum) / (l.scalars + r.scalars).max(1) as f64)
 }
 
 /// The correlation time of the observation errors ([`NoiseModel::observation_correlation_s`]),
@@ -263,7 +267,7 @@ pub fn fresh_nis(ds: &Dataset, model: &NoiseModel) -> Result<(f64, usize), RunEr
 /// burst less); 0 when the white filter's is already at most 1, and the longest when even that
 /// leaves it above 1 (the fit's NIS then says so).
 pub fn fit_correlation(ds: &Dataset, model: &NoiseModel) -> Result<CorrelationFit, RunError> {
-    let at = |t: f64| fresh_nis(ds, &NoiseModel { observation_correlation_s: t, ..*model }).map(|(nis, _)| nis);
+    let at = |t: f64| fresh_nis(ds, &NoiseModel { observation_correlation_s: t, ..*model });
     let white = at(0.0)?;
     if white <= 1.0 {
         return Ok(CorrelationFit { correlation_s: 0.0, nis: white, white_nis: white, runs: 1 });

@@ -321,12 +321,14 @@ pub fn commanded_sigma(noise: &NoiseModel) -> CommandedSigma {
 /// (residual `[range - bias - predicted, wrapped bearing residual]`, Jacobian in the filter's
 /// error state, zero on the speed scale and the bias); `None` when the estimate sits on the
 /// landmark. The map is known, so the absolute pose is observable: the Jacobian is taken at the
-/// current estimate.
+/// current estimate. The noise is the model's times `inflation` ([`CorrelatedErrors`]; 1: as
+/// the model says).
 pub fn landmark_measurement(
     f: &CommandedFilter,
     lm: &Landmark,
     obs: &Observation,
     noise: &NoiseModel,
+    inflation: f64,
 ) -> Option<LinearizedMeasurement> {
     let p = f.position_ned_m();
     let (dn, de) = (lm.n_m - p[0], lm.e_m - p[1]);
@@ -344,15 +346,15 @@ pub fn landmark_measurement(
     let r = DMatrix::from_diagonal(&DVector::from_vec(vec![
         noise.landmark_range_sigma_m.powi(2) + lm_var,
         noise.landmark_bearing_sigma_rad.powi(2) + lm_var / rho2,
-    ]));
+    ])) * inflation;
     Some(LinearizedMeasurement { h, residual, r })
 }
 
 /// A teammate observation (`observer` at `from` sees `to` at `target`) as a cooperative
 /// measurement, the range's bias removed: the residual at the current estimates, the Jacobian at
 /// the filters' linearization points (their first estimates with
-/// [`NoiseModel::first_estimates`], see [`crate::estimation::commanded`]). `None` when the two
-/// estimates coincide.
+/// [`NoiseModel::first_estimates`], see [`crate::estimation::commanded`]), the noise the
+/// model's times `inflation`. `None` when the two estimates coincide.
 pub fn robot_measurement(
     from: &CommandedFilter,
     target: &CommandedFilter,
@@ -360,6 +362,7 @@ pub fn robot_measurement(
     to: PlatformId,
     obs: &Observation,
     noise: &NoiseModel,
+    inflation: f64,
 ) -> Option<CoopMeasurement> {
     let (a, b) = (from.position_ned_m(), target.position_ned_m());
     let (dn, de) = (b[0] - a[0], b[1] - a[1]);
@@ -387,7 +390,7 @@ pub fn robot_measurement(
     let r = DMatrix::from_diagonal(&DVector::from_vec(vec![
         noise.robot_range_sigma_m.powi(2),
         noise.robot_bearing_sigma_rad.powi(2),
-    ]));
+    ])) * inflation;
     Some(CoopMeasurement::Linear { blocks: vec![(observer, h_from), (to, h_to)], residual, r })
 }
 
@@ -406,22 +409,29 @@ pub const FRESH_AFTER_S: f64 = 10.0;
 /// with neighbour correlation `c` it tends to `(1 + c) / (1 - c)`, so that `N` observations carry
 /// the information of `N (1 - c) / (1 + c)` independent ones; the first observation of a target
 /// after a long gap counts fully).
-#[derive(Debug, Default)]
+#[derive(Debug)]
 pub struct CorrelatedErrors {
+    /// `T`, s; 0: white.
+    correlation_s: f64,
     /// Per (observer, target): the last observation's time and `1 + sum_j exp(-(t_last - t_j) / T)`
     /// over the earlier ones.
     last: std::collections::HashMap<(PlatformId, Target), (TimeUs, f64)>,
 }
 
 impl CorrelatedErrors {
+    /// Errors correlated over `correlation_s` ([`NoiseModel::observation_correlation_s`]).
+    pub fn new(correlation_s: f64) -> Self {
+        CorrelatedErrors { correlation_s, last: std::collections::HashMap::new() }
+    }
+
     /// The factor for `observer`'s observation of `target` at `t`, which it records (1 when `T`
     /// is 0), and whether the observation is fresh: the first of that target by that observer
     /// for [`FRESH_AFTER_S`] or more. Observations of one target come in time order.
-    pub fn inflation(&mut self, observer: PlatformId, target: Target, t: TimeUs, correlation_s: f64) -> (f64, bool) {
+    pub fn inflation(&mut self, observer: PlatformId, target: Target, t: TimeUs) -> (f64, bool) {
         let last = self.last.get(&(observer, target)).copied();
         let gap_s = last.map_or(f64::INFINITY, |(t_last, _)| t.0.saturating_sub(t_last.0) as f64 * 1e-6);
         let earlier = match last {
-            Some((_, sum)) if correlation_s > 0.0 => sum * (-gap_s / correlation_s).exp(),
+            Some((_, sum)) if self.correlation_s > 0.0 => sum * (-gap_s / self.correlation_s).exp(),
             _ => 0.0,
         };
         self.last.insert((observer, target), (t, 1.0 + earlier));
@@ -540,12 +550,11 @@ fn apply_landmarks(
     for o in im.observations {
         let Target::Landmark(l) = o.target else { continue };
         let Some(lm) = ds.landmark(l) else { continue };
-        let (inflation, fresh) = correlated.inflation(observer, o.target, im.t, noise.observation_correlation_s);
-        let Some(mut meas) = landmark_measurement(team.filter(observer).expect("member"), lm, o, noise) else {
+        let (inflation, fresh) = correlated.inflation(observer, o.target, im.t);
+        let Some(meas) = landmark_measurement(team.filter(observer).expect("member"), lm, o, noise, inflation) else {
             out.refused += 1;
             continue;
         };
-        meas.r *= inflation;
         match team.robust_local_update(observer, &meas, gate, noise.huber()) {
             Ok(Some((d, w))) => {
                 applied = true;
@@ -579,12 +588,9 @@ fn apply_teammates(
     for o in im.observations {
         let Target::Robot(to) = o.target else { continue };
         let Some(target) = team.filter(to) else { continue };
-        let (inflation, fresh) = correlated.inflation(observer, o.target, im.t, noise.observation_correlation_s);
+        let (inflation, fresh) = correlated.inflation(observer, o.target, im.t);
         all_fresh &= fresh;
-        match robot_measurement(team.filter(observer).expect("member"), target, observer, to, o, noise) {
-            Some(CoopMeasurement::Linear { blocks, residual, r }) => {
-                meas.push(CoopMeasurement::Linear { blocks, residual, r: r * inflation })
-            }
+        match robot_measurement(team.filter(observer).expect("member"), target, observer, to, o, noise, inflation) {
             Some(m) => meas.push(m),
             None => out.refused += 1,
         }
@@ -681,7 +687,7 @@ pub fn run(ds: &Dataset, settings: &Settings, regime: Regime, method: Method) ->
     let images = if method == Method::DeadReckoning { Vec::new() } else { images(ds) };
     let mut k_image = 0;
     let mut absolute_seen = false;
-    let mut correlated = CorrelatedErrors::default();
+    let mut correlated = CorrelatedErrors::new(noise.observation_correlation_s);
     let mut t_score = ds.t0;
     while t_score <= ds.t_end || k_image < images.len() {
         let t_image = images.get(k_image).map(|im| im.t);
@@ -806,30 +812,29 @@ mod tests {
 
     #[test]
     fn correlated_errors_inflate_a_burst_and_not_its_first_observation() {
-        let mut c = CorrelatedErrors::default();
+        let mut c = CorrelatedErrors::new(0.0);
         let (lm, other) = (Target::Landmark(7), Target::Landmark(8));
         let at = |s: f64| TimeUs((s * 1e6) as u64);
         // White errors: no inflation, freshness still tracked.
-        assert_eq!(c.inflation(1, lm, at(0.0), 0.0), (1.0, true));
-        assert_eq!(c.inflation(1, lm, at(1.0), 0.0), (1.0, false));
-        let mut c = CorrelatedErrors::default();
-        let t = 2.0;
-        assert_eq!(c.inflation(1, lm, at(0.0), t), (1.0, true), "the first observation counts fully");
+        assert_eq!(c.inflation(1, lm, at(0.0)), (1.0, true));
+        assert_eq!(c.inflation(1, lm, at(1.0)), (1.0, false));
+        let mut c = CorrelatedErrors::new(2.0);
+        assert_eq!(c.inflation(1, lm, at(0.0)), (1.0, true), "the first observation counts fully");
         // Second one 1 s later: 1 + 2 exp(-1/2).
-        let (f, fresh) = c.inflation(1, lm, at(1.0), t);
+        let (f, fresh) = c.inflation(1, lm, at(1.0));
         assert!((f - (1.0 + 2.0 * (-0.5f64).exp())).abs() < 1e-12 && !fresh, "{f}");
         // Another target, and the same target by another observer, are separate sequences.
-        assert_eq!(c.inflation(1, other, at(1.0), t), (1.0, true));
-        assert_eq!(c.inflation(2, lm, at(1.0), t), (1.0, true));
+        assert_eq!(c.inflation(1, other, at(1.0)), (1.0, true));
+        assert_eq!(c.inflation(2, lm, at(1.0)), (1.0, true));
         // A long regular sequence tends to (1 + c) / (1 - c), c the neighbours' correlation.
         let mut f = 0.0;
         for k in 2..400 {
-            f = c.inflation(1, lm, at(k as f64), t).0;
+            f = c.inflation(1, lm, at(k as f64)).0;
         }
         let corr = (-0.5f64).exp();
         assert!((f - (1.0 + corr) / (1.0 - corr)).abs() < 1e-9, "{f}");
         // After a gap of FRESH_AFTER_S the observation is fresh and nearly uninflated.
-        let (f, fresh) = c.inflation(1, lm, at(399.0 + FRESH_AFTER_S + 20.0), t);
+        let (f, fresh) = c.inflation(1, lm, at(399.0 + FRESH_AFTER_S + 20.0));
         assert!(fresh && f < 1.0 + 1e-3, "{f}");
     }
 
@@ -895,11 +900,11 @@ mod tests {
         let lm = Landmark { id: 6, n_m: 3.0, e_m: -1.0, sigma_n_m: 0.0, sigma_e_m: 0.0 };
         let obs = Observation { t: TimeUs(0), target: Target::Landmark(6), range_m: 2.0, bearing_rad: 0.3 };
         let x0 = [0.5, 0.7, 0.4];
-        let m = landmark_measurement(&filter(x0[0], x0[1], x0[2]), &lm, &obs, &noise).unwrap();
+        let m = landmark_measurement(&filter(x0[0], x0[1], x0[2]), &lm, &obs, &noise, 1.0).unwrap();
         for k in 0..3 {
             let mut x = x0;
             x[k] += 1e-6;
-            let moved = landmark_measurement(&filter(x[0], x[1], x[2]), &lm, &obs, &noise).unwrap();
+            let moved = landmark_measurement(&filter(x[0], x[1], x[2]), &lm, &obs, &noise, 1.0).unwrap();
             // residual = z - h(x): d(residual)/dx = -dh/dx, and H is dh/d(truth - estimate) = dh/dx.
             for row in 0..2 {
                 let numeric = -(moved.residual[row] - m.residual[row]) / 1e-6;
@@ -909,7 +914,7 @@ mod tests {
         // A landmark dead ahead at 2 m, seen at 2 m and bearing 0: zero residual.
         let ahead = Landmark { n_m: 2.0, e_m: 0.0, ..lm };
         let obs = Observation { range_m: 2.0 + noise.landmark_range_bias_m, bearing_rad: 0.0, ..obs };
-        let m = landmark_measurement(&filter(0.0, 0.0, 0.0), &ahead, &obs, &noise).unwrap();
+        let m = landmark_measurement(&filter(0.0, 0.0, 0.0), &ahead, &obs, &noise, 1.0).unwrap();
         assert!(m.residual.norm() < 1e-12, "{}", m.residual);
     }
 
@@ -923,14 +928,14 @@ mod tests {
             let good = Observation { t: TimeUs(0), target: Target::Landmark(6), range_m: 2.1, bearing_rad: 0.02 };
             let bad = Observation { range_m: 9.0, ..good };
             let before = team.filter(1).unwrap().state();
-            let m = landmark_measurement(team.filter(1).unwrap(), &lm, &bad, &noise).unwrap();
+            let m = landmark_measurement(team.filter(1).unwrap(), &lm, &bad, &noise, 1.0).unwrap();
             assert!(team.gated_local_update(1, &m, gate).unwrap().is_none(), "{method}");
             assert_eq!(team.filter(1).unwrap().state(), before, "{method}");
-            let m = landmark_measurement(team.filter(1).unwrap(), &lm, &good, &noise).unwrap();
+            let m = landmark_measurement(team.filter(1).unwrap(), &lm, &good, &noise, 1.0).unwrap();
             assert!(team.gated_local_update(1, &m, gate).unwrap().is_some(), "{method}");
             // A teammate 7.07 m away reported at 1 m: gated for every cooperative method.
             let far = Observation { t: TimeUs(0), target: Target::Robot(2), range_m: 1.0, bearing_rad: 0.785 };
-            let m = robot_measurement(team.filter(1).unwrap(), team.filter(2).unwrap(), 1, 2, &far, &noise).unwrap();
+            let m = robot_measurement(team.filter(1).unwrap(), team.filter(2).unwrap(), 1, 2, &far, &noise, 1.0).unwrap();
             let (_, gated) = team.gated_cooperative_event(&[m], gate).unwrap();
             assert_eq!(gated, usize::from(method != Method::DeadReckoning), "{method}");
         }

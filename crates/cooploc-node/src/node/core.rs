@@ -45,9 +45,9 @@
 //! 2. **Agreement**: the node waits for the record of every expected team member, sending a
 //!    COOPLOC_EPOCH (COLLECTING, the records it holds) every `retry_us` of wall time; a member
 //!    not listed resends its record, or, when it resolved the epoch without one (passed it over,
-//!    was away), answers NO_RECORD, and a signed team stops waiting for it. The retry interval follows the team's epoch cadence (at
-//!    most `retry_us`, at most a tenth of the epoch period in wall time: [`super::cadence`]),
-//!    unless configured not to.
+//!    was away), answers NO_RECORD, and a signed team stops waiting for it. The retry interval
+//!    follows the team's epoch cadence (at most `retry_us`, at most a tenth of the epoch period
+//!    in wall time: [`super::cadence`]), unless configured not to.
 //!    After `epoch_timeout_us` it runs without the missing members, marks them absent until
 //!    they speak again (a record or a fragment of one for an epoch still open, a COOPLOC_EPOCH
 //!    of a recent epoch), and says so (PARTIAL). Unless a peer already reported it ran the

@@ -272,7 +272,7 @@ impl VehicleInputs {
         // A fix is held to its age against the newest boot-clock stamp: in that clock, or, when
         // it is stamped in Unix time, against that stamp in the team's clock.
         let newest_us = if us >= UNIX_TIME_FROM_US {
-            self.last_boot_us.zip(self.unix_offset_us).and_then(|(b, o)| u64::try_from(b as i64 + o).ok())
+            self.last_boot_us.and_then(|b| self.team_of_boot_us(b)).map(|t| t.0)
         } else {
             self.last_boot_us
         };
