@@ -194,7 +194,7 @@ pub async fn run_demo(cfg: DemoConfig, ready: impl FnOnce(&DemoAddresses)) -> Re
         let model = crate::experiment::nav_model(&world, id);
         let mut node_cfg = NodeConfig::for_model(id, cfg.method, model, Encoding::F64, ids.clone());
         node_cfg.authenticated_peers = true; // (the demo's team is signed)
-        let meta = NodeLogHeader::new(&node_cfg, LogStart::Given { t0: Some(t0), state }, Some(origin)).to_metadata();
+        let meta = NodeLogHeader::new(&node_cfg, LogStart::Given { t0: Some(t0), state }, false, Some(origin)).to_metadata();
         {
             let mut r = recorder.lock().map_err(|_| DemoError::Invalid("recorder lock poisoned".into()))?;
             r.metadata(&metadata_name(id), meta).step("the log")?;

@@ -2,10 +2,14 @@
 //! with no network and no clock.
 //!
 //! - [`replay_nodes`] rebuilds every node the log describes (metadata `cooploc.node.<id>`, the
-//!   scenario attached as `scenario.toml`) and calls its core exactly as the node did: the frames
-//!   it received from its vehicle and its peers, and its recorded events (clock ticks, end of
-//!   input), in file order. Because the core is deterministic given those calls, the estimates
-//!   it produces are the recorded ones bit for bit; [`NodeReplay::matches`] checks it.
+//!   vehicle profile attached, or the scenario as `scenario.toml`) as the
+//!   [`NodeShell`] it ran, and feeds the shell what the node's shell was fed: the frames it
+//!   received from its vehicle and its peers, and its recorded events (polls with their wall
+//!   time, the end of input, the clock's mappings, ranges), in file order. The shell makes the
+//!   node's start itself (a given state checked against the vehicle's first sample, SIM_STATE,
+//!   the origin, the hand-over, the saved state). Because the shell and its core are
+//!   deterministic given those calls, the estimates are the recorded ones bit for bit and the
+//!   node starts as it did; [`NodeReplay::matches`] checks both.
 //! - [`compare_methods`] takes the inputs the vehicles actually sent (IMU, odometry, ranges, as
 //!   logged) and runs any method offline on them, centralized included, when the log says which
 //!   simulated run it is (metadata `cooploc.run`: seed and run), so that the truth is known.
@@ -15,11 +19,15 @@ use std::collections::BTreeMap;
 use crate::estimation::nav::NavState;
 use crate::estimation::{Method, PlatformId, RangeSample};
 use crate::experiment::{FilterRun, run_filter};
-use crate::node::core::{NodeConfig, NodeCore, NodeInput, NodeOutput};
+use crate::node::core::{NodeConfig, NodeCore, NodeInput};
 use crate::node::inputs::VehicleEvent;
-use crate::node::log::{LogStart, NodeEvent, NodeLogHeader, events_topic, vehicle_attachment_name};
+use crate::node::log::{LogStart, NodeEvent, NodeLogHeader, events_topic, saved_state_attachment_name, vehicle_attachment_name};
+use crate::node::peers::Source;
 use crate::node::profile::VehicleProfile;
+use crate::node::saved::SavedState;
+use crate::node::shell::{NodeInit, NodeShell, Now, Record, ShellConfig, ShellOutput};
 use crate::protocol::MavMessage;
+use crate::protocol::framing::split_frames;
 use crate::protocol::wire::{self, EstimateReport, GeoOrigin};
 use crate::recording::{Direction, Link, Log, topics};
 use crate::sitl::{Scenario, World};
@@ -89,13 +97,31 @@ pub struct NodeReplay {
     pub last: Option<EstimateReport>,
     /// IMU samples the replayed core took.
     pub imu_replayed: u64,
+    /// How the node started (its Init, StartRefused and Restored events), as logged and as the
+    /// replayed shell started.
+    pub recorded_starts: Vec<NodeEvent>,
+    pub replayed_starts: Vec<NodeEvent>,
 }
 
 impl NodeReplay {
-    /// Every estimate equal, bit for bit, and as many.
+    fn new(id: PlatformId, method: Method) -> Self {
+        NodeReplay {
+            id,
+            method,
+            recorded: Vec::new(),
+            replayed: Vec::new(),
+            last: None,
+            imu_replayed: 0,
+            recorded_starts: Vec::new(),
+            replayed_starts: Vec::new(),
+        }
+    }
+
+    /// Every estimate equal, bit for bit, and as many; the node started as it did.
     pub fn matches(&self) -> bool {
         self.recorded.len() == self.replayed.len()
             && self.recorded.iter().zip(&self.replayed).all(|(a, b)| estimate_bits(a) == estimate_bits(b))
+            && self.recorded_starts == self.replayed_starts
     }
 }
 
@@ -140,6 +166,7 @@ struct NodeHeader {
     /// None: the vehicle gave it (its Init event says which).
     origin: Option<GeoOrigin>,
     start: LogStart,
+    hand_over: Option<bool>,
 }
 
 fn node_header(log: &Log, world: Option<&World>, id: PlatformId) -> Result<NodeHeader, ReplayError> {
@@ -153,93 +180,97 @@ fn node_header(log: &Log, world: Option<&World>, id: PlatformId) -> Result<NodeH
     let profile = profile_of(log, world, id)?;
     // No latitude in the profile: the node took the vehicle's origin (its Init event says which).
     let model = profile.nav_model(profile.latitude().unwrap_or(0.0));
-    Ok(NodeHeader { method: header.method, cfg: header.config(model), profile, origin: header.origin, start: header.start })
+    Ok(NodeHeader {
+        method: header.method,
+        cfg: header.config(model),
+        profile,
+        origin: header.origin,
+        start: header.start,
+        hand_over: header.hand_over,
+    })
 }
 
-/// The core a node made at its Init event: at `t0_us`, about the origin the vehicle gave or the
-/// log's, from the hand-over state, the given state (`start`, unless refused) or the last
-/// SIM_STATE.
-fn core_at_init(
-    h: &NodeHeader,
-    init: (u64, Option<[f64; 3]>, Option<crate::node::log::StartState>),
-    start: &LogStart,
-    last_sim_state: Option<&crate::protocol::dialect::cooploc::SIM_STATE_DATA>,
-) -> Result<(NodeCore, GeoOrigin), String> {
-    let (t0_us, from_vehicle, hand_over) = init;
-    let mut cfg = h.cfg.clone();
-    let origin = match (from_vehicle, h.origin) {
-        (Some([lat_deg, lon_deg, alt_m]), _) => {
-            cfg.model.set_latitude(lat_deg);
-            GeoOrigin { lat_deg, lon_deg, alt_m }
-        }
-        (None, Some(o)) => o,
-        (None, None) => return Err("Init event without the vehicle's origin".into()),
-    };
-    let state = match (start, hand_over) {
-        // the hand-over start: the autopilot's estimate, as logged
-        (_, Some(hand_over)) => hand_over.state(),
-        (LogStart::Given { state, .. }, None) => *state,
-        (LogStart::FromVehicle, None) => {
-            let s = last_sim_state.ok_or("Init event before any SIM_STATE")?;
-            wire::ins_state_from_sim_state(s, &origin).map_err(|e| e.to_string())?
-        }
-    };
-    let state = NavState::for_model(&cfg.model, state);
-    Ok((NodeCore::new(cfg, TimeUs(t0_us), state).map_err(|e| e.to_string())?, origin))
+/// Whether a logged event is one of the node's start: made, refused or restored. The replayed
+/// shell must make the same ones.
+fn is_start(event: &NodeEvent) -> bool {
+    matches!(event, NodeEvent::Init { .. } | NodeEvent::StartRefused { .. } | NodeEvent::Restored { .. })
 }
 
+/// The shell node `id` started as, from its header: given a state (with its time and origin:
+/// checked against the vehicle's first sample), or waiting for what the vehicle gives, at the
+/// autopilot's hand-over or not; offered the saved state the log holds. Its configuration is a
+/// replay's: no key (the log holds the frames the node took), no peers, no ticks' chores, the
+/// clock's mapping from the log's Clock events, its records given back.
+fn shell_of(log: &Log, h: &NodeHeader, id: PlatformId) -> Result<NodeShell, String> {
+    let events: Vec<NodeEvent> = log.topic(&events_topic(id)).filter_map(|m| m.json().ok()).collect();
+    // (a log written before the header said it: the Init event holds the autopilot's state)
+    let hand_over = h.hand_over.unwrap_or_else(|| events.iter().any(|e| matches!(e, NodeEvent::Init { state: Some(_), .. })));
+    let restore = match log.attachments.iter().find(|a| a.name == saved_state_attachment_name(id)) {
+        Some(a) => {
+            let text = std::str::from_utf8(&a.data).map_err(|e| format!("{}: {e}", a.name))?;
+            Some(SavedState::parse(text).map_err(|e| format!("{}: {e}", a.name))?)
+        }
+        None if events.iter().any(|e| matches!(e, NodeEvent::Restored { .. })) => {
+            return Err("the node restored a saved state that the log does not hold (a log written before it was \
+                        attached, saved-state.<id>.txt): its start cannot be replayed"
+                .into());
+        }
+        None => None,
+    };
+    let cfg = h.cfg.clone();
+    let init = match (&h.start, h.origin) {
+        (LogStart::Given { t0: Some(t0), state }, Some(origin)) => {
+            let state = NavState::for_model(&cfg.model, *state);
+            NodeInit::Given { core: Box::new(NodeCore::new(cfg, *t0, state).map_err(|e| e.to_string())?), origin }
+        }
+        (LogStart::Given { t0, state }, origin) => {
+            NodeInit::Pending { config: Box::new(cfg), origin, state: Some((*t0, *state)), from_autopilot: hand_over }
+        }
+        (LogStart::FromVehicle, origin) => {
+            NodeInit::Pending { config: Box::new(cfg), origin, state: None, from_autopilot: hand_over }
+        }
+    };
+    let config = ShellConfig {
+        profile: h.profile.clone(),
+        team_key: None,
+        signing_resume_after: 0,
+        peers: Vec::new(),
+        idle_exit: None,
+        grace: std::time::Duration::ZERO,
+        ranges: false,
+        unicast: false,
+        record: true,
+        restore,
+        save_state: false,
+        clock_from_log: true,
+    };
+    NodeShell::new(init, config, Now { wall_us: 0, unix_ns: 0 }).map_err(|e| e.to_string())
+}
+
+/// Node `id` replayed through the shell it ran (see the module documentation). Its inputs, in
+/// file order: every vehicle frame and cooperative frame it logged as received; its polls (the
+/// wall time its core saw), the end of its input and its last epochs; the clock mappings it
+/// took and the ranges its ranging device gave. Unix time is each record's log time.
 fn replay_node(log: &Log, world: Option<&World>, id: PlatformId) -> Result<NodeReplay, ReplayError> {
     let h = node_header(log, world, id)?;
     let node_err = |e: String| ReplayError::Node(id, e);
-    let (method, cfg, origin) = (h.method, &h.cfg, h.origin);
-    let mut start = h.start.clone();
-    let mut core = match (&start, origin) {
-        (LogStart::Given { t0: Some(t0), state }, Some(_)) => {
-            let state = NavState::for_model(&cfg.model, *state);
-            Some(NodeCore::new(cfg.clone(), *t0, state).map_err(|e| node_err(e.to_string()))?)
-        }
-        _ => None,
-    };
+    let mut shell = shell_of(log, &h, id).map_err(node_err)?;
     let sysid = id as u8;
     let vehicle_rx = topics::frames(Link::Vehicle(sysid), Direction::Rx);
     let coop_rx = topics::frames(Link::Coop(sysid), Direction::Rx);
     let coop_tx = topics::frames(Link::Coop(sysid), Direction::Tx);
     let events = events_topic(id);
-    let mut out = NodeReplay { id, method, recorded: Vec::new(), replayed: Vec::new(), last: None, imu_replayed: 0 };
-    let mut last_sim_state = None;
-    let mut decoder = h.profile.decoder();
+    let mut out = NodeReplay::new(id, h.method);
+    let mut now = Now { wall_us: 0, unix_ns: 0 };
     for msg in &log.messages {
         let topic = msg.topic();
-        let outputs = if topic == vehicle_rx {
-            let Ok((header, m)) = wire::from_any_frame(&msg.data) else { continue };
-            if header.system_id != u32::from(id) {
-                continue;
+        now.unix_ns = i64::try_from(msg.log_time_ns).unwrap_or(i64::MAX);
+        if topic == vehicle_rx {
+            for frame in split_frames(&msg.data) {
+                shell.vehicle_frame(frame, now).map_err(|e| node_err(e.to_string()))?;
             }
-            if let MavMessage::SIM_STATE(s) = &m {
-                last_sim_state = Some(s.clone());
-            }
-            if matches!(m, MavMessage::SIM_STATE(_)) {
-                continue;
-            }
-            // every frame goes through the decoder, as in the node (it keeps state)
-            let Some(core) = core.as_mut() else {
-                decoder.decode(&m);
-                continue;
-            };
-            let mut outputs = Vec::new();
-            for event in decoder.decode(&m) {
-                if let VehicleEvent::Input(input) = event {
-                    outputs.extend(core.handle(input));
-                }
-            }
-            outputs
         } else if topic == coop_rx {
-            let Ok((header, m)) = wire::from_any_frame(&msg.data) else { continue };
-            let (Some(core), Ok(from)) = (core.as_mut(), PlatformId::try_from(header.system_id)) else { continue };
-            if from == id {
-                continue;
-            }
-            core.handle(NodeInput::Peer { from, msg: Box::new(m) })
+            shell.coop_datagram(&msg.data, Source::Radio, now);
         } else if topic == coop_tx {
             if let Ok((_, MavMessage::COOPLOC_ESTIMATE(e))) = wire::from_any_frame(&msg.data)
                 && let Ok(r) = wire::estimate_from_message(&e)
@@ -248,56 +279,30 @@ fn replay_node(log: &Log, world: Option<&World>, id: PlatformId) -> Result<NodeR
             }
             continue;
         } else if topic == events {
-            let event: NodeEvent = msg.json().map_err(|e| node_err(format!("event: {e}")))?;
-            match (event, core.as_mut()) {
-                (NodeEvent::Clock { offset_us, .. }, _) => {
-                    decoder.set_companion_offset(offset_us);
-                    continue;
+            match msg.json::<NodeEvent>().map_err(|e| node_err(format!("event: {e}")))? {
+                NodeEvent::Poll { wall_us } => {
+                    now.wall_us = wall_us;
+                    shell.poll(now);
                 }
-                (NodeEvent::Range { epoch, range }, Some(c)) => c.handle(NodeInput::OwnRange { epoch, range }),
-                (NodeEvent::StartRefused { .. }, _) => {
-                    // the given state was stale: the node waited for SIM_STATE (its Init event)
-                    core = None;
-                    start = LogStart::FromVehicle;
-                    continue;
-                }
-                (NodeEvent::Restored { state, .. }, _) => {
-                    // the node started from its saved state: the core as it made it
-                    let mut cfg = cfg.clone();
-                    cfg.model.set_latitude(state.origin[0]);
-                    let (t0, nav, p) = (TimeUs(state.t_us), state.nav_state(), state.covariance_matrix());
-                    core = Some(NodeCore::restored(cfg, t0, nav, &p).map_err(|e| node_err(e.to_string()))?);
-                    continue;
-                }
-                (NodeEvent::Init { t0_us, origin: from_vehicle, state: hand_over }, None) => {
-                    let hand_over_start = hand_over.is_some();
-                    let init = (t0_us, from_vehicle, hand_over);
-                    let (made, origin) = core_at_init(&h, init, &start, last_sim_state.as_ref()).map_err(node_err)?;
-                    if hand_over_start {
-                        // as the node: the team's filter runs on the autopilot's GNSS fixes
-                        decoder.fuse_gnss(origin);
-                    }
-                    core = Some(made);
-                    continue;
-                }
-                (NodeEvent::Poll { wall_us }, Some(c)) => c.poll(wall_us),
-                (NodeEvent::EndOfInput, Some(c)) => c.end_of_input(),
-                (NodeEvent::RunPending, Some(c)) => c.run_pending(),
-                _ => continue,
+                NodeEvent::EndOfInput => shell.end_of_input(now),
+                NodeEvent::RunPending => shell.run_pending(now),
+                NodeEvent::Clock { offset_us, rtt_us } => shell.logged_clock(offset_us, rtt_us),
+                NodeEvent::Range { epoch, range } => shell.input(NodeInput::OwnRange { epoch, range }, now),
+                start => out.recorded_starts.push(start),
             }
         } else {
             continue;
-        };
-        for o in outputs {
-            if let NodeOutput::ToPeers(MavMessage::COOPLOC_ESTIMATE(e)) = o
-                && let Ok(r) = wire::estimate_from_message(&e)
-            {
-                out.replayed.push(r);
+        }
+        for output in shell.take_outputs() {
+            match output {
+                ShellOutput::Record(Record::Estimate(e)) => out.replayed.push(e),
+                ShellOutput::Record(Record::Event(e)) if is_start(&e) => out.replayed_starts.push(e),
+                _ => {}
             }
         }
     }
-    out.last = core.as_ref().map(NodeCore::estimate);
-    out.imu_replayed = core.as_ref().map_or(0, |c| c.stats.imu);
+    out.last = shell.core().map(NodeCore::estimate);
+    out.imu_replayed = shell.core().map_or(0, |c| c.stats.imu);
     Ok(out)
 }
 

@@ -11,6 +11,7 @@ use std::path::{Path, PathBuf};
 
 use cooploc::estimation::Method;
 use cooploc::experiment::run_filter;
+use cooploc::node::runner::NodeEvent;
 use cooploc::recording::read_log;
 use cooploc::replay::{RUN_METADATA_NAME, compare_methods, replay_nodes, world_of};
 
@@ -128,6 +129,8 @@ fn a_node_that_refused_a_stale_start_state_leaves_a_log_that_replays() {
         matches!(m.json::<cooploc::node::runner::NodeEvent>(), Ok(cooploc::node::runner::NodeEvent::StartRefused { .. }))
     });
     assert!(refused, "no StartRefused event in the log");
+    // (the replayed shell refused it too, from the vehicle's first sample, and then started from
+    // SIM_STATE: checked in killed_node_log_replays)
 }
 
 /// A node with `--state-file` is killed with SIGKILL and started again at once with the same
@@ -138,7 +141,6 @@ fn a_node_that_refused_a_stale_start_state_leaves_a_log_that_replays() {
 /// the replayed filter.
 #[test]
 fn a_node_restarted_with_its_state_file_restores_it_and_its_log_replays() {
-    use cooploc::node::runner::NodeEvent;
     let dir = std::env::temp_dir().join(format!("cooploc-restore-{}", std::process::id()));
     std::fs::create_dir_all(&dir).unwrap();
     let (state_file, log_path) = (dir.join("node1.state"), dir.join("node.mcap"));
@@ -180,6 +182,11 @@ fn a_node_restarted_with_its_state_file_restores_it_and_its_log_replays() {
     eprintln!("IMU samples logged after the restore {imu_logged}, replayed {}", replays[0].imu_replayed);
     assert!(imu_logged > 1000);
     assert_eq!(replays[0].imu_replayed, imu_logged);
+    assert_replays_its_start_and_estimates(&replays[0]);
+    assert!(
+        matches!(replays[0].replayed_starts[..], [NodeEvent::Restored { .. }]),
+        "the replayed shell restored the saved state"
+    );
     let _ = std::fs::remove_dir_all(&dir);
 }
 
@@ -281,6 +288,28 @@ fn killed_node_log_replays(tag: &str, extra: &[&str], wait_s: f64) -> cooploc::r
     eprintln!("IMU samples logged after the initialisation {imu_logged}, replayed {}", replays[0].imu_replayed);
     assert!(imu_logged > 1000);
     assert_eq!(replays[0].imu_replayed, imu_logged);
+    assert_replays_its_start_and_estimates(&replays[0]);
     let _ = std::fs::remove_dir_all(&dir);
     log
+}
+
+/// The replayed shell started as the node did (the same Init, StartRefused or Restored events,
+/// made by the shell from the logged frames, not read from the log), and sent the estimates the
+/// node sent, bit for bit: a log cut by a kill may end between an input and the estimate it
+/// made, so the replay may hold one more.
+fn assert_replays_its_start_and_estimates(r: &cooploc::replay::NodeReplay) {
+    let kind = |e: &NodeEvent| match e {
+        NodeEvent::Init { .. } => "Init",
+        NodeEvent::StartRefused { .. } => "StartRefused",
+        NodeEvent::Restored { .. } => "Restored",
+        _ => "other",
+    };
+    let starts: Vec<&str> = r.replayed_starts.iter().map(kind).collect();
+    eprintln!("replayed start {starts:?}; estimates recorded {}, replayed {}", r.recorded.len(), r.replayed.len());
+    assert!(!r.recorded_starts.is_empty(), "the node started");
+    assert_eq!(r.recorded_starts, r.replayed_starts);
+    let whole =
+        cooploc::replay::NodeReplay { replayed: r.replayed[..r.recorded.len().min(r.replayed.len())].to_vec(), ..r.clone() };
+    assert!(whole.matches(), "the replayed estimates differ from the recorded ones");
+    assert!(r.replayed.len() <= r.recorded.len() + 1);
 }

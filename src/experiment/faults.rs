@@ -661,6 +661,7 @@ impl Maker<'_> {
             record: false,
             restore: None,
             save_state: false,
+            clock_from_log: false,
         };
         let mut shell = NodeShell::new(NodeInit::Ready(Box::new(core)), config, clock(self.case, at.unwrap_or(TimeUs(0))))
             .map_err(|e| ExperimentError::Settings(format!("node shell: {e}")))?;

@@ -36,7 +36,7 @@ use std::time::Duration;
 
 pub use super::log::{
     LogStart, NODE_EVENT_SCHEMA, NODE_EVENT_SCHEMA_NAME, NodeEvent, NodeLogHeader, events_topic, metadata_name,
-    vehicle_attachment_name,
+    saved_state_attachment_name, vehicle_attachment_name,
 };
 pub use super::profile::VehicleProfile;
 pub use super::range_link::RangeSource;
@@ -169,6 +169,34 @@ fn spawn_vehicle_reader(vehicle: Arc<VehicleLink>) -> (tokio::task::JoinHandle<(
     (task, vrx)
 }
 
+/// The shell's configuration from the links and the files kept across restarts (the signing
+/// timestamp to sign above, the navigation state to restore).
+fn shell_config(links: &Links, init: &NodeInit, record: bool) -> Result<ShellConfig, NodeError> {
+    let signing_resume_after = match (&links.team_key, &links.signing_state) {
+        (Some(_), Some(path)) => load_signing_state(path)?,
+        _ => 0,
+    };
+    let restore = match (&links.state_file, init) {
+        (Some(path), NodeInit::Given { core, .. } | NodeInit::Ready(core)) => load_nav_state(path, core.id()),
+        (Some(path), NodeInit::Pending { config, .. }) => load_nav_state(path, config.id),
+        (None, _) => None,
+    };
+    Ok(ShellConfig {
+        profile: links.profile.clone(),
+        team_key: links.team_key.clone(),
+        signing_resume_after,
+        peers: links.peers.clone(),
+        idle_exit: links.idle_exit,
+        grace: links.grace,
+        ranges: links.ranges.is_some(),
+        unicast: matches!(links.coop, CoopSpec::Udp { .. }),
+        record,
+        restore,
+        save_state: links.state_file.is_some(),
+        clock_from_log: false,
+    })
+}
+
 /// Runs a node until `shutdown` resolves or the vehicle link fails. `bound` receives the
 /// cooperative socket's local address once it is bound (None: a serial radio).
 pub async fn run(
@@ -180,31 +208,14 @@ pub async fn run(
 ) -> Result<NodeSummary, NodeError> {
     let clock = std::time::Instant::now();
     let now = move || Now { wall_us: clock.elapsed().as_micros() as u64, unix_ns: wall_now_ns() as i64 };
-    let signing_resume_after = match (&links.team_key, &links.signing_state) {
-        (Some(_), Some(path)) => load_signing_state(path)?,
-        _ => 0,
-    };
-    let config = ShellConfig {
-        profile: links.profile.clone(),
-        team_key: links.team_key.clone(),
-        signing_resume_after,
-        peers: links.peers.clone(),
-        idle_exit: links.idle_exit,
-        grace: links.grace,
-        ranges: links.ranges.is_some(),
-        unicast: matches!(links.coop, CoopSpec::Udp { .. }),
-        record: recorder.is_some(),
-        restore: None,
-        save_state: links.state_file.is_some(),
-    };
-    let mut config = config;
-    config.restore = match (&links.state_file, &init) {
-        (Some(path), NodeInit::Given { core, .. } | NodeInit::Ready(core)) => load_nav_state(path, core.id()),
-        (Some(path), NodeInit::Pending { config, .. }) => load_nav_state(path, config.id),
-        (None, _) => None,
-    };
+    let config = shell_config(&links, &init, recorder.is_some())?;
+    let saved = config.restore.as_ref().map(|s| s.to_text());
     let mut shell = NodeShell::new(init, config, now())?;
     let id = shell.id();
+    if let (Some(text), Some(Ok(mut r))) = (saved, recorder.as_ref().map(|r| r.lock())) {
+        // what the shell was offered to restore, for a replay to offer its shell
+        let _ = r.attachment(&saved_state_attachment_name(id), "text/plain", text.as_bytes());
+    }
     let mut vehicle = VehicleLink::open(&links.vehicle).await?;
     if let Some(key) = &links.vehicle_key {
         vehicle.sign(key, id as u8); // (the shell checked that the id is a system id)

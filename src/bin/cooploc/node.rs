@@ -474,7 +474,7 @@ fn open_log(
                 Some((t0, state)) => LogStart::Given { t0: *t0, state: *state },
                 None => LogStart::FromVehicle,
             };
-            let meta = NodeLogHeader::new(cfg, start, origin).to_metadata();
+            let meta = NodeLogHeader::new(cfg, start, args.init_from_autopilot, origin).to_metadata();
             rec.metadata(&metadata_name(args.id), meta)?;
             if let Some(path) = &args.scenario {
                 let toml = std::fs::read(path).with_context(|| format!("reading {}", path.display()))?;

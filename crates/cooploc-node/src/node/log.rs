@@ -112,6 +112,13 @@ pub fn vehicle_attachment_name(id: PlatformId) -> String {
     format!("vehicle.{id}.toml")
 }
 
+/// Name of the attachment holding the navigation state node `id` read from its state file at
+/// the start (`cooploc node --state-file`, [`super::saved::SavedState::to_text`]): what a
+/// replay offers its shell to restore, as the node's shell was offered it.
+pub fn saved_state_attachment_name(id: PlatformId) -> String {
+    format!("saved-state.{id}.txt")
+}
+
 /// Name of the metadata record describing node `id` in a log.
 pub fn metadata_name(id: PlatformId) -> String {
     format!("cooploc.node.{id}")
@@ -161,6 +168,10 @@ pub struct NodeLogHeader {
     /// None in a log written before it existed, and when the node ran without a range grid:
     /// own ranges at another instant refused ([`NodeConfig::range_snap_us`]).
     pub range_snap_us: Option<u64>,
+    /// Whether the node started at its autopilot's hand-over (`cooploc node
+    /// --init-from-autopilot`): None in a log written before it existed, where the Init event
+    /// says it (it holds the autopilot's state).
+    pub hand_over: Option<bool>,
     pub start: LogStart,
     pub origin: Option<crate::protocol::wire::GeoOrigin>,
 }
@@ -174,8 +185,9 @@ pub struct HeaderError {
 }
 
 impl NodeLogHeader {
-    /// The header of a node configured as `cfg`, started as `start`, about `origin`.
-    pub fn new(cfg: &NodeConfig, start: LogStart, origin: Option<crate::protocol::wire::GeoOrigin>) -> Self {
+    /// The header of a node configured as `cfg`, started as `start` (at the autopilot's
+    /// hand-over or not), about `origin`.
+    pub fn new(cfg: &NodeConfig, start: LogStart, hand_over: bool, origin: Option<crate::protocol::wire::GeoOrigin>) -> Self {
         NodeLogHeader {
             id: cfg.id,
             method: cfg.method,
@@ -196,6 +208,7 @@ impl NodeLogHeader {
             epoch_period_us: cfg.epoch_period_us,
             slot_us: (cfg.slot_us > 0).then_some(cfg.slot_us),
             range_snap_us: (cfg.range_snap_us > 0).then_some(cfg.range_snap_us),
+            hand_over: Some(hand_over),
             start,
             origin,
         }
@@ -263,6 +276,9 @@ impl NodeLogHeader {
         }
         if let Some(v) = self.slot_us {
             put("slot_us", v.to_string());
+        }
+        if let Some(v) = self.hand_over {
+            put("hand_over", v.to_string());
         }
         match &self.start {
             LogStart::Given { t0, state } => {
@@ -354,6 +370,7 @@ impl NodeLogHeader {
             epoch_period_us: opt(m, "epoch_period_us")?,
             slot_us: opt(m, "slot_us")?,
             range_snap_us: opt(m, "range_snap_us")?,
+            hand_over: opt(m, "hand_over")?,
             start,
             origin,
         })
@@ -472,6 +489,7 @@ mod tests {
             epoch_period_us: Some(1_000_000),
             slot_us: Some(270_000),
             range_snap_us: Some(100_000),
+            hand_over: Some(false),
             start: LogStart::Given { t0: Some(TimeUs(1_500_000)), state },
             origin: Some(crate::protocol::wire::GeoOrigin { lat_deg: 43.07, lon_deg: -79.5, alt_m: 12.5 }),
         }
@@ -484,6 +502,7 @@ mod tests {
         let from_vehicle = NodeLogHeader { start: LogStart::FromVehicle, origin: None, ..header() };
         let m = from_vehicle.to_metadata();
         assert_eq!((m["init"].as_str(), m["origin"].as_str()), ("sim_state", "vehicle"));
+        assert_eq!(m["hand_over"], "false");
         assert_eq!(NodeLogHeader::from_metadata(&m).unwrap(), from_vehicle);
     }
 
@@ -501,6 +520,7 @@ mod tests {
             "epoch_period_us",
             "slot_us",
             "range_snap_us",
+            "hand_over",
             "retry_follows_cadence",
             "model",
             "origin_alt_m",
@@ -509,7 +529,7 @@ mod tests {
         }
         let h = NodeLogHeader::from_metadata(&m).unwrap();
         assert_eq!((h.range_grace_us, h.echo_ranges, h.retry_follows_cadence), (None, None, false));
-        assert_eq!(h.authenticated_peers, None);
+        assert_eq!((h.authenticated_peers, h.hand_over), (None, None));
         let model = crate::estimation::nav::NavModel::Ins {
             config: crate::estimation::ins::InsConfig::default(),
             initial_sigma: crate::estimation::ins::InsInitialSigma::for_tests(),

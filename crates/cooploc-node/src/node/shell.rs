@@ -155,6 +155,10 @@ pub struct ShellConfig {
     /// Keep the navigation state: the shell gives [`ShellOutput::NavState`] every
     /// [`SAVE_EVERY_US`] of the team clock.
     pub save_state: bool,
+    /// The shell is fed a log (`cooploc replay`): the mapping of the vehicle's clock to the
+    /// team's comes from the log's Clock events ([`NodeShell::logged_clock`]), not from TIMESYNC
+    /// answers, whose readings of the companion's clock the log does not hold.
+    pub clock_from_log: bool,
 }
 
 /// The two clocks of the companion, read by the runner at each call.
@@ -469,7 +473,7 @@ impl NodeShell {
             odometry_with_gnss: profile.output.odometry_with_gnss,
         };
         let clock = Clock {
-            wanted: matches!(profile.inputs.clock, TeamClock::Companion | TeamClock::Auto),
+            wanted: matches!(profile.inputs.clock, TeamClock::Companion | TeamClock::Auto) && !config.clock_from_log,
             timesync: TimeSync::default(),
             said: None,
             rtt_us: None,
@@ -666,6 +670,19 @@ impl NodeShell {
         true
     }
 
+    /// Wall time reaches the core only through recorded polls, so that a replay is exact: on
+    /// the ticks, and here, before any input read while the ticks are late (this process was
+    /// frozen and its sockets hold what came meanwhile: the core must see the freeze before
+    /// that). The poll is logged ahead of the input, where a replay meets it. The tick's own
+    /// clock is left as it was: the next tick still sees the freeze.
+    fn catch_up(&mut self, now: Now) {
+        if self.core.is_some() && now.wall_us.saturating_sub(self.last_tick_us) > FROZEN_TICK_GAP_US {
+            self.event(NodeEvent::Poll { wall_us: now.wall_us });
+            let out = self.core.as_mut().map(|c| c.poll(now.wall_us)).unwrap_or_default();
+            self.core_outputs(out, now);
+        }
+    }
+
     /// The core's timers at `now` (retries, epoch timeouts), without the tick's chores
     /// (requests to the vehicle, heartbeats): what the fault harness calls between events.
     pub fn poll(&mut self, now: Now) {
@@ -698,6 +715,7 @@ impl NodeShell {
     /// A vehicle sample or an own range already decoded (the fault harness holds samples, not
     /// frames); none before the node has its state.
     pub fn input(&mut self, input: NodeInput, now: Now) {
+        self.catch_up(now);
         self.feed(vec![input], now);
     }
 
@@ -735,6 +753,7 @@ impl NodeShell {
     /// the vehicle gave (its configuration refused).
     pub fn vehicle_frame(&mut self, frame: Received, now: Now) -> Result<(), NodeError> {
         let (header, msg, bytes) = frame;
+        self.catch_up(now);
         if self.config.record {
             self.record(Record::Frame { link: Link::Vehicle(self.sysid), dir: Direction::Rx, bytes });
         }
@@ -795,10 +814,22 @@ impl NodeShell {
             && self.decoder.clock_offset_us().is_none_or(|o| (o - offset_us).abs() > CLOCK_UPDATE_US)
             && self.decoder.clock_source() != Some(ClockSource::SystemTime)
         {
-            self.event(NodeEvent::Clock { offset_us, rtt_us });
-            self.decoder.set_companion_offset(offset_us);
-            self.clock.rtt_us = Some(rtt_us);
+            self.take_clock(offset_us, rtt_us);
         }
+    }
+
+    /// The vehicle's clock mapped to the team's from here on (companion time minus boot time,
+    /// and the round trip it was measured over).
+    fn take_clock(&mut self, offset_us: i64, rtt_us: i64) {
+        self.event(NodeEvent::Clock { offset_us, rtt_us });
+        self.decoder.set_companion_offset(offset_us);
+        self.clock.rtt_us = Some(rtt_us);
+    }
+
+    /// A Clock event of the log being replayed ([`ShellConfig::clock_from_log`]): the mapping
+    /// the node took at this point.
+    pub fn logged_clock(&mut self, offset_us: i64, rtt_us: i64) {
+        self.take_clock(offset_us, rtt_us);
     }
 
     /// The hand-over: the start from the autopilot's estimate once it has GNSS, the take-over
@@ -1187,6 +1218,7 @@ impl NodeShell {
 
     /// Bytes from the ranging device on the companion, read at `arrival_us` (Unix time, us).
     pub fn range_bytes(&mut self, bytes: &[u8], arrival_us: u64, now: Now) {
+        self.catch_up(now);
         let Some(lines) = self.range_lines.as_mut() else { return };
         let ranges = lines.push(bytes, arrival_us);
         let mut inputs = Vec::new();
@@ -1207,6 +1239,7 @@ impl NodeShell {
         if bytes.is_empty() && from == Source::Radio {
             return; // no whole frame in these bytes yet
         }
+        self.catch_up(now);
         self.coop_frames += 1;
         let id = self.id;
         let frames = match &mut self.verifier {
@@ -1271,14 +1304,7 @@ impl NodeShell {
         if inputs.is_empty() || self.core.is_none() {
             return;
         }
-        // Wall time reaches the core only through recorded polls, so a replay is exact: on the
-        // ticks, and before a frame read while the ticks are late (this process was frozen and
-        // its sockets hold what came meanwhile: the core must see the freeze before that).
         let mut out = Vec::new();
-        if now.wall_us.saturating_sub(self.last_tick_us) > FROZEN_TICK_GAP_US {
-            self.event(NodeEvent::Poll { wall_us: now.wall_us });
-            out.extend(self.core.as_mut().map(|c| c.poll(now.wall_us)).unwrap_or_default());
-        }
         let Some(core) = self.core.as_mut() else { return };
         let vehicle_input = inputs.iter().any(|i| i.drive_time().is_some());
         for input in inputs {
@@ -1431,6 +1457,7 @@ mod tests {
             record: false,
             restore: None,
             save_state: false,
+            clock_from_log: false,
         }
     }
 
@@ -1591,6 +1618,77 @@ mod tests {
         };
         assert_eq!(ends(false), 2_000, "1 s of silence, then 1 s of grace");
         assert_eq!(ends(true), 4_500 + 2_000, "the silence starts again after the freeze");
+    }
+
+    /// A frame read after a freeze (the ticks late): the core is polled at the frame's wall
+    /// time first, and the poll is logged ahead of the frame, where a replay meets it; the
+    /// tick's clock is left, so the next frame before a tick is preceded by a poll too, and the
+    /// next tick still sees the freeze.
+    #[test]
+    fn a_frame_read_after_a_freeze_is_logged_behind_the_poll_that_came_first() {
+        let mut s = shell(None, Some(Duration::from_secs(1)));
+        assert!(s.tick(at(25)));
+        s.take_outputs();
+        s.vehicle_frame(vehicle_frame(1, 0), at(50)).unwrap();
+        let out = s.take_outputs();
+        assert!(matches!(out.as_slice(), [ShellOutput::Record(Record::Frame { dir: Direction::Rx, .. })]), "no freeze: {out:?}");
+        for (seq, ms) in [(1, 2_000), (2, 2_001)] {
+            s.vehicle_frame(vehicle_frame(1, seq), at(ms)).unwrap();
+            let out = s.take_outputs();
+            let wall_us = ms * 1000;
+            assert!(
+                matches!(out.as_slice(), [ShellOutput::Record(Record::Event(NodeEvent::Poll { wall_us: w })), ShellOutput::Record(Record::Frame { dir: Direction::Rx, .. }), ..] if *w == wall_us),
+                "at {ms} ms: {out:?}"
+            );
+        }
+        // The freeze restarts the vehicle's idle clock at the tick (1 s of silence from 2,025 ms,
+        // not from the frame at 2,001 ms): no end of input at 3,010 ms.
+        assert!(s.tick(at(2_025)));
+        s.take_outputs();
+        assert!(s.tick(at(3_010)));
+        let out = s.take_outputs();
+        assert!(!out.iter().any(|o| matches!(o, ShellOutput::Record(Record::Event(NodeEvent::EndOfInput)))), "{out:?}");
+    }
+
+    /// A shell fed a log takes the vehicle clock's mapping from the log's Clock events, and
+    /// neither asks the vehicle for TIMESYNC nor maps the clock from its answers; a node's shell
+    /// asks.
+    #[test]
+    fn a_shell_fed_a_log_takes_the_clock_from_it_and_asks_the_vehicle_for_none() {
+        let scenario = Scenario::from_toml_str(PAPER_TOML).unwrap();
+        let mut profile = VehicleProfile::from_spec(&scenario.vehicle());
+        profile.inputs.clock = TeamClock::Companion;
+        let model = profile.nav_model(scenario.latitude_deg);
+        let world = World::new(&scenario).unwrap();
+        let init = world.initial_estimate(1, 0, 1).unwrap();
+        let (t0, state) = (init.truth.t, crate::estimation::nav::NavState::for_model(&model, init.ins_state()));
+        let timesync_requests = |clock_from_log: bool| {
+            let cfg = NodeConfig::for_model(1, Method::Decentralized, model, Encoding::F64, world.platform_ids());
+            let core = NodeCore::new(cfg, t0, state).unwrap();
+            let config = ShellConfig { record: true, clock_from_log, ..bare_config(profile.clone()) };
+            let mut s = NodeShell::new(NodeInit::Ready(Box::new(core)), config, at(0)).unwrap();
+            s.vehicle_frame(vehicle_frame(1, 0), at(1)).unwrap();
+            for ms in 1..=80 {
+                assert!(s.tick(at(ms * 25)));
+            }
+            let out = s.take_outputs();
+            (s, out.iter().filter(|o| matches!(o, ShellOutput::Vehicle { msg: MavMessage::TIMESYNC(_), .. })).count())
+        };
+        let (_, asked) = timesync_requests(false);
+        assert!(asked > 0, "a node's shell asks its vehicle for TIMESYNC");
+        let (mut s, asked) = timesync_requests(true);
+        assert_eq!(asked, 0, "a replay's shell asks nothing");
+        assert_eq!(summary(&s).clock, None);
+        s.logged_clock(1_700_000_000_000_000, 900);
+        let out = s.take_outputs();
+        assert!(
+            matches!(
+                out.as_slice(),
+                [ShellOutput::Record(Record::Event(NodeEvent::Clock { offset_us: 1_700_000_000_000_000, rtt_us: 900 }))]
+            ),
+            "{out:?}"
+        );
+        assert_eq!(summary(&s).clock, Some((ClockSource::Timesync, 1_700_000_000_000_000, Some(900))));
     }
 
     /// A node restarted with a saved state 10 s old, on an ArduPilot rover whose EKF3 kept
