@@ -68,6 +68,53 @@ fn committed_logs_replay_bit_for_bit_and_match_their_golden_summaries() {
     }
 }
 
+/// The replay is a check that can fail, and its shell makes the node's start from the frames:
+/// - node 1's vehicle frames of the first half of a committed log cut: the vehicle's first
+///   sample then comes about 15 s after the state given at the start, and the replayed shell
+///   refuses it as stale, as the node would have (the log says the node took it);
+/// - one vehicle frame in 50 with a byte changed: its checksum refuses it, the filter misses
+///   those samples, the estimates differ;
+/// - a saved state attached that does not read: the replay refuses the log, naming it.
+#[test]
+fn a_tampered_log_does_not_replay_as_recorded() {
+    let log = read_log(&committed_logs()[0]).unwrap();
+    let topic = cooploc::recording::topics::frames(cooploc::recording::Link::Vehicle(1), cooploc::recording::Direction::Rx);
+    let node1 = |log: &cooploc::recording::Log| replay_nodes(log).unwrap().into_iter().find(|r| r.id == 1).unwrap();
+    let clean = node1(&log);
+    assert!(clean.matches() && clean.recorded_starts.is_empty() && clean.replayed_starts.is_empty());
+
+    let frames = log.topic(&topic).count();
+    let mut cut = log.clone();
+    let mut seen = 0;
+    cut.messages.retain(|m| {
+        seen += usize::from(m.topic() == topic);
+        m.topic() != topic || seen > frames / 2
+    });
+    let r = node1(&cut);
+    assert!(matches!(r.replayed_starts.first(), Some(NodeEvent::StartRefused { .. })), "{:?}", r.replayed_starts);
+    assert!(!r.matches());
+
+    let mut damaged = log.clone();
+    for m in damaged.messages.iter_mut().filter(|m| m.topic() == topic).step_by(50) {
+        let k = m.data.len() / 2;
+        m.data[k] ^= 0x20;
+    }
+    let r = node1(&damaged);
+    assert!(!r.matches(), "{} estimates, all as recorded", r.replayed.len());
+    assert!(r.imu_replayed < clean.imu_replayed);
+
+    let mut bad_state = log.clone();
+    bad_state.attachments.push(cooploc::recording::LoggedAttachment {
+        name: "saved-state.1.txt".into(),
+        media_type: "text/plain".into(),
+        log_time_ns: 0,
+        create_time_ns: 0,
+        data: b"format = 1\nplatform = \"one\"\n".to_vec(),
+    });
+    let err = replay_nodes(&bad_state).unwrap_err().to_string();
+    assert!(err.contains("node 1") && err.contains("saved-state.1.txt"), "{err}");
+}
+
 /// The centralized EKF on a log's inputs against `run_filter` (what `cooploc experiment` runs)
 /// on the world's own inputs for the same seed and run: the log holds the samples as sent (f32),
 /// so they agree to the quantisation, stated here as 1 mm and 0.001 deg.
