@@ -302,6 +302,9 @@ impl NodeInput {
 #[allow(clippy::large_enum_variant)]
 pub enum NodeOutput {
     ToPeers(MavMessage),
+    /// Our estimate, to the team (the shell sends it as COOPLOC_ESTIMATE, in f32) and, as the
+    /// profile says, to the vehicle: after each joint update, and to a ground station that asks.
+    Estimate(wire::EstimateReport),
     /// The internals of a joint update just run (for logs).
     Update(Box<CoopUpdateRecord>),
 }
@@ -1367,7 +1370,7 @@ impl NodeCore {
         if result == MavResult::MAV_RESULT_ACCEPTED {
             self.stats.estimate_requests += 1;
             self.last_estimate_answer = Some(self.wall_us);
-            out.push(NodeOutput::ToPeers(wire::estimate_to_message(&self.estimate())));
+            out.push(NodeOutput::Estimate(self.estimate()));
         } else {
             self.stats.estimate_requests_refused += 1;
         }
@@ -2249,8 +2252,7 @@ impl NodeCore {
             nees: None,
             nees_dof: None,
         })));
-        let report = self.estimate();
-        out.push(NodeOutput::ToPeers(wire::estimate_to_message(&report)));
+        out.push(NodeOutput::Estimate(self.estimate()));
     }
 
     /// Restores the checkpoint at `t`, writes back the correction, and replays the inputs after
@@ -2766,7 +2768,7 @@ mod tests {
         out.iter()
             .filter_map(|o| match o {
                 NodeOutput::ToPeers(m) => wire::epoch_of(m).and_then(Result::ok),
-                NodeOutput::Update(_) => None,
+                NodeOutput::Estimate(_) | NodeOutput::Update(_) => None,
             })
             .filter(|a| a.state == EpochState::COOPLOC_EPOCH_STATE_NO_RECORD)
             .map(|a| (a.epoch, a.participants.len()))

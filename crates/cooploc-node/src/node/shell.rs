@@ -186,7 +186,8 @@ pub enum Record {
         dir: Direction,
         bytes: Vec<u8>,
     },
-    /// An estimate the node broadcast.
+    /// An estimate the node broadcast, as it went on the wire
+    /// ([`wire::EstimateReport::as_sent`]).
     Estimate(wire::EstimateReport),
     /// The internals of a joint update.
     Update(Box<CoopUpdateRecord>),
@@ -593,35 +594,40 @@ impl NodeShell {
     }
 
     /// The core's outputs: its messages framed for the team (a record's first fragment alone,
-    /// ahead of the rest), its estimate to the vehicle as LOCAL_POSITION_NED when the profile
-    /// asks for it, both to the log.
+    /// ahead of the rest), its estimate too, and to the vehicle as LOCAL_POSITION_NED when the
+    /// profile asks for it, all to the log.
     fn core_outputs(&mut self, outputs: Vec<NodeOutput>, now: Now) {
         let mut frames = Vec::new();
         for output in outputs {
-            match output {
-                NodeOutput::ToPeers(msg) => {
-                    let frame = self.coop_frame(&msg, now);
-                    if self.config.record {
-                        self.record(Record::Frame { link: Link::Coop(self.sysid), dir: Direction::Tx, bytes: frame.clone() });
-                    }
-                    if crate::protocol::budget::goes_alone(&msg) {
-                        self.send_peers(std::mem::take(&mut frames));
-                        self.send_peers(vec![frame]);
-                        continue;
-                    }
-                    frames.push(frame);
-                    if let MavMessage::COOPLOC_ESTIMATE(m) = &msg
-                        && (self.autopilot.local_position_ned || self.config.record)
-                        && let Ok(e) = wire::estimate_from_message(m)
-                    {
-                        if self.autopilot.local_position_ned {
-                            let boot_ms = (self.decoder.to_vehicle_time(e.t) / 1000) as u32;
-                            self.send_vehicle(wire::estimate_to_local_position(&e, boot_ms));
-                        }
-                        self.record(Record::Estimate(e));
-                    }
+            let (msg, estimate) = match output {
+                NodeOutput::ToPeers(msg) => (msg, None),
+                // (logged and given to the vehicle as it goes on the wire; one no receiver would
+                // take goes to neither)
+                NodeOutput::Estimate(e) => {
+                    let wanted = self.autopilot.local_position_ned || self.config.record;
+                    (wire::estimate_to_message(&e), wanted.then(|| e.as_sent().ok()).flatten())
                 }
-                NodeOutput::Update(u) => self.record(Record::Update(u)),
+                NodeOutput::Update(u) => {
+                    self.record(Record::Update(u));
+                    continue;
+                }
+            };
+            let frame = self.coop_frame(&msg, now);
+            if self.config.record {
+                self.record(Record::Frame { link: Link::Coop(self.sysid), dir: Direction::Tx, bytes: frame.clone() });
+            }
+            if crate::protocol::budget::goes_alone(&msg) {
+                self.send_peers(std::mem::take(&mut frames));
+                self.send_peers(vec![frame]);
+                continue;
+            }
+            frames.push(frame);
+            if let Some(e) = estimate {
+                if self.autopilot.local_position_ned {
+                    let boot_ms = (self.decoder.to_vehicle_time(e.t) / 1000) as u32;
+                    self.send_vehicle(wire::estimate_to_local_position(&e, boot_ms));
+                }
+                self.record(Record::Estimate(e));
             }
         }
         self.send_peers(frames);

@@ -493,8 +493,22 @@ fn method_from_wire(m: CooplocMethod) -> Method {
 }
 
 pub fn estimate_to_message(e: &EstimateReport) -> MavMessage {
+    MavMessage::COOPLOC_ESTIMATE(estimate_data(e))
+}
+
+impl EstimateReport {
+    /// The estimate as COOPLOC_ESTIMATE carries it (f32; the covariance from its upper
+    /// triangle), checked as a receiver checks it: what a node logs and gives its vehicle, so
+    /// that its log, its vehicle and its teammates see the same numbers. Err: an estimate no
+    /// receiver would take (not finite, a negative variance).
+    pub fn as_sent(&self) -> Result<EstimateReport, WireError> {
+        estimate_from_message(&estimate_data(self))
+    }
+}
+
+fn estimate_data(e: &EstimateReport) -> COOPLOC_ESTIMATE_DATA {
     let c = &e.position_covariance_m2;
-    MavMessage::COOPLOC_ESTIMATE(COOPLOC_ESTIMATE_DATA {
+    COOPLOC_ESTIMATE_DATA {
         time_usec: e.t.0,
         epoch: e.epoch,
         x: e.position_ned_m[0] as f32,
@@ -511,7 +525,7 @@ pub fn estimate_to_message(e: &EstimateReport) -> MavMessage {
         method: method_to_wire(e.method),
         participants: e.participants,
         ranges: e.ranges,
-    })
+    }
 }
 
 pub fn estimate_from_message(m: &COOPLOC_ESTIMATE_DATA) -> Result<EstimateReport, WireError> {
@@ -1153,6 +1167,49 @@ mod tests {
         let fix = position_fix_from_gps_raw(&m, &origin).unwrap();
         assert_eq!((fix.sigma_h_m, fix.sigma_v_m), (0.3, Some(0.3)));
         assert!(fix.pos_ned_m.norm() < 0.05, "{:?}", fix.pos_ned_m);
+    }
+
+    /// An estimate as sent is what a receiver decodes from its frame (f32, the covariance's
+    /// upper triangle), and sending it again changes nothing; one no receiver would take is
+    /// refused.
+    #[test]
+    fn an_estimate_as_sent_is_what_a_receiver_decodes() {
+        let mut c = Matrix3::new(2.1, 0.3, 0.01, 0.31, 1.7, 0.02, 0.01, 0.02, 0.5);
+        c[(1, 0)] = 0.300_000_1; // (a lower triangle the wire does not carry)
+        let e = EstimateReport {
+            platform: 3,
+            t: TimeUs(12_345_678),
+            epoch: 41,
+            method: Method::Decentralized,
+            position_ned_m: Vector3::new(259.612_612_345_678, 150.096_1, -0.123_456_789),
+            velocity_ned_m_s: Vector3::new(8.671_921_696, 5.029_6, -0.000_47),
+            yaw_rad: 0.612_345_678_9,
+            position_covariance_m2: c,
+            yaw_variance_rad2: 1.234_567_89e-4,
+            nis: f64::NAN,
+            participants: 3,
+            ranges: 2,
+        };
+        let frame = to_frame(MavHeader { system_id: 3, component_id: COMPANION_COMPID, sequence: 0 }, &estimate_to_message(&e));
+        let (_, MavMessage::COOPLOC_ESTIMATE(m)) = from_any_frame(&frame).unwrap() else { panic!("not COOPLOC_ESTIMATE") };
+        let received = estimate_from_message(&m).unwrap();
+        let sent = e.as_sent().unwrap();
+        let bits = |r: &EstimateReport| {
+            let mut v: Vec<u64> = r.position_ned_m.iter().chain(r.velocity_ned_m_s.iter()).map(|x| x.to_bits()).collect();
+            v.extend(r.position_covariance_m2.iter().map(|x| x.to_bits()));
+            v.extend([r.yaw_rad, r.yaw_variance_rad2, r.nis].map(f64::to_bits));
+            v
+        };
+        assert_eq!(bits(&sent), bits(&received));
+        assert_eq!((sent.platform, sent.t, sent.epoch, sent.participants, sent.ranges), (3, e.t, 41, 3, 2));
+        assert_ne!(sent.position_ned_m, e.position_ned_m, "f32 on the wire");
+        assert_eq!(sent.position_covariance_m2[(1, 0)], sent.position_covariance_m2[(0, 1)]);
+        assert_eq!(bits(&sent.as_sent().unwrap()), bits(&sent));
+        let nan = EstimateReport { position_ned_m: Vector3::new(f64::NAN, 0.0, 0.0), ..e.clone() };
+        assert!(nan.as_sent().is_err());
+        let mut negative = e;
+        negative.position_covariance_m2[(0, 0)] = -1.0;
+        assert!(negative.as_sent().is_err());
     }
 
     fn sim_state() -> SIM_STATE_DATA {
