@@ -288,7 +288,9 @@ fn replay_node(log: &Log, world: Option<&World>, id: PlatformId) -> Result<NodeR
                 NodeEvent::RunPending => shell.run_pending(now),
                 NodeEvent::Clock { offset_us, rtt_us } => shell.logged_clock(offset_us, rtt_us),
                 NodeEvent::Range { epoch, range } => shell.input(NodeInput::OwnRange { epoch, range }, now),
-                start => out.recorded_starts.push(start),
+                start @ (NodeEvent::Init { .. } | NodeEvent::StartRefused { .. } | NodeEvent::Restored { .. }) => {
+                    out.recorded_starts.push(start)
+                }
             }
         } else {
             continue;

@@ -392,8 +392,10 @@ impl GcsState {
             Ok(m) => m,
             Err(e) => return self.reject(rx, Link::Coop, e.to_string(), events),
         };
-        if u32::from(m.claimed_sender()) != sysid {
-            let reason = format!("{} of platform {} sent by system {sysid}", m.kind().name(), m.claimed_sender());
+        if let Some(claimed) = m.claimed_sender()
+            && u32::from(claimed) != sysid
+        {
+            let reason = format!("{} of platform {claimed} sent by system {sysid}", m.kind().name());
             return self.reject(rx, Link::Coop, reason, events);
         }
         match m {
@@ -421,6 +423,8 @@ impl GcsState {
                     self.vehicle(f.platform).counts.store_fragments += 1;
                 }
             }
+            // (a ground station's request to a node: nothing for this one)
+            CoopMessage::MessageRequest(_) => {}
         }
     }
 

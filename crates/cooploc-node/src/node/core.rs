@@ -1158,12 +1158,15 @@ impl NodeCore {
         if from != self.cfg.id {
             self.channel_busy_at = self.channel_busy_at.max(self.wall_us);
         }
-        if let Some(asks_estimate) = wire::estimate_request(&msg, self.cfg.id) {
-            self.estimate_request(from, asks_estimate, out);
+        // Heartbeats, ground stations' other messages: nothing for the protocol.
+        let Some(decoded) = CoopMessage::decode(&msg) else { return };
+        if let Ok(CoopMessage::MessageRequest(r)) = &decoded {
+            // (a ground station's: from outside the team)
+            if r.is_for(self.cfg.id) {
+                self.estimate_request(from, r.asks_estimate(), out);
+            }
             return;
         }
-        // Heartbeats, estimates, ground stations' messages: nothing for the protocol.
-        let Some(decoded) = CoopMessage::decode(&msg) else { return };
         let kind = match &decoded {
             Ok(m) => m.kind(),
             Err(e) => e.kind,
@@ -1187,7 +1190,7 @@ impl NodeCore {
                 match e.kind {
                     CoopKind::StateFragment | CoopKind::StoreFragment => self.stats.fragments_rejected += 1,
                     CoopKind::Range => self.stats.ranges_rejected += 1,
-                    CoopKind::Epoch | CoopKind::Estimate => {}
+                    CoopKind::Epoch | CoopKind::Estimate | CoopKind::MessageRequest => {}
                 }
                 return;
             }
@@ -1267,7 +1270,7 @@ impl NodeCore {
                 }
             }
             CoopMessage::Epoch(a) => self.epoch_message(from, a, out),
-            CoopMessage::Estimate(_) => {}
+            CoopMessage::Estimate(_) | CoopMessage::MessageRequest(_) => {}
         }
     }
 

@@ -6,7 +6,7 @@
 
 use super::MavMessage;
 use super::fragment::Fragment;
-use super::wire::{self, EpochAnnouncement, EstimateReport, WireError};
+use super::wire::{self, EpochAnnouncement, EstimateReport, MessageRequest, WireError};
 use crate::estimation::{PlatformId, RangeSample};
 
 /// A message of the cooperative network, decoded and validated.
@@ -23,6 +23,8 @@ pub enum CoopMessage {
     Epoch(EpochAnnouncement),
     /// A node's estimate (COOPLOC_ESTIMATE).
     Estimate(EstimateReport),
+    /// A ground station asks a node for a message (MAV_CMD_REQUEST_MESSAGE).
+    MessageRequest(MessageRequest),
 }
 
 /// Which cooperative message (also for one that failed to decode).
@@ -33,6 +35,7 @@ pub enum CoopKind {
     Range,
     Epoch,
     Estimate,
+    MessageRequest,
 }
 
 impl CoopKind {
@@ -44,6 +47,7 @@ impl CoopKind {
             CoopKind::Range => "COOPLOC_RANGE",
             CoopKind::Epoch => "COOPLOC_EPOCH",
             CoopKind::Estimate => "COOPLOC_ESTIMATE",
+            CoopKind::MessageRequest => "MAV_CMD_REQUEST_MESSAGE",
         }
     }
 
@@ -55,6 +59,7 @@ impl CoopKind {
             MavMessage::COOPLOC_RANGE(_) => CoopKind::Range,
             MavMessage::COOPLOC_EPOCH(_) | MavMessage::COOPLOC_EPOCH_SET(_) => CoopKind::Epoch,
             MavMessage::COOPLOC_ESTIMATE(_) => CoopKind::Estimate,
+            m if wire::message_request_from(m).is_some() => CoopKind::MessageRequest,
             _ => return None,
         })
     }
@@ -80,7 +85,7 @@ impl CoopMessage {
             MavMessage::COOPLOC_EPOCH(m) => wire::epoch_from_message(m).map(CoopMessage::Epoch),
             MavMessage::COOPLOC_EPOCH_SET(m) => wire::epoch_set_from_message(m).map(CoopMessage::Epoch),
             MavMessage::COOPLOC_ESTIMATE(m) => wire::estimate_from_message(m).map(CoopMessage::Estimate),
-            _ => return None,
+            m => return wire::message_request_from(m).map(|r| Ok(CoopMessage::MessageRequest(r))),
         };
         Some(decoded.map_err(|error| CoopError { kind, error }))
     }
@@ -92,19 +97,21 @@ impl CoopMessage {
             CoopMessage::Range { .. } => CoopKind::Range,
             CoopMessage::Epoch(_) => CoopKind::Epoch,
             CoopMessage::Estimate(_) => CoopKind::Estimate,
+            CoopMessage::MessageRequest(_) => CoopKind::MessageRequest,
         }
     }
 
     /// The platform the message says it comes from (a fragment's platform, a range's measuring
     /// platform, an epoch's announcer, an estimate's platform): a receiver takes it only from
-    /// that platform's own system.
-    pub fn claimed_sender(&self) -> PlatformId {
-        match self {
+    /// that platform's own system. None: a ground station's request, which claims no platform.
+    pub fn claimed_sender(&self) -> Option<PlatformId> {
+        Some(match self {
             CoopMessage::StateFragment(f) | CoopMessage::StoreFragment(f) => f.platform,
             CoopMessage::Range { range, .. } => range.from,
             CoopMessage::Epoch(a) => a.announcer,
             CoopMessage::Estimate(r) => r.platform,
-        }
+            CoopMessage::MessageRequest(_) => return None,
+        })
     }
 }
 
@@ -119,10 +126,51 @@ mod tests {
         let range = RangeSample { t: TimeUs(2_000_000), from: 3, to: 1, range_m: 12.5, sigma_m: 0.5 };
         let m = wire::range_to_message(&range, 2);
         let got = CoopMessage::decode(&m).unwrap().unwrap();
-        assert_eq!((got.kind(), got.claimed_sender()), (CoopKind::Range, 3));
+        assert_eq!((got.kind(), got.claimed_sender()), (CoopKind::Range, Some(3)));
         assert!(matches!(got, CoopMessage::Range { epoch: 2, .. }));
         let hb = wire::heartbeat(MavType::MAV_TYPE_GCS, MavAutopilot::MAV_AUTOPILOT_INVALID);
         assert!(CoopMessage::decode(&hb).is_none());
+    }
+
+    /// A ground station's MAV_CMD_REQUEST_MESSAGE (COMMAND_LONG or COMMAND_INT) is a cooperative
+    /// message claiming no platform: for a node when addressed to its system (or 0) and its
+    /// component (or 0); it asks for the estimate only by COOPLOC_ESTIMATE's id. Another command
+    /// is not cooperative.
+    #[test]
+    fn a_ground_stations_request_is_decoded_with_its_address_and_claims_no_platform() {
+        use crate::protocol::dialect::cooploc::{COMMAND_INT_DATA, COMMAND_LONG_DATA, MavCmd};
+        let long = |target_system, target_component, param1| {
+            MavMessage::COMMAND_LONG(COMMAND_LONG_DATA {
+                command: MavCmd::MAV_CMD_REQUEST_MESSAGE,
+                param1,
+                target_system,
+                target_component,
+                ..Default::default()
+            })
+        };
+        let id = wire::ESTIMATE_MESSAGE_ID as f32;
+        let got = CoopMessage::decode(&long(2, wire::COMPANION_COMPID, id)).unwrap().unwrap();
+        assert_eq!((got.kind(), got.claimed_sender()), (CoopKind::MessageRequest, None));
+        let CoopMessage::MessageRequest(r) = got else { panic!("{got:?}") };
+        assert!(r.is_for(2) && !r.is_for(3) && r.asks_estimate());
+        let request = |m: &MavMessage| match CoopMessage::decode(m) {
+            Some(Ok(CoopMessage::MessageRequest(r))) => r,
+            other => panic!("{other:?}"),
+        };
+        assert!(request(&long(0, 0, id)).is_for(3), "to everyone");
+        assert!(!request(&long(2, 1, id)).is_for(2), "to the autopilot");
+        assert!(!request(&long(2, 0, 33.0)).asks_estimate());
+        assert!(!request(&long(2, 0, f32::NAN)).asks_estimate());
+        let int = MavMessage::COMMAND_INT(COMMAND_INT_DATA {
+            command: MavCmd::MAV_CMD_REQUEST_MESSAGE,
+            param1: id,
+            target_system: 2,
+            ..Default::default()
+        });
+        assert!(request(&int).is_for(2) && request(&int).asks_estimate());
+        let arm =
+            MavMessage::COMMAND_LONG(COMMAND_LONG_DATA { command: MavCmd::MAV_CMD_COMPONENT_ARM_DISARM, ..Default::default() });
+        assert!(CoopMessage::decode(&arm).is_none());
     }
 
     #[test]

@@ -80,18 +80,37 @@ pub const COMPANION_COMPID: u8 = 191;
 /// Message id of COOPLOC_ESTIMATE, the message a ground station may ask a node for.
 pub const ESTIMATE_MESSAGE_ID: u32 = 61002;
 
-/// A ground station's request to a node on the cooperative network: MAV_CMD_REQUEST_MESSAGE
-/// (COMMAND_LONG or COMMAND_INT) addressed to `node` (system 0 or `node`, component 0 or
-/// [`COMPANION_COMPID`]). `Some(true)` when it asks for COOPLOC_ESTIMATE, `Some(false)` for
-/// another message (the node answers UNSUPPORTED), `None` when it is not such a request.
-pub fn estimate_request(msg: &MavMessage, node: PlatformId) -> Option<bool> {
-    let (command, param1, target) = match msg {
-        MavMessage::COMMAND_LONG(c) => (c.command, c.param1, (c.target_system, c.target_component)),
-        MavMessage::COMMAND_INT(c) => (c.command, c.param1, (c.target_system, c.target_component)),
+/// A ground station's request on the cooperative network: MAV_CMD_REQUEST_MESSAGE (COMMAND_LONG
+/// or COMMAND_INT), to a system and component (0: any), for the message `param1` names.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct MessageRequest {
+    pub target_system: u8,
+    pub target_component: u8,
+    pub param1: f32,
+}
+
+impl MessageRequest {
+    /// Whether it is addressed to the node of platform `node` (system 0 or `node`, component 0
+    /// or [`COMPANION_COMPID`]).
+    pub fn is_for(&self, node: PlatformId) -> bool {
+        (self.target_system == 0 || u16::from(self.target_system) == node)
+            && (self.target_component == 0 || self.target_component == COMPANION_COMPID)
+    }
+
+    /// Whether it asks for COOPLOC_ESTIMATE (a node answers any other UNSUPPORTED).
+    pub fn asks_estimate(&self) -> bool {
+        self.param1.is_finite() && self.param1 == ESTIMATE_MESSAGE_ID as f32
+    }
+}
+
+/// The MAV_CMD_REQUEST_MESSAGE `msg` is, if it is one.
+pub fn message_request_from(msg: &MavMessage) -> Option<MessageRequest> {
+    let (command, param1, target_system, target_component) = match msg {
+        MavMessage::COMMAND_LONG(c) => (c.command, c.param1, c.target_system, c.target_component),
+        MavMessage::COMMAND_INT(c) => (c.command, c.param1, c.target_system, c.target_component),
         _ => return None,
     };
-    let ours = (target.0 == 0 || u16::from(target.0) == node) && (target.1 == 0 || target.1 == COMPANION_COMPID);
-    (command == MavCmd::MAV_CMD_REQUEST_MESSAGE && ours).then(|| param1.is_finite() && param1 == ESTIMATE_MESSAGE_ID as f32)
+    (command == MavCmd::MAV_CMD_REQUEST_MESSAGE).then_some(MessageRequest { target_system, target_component, param1 })
 }
 
 /// The COMMAND_ACK a node sends `to` (system, component) for `command`.
