@@ -230,20 +230,7 @@ fn shell_of(log: &Log, h: &NodeHeader, id: PlatformId) -> Result<NodeShell, Stri
             NodeInit::Pending { config: Box::new(cfg), origin, state: None, from_autopilot: hand_over }
         }
     };
-    let config = ShellConfig {
-        profile: h.profile.clone(),
-        team_key: None,
-        signing_resume_after: 0,
-        peers: Vec::new(),
-        idle_exit: None,
-        grace: std::time::Duration::ZERO,
-        ranges: false,
-        unicast: false,
-        record: true,
-        restore,
-        save_state: false,
-        clock_from_log: true,
-    };
+    let config = ShellConfig { record: true, restore, clock_from_log: true, ..ShellConfig::bare(h.profile.clone()) };
     NodeShell::new(init, config, Now { wall_us: 0, unix_ns: 0 }).map_err(|e| e.to_string())
 }
 

@@ -649,20 +649,7 @@ impl Maker<'_> {
         profile.output.odometry_rate_hz = 0.0;
         profile.output.gps_input_rate_hz = 0.0;
         profile.output.local_position_ned = false;
-        let config = ShellConfig {
-            profile,
-            team_key: None,
-            signing_resume_after: 0,
-            peers: Vec::new(),
-            idle_exit: None,
-            grace: std::time::Duration::ZERO,
-            ranges: false,
-            unicast: false,
-            record: false,
-            restore: None,
-            save_state: false,
-            clock_from_log: false,
-        };
+        let config = ShellConfig::bare(profile);
         let mut shell = NodeShell::new(NodeInit::Ready(Box::new(core)), config, clock(self.case, at.unwrap_or(TimeUs(0))))
             .map_err(|e| ExperimentError::Settings(format!("node shell: {e}")))?;
         shell.take_outputs(); // its HEARTBEAT to the vehicle

@@ -161,6 +161,28 @@ pub struct ShellConfig {
     pub clock_from_log: bool,
 }
 
+impl ShellConfig {
+    /// A configuration for `profile` with nothing around the node: unsigned, no peers, no idle
+    /// end, no ranging device, no unicast, no log, no saved state, the clock mapped live (what
+    /// the fault harness, a replay and the tests start from, setting what they need).
+    pub fn bare(profile: VehicleProfile) -> Self {
+        ShellConfig {
+            profile,
+            team_key: None,
+            signing_resume_after: 0,
+            peers: Vec::new(),
+            idle_exit: None,
+            grace: Duration::ZERO,
+            ranges: false,
+            unicast: false,
+            record: false,
+            restore: None,
+            save_state: false,
+            clock_from_log: false,
+        }
+    }
+}
+
 /// The two clocks of the companion, read by the runner at each call.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub struct Now {
@@ -1449,22 +1471,9 @@ mod tests {
         NodeShell::new(NodeInit::Ready(Box::new(core)), config, at(0)).unwrap()
     }
 
-    /// A shell configuration for `profile`: unsigned, no log, no peers, no saved state.
+    /// A shell configuration for `profile`: unsigned, no log, no peers, no saved state, UDP.
     fn bare_config(profile: VehicleProfile) -> ShellConfig {
-        ShellConfig {
-            profile,
-            team_key: None,
-            signing_resume_after: 0,
-            peers: Vec::new(),
-            idle_exit: None,
-            grace: Duration::ZERO,
-            ranges: false,
-            unicast: true,
-            record: false,
-            restore: None,
-            save_state: false,
-            clock_from_log: false,
-        }
+        ShellConfig { unicast: true, ..ShellConfig::bare(profile) }
     }
 
     fn frame(sysid: u32, compid: u8, seq: u8, msg: &MavMessage) -> Vec<u8> {
