@@ -100,6 +100,11 @@ pub struct Faults {
     /// the truth at the instant its clock names (so what is measured is what the offset does to
     /// the team's updates, not the offset itself).
     pub clock_offset: Option<(usize, f64)>,
+    /// Store bytes per second each answerer sends a left-out teammate
+    /// ([`crate::node::core::NodeConfig::store_bps`], `cooploc node --store-bps`): a store larger
+    /// than that in an epoch comes over several epochs and is brought forward by them. 0: the
+    /// whole store at each answer.
+    pub store_bps: u64,
 }
 
 /// The grid on which a node names its ranges' epochs (the vehicle profiles' `epoch_grid_ms`),
@@ -125,6 +130,7 @@ impl Default for Faults {
             link_seed: None,
             unsigned: false,
             clock_offset: None,
+            store_bps: 0,
         }
     }
 }
@@ -621,6 +627,7 @@ impl Maker<'_> {
         cfg.authenticated_peers = !self.case.unsigned;
         // as `cooploc node` with a profile's range grid (the harness puts ranges on it too)
         cfg.range_snap_us = EPOCH_GRID_US;
+        cfg.store_bps = self.case.store_bps;
         let restored = match (saved, at) {
             (Some(saved), Some(t)) => saved
                 .restore_at(id, &model, &HARNESS_ORIGIN, t, &crate::estimation::coast::CoastBounds::LAND)

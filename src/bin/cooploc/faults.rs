@@ -76,6 +76,11 @@ pub struct Args {
     /// what each offset costs the team.
     #[arg(long, conflicts_with = "side_by_side")]
     clock_sweep: bool,
+    /// Store bytes per second each answerer sends a left-out member (`cooploc node
+    /// --store-bps`): a store larger than that in an epoch comes over several epochs. Default:
+    /// the whole store at each answer.
+    #[arg(long)]
+    store_bps: Option<u64>,
 }
 
 pub fn run(args: Args) -> anyhow::Result<()> {
@@ -136,6 +141,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
                     } else {
                         case.faults.links_until_s
                     },
+                    store_bps: args.store_bps.unwrap_or(case.faults.store_bps),
                     ..case.faults.clone()
                 };
                 run_case(&world, &faults, method, &args.schedule, args.seed, run, encoding)

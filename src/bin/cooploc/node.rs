@@ -141,6 +141,14 @@ pub struct Args {
     /// --epoch-period-ms: the slots and the range grace must fit in the period.
     #[arg(long, requires = "epoch_period_ms")]
     airtime_bps: Option<f64>,
+    /// Store bytes per second this node sends a teammate that was left out and asks for the
+    /// team's cross-covariance store (two members answer): a store larger than that in an
+    /// epoch comes over several epochs, and the teammate brings it forward by them. Default:
+    /// an eighth of --airtime-bps with it (the two answerers take a quarter of the channel
+    /// while someone rejoins), else the whole store at each answer (a network that takes it at
+    /// once).
+    #[arg(long)]
+    store_bps: Option<u64>,
     /// Vehicle time the node waits after an epoch's instant for its radio's ranges of that
     /// epoch before it broadcasts its record, ms (raise it when ranges reach the node late).
     #[arg(long, default_value_t = 100)]
@@ -267,6 +275,7 @@ pub fn run_cmd(args: Args) -> anyhow::Result<()> {
     cfg.gate_probability = args.gate_probability;
     cfg.epoch_period_us = args.epoch_period_ms.map(|ms| ms.saturating_mul(1000));
     cfg.slot_us = airtime_slot_us(&args, (budget_team, budget_dim, encoding))?;
+    cfg.store_bps = args.store_bps.unwrap_or_else(|| args.airtime_bps.map_or(0, |bps| (bps / 8.0) as u64));
     // the grid the decoder puts the vehicle's ranges on (the profile's)
     cfg.range_snap_us = u64::from(profile.inputs.epoch_grid_ms) * 1000;
     // signed: every record the core sees is a teammate's own (the shell drops the others)

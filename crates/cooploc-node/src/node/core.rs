@@ -68,8 +68,10 @@
 //!      the exact method among themselves and the others are *left out*: they apply nothing
 //!      (their Psi keeps accumulating, so that store stays right for them), ask the holders for
 //!      their store right after the epoch (STORE_WANTED, answered by the two lowest-id holders
-//!      with the store in parts of COOPLOC_STORE_FRAGMENT series, see [`store_sync`]), and adopt
-//!      it; the team is exact again from the next epoch on;
+//!      with the store in parts of COOPLOC_STORE_FRAGMENT series, paced to
+//!      [`NodeConfig::store_bps`], see [`store_sync`]), and adopt it, brought forward by the
+//!      epochs they were left out of while it came; the team is exact again from the next epoch
+//!      on;
 //!    - else every node *heals* with the covariance-intersection bound of
 //!      [`crate::estimation::coop`] (cross blocks dropped, each participant's covariance divided
 //!      by its weight), which is consistent whatever the true cross-covariances were; after it
@@ -121,12 +123,12 @@ use crate::estimation::{
 use crate::protocol::MavMessage;
 use crate::protocol::coop::{CoopKind, CoopMessage};
 use crate::protocol::dialect::cooploc::{MavCmd, MavResult};
-use crate::protocol::fragment::{Payload, Pushed, Reassembler, fragment};
+use crate::protocol::fragment::{MAX_RADIO_FRAME, Pushed, Reassembler, fragment};
 use crate::protocol::record::{self, Encoding, FLAG_FRESH, StateRecord};
 use crate::protocol::wire::{self, EpochState};
 use crate::time::TimeUs;
 use rewind::{Local, LocalFate, Rewind, WriteBack};
-use store_sync::{Awaiting, StoreChoice, StoreRequest, StoreSync, choose_store};
+use store_sync::{Awaiting, LaterEpoch, StoreChoice, StoreRequest, StoreSync, choose_store};
 
 /// How a node runs.
 #[derive(Debug, Clone)]
@@ -199,6 +201,11 @@ pub struct NodeConfig {
     /// forger's bare claim, which must not move the node's own ranges. 0: no grid, an own range
     /// at another instant is refused like any claim.
     pub range_snap_us: u64,
+    /// Store bytes per second of wall time each answerer sends a teammate that asked for it
+    /// ([`store_sync`]: the next fragments of the store at each answer, once per retry
+    /// interval; the asking node brings the store forward by the epochs that passed meanwhile).
+    /// 0: the whole store at each answer (a network that takes it at once).
+    pub store_bps: u64,
 }
 
 impl NodeConfig {
@@ -238,6 +245,7 @@ impl NodeConfig {
             epoch_period_us: None,
             slot_us: 0,
             range_snap_us: 0,
+            store_bps: 0,
         }
     }
 }
@@ -427,9 +435,13 @@ pub struct NodeStats {
     /// for a teammate's record.
     pub no_record_said: u64,
     pub no_record_heard: u64,
-    /// Store snapshots sent to a teammate that asked, and adopted from one.
+    /// Answers to a teammate that asked for our store (the whole store, or paced, a piece of
+    /// it), the store fragments they carried, and stores adopted from a teammate.
     pub stores_sent: u64,
+    pub store_fragments_sent: u64,
     pub stores_adopted: u64,
+    /// Epochs run without us while a store came that it was brought forward by when adopted.
+    pub store_epochs_replayed: u64,
     /// Store snapshots refused: not asked for, stale, not valid for this node, undecodable.
     pub stores_refused: u64,
     /// Ground-station requests for our estimate answered, and refused (too soon after the last
@@ -1251,7 +1263,7 @@ impl NodeCore {
             CoopMessage::StoreFragment(f) => {
                 let Some(f) = self.fragment_of(from, f) else { return };
                 // Only fragments of a store we asked for are kept.
-                match self.stores.push_fragment(from, &f) {
+                match self.stores.push_fragment(from, &f, self.wall_us) {
                     Some(Pushed::Complete(rec)) => match record::decode_store(&rec.bytes) {
                         Ok(snap) if snap.epoch == f.epoch => self.receive_store(from, snap),
                         Ok(_) | Err(_) => self.stats.stores_refused += 1,
@@ -1288,8 +1300,8 @@ impl NodeCore {
             self.absent.remove(&from);
         }
         if a.state == EpochState::COOPLOC_EPOCH_STATE_STORE_WANTED {
-            if store_sync::answers(&a.participants, self.cfg.id) {
-                self.send_store(from, a.epoch, a.digest, out);
+            if let Some(rank) = store_sync::answer_rank(&a.participants, self.cfg.id) {
+                self.send_store(from, a.epoch, a.digest, rank, out);
             }
             return;
         }
@@ -1496,6 +1508,7 @@ impl NodeCore {
     /// in order: only the lowest open epoch is broadcast or run.
     fn advance(&mut self, out: &mut Vec<NodeOutput>) {
         self.schedule_next();
+        self.ask_for_store(out);
         while let Some((&epoch, e)) = self.epochs.first_key_value() {
             let t = e.t;
             if e.broadcast_at.is_none() && self.agreed_to_pass_over(epoch) {
@@ -1721,6 +1734,14 @@ impl NodeCore {
     /// nothing resolved since), the next broadcast waits for it: our record would otherwise
     /// carry the old store, and we would be left out again. The request is repeated every retry
     /// interval meanwhile.
+    /// The request for a store still coming, repeated every retry interval (after our first
+    /// epoch timeout too: the store is brought forward when it comes).
+    fn ask_for_store(&mut self, out: &mut Vec<NodeOutput>) {
+        if let Some(r) = self.stores.ask(self.last_run, self.wall_us, self.cfg.epoch_timeout_us, self.retry_us()) {
+            self.send_status(r.epoch, r.t, r.members, EpochState::COOPLOC_EPOCH_STATE_STORE_WANTED, r.digest_before, out);
+        }
+    }
+
     fn awaiting_store(&mut self, out: &mut Vec<NodeOutput>) -> bool {
         let last = self.last_run;
         match self.stores.awaiting(last, self.wall_us, self.cfg.epoch_timeout_us, self.retry_us()) {
@@ -1910,6 +1931,7 @@ impl NodeCore {
         if let Some(only) = only {
             records.retain(|r| only.contains(&r.snapshot.id));
         }
+        let prev_run = self.last_run;
         self.finish_epoch(epoch);
         self.pass_over_after(epoch, &records);
         if let Some(ours) = ours.filter(|o| !records.iter().any(|r| r.snapshot.id == o.snapshot.id)) {
@@ -1934,7 +1956,7 @@ impl NodeCore {
                     self.cross.forget(k);
                 }
             } else {
-                self.leave_out(epoch, t, c, out);
+                self.leave_out(epoch, t, c, prev_run, &records, out);
                 return;
             }
         }
@@ -1944,6 +1966,12 @@ impl NodeCore {
             records.iter().flat_map(|r| r.ranges.iter().filter(|x| participants.contains(&x.to)).copied()).collect();
         let measurements: Vec<CoopMeasurement> = ranges.iter().map(CoopMeasurement::from).collect();
         let own_index = participants.iter().position(|&p| p == self.cfg.id);
+        if dcl && exact && own_index.is_none() {
+            // Run without our record (it came late, or we waited for a store): a store still
+            // coming is brought forward by it.
+            let later = LaterEpoch { epoch, records: records.clone(), refreshed: Vec::new() };
+            self.stores.carry_on(prev_run, later, self.wall_us, self.cfg.epoch_timeout_us);
+        }
         let nothing_to_do =
             own_index.is_none() || self.cfg.method == Method::DeadReckoning || (measurements.is_empty() && (exact || !dcl));
         let mut state = if partial { EpochState::COOPLOC_EPOCH_STATE_PARTIAL } else { EpochState::COOPLOC_EPOCH_STATE_APPLIED };
@@ -2086,30 +2114,55 @@ impl NodeCore {
         }
         let mut records = self.vetted(epoch);
         records.retain(|r| ran.contains(&r.snapshot.id));
+        let prev_run = self.last_run;
         self.finish_epoch(epoch);
         self.pass_over_after(epoch, &records);
         self.stats.epochs_bystood += 1;
         let participants: Vec<PlatformId> = records.iter().map(|r| r.snapshot.id).collect();
         let ours = self.store_digest();
         let dcl = self.cfg.method == Method::Decentralized;
-        if dcl && participants == ran && records.iter().all(|r| r.digest == ours) {
-            let measurements: Vec<CoopMeasurement> = records
-                .iter()
-                .flat_map(|r| r.ranges.iter().filter(|x| participants.contains(&x.to)))
-                .map(CoopMeasurement::from)
-                .collect();
-            if !measurements.is_empty() {
-                let snapshots: Vec<_> = records.iter().map(|r| r.snapshot.clone()).collect();
-                if self.store_update(&snapshots, &measurements, true, Vec::new()).is_ok() {
-                    let digests: Vec<u64> = records.iter().map(|r| r.digest).collect();
-                    let r = StoreRef::of_update(epoch, &participants, &digests);
-                    for &p in &participants {
-                        self.cross.set_reference(p, r);
-                    }
-                }
-            }
+        let later = LaterEpoch { epoch, records, refreshed: Vec::new() };
+        if dcl && participants == ran && later.records.iter().all(|r| r.digest == ours) {
+            self.bring_forward(&later);
+        } else if dcl && participants == ran {
+            // Our store is not theirs: one still coming is brought forward by this epoch.
+            self.stores.carry_on(prev_run, later, self.wall_us, self.cfg.epoch_timeout_us);
         }
         self.remember_run(epoch, participants);
+    }
+
+    /// Applies to our store what the participants of `later` applied to theirs: the members
+    /// whose blocks they forgot first, then their joint update on their records (nothing when
+    /// they ranged nobody among them), every participant's reference reset. False when a record
+    /// carries another store than ours or the update fails: our store is then not theirs.
+    fn bring_forward(&mut self, later: &LaterEpoch) -> bool {
+        let ours = self.store_digest();
+        if later.records.iter().any(|r| r.digest != ours) {
+            return false;
+        }
+        for &k in &later.refreshed {
+            self.cross.forget(k);
+        }
+        let participants: Vec<PlatformId> = later.records.iter().map(|r| r.snapshot.id).collect();
+        let measurements: Vec<CoopMeasurement> = later
+            .records
+            .iter()
+            .flat_map(|r| r.ranges.iter().filter(|x| participants.contains(&x.to)))
+            .map(CoopMeasurement::from)
+            .collect();
+        if measurements.is_empty() {
+            return true;
+        }
+        let snapshots: Vec<_> = later.records.iter().map(|r| r.snapshot.clone()).collect();
+        if self.store_update(&snapshots, &measurements, true, Vec::new()).is_err() {
+            return false;
+        }
+        let digests: Vec<u64> = later.records.iter().map(|r| r.digest).collect();
+        let r = StoreRef::of_update(later.epoch, &participants, &digests);
+        for &p in &participants {
+            self.cross.set_reference(p, r);
+        }
+        true
     }
 
     /// Remembers what `epoch` ran on and our store digest after it (agreement checks, resends);
@@ -2123,52 +2176,73 @@ impl NodeCore {
         digest
     }
 
-    /// We were left out of `epoch` (our store is not valid for its participants): nothing is
-    /// applied, and we ask them for their store after it.
-    fn leave_out(&mut self, epoch: u32, t: TimeUs, c: &StoreChoice, out: &mut Vec<NodeOutput>) {
+    /// We were left out of `epoch` (our store is not valid for its participants, who ran it on
+    /// `records`; `prev_run` was resolved before it): nothing is applied, and we ask them for
+    /// their store after it, unless a store we asked for earlier is still coming: that one is
+    /// brought forward by this epoch when it comes.
+    fn leave_out(
+        &mut self,
+        epoch: u32,
+        t: TimeUs,
+        c: &StoreChoice,
+        prev_run: Option<u32>,
+        records: &[StateRecord],
+        out: &mut Vec<NodeOutput>,
+    ) {
         self.stats.epochs_excluded += 1;
+        let later = LaterEpoch { epoch, records: records.to_vec(), refreshed: c.refreshed.clone() };
+        if self.stores.carry_on(prev_run, later, self.wall_us, self.cfg.epoch_timeout_us) {
+            return;
+        }
         let request = StoreRequest { epoch, t, digest_before: c.digest, members: c.members.clone() };
         self.stores.want(request, self.wall_us);
         self.send_status(epoch, t, c.members.clone(), EpochState::COOPLOC_EPOCH_STATE_STORE_WANTED, c.digest, out);
     }
 
-    /// Sends our store after `epoch` to `to`, a teammate that asked: only one that did not run
-    /// that epoch with us, and at most one store per retry interval in all (a request is a
-    /// small message and a store a large one: nobody can make us flood the network).
-    fn send_store(&mut self, to: PlatformId, epoch: u32, digest_before: u64, out: &mut Vec<NodeOutput>) {
+    /// Sends our store after `epoch` to `to`, a teammate that asked (as answerer `rank`): only
+    /// one that did not run that epoch with us, at most once per retry interval in all (a
+    /// request is a small message and a store a large one: nobody can make us flood the
+    /// network), and paced to [`NodeConfig::store_bps`].
+    fn send_store(&mut self, to: PlatformId, epoch: u32, digest_before: u64, rank: usize, out: &mut Vec<NodeOutput>) {
         let ran_with_us = self.ran_on.iter().any(|r| r.epoch == epoch && r.participants.contains(&to));
-        let Some((t, snap)) = self.stores.answer(epoch, digest_before, ran_with_us, self.wall_us, self.retry_us()) else {
-            return;
-        };
-        let Ok(bytes) = record::encode_store(&snap) else { return };
-        let Ok(parts) = record::store_parts(&bytes, store_sync::PART_LEN) else { return };
-        for part in parts {
-            let Ok(frags) = fragment(self.cfg.id, epoch, t.0, &part) else { return };
-            for mut f in frags {
-                f.payload = Payload::Store;
-                if let Ok(m) = wire::fragment_to_message(&f) {
-                    out.push(NodeOutput::ToPeers(m));
-                }
+        let retry = self.retry_us();
+        // at most one radio frame's bytes per fragment
+        let per_interval = self.cfg.store_bps.saturating_mul(retry) / 1_000_000 / MAX_RADIO_FRAME as u64;
+        let per_answer = if self.cfg.store_bps == 0 { 0 } else { per_interval.max(1) as usize };
+        let me = store_sync::Answerer { id: self.cfg.id, rank, per_answer };
+        let Some(frags) = self.stores.answer(epoch, digest_before, ran_with_us, me, self.wall_us, retry) else { return };
+        for f in &frags {
+            if let Ok(m) = wire::fragment_to_message(f) {
+                out.push(NodeOutput::ToPeers(m));
             }
         }
         self.stores.sent(epoch, self.wall_us, EPOCHS_REMEMBERED as u32);
         self.stats.stores_sent += 1;
+        self.stats.store_fragments_sent += frags.len() as u64;
     }
 
-    /// A store snapshot arrived: adopted if it is the one we asked for, nothing was resolved
-    /// since, it carries the digest it claims and it is valid for us.
+    /// A store snapshot arrived: adopted if it is the one we asked for and nothing was resolved
+    /// since but the epochs run without us; brought forward by those epochs first, and then
+    /// valid for us (refused if an epoch does not follow, or it is not: the want ends either way,
+    /// and the next epoch we are left out of asks afresh).
     fn receive_store(&mut self, from: PlatformId, snap: record::StoreSnapshot) {
-        let valid_for_us = |store: &CrossCovariances, own: Option<StoreRef>| match own {
-            Some(r) => store.reference(self.cfg.id) == Some(r),
-            None => store.reference(self.cfg.id).is_none() && self.cfg.independent_start,
+        let Some(later) = self.stores.offered(from, &snap, self.last_run) else {
+            self.stats.stores_refused += 1;
+            return;
         };
-        let valid = valid_for_us(&snap.store, self.own_ref);
-        if !self.stores.offered(from, &snap, self.last_run, valid) {
+        let ours = std::mem::replace(&mut self.cross, snap.store);
+        let forward = later.iter().all(|l| self.bring_forward(l));
+        let valid = match self.own_ref {
+            Some(r) => self.cross.reference(self.cfg.id) == Some(r),
+            None => self.cross.reference(self.cfg.id).is_none() && self.cfg.independent_start,
+        };
+        if !(forward && valid) {
+            self.cross = ours;
             self.stats.stores_refused += 1;
             return;
         }
-        self.cross = snap.store;
         self.stats.stores_adopted += 1;
+        self.stats.store_epochs_replayed += later.len() as u64;
     }
 
     /// The method's joint update: exact when the stores agree, else (or when the exact one

@@ -3,14 +3,29 @@
 //!
 //! A node *left out* of an epoch (its store not valid for the participants, see the core's
 //! documentation) applies nothing and asks the participants for their store right after that
-//! epoch (COOPLOC_EPOCH with STORE_WANTED). Its next broadcast waits for the store while one may
-//! still come (an epoch timeout from the first request, and no other epoch resolved since),
-//! asking again every retry interval. A participant answers with the store it kept after that
-//! epoch (COOPLOC_STORE_FRAGMENT), only to a teammate that did not run the epoch with it, and at
-//! most one store per retry interval in all: a request is a small message and a store a large
-//! one, so nobody can make a node flood the network. Only the two participants with the lowest
-//! ids answer (one answer may be lost; 63 copies of a 64-member team's 4 MB store would be a
-//! flood of their own).
+//! epoch (COOPLOC_EPOCH with STORE_WANTED). Its next broadcast waits for the store for an epoch
+//! timeout from the first request, asking again every retry interval. A participant answers with
+//! the store it kept after that epoch (COOPLOC_STORE_FRAGMENT), only to a teammate that did not
+//! run the epoch with it, and at most once per retry interval in all: a request is a small
+//! message and a store a large one, so nobody can make a node flood the network. Only the two
+//! participants with the lowest ids answer (one answer may be lost; 63 copies of a 64-member
+//! team's 4 MB store would be a flood of their own).
+//!
+//! **A store larger than the link carries in an epoch** (a 16-member team's 247 KB is half a
+//! minute of a 64 kbit/s radio) is still taken whole:
+//! - *Paced* ([`Answerer::per_answer`], from `NodeConfig::store_bps`): an answer is the next
+//!   few fragments of the store, not all of it; the answerer keeps the store it is serving (and
+//!   where it is in it) while it is asked for, even once newer epochs have pushed it out of the
+//!   stores kept, and the second answerer starts half way through, so that the two send
+//!   different fragments. Fragments lost go round again.
+//! - *Resumable across epochs*: the asking node keeps asking every retry interval while
+//!   fragments come (a want dies after [`GIVE_UP_TIMEOUTS`] epoch timeouts without one). Its
+//!   broadcasts meanwhile carry its old store, so the team leaves it out of the epochs that
+//!   follow; it keeps the records each of those epochs ran on ([`LaterEpoch`], at most
+//!   [`LATER_EPOCHS`]), and once the store has come whole it brings it forward by them, as the
+//!   participants brought theirs (the core's `bring_forward`, checking each epoch's store
+//!   digest), and adopts the result: the store the team holds now. An epoch in between that it
+//!   cannot replay (one it took part in, a heal, one it did not hear) ends the want, as before.
 //!
 //! A store goes as parts of at most [`PART_LEN`] bytes, each one fragment series
 //! ([`crate::protocol::record::StorePart`]), so that a store of any size (up to
@@ -18,15 +33,17 @@
 //! and every part that arrived, from either answerer (they hold the same store), while it still
 //! wants the store, so that a repeated request fills what was lost instead of starting over.
 //!
-//! The asking node adopts a store only if it
-//! asked for it, from a participant, nothing was resolved since, and it is valid for itself.
+//! The asking node adopts a store only if it asked for it, from a participant, nothing was
+//! resolved since but the epochs it was left out of (which it brings the store forward by),
+//! and the result is valid for itself. A store that is not ends the want: the next epoch it is
+//! left out of asks afresh.
 //!
 //! This module holds the decisions and the state they need; the core sends and decodes.
 
 use std::collections::{BTreeMap, VecDeque};
 
 use crate::estimation::{CrossCovariances, PlatformId, StoreRef};
-use crate::protocol::fragment::{Fragment, MAX_RECORD_LEN, PartPushed, Pushed, Reassembler, StoreAssembler};
+use crate::protocol::fragment::{Fragment, MAX_RECORD_LEN, PartPushed, Payload, Pushed, Reassembler, StoreAssembler, fragment};
 use crate::protocol::record::{self, MAX_STORE_LEN, STORE_PART_HEADER, StateRecord, StoreSnapshot};
 use crate::time::TimeUs;
 
@@ -38,11 +55,52 @@ pub(super) const PART_LEN: usize = MAX_RECORD_LEN - STORE_PART_HEADER;
 const SERIES_IN_PROGRESS: usize = 256;
 /// Participants that answer a request for a store: the ones with the lowest ids.
 pub(super) const ANSWERERS: usize = 2;
+/// Stores served at once (transfers in progress, paced): requests for many epochs pin at most
+/// these; a request for another store waits until one of them is taken or given up.
+const SERVED: usize = 4;
+/// A store nobody asked for this long is no longer served, us of wall time.
+const SERVE_IDLE_US: u64 = 4_000_000;
+/// Epochs a left-out node keeps to bring a store that is still coming forward by.
+pub(super) const LATER_EPOCHS: usize = 64;
+/// A want with no fragment of its store for this many epoch timeouts is given up.
+pub(super) const GIVE_UP_TIMEOUTS: u64 = 2;
 
-/// Whether `me` answers a request for the store of the epoch `participants` ran: one of the
-/// [`ANSWERERS`] lowest ids among them.
-pub(super) fn answers(participants: &[PlatformId], me: PlatformId) -> bool {
-    participants.contains(&me) && participants.iter().filter(|&&p| p < me).count() < ANSWERERS
+/// Whether `me` answers a request for the store of the epoch `participants` ran, and as which:
+/// one of the [`ANSWERERS`] lowest ids among them (0: the lowest).
+pub(super) fn answer_rank(participants: &[PlatformId], me: PlatformId) -> Option<usize> {
+    let below = participants.iter().filter(|&&p| p < me).count();
+    (participants.contains(&me) && below < ANSWERERS).then_some(below)
+}
+
+/// Who answers a request for a store, and how much of it goes in one answer.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub(super) struct Answerer {
+    pub(super) id: PlatformId,
+    /// Its [`answer_rank`]: a paced answerer starts this many [`ANSWERERS`]ths into the store.
+    pub(super) rank: usize,
+    /// Fragments per answer; 0: the whole store each time (not paced).
+    pub(super) per_answer: usize,
+}
+
+/// A store being served to a teammate that asked: its fragments, cut once, and where the next
+/// paced answer starts.
+#[derive(Debug, Clone)]
+struct Serving {
+    epoch: u32,
+    digest_before: u64,
+    fragments: Vec<Fragment>,
+    cursor: usize,
+    last_asked: u64,
+}
+
+/// An epoch the team ran without us while we wanted a store: the records it ran on (each
+/// carrying the store it ran from) and the members whose blocks were forgotten first. The store
+/// we want is brought forward by these once it comes.
+#[derive(Debug, Clone, PartialEq)]
+pub(super) struct LaterEpoch {
+    pub(super) epoch: u32,
+    pub(super) records: Vec<StateRecord>,
+    pub(super) refreshed: Vec<PlatformId>,
 }
 
 /// Our store right after an epoch we took part in, for teammates that ask.
@@ -59,11 +117,21 @@ struct KeptStore {
 #[derive(Debug, Clone)]
 struct WantStore {
     request: StoreRequest,
-    /// Wall time we asked first and last.
+    /// Wall time we asked first and last, and a fragment of the store last arrived.
     since: u64,
     last_request: u64,
+    last_progress: Option<u64>,
     /// The parts of the store that arrived.
     parts: StoreAssembler,
+    /// The epochs run without us since the store's, in order.
+    later: Vec<LaterEpoch>,
+}
+
+impl WantStore {
+    /// The last epoch resolved since we asked: the store's own, or the last one run without us.
+    fn chain_end(&self) -> u32 {
+        self.later.last().map_or(self.request.epoch, |l| l.epoch)
+    }
 }
 
 /// A request for the store after `epoch` (at `t`), to the participants that ran it on a store
@@ -89,6 +157,7 @@ pub(super) enum Awaiting {
 #[derive(Debug)]
 pub(super) struct StoreSync {
     kept: VecDeque<KeptStore>,
+    serving: VecDeque<Serving>,
     wanted: Option<WantStore>,
     /// Wall time we last sent our store after each recent epoch.
     sent_at: BTreeMap<u32, u64>,
@@ -99,6 +168,7 @@ impl StoreSync {
     pub(super) fn new() -> Self {
         Self {
             kept: VecDeque::new(),
+            serving: VecDeque::new(),
             wanted: None,
             sent_at: BTreeMap::new(),
             reassembler: Reassembler::keeping_each_record(SERIES_IN_PROGRESS),
@@ -129,20 +199,49 @@ impl StoreSync {
         if self.wanted.as_ref().is_some_and(|w| w.request == request) {
             return;
         }
-        self.wanted = Some(WantStore { request, since: wall_us, last_request: wall_us, parts: StoreAssembler::default() });
+        self.wanted = Some(WantStore {
+            request,
+            since: wall_us,
+            last_request: wall_us,
+            last_progress: None,
+            parts: StoreAssembler::default(),
+            later: Vec::new(),
+        });
     }
 
-    /// Whether the next broadcast waits for the store we want: while `last_applied` (the last
-    /// epoch resolved) is still its epoch and less than `timeout_us` passed since we first
-    /// asked; the request is repeated every `retry_us`. Another epoch resolved since: the want
-    /// is dropped.
-    pub(super) fn awaiting(&mut self, last_applied: Option<u32>, wall_us: u64, timeout_us: u64, retry_us: u64) -> Awaiting {
-        let Some(w) = self.wanted.as_mut() else { return Awaiting::No };
-        let current = last_applied == Some(w.request.epoch);
-        if !current {
-            self.wanted = None;
-            return Awaiting::No;
+    /// We were left out of `later.epoch` too (or it ran without our record), `prev_run` being
+    /// the epoch resolved before it: true when the store we already want is still worth having
+    /// (nothing else was resolved since its chain's end, room is left, and either a fragment of
+    /// it came or we asked less than `timeout_us` ago), and the epoch is kept to bring it
+    /// forward by. False: ask afresh for this epoch's store.
+    pub(super) fn carry_on(&mut self, prev_run: Option<u32>, later: LaterEpoch, wall_us: u64, timeout_us: u64) -> bool {
+        let Some(w) = self.wanted.as_mut() else { return false };
+        let answered = w.last_progress.is_some() || wall_us < w.since + timeout_us;
+        if prev_run != Some(w.chain_end()) || w.later.len() >= LATER_EPOCHS || !answered {
+            return false;
         }
+        w.later.push(later);
+        true
+    }
+
+    /// The store we want, while it is still worth waiting for: `last_run` (the last epoch
+    /// resolved) ends its chain, and a fragment of it came (or we first asked) less than
+    /// [`GIVE_UP_TIMEOUTS`] epoch timeouts ago. Otherwise the want is dropped.
+    fn live(&mut self, last_run: Option<u32>, wall_us: u64, timeout_us: u64) -> Option<&mut WantStore> {
+        let w = self.wanted.as_ref()?;
+        let heard = w.last_progress.unwrap_or(w.since);
+        if last_run != Some(w.chain_end()) || wall_us >= heard + GIVE_UP_TIMEOUTS * timeout_us {
+            self.wanted = None;
+        }
+        self.wanted.as_mut()
+    }
+
+    /// Whether the next broadcast waits for the store we want: while it is [`Self::live`] and
+    /// less than `timeout_us` passed since we first asked (after that our broadcast goes with
+    /// the old store: the team leaves us out and we bring the store forward when it comes); the
+    /// request is repeated every `retry_us`.
+    pub(super) fn awaiting(&mut self, last_run: Option<u32>, wall_us: u64, timeout_us: u64, retry_us: u64) -> Awaiting {
+        let Some(w) = self.live(last_run, wall_us, timeout_us) else { return Awaiting::No };
         if wall_us >= w.since + timeout_us {
             return Awaiting::No;
         }
@@ -153,17 +252,33 @@ impl StoreSync {
         Awaiting::Yes(None)
     }
 
+    /// The request to repeat now (every `retry_us` while the store we want is [`Self::live`],
+    /// whether the broadcast waits for it or not).
+    pub(super) fn ask(&mut self, last_run: Option<u32>, wall_us: u64, timeout_us: u64, retry_us: u64) -> Option<StoreRequest> {
+        let w = self.live(last_run, wall_us, timeout_us)?;
+        if wall_us < w.last_request + retry_us {
+            return None;
+        }
+        w.last_request = wall_us;
+        Some(w.request.clone())
+    }
+
     /// A fragment of a store from `from`: kept only when it is of the store we want, from one of
     /// its participants (nobody can make us hold another's bytes). None: not kept. Complete:
     /// the whole snapshot's bytes, from its parts (or in one series, as releases before parts
     /// sent it).
-    pub(super) fn push_fragment(&mut self, from: PlatformId, f: &Fragment) -> Option<Pushed> {
+    pub(super) fn push_fragment(&mut self, from: PlatformId, f: &Fragment, wall_us: u64) -> Option<Pushed> {
         let w = self.wanted.as_mut()?;
         if w.request.epoch != f.epoch || !w.request.members.contains(&from) {
             return None;
         }
-        let pushed = self.reassembler.push(f);
+        // The answerers send the same store: a series is put together from both (each part is
+        // checked whole against its CRC, and the snapshot against its digest).
+        let pushed = self.reassembler.push(&Fragment { platform: 0, ..f.clone() });
         self.reassembler.take_dropped();
+        if !matches!(pushed, Pushed::Rejected(_)) {
+            w.last_progress = Some(wall_us);
+        }
         let Pushed::Complete(series) = pushed else { return Some(pushed) };
         Some(match record::decode_store_part(&series.bytes) {
             Ok(None) => Pushed::Complete(series),
@@ -177,23 +292,53 @@ impl StoreSync {
         })
     }
 
-    /// Our store after `epoch` for `to`, when we kept it (under that digest), `to` did not run
-    /// the epoch with us, and we sent no store in the last `retry_us` (to anyone). Mark it
-    /// [`Self::sent`] once it went.
+    /// The fragments of our store after `epoch` that go to a teammate that asked, when we kept
+    /// it (under that digest) or are serving it, and the teammate did not run the epoch with
+    /// us: the whole store, when we answered nobody in the last `retry_us`; or paced, the next
+    /// [`Answerer::per_answer`] of its fragments (round and round), when we sent none of this
+    /// store in the last `retry_us`, [`SERVED`] stores at most at once (teammates left out at
+    /// different epochs each get theirs; fragments are broadcast, so those that want the same
+    /// store share them). Mark it [`Self::sent`] once they went.
     pub(super) fn answer(
-        &self,
+        &mut self,
         epoch: u32,
         digest_before: u64,
         ran_with_us: bool,
+        me: Answerer,
         wall_us: u64,
         retry_us: u64,
-    ) -> Option<(TimeUs, StoreSnapshot)> {
-        let k = self.kept.iter().find(|k| k.epoch == epoch && k.digest_before == digest_before)?;
-        let recently = self.sent_at.values().any(|&at| wall_us < at + retry_us);
+    ) -> Option<Vec<Fragment>> {
+        let recently = |at: &u64| wall_us < at + retry_us;
+        let recently =
+            if me.per_answer == 0 { self.sent_at.values().any(recently) } else { self.sent_at.get(&epoch).is_some_and(recently) };
         if ran_with_us || recently {
             return None;
         }
-        Some((k.t, StoreSnapshot { epoch, digest_before, store: k.store.clone() }))
+        if me.per_answer == 0 {
+            let k = self.kept.iter().find(|k| k.epoch == epoch && k.digest_before == digest_before)?;
+            return store_fragments(me.id, k, digest_before);
+        }
+        self.serving.retain(|s| wall_us < s.last_asked.saturating_add(SERVE_IDLE_US));
+        let i = match self.serving.iter().position(|s| s.epoch == epoch && s.digest_before == digest_before) {
+            Some(i) => i,
+            None => {
+                let k = self.kept.iter().find(|k| k.epoch == epoch && k.digest_before == digest_before)?;
+                if self.serving.len() >= SERVED {
+                    return None;
+                }
+                let fragments = store_fragments(me.id, k, digest_before)?;
+                let cursor = fragments.len() * me.rank.min(ANSWERERS - 1) / ANSWERERS;
+                self.serving.push_back(Serving { epoch, digest_before, fragments, cursor, last_asked: wall_us });
+                self.serving.len() - 1
+            }
+        };
+        let s = &mut self.serving[i];
+        s.last_asked = wall_us;
+        let len = s.fragments.len();
+        let n = me.per_answer.min(len);
+        let out = (0..n).map(|k| s.fragments[(s.cursor + k) % len].clone()).collect();
+        s.cursor = (s.cursor + n) % len;
+        Some(out)
     }
 
     /// Our store after `epoch` went at `wall_us`; the epochs `remembered` before it are forgotten.
@@ -202,25 +347,32 @@ impl StoreSync {
         self.sent_at.retain(|e, _| e.saturating_add(remembered) > epoch);
     }
 
-    /// A store offered by `from`: to be adopted when it is the one we asked for (its epoch, its
-    /// digest before, from a participant), `last_applied` is still its epoch and it is
-    /// `valid_for_us`. Adopting it ends the want.
-    pub(super) fn offered(
-        &mut self,
-        from: PlatformId,
-        snap: &StoreSnapshot,
-        last_applied: Option<u32>,
-        valid_for_us: bool,
-    ) -> bool {
-        let wanted = self.wanted.as_ref().is_some_and(|w| {
-            w.request.epoch == snap.epoch && w.request.digest_before == snap.digest_before && w.request.members.contains(&from)
-        });
-        let adopt = wanted && last_applied == Some(snap.epoch) && valid_for_us;
-        if adopt {
-            self.wanted = None;
+    /// A store offered by `from`: to be taken when it is the one we asked for (its epoch, its
+    /// digest before, from a participant) and `last_run` still ends the want's chain (nothing
+    /// else resolved since). Then the want ends, and the epochs run without us since the
+    /// store's come back, to bring it forward by (in order; the core then checks it is valid for
+    /// us).
+    pub(super) fn offered(&mut self, from: PlatformId, snap: &StoreSnapshot, last_run: Option<u32>) -> Option<Vec<LaterEpoch>> {
+        let w = self.wanted.as_ref()?;
+        let asked = w.request.epoch == snap.epoch && w.request.digest_before == snap.digest_before;
+        if !(asked && w.request.members.contains(&from) && last_run == Some(w.chain_end())) {
+            return None;
         }
-        adopt
+        self.wanted.take().map(|w| w.later)
     }
+}
+
+/// The fragments of the kept store `k` (as answerer `me`), in parts of one series each.
+fn store_fragments(me: PlatformId, k: &KeptStore, digest_before: u64) -> Option<Vec<Fragment>> {
+    let snap = StoreSnapshot { epoch: k.epoch, digest_before, store: k.store.clone() };
+    let bytes = record::encode_store(&snap).ok()?;
+    let mut out = Vec::new();
+    for part in record::store_parts(&bytes, PART_LEN).ok()? {
+        let mut frags = fragment(me, k.epoch, k.t.0, &part).ok()?;
+        frags.iter_mut().for_each(|f| f.payload = Payload::Store);
+        out.extend(frags);
+    }
+    Some(out)
 }
 
 /// The records that share a store valid for every participant of an epoch (see
@@ -277,12 +429,19 @@ pub(super) fn choose_store(records: &[StateRecord]) -> Option<StoreChoice> {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::protocol::fragment::{Payload, fragment};
     use crate::protocol::record;
     use nalgebra::DMatrix;
 
     fn store(value: f64) -> CrossCovariances {
         CrossCovariances::from_parts(vec![((1, 2), DMatrix::from_element(2, 2, value))], Vec::new()).unwrap()
+    }
+
+    impl StoreSync {
+        /// The fragments of `snap` as platform 2 sends them, named epoch `epoch`.
+        fn series_of(snap: &StoreSnapshot, epoch: u32) -> Vec<Fragment> {
+            let k = KeptStore { epoch, t: TimeUs(0), digest_before: snap.digest_before, store: snap.store.clone() };
+            store_fragments(2, &k, snap.digest_before).unwrap()
+        }
     }
 
     fn request(epoch: u32) -> StoreRequest {
@@ -310,10 +469,10 @@ mod tests {
 
     #[test]
     fn the_two_participants_with_the_lowest_ids_answer() {
-        assert!(answers(&[2, 5, 9], 2) && answers(&[2, 5, 9], 5) && !answers(&[2, 5, 9], 9));
-        assert!(answers(&[9, 5, 2], 5), "whatever the order");
-        assert!(!answers(&[2, 5, 9], 1), "not a participant");
-        assert!(answers(&[4], 4));
+        assert_eq!([2, 5, 9].map(|me| answer_rank(&[2, 5, 9], me)), [Some(0), Some(1), None]);
+        assert_eq!(answer_rank(&[9, 5, 2], 5), Some(1), "whatever the order");
+        assert_eq!(answer_rank(&[2, 5, 9], 1), None, "not a participant");
+        assert_eq!(answer_rank(&[4], 4), Some(0));
     }
 
     #[test]
@@ -333,18 +492,17 @@ mod tests {
         let mut s = StoreSync::new();
         s.want(request(5), 0);
         // The first answer, from 1, loses the first fragment of part 0 and two of part 1; the
-        // request is repeated (what came is kept); then fragment 0 of part 0 comes again from 1
-        // and part 1 whole from 2 (the same store: its part fits 1's).
+        // request is repeated (what came is kept); then fragment 0 of part 0 comes from 2 (the
+        // same store: its fragment fills 1's series) and the two of part 1 from 1 again.
         let (a0, a1) = (series(1, 0), series(1, 1));
         for f in a0.iter().skip(1).chain(a1.iter().skip(2)) {
-            assert!(matches!(s.push_fragment(1, f), Some(Pushed::Stored | Pushed::Duplicate)));
+            assert!(matches!(s.push_fragment(1, f, 0), Some(Pushed::Stored | Pushed::Duplicate)));
         }
         s.want(request(5), 400_000);
-        assert_eq!(s.push_fragment(2, &series(2, 0)[0]), Some(Pushed::Stored), "part 0 from 2, whole only with 2's own");
+        assert_eq!(s.push_fragment(2, &series(2, 0)[0], 0), Some(Pushed::Stored), "part 0 whole with 2's fragment");
         let mut got = None;
-        for f in series(1, 0).iter().take(1).chain(series(2, 1).iter()) {
-            let from = if f.platform == 1 { 1 } else { 2 };
-            if let Some(Pushed::Complete(rec)) = s.push_fragment(from, f) {
+        for f in a1.iter().take(2) {
+            if let Some(Pushed::Complete(rec)) = s.push_fragment(1, f, 0) {
                 got = Some(rec.bytes);
             }
         }
@@ -358,14 +516,25 @@ mod tests {
         s.keep(5, TimeUs(5_000_000), 77, &store(0.5), 3);
         s.keep(6, TimeUs(6_000_000), 88, &store(0.6), 3);
         let retry = 300_000;
-        assert!(s.answer(5, 99, false, 0, retry).is_none(), "not under another digest");
-        assert!(s.answer(4, 77, false, 0, retry).is_none(), "not an epoch not kept");
-        assert!(s.answer(5, 77, true, 0, retry).is_none(), "not to one that ran the epoch with us");
-        let (t, snap) = s.answer(5, 77, false, 1_000_000, retry).expect("answered");
-        assert_eq!((t, snap.epoch, snap.digest_before, snap.store.digest()), (TimeUs(5_000_000), 5, 77, store(0.5).digest()));
+        let me = Answerer { id: 1, rank: 0, per_answer: 0 };
+        assert!(s.answer(5, 99, false, me, 0, retry).is_none(), "not under another digest");
+        assert!(s.answer(4, 77, false, me, 0, retry).is_none(), "not an epoch not kept");
+        assert!(s.answer(5, 77, true, me, 0, retry).is_none(), "not to one that ran the epoch with us");
+        let frags = s.answer(5, 77, false, me, 1_000_000, retry).expect("answered");
+        let mut asker = StoreSync::new();
+        asker.want(request(5), 0);
+        let whole = frags.iter().find_map(|f| match asker.push_fragment(1, f, 0) {
+            Some(Pushed::Complete(rec)) => Some(rec.bytes),
+            _ => None,
+        });
+        let snap = record::decode_store(&whole.expect("the whole store in one answer")).unwrap();
+        assert_eq!(
+            (frags[0].time_usec, snap.epoch, snap.digest_before, snap.store.digest()),
+            (5_000_000, 5, 77, store(0.5).digest())
+        );
         s.sent(5, 1_000_000, 32);
-        assert!(s.answer(6, 88, false, 1_200_000, retry).is_none(), "one store per retry interval, every epoch together");
-        assert!(s.answer(6, 88, false, 1_300_000, retry).is_some());
+        assert!(s.answer(6, 88, false, me, 1_200_000, retry).is_none(), "one answer per retry interval, every epoch together");
+        assert!(s.answer(6, 88, false, me, 1_300_000, retry).is_some());
         s.sent(6, 1_300_000, 32);
         s.sent(40, 2_000_000, 32);
         assert_eq!(s.sent_at.keys().copied().collect::<Vec<_>>(), [40], "epochs 32 behind forgotten");
@@ -382,8 +551,99 @@ mod tests {
         assert_eq!(s.awaiting(Some(5), 10_400_000, timeout, retry), Awaiting::Yes(None));
         assert_eq!(s.awaiting(Some(5), 11_000_000, timeout, retry), Awaiting::No, "an epoch timeout after the first request");
         assert!(s.wanted.is_some(), "the store is still taken if it comes");
+        assert_eq!(s.ask(Some(5), 11_000_000, timeout, retry), Some(request(5)), "and still asked for");
+        assert_eq!(s.ask(Some(5), 11_100_000, timeout, retry), None, "every retry interval");
         assert_eq!(s.awaiting(Some(6), 11_100_000, timeout, retry), Awaiting::No);
-        assert!(s.wanted.is_none(), "another epoch resolved: no store of epoch 5 helps now");
+        assert!(s.wanted.is_none(), "another epoch resolved (not one run without us): no store of epoch 5 helps now");
+
+        // Nothing of the store came for two epoch timeouts: given up.
+        s.want(request(7), 20_000_000);
+        assert!(s.ask(Some(7), 21_900_000, timeout, retry).is_some());
+        assert!(s.ask(Some(7), 22_000_000, timeout, retry).is_none());
+        assert!(s.wanted.is_none(), "given up");
+    }
+
+    /// The left-out epochs that follow the store's keep a want alive, in order, while the store
+    /// comes; another chain, or a want nothing came of, does not.
+    #[test]
+    fn a_store_still_coming_is_carried_on_through_the_epochs_run_without_us() {
+        let (timeout, retry) = (1_000_000, 300_000);
+        let later = |epoch| LaterEpoch { epoch, records: Vec::new(), refreshed: Vec::new() };
+        let mut s = StoreSync::new();
+        assert!(!s.carry_on(Some(5), later(6), 0, timeout), "nothing wanted");
+        s.want(request(5), 10_000_000);
+        assert!(!s.carry_on(Some(4), later(6), 10_500_000, timeout), "epoch 5 was not the last resolved before 6");
+        assert!(s.carry_on(Some(5), later(6), 10_500_000, timeout));
+        assert!(!s.carry_on(Some(5), later(7), 10_600_000, timeout), "6 is the chain's end now");
+        assert_eq!(s.awaiting(Some(6), 10_600_000, timeout, retry), Awaiting::Yes(Some(request(5))), "epoch 6 keeps it alive");
+        // A fragment of the store comes: the want lives on past the first timeout.
+        let snap = StoreSnapshot { epoch: 5, digest_before: 77, store: store(0.5) };
+        let mut frags = fragment(2, 5, 5_000_000, &record::encode_store(&snap).unwrap()).unwrap();
+        frags.iter_mut().for_each(|f| f.payload = Payload::Store);
+        assert!(s.push_fragment(2, &frags[0], 11_500_000).is_some());
+        assert!(s.carry_on(Some(6), later(7), 11_900_000, timeout));
+        assert!(s.ask(Some(7), 13_400_000, timeout, retry).is_some(), "two timeouts from the last fragment, not the request");
+        let got = s.offered(2, &snap, Some(7)).expect("taken at the chain's end");
+        assert_eq!(got.iter().map(|l| l.epoch).collect::<Vec<_>>(), [6, 7], "the epochs to bring it forward by, in order");
+
+        // A want nothing came of in an epoch timeout: the next left-out epoch asks afresh.
+        s.want(request(9), 30_000_000);
+        assert!(!s.carry_on(Some(9), later(10), 31_000_000, timeout));
+        // At most LATER_EPOCHS are kept.
+        s.want(request(20), 40_000_000);
+        assert!(s.push_fragment(2, &StoreSync::series_of(&snap, 20)[0], 40_000_000).is_some());
+        for k in 0..LATER_EPOCHS as u32 {
+            assert!(s.carry_on(Some(20 + k), later(21 + k), 40_000_001, timeout));
+        }
+        assert!(!s.carry_on(Some(20 + LATER_EPOCHS as u32), later(21 + LATER_EPOCHS as u32), 40_000_001, timeout));
+    }
+
+    /// Paced, each answer is the next fragments of the store, round and round; the second
+    /// answerer starts half way through; a store being served is served on after newer ones
+    /// pushed it out of the stores kept.
+    #[test]
+    fn a_paced_store_goes_a_few_fragments_an_answer_and_is_served_until_taken() {
+        let blocks = (1..30u16).map(|i| ((i, i + 1), DMatrix::from_element(16, 16, f64::from(i)))).collect();
+        let large = CrossCovariances::from_parts(blocks, Vec::new()).unwrap();
+        let retry = 100_000;
+        let (mut a, mut b) = (StoreSync::new(), StoreSync::new());
+        a.keep(5, TimeUs(5_000_000), 77, &large, 30);
+        b.keep(5, TimeUs(5_000_000), 77, &large, 30);
+        let paced = |id, rank| Answerer { id, rank, per_answer: 20 };
+        let mut asker = StoreSync::new();
+        asker.want(request(5), 0);
+        let (mut answers, mut whole) = (0, None);
+        let mut first = Vec::new();
+        for k in 0..100u64 {
+            let wall = k * retry;
+            for (s, id) in [(&mut a, 1), (&mut b, 2)] {
+                let frags = s.answer(5, 77, false, paced(id, usize::from(id) - 1), wall, retry).expect("served");
+                assert!(frags.len() <= 20);
+                if k == 0 {
+                    first.push(frags[0].index);
+                }
+                s.sent(5, wall, 32);
+                answers += 1;
+                for f in &frags {
+                    if let Some(Pushed::Complete(rec)) = asker.push_fragment(id, f, wall) {
+                        whole = Some(rec.bytes);
+                    }
+                }
+            }
+            if whole.is_some() {
+                break;
+            }
+            // newer stores push epoch 5 out of the kept ones: it is still served
+            a.keep(6 + k as u32, TimeUs(6_000_000), 88, &store(0.1), 30);
+        }
+        assert_ne!(first[0], first[1], "the two answerers start at different fragments");
+        let snap = record::decode_store(&whole.expect("the whole store")).unwrap();
+        assert_eq!(snap.store.digest(), large.digest());
+        let fragments = StoreSync::series_of(&StoreSnapshot { epoch: 5, digest_before: 77, store: large }, 5).len();
+        assert!(answers * 20 < fragments + 40, "{answers} answers of 20 for {fragments} fragments: nothing sent twice");
+        assert!(a.kept().all(|(e, _)| e != 5), "epoch 5 was served after it left the stores kept");
+        // Nobody asks for 4 s: it is no longer served, nor kept.
+        assert!(a.answer(5, 77, false, paced(1, 0), 100 * retry + SERVE_IDLE_US, retry).is_none());
     }
 
     #[test]
@@ -395,19 +655,18 @@ mod tests {
         for f in &mut frags {
             f.payload = Payload::Store;
         }
-        assert!(s.push_fragment(2, &frags[0]).is_none(), "nothing asked for: not held");
-        assert!(!s.offered(2, &snap, Some(5), true));
+        assert!(s.push_fragment(2, &frags[0], 0).is_none(), "nothing asked for: not held");
+        assert!(s.offered(2, &snap, Some(5)).is_none());
         s.want(request(5), 0);
-        assert!(s.push_fragment(3, &frags[0]).is_none(), "3 did not run the epoch");
-        let pushed: Vec<Pushed> = frags.iter().filter_map(|f| s.push_fragment(2, f)).collect();
+        assert!(s.push_fragment(3, &frags[0], 0).is_none(), "3 did not run the epoch");
+        let pushed: Vec<Pushed> = frags.iter().filter_map(|f| s.push_fragment(2, f, 0)).collect();
         assert!(matches!(pushed.last(), Some(Pushed::Complete(_))), "{pushed:?}");
 
-        assert!(!s.offered(3, &snap, Some(5), true), "not from a participant");
-        assert!(!s.offered(2, &StoreSnapshot { digest_before: 78, ..snap.clone() }, Some(5), true), "another digest");
-        assert!(!s.offered(2, &snap, Some(6), true), "another epoch resolved since");
-        assert!(!s.offered(2, &snap, Some(5), false), "not valid for us");
-        assert!(s.offered(2, &snap, Some(5), true));
-        assert!(!s.offered(2, &snap, Some(5), true), "once");
+        assert!(s.offered(3, &snap, Some(5)).is_none(), "not from a participant");
+        assert!(s.offered(2, &StoreSnapshot { digest_before: 78, ..snap.clone() }, Some(5)).is_none(), "another digest");
+        assert!(s.offered(2, &snap, Some(6)).is_none(), "another epoch resolved since");
+        assert_eq!(s.offered(2, &snap, Some(5)), Some(Vec::new()));
+        assert!(s.offered(2, &snap, Some(5)).is_none(), "once");
         assert_eq!(s.awaiting(Some(5), 1, 1_000_000, 300_000), Awaiting::No, "nothing to wait for once adopted");
     }
 
