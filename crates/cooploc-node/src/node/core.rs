@@ -1730,10 +1730,6 @@ impl NodeCore {
         self.send_status(epoch, t, held, EpochState::COOPLOC_EPOCH_STATE_COLLECTING, digest, out);
     }
 
-    /// While a store we asked for may still come (an epoch timeout from the first request, and
-    /// nothing resolved since), the next broadcast waits for it: our record would otherwise
-    /// carry the old store, and we would be left out again. The request is repeated every retry
-    /// interval meanwhile.
     /// The request for a store still coming, repeated every retry interval (after our first
     /// epoch timeout too: the store is brought forward when it comes).
     fn ask_for_store(&mut self, out: &mut Vec<NodeOutput>) {
@@ -1742,6 +1738,10 @@ impl NodeCore {
         }
     }
 
+    /// While a store we asked for may still come (an epoch timeout from the first request, and
+    /// nothing resolved since but the epochs it is brought forward by), the next broadcast
+    /// waits for it: our record would otherwise carry the old store, and we would be left out
+    /// again. The request is repeated every retry interval meanwhile.
     fn awaiting_store(&mut self, out: &mut Vec<NodeOutput>) -> bool {
         let last = self.last_run;
         match self.stores.awaiting(last, self.wall_us, self.cfg.epoch_timeout_us, self.retry_us()) {
@@ -2200,9 +2200,9 @@ impl NodeCore {
     }
 
     /// Sends our store after `epoch` to `to`, a teammate that asked (as answerer `rank`): only
-    /// one that did not run that epoch with us, at most once per retry interval in all (a
-    /// request is a small message and a store a large one: nobody can make us flood the
-    /// network), and paced to [`NodeConfig::store_bps`].
+    /// one that did not run that epoch with us, at most once per retry interval (in all; paced,
+    /// per store, [`store_sync`]'s few at once): a request is a small message and a store a
+    /// large one, so nobody can make us flood the network. Paced to [`NodeConfig::store_bps`].
     fn send_store(&mut self, to: PlatformId, epoch: u32, digest_before: u64, rank: usize, out: &mut Vec<NodeOutput>) {
         let ran_with_us = self.ran_on.iter().any(|r| r.epoch == epoch && r.participants.contains(&to));
         let retry = self.retry_us();
