@@ -238,51 +238,47 @@ fn three_nodes_on_a_shared_serial_radio_run_the_paper_scenario_within_its_budget
 #[test]
 fn eight_members_at_half_a_hertz_share_a_250_kbit_s_radio_within_their_budget() {
     let dir = common::TempDir::new("cooploc-radio-eight");
-    let mut scenario = Scenario::from_toml_str(PAPER_TOML).unwrap().side_by_side(8, 20.0, 70.0, 200.0);
-    let every = scenario.ranging.schedules[0].clone();
-    scenario.ranging.schedules =
-        vec![cooploc::sitl::scenario::RangeSchedule { name: "0.5hz".into(), every_s: Some(2.0), start_s: Some(2.0), ..every }];
-    let path = dir.join("eight.toml");
-    std::fs::write(&path, toml::to_string(&scenario).unwrap()).unwrap();
-    radio_team(RadioCase {
-        scenario,
-        scenario_path: path.display().to_string(),
-        schedule: "0.5hz",
-        period_ms: 2000,
-        bps: 21_000.0,
-        speed: 2,
-        away: None,
-        store_bps: None,
-    });
+    radio_team(eight_members(&dir, 200.0, 2));
 }
 
 /// A member out of reach comes back on a slow shared radio and takes the team's store over
 /// several epochs (issue 36, item 3): the eight vehicles above, 120 s at 4x, node 5's radio out
 /// of reach from 6 s to 12 s of wall time after the nodes are up (about 24 s of the team's
-/// time, twelve epochs). Back, it is left out,
-/// the two lowest ids send it the team's store (56 KB, about 280 fragments) paced to 2,625 B/s
-/// each at real time (an eighth of the channel, `--store-bps`'s default for it, times the
-/// speed-up), and it takes the store after the epochs it took to come, brought forward by them:
-/// nobody heals, and every other node applies 99% of the epochs.
+/// time, twelve epochs). Back, it is left out, the two lowest ids send it the team's store (56
+/// KB, about 280 fragments) paced to 2,625 B/s each at real time (an eighth of the channel,
+/// `--store-bps`'s default for it, times the speed-up), and it takes the store after the epochs
+/// it took to come, brought forward by them: nobody heals, and every other node applies 99% of
+/// the epochs.
 #[test]
 fn a_member_back_in_reach_takes_the_store_over_several_epochs_on_a_shared_radio() {
     let dir = common::TempDir::new("cooploc-radio-away");
-    let mut scenario = Scenario::from_toml_str(PAPER_TOML).unwrap().side_by_side(8, 20.0, 70.0, 120.0);
+    let speed = 4;
+    radio_team(RadioCase {
+        away: Some((4, 6.0, 12.0)),
+        store_bps: Some(21_000 / 8 * u64::from(speed)),
+        ..eight_members(&dir, 120.0, speed)
+    });
+}
+
+/// The eight vehicles side by side at 0.5 Hz on 250 kbit/s for `duration_s`, at `speed` (the
+/// scenario written into `dir`).
+fn eight_members(dir: &common::TempDir, duration_s: f64, speed: u32) -> RadioCase {
+    let mut scenario = Scenario::from_toml_str(PAPER_TOML).unwrap().side_by_side(8, 20.0, 70.0, duration_s);
     let every = scenario.ranging.schedules[0].clone();
     scenario.ranging.schedules =
         vec![cooploc::sitl::scenario::RangeSchedule { name: "0.5hz".into(), every_s: Some(2.0), start_s: Some(2.0), ..every }];
-    let path = dir.join("eight-away.toml");
+    let path = dir.join("eight.toml");
     std::fs::write(&path, toml::to_string(&scenario).unwrap()).unwrap();
-    radio_team(RadioCase {
+    RadioCase {
         scenario,
         scenario_path: path.display().to_string(),
         schedule: "0.5hz",
         period_ms: 2000,
         bps: 21_000.0,
-        speed: 4,
-        away: Some((4, 6.0, 12.0)),
-        store_bps: Some(21_000 / 8 * 4),
-    });
+        speed,
+        away: None,
+        store_bps: None,
+    }
 }
 
 /// Runs `case`: `cooploc sitl` and one node per vehicle on one radio network, every node told
