@@ -97,18 +97,21 @@ struct AirStats {
 }
 
 /// A radio out of reach of the others for a while: (its index, from, until), wall time after the
-/// instant set in the lock (when every node is up). What it sends reaches nobody (and takes no
+/// instant set in the lock (when every node is up), each edge put off until the air has been
+/// quiet for [`QUIET`] (between two epochs' traffic). What it sends reaches nobody (and takes no
 /// air time), what they send does not reach it.
 type Away = Option<(usize, Duration, Duration, Arc<std::sync::OnceLock<Instant>>)>;
+
+/// How long the air must have been quiet for an outage to begin or end. (Cut in the middle of an
+/// epoch's records, the member and the team run that epoch on different sets, and no store is
+/// valid for both: the whole team heals with the bound, as docs/robustness.md says; a test of
+/// the store's transfer must not hang on where the cut fell.)
+const QUIET: Duration = Duration::from_millis(150);
 
 /// A radio network of `n` pseudo-terminals on one channel of `rate` bytes per second, each byte
 /// corrupted with probability `noise`, one radio perhaps `away` for a while. Returns the device
 /// paths the nodes open, the statistics and a flag that stops the threads.
 fn radio_network(n: usize, rate: f64, noise: f64, away: Away) -> (Vec<String>, Arc<AirStats>, Arc<AtomicBool>) {
-    let is_away = move |k: usize| {
-        away.as_ref()
-            .is_some_and(|(r, from, until, zero)| *r == k && zero.get().is_some_and(|z| (*from..*until).contains(&z.elapsed())))
-    };
     let stats = Arc::new(AirStats { written: (0..n).map(|_| AtomicU64::new(0)).collect(), ..Default::default() });
     let stop = Arc::new(AtomicBool::new(false));
     let queue: Arc<Mutex<Air>> = Arc::default();
@@ -161,7 +164,20 @@ fn radio_network(n: usize, rate: f64, noise: f64, away: Away) -> (Vec<String>, A
                 (x >> 11) as f64 / (1u64 << 53) as f64
             };
             let mut air_free = Instant::now();
+            // the outage: not yet, on, over
+            let (mut phase, mut last_packet) = (0, Instant::now());
             while !stop.load(Ordering::Relaxed) {
+                if let Some((r, from, until, zero)) = &away
+                    && let Some(z) = zero.get()
+                    && last_packet.elapsed() >= QUIET
+                    && phase < 2
+                    && z.elapsed() >= if phase == 0 { *from } else { *until }
+                {
+                    phase += 1;
+                    let what = if phase == 1 { "out of" } else { "back in" };
+                    eprintln!("radio network: radio {r} {what} reach at {:.2} s", z.elapsed().as_secs_f64());
+                }
+                let is_away = |k: usize| phase == 1 && away.as_ref().is_some_and(|(r, ..)| *r == k);
                 let next = queue.lock().unwrap().pop_front();
                 let Some((from, mut packet)) = next else {
                     std::thread::sleep(Duration::from_millis(1));
@@ -187,6 +203,7 @@ fn radio_network(n: usize, rate: f64, noise: f64, away: Away) -> (Vec<String>, A
                         let _ = m.write_all(&packet);
                     }
                 }
+                last_packet = Instant::now();
             }
         });
     }
@@ -248,7 +265,7 @@ fn eight_members_at_half_a_hertz_share_a_250_kbit_s_radio_within_their_budget() 
 /// KB, about 280 fragments) paced to 2,625 B/s each at real time (an eighth of the channel,
 /// `--store-bps`'s default for it, times the speed-up), and it takes the store after the epochs
 /// it took to come, brought forward by them: nobody heals, and every other node applies 99% of
-/// the epochs.
+/// the epochs. (Without the store carried on across epochs node 5 never takes it.)
 #[test]
 fn a_member_back_in_reach_takes_the_store_over_several_epochs_on_a_shared_radio() {
     let dir = common::TempDir::new("cooploc-radio-away");
