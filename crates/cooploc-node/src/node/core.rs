@@ -1966,7 +1966,7 @@ impl NodeCore {
             records.iter().flat_map(|r| r.ranges.iter().filter(|x| participants.contains(&x.to)).copied()).collect();
         let measurements: Vec<CoopMeasurement> = ranges.iter().map(CoopMeasurement::from).collect();
         let own_index = participants.iter().position(|&p| p == self.cfg.id);
-        if dcl && exact && own_index.is_none() {
+        if dcl && exact && own_index.is_none() && self.stores.wanting() {
             // Run without our record (it came late, or we waited for a store): a store still
             // coming is brought forward by it.
             let later = LaterEpoch { epoch, records: records.clone(), refreshed: Vec::new() };
@@ -2190,9 +2190,11 @@ impl NodeCore {
         out: &mut Vec<NodeOutput>,
     ) {
         self.stats.epochs_excluded += 1;
-        let later = LaterEpoch { epoch, records: records.to_vec(), refreshed: c.refreshed.clone() };
-        if self.stores.carry_on(prev_run, later, self.wall_us, self.cfg.epoch_timeout_us) {
-            return;
+        if self.stores.wanting() {
+            let later = LaterEpoch { epoch, records: records.to_vec(), refreshed: c.refreshed.clone() };
+            if self.stores.carry_on(prev_run, later, self.wall_us, self.cfg.epoch_timeout_us) {
+                return;
+            }
         }
         let request = StoreRequest { epoch, t, digest_before: c.digest, members: c.members.clone() };
         self.stores.want(request, self.wall_us);

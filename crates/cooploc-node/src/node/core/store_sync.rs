@@ -209,6 +209,11 @@ impl StoreSync {
         });
     }
 
+    /// Whether we want a store (the records of an epoch run without us are worth keeping).
+    pub(super) fn wanting(&self) -> bool {
+        self.wanted.is_some()
+    }
+
     /// We were left out of `later.epoch` too (or it ran without our record), `prev_run` being
     /// the epoch resolved before it: true when the store we already want is still worth having
     /// (nothing else was resolved since its chain's end, room is left, and either a fragment of
