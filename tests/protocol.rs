@@ -231,14 +231,15 @@ fn every_frame_on_the_cooperative_link_fits_a_radio_packet_signed() {
         (COOPLOC_EPOCH_DATA::NAME, COOPLOC_EPOCH_DATA::ENCODED_LEN),
         (COOPLOC_EPOCH_SET_DATA::NAME, COOPLOC_EPOCH_SET_DATA::ENCODED_LEN),
         (COOPLOC_RANGE_BEARING_DATA::NAME, COOPLOC_RANGE_BEARING_DATA::ENCODED_LEN),
+        (COOPLOC_STORE_HELD_DATA::NAME, COOPLOC_STORE_HELD_DATA::ENCODED_LEN),
         ("HEARTBEAT", HEARTBEAT_DATA::ENCODED_LEN),
     ];
     for (name, len) in full {
         assert!(10 + len + 2 + 13 <= MAX_RADIO_FRAME, "{name}: {} B signed", 10 + len + 15);
     }
-    // Every message of the cooploc dialect is one of those (ids 61000 to 61006).
+    // Every message of the cooploc dialect is one of those (ids 61000 to 61007).
     for id in 61000..61100 {
-        let known = (61000..=61006).contains(&id);
+        let known = (61000..=61007).contains(&id);
         assert_eq!(MavMessage::default_message_from_id(id).is_some(), known, "message {id}: add it above");
     }
 }

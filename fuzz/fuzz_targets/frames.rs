@@ -159,6 +159,12 @@ fn handle(msg: &MavMessage, re: &mut Reassembler) {
                 assert_eq!(again, first, "estimate round trip");
             }
         }
+        MavMessage::COOPLOC_STORE_HELD(d) => {
+            if let Ok(h) = wire::store_held_from_message(d) {
+                let MavMessage::COOPLOC_STORE_HELD(back) = wire::store_held_to_message(&h) else { panic!("store_held_to_message") };
+                assert_eq!(wire::store_held_from_message(&back), Ok(h), "store held round trip");
+            }
+        }
         MavMessage::HIGHRES_IMU(d) => {
             if let Ok(s) = wire::imu_from_highres(d) {
                 let back = wire::imu_to_highres(&s);

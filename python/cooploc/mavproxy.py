@@ -10,7 +10,8 @@ What it reads
 - The cooploc dialect (dialects/cooploc.xml): COOPLOC_STATE_FRAGMENT (61000), COOPLOC_RANGE
   (61001), COOPLOC_ESTIMATE (61002), COOPLOC_EPOCH (61003), COOPLOC_STORE_FRAGMENT (61004),
   COOPLOC_RANGE_BEARING (61005), COOPLOC_EPOCH_SET (61006: COOPLOC_EPOCH with its participants
-  as a bitmask, what nodes send when their ids span at most 64). With ``--dialect cooploc`` MAVProxy decodes them; under another
+  as a bitmask, what nodes send when their ids span at most 64), COOPLOC_STORE_HELD (61007: what
+  a node asking for a store holds of it). With ``--dialect cooploc`` MAVProxy decodes them; under another
   dialect (MAVProxy's default ``all``, or ``ardupilotmega``) they arrive as ``UNKNOWN_610xx`` and
   the module decodes them itself with bindings mavgen makes from the cooploc XML (``$MDEF/v1.0``
   or the repository's ``dialects/``).
@@ -145,13 +146,15 @@ MSG_EPOCH = 61003
 MSG_STORE_FRAGMENT = 61004
 MSG_RANGE_BEARING = 61005
 MSG_EPOCH_SET = 61006
-COOPLOC_MESSAGE_IDS = frozenset(range(61000, 61007))
+MSG_STORE_HELD = 61007
+COOPLOC_MESSAGE_IDS = frozenset(range(61000, 61008))
 #: The two forms of an epoch announcement (the participants as a list, as a bitmask).
 EPOCH_MESSAGES = ("COOPLOC_EPOCH", "COOPLOC_EPOCH_SET")
 
 #: The cooploc messages the module only counts, and the VehicleView counter of each.
 COUNTED = {"COOPLOC_RANGE": "ranges", "COOPLOC_STATE_FRAGMENT": "state_fragments",
-           "COOPLOC_STORE_FRAGMENT": "store_fragments", "COOPLOC_RANGE_BEARING": "range_bearings"}
+           "COOPLOC_STORE_FRAGMENT": "store_fragments", "COOPLOC_RANGE_BEARING": "range_bearings",
+           "COOPLOC_STORE_HELD": "store_held"}
 
 MAV_CMD_REQUEST_MESSAGE = 512
 MAVLINK_IFLAG_SIGNED = 1
@@ -334,6 +337,7 @@ class VehicleView:
         self.rejected = 0
         self.state_fragments = 0
         self.store_fragments = 0
+        self.store_held = 0
         self.ranges = 0
         self.range_bearings = 0
         self.acks = 0
@@ -695,6 +699,7 @@ class CooplocModule(_MPModule):
             "failed=%d" % c["failed"],
             "store_wanted=%d" % c["store_wanted"],
             "store_fragments=%d" % v.store_fragments,
+            "store_held=%d" % v.store_held,
             "state_fragments=%d" % v.state_fragments,
             "range_msgs=%d" % v.ranges,
             "range_bearings=%d" % v.range_bearings,

@@ -135,7 +135,7 @@ fn refused(e: impl std::fmt::Display) -> PyErr {
 /// station check it (`protocol::wire`'s `*_from_message`: finite values, ranges of values, no
 /// platform listed twice, ...), and that the platform it speaks for is the frame's system id
 /// (an estimate's `platform`, an epoch's `announcer`, a range's `from_platform`, a fragment's
-/// `platform`, a range-and-bearing's `observer`). Returns `(name, participants)`: the message's
+/// `platform`, a range-and-bearing's `observer`, a store-held's `announcer`). Returns `(name, participants)`: the message's
 /// name and, for COOPLOC_EPOCH and COOPLOC_EPOCH_SET, its participants (`None` otherwise). Messages outside the cooploc
 /// set are not checked. `ValueError` names what is wrong (no frame, a bad CRC, a payload the
 /// dialect refuses, a field out of range, another system's platform).
@@ -168,6 +168,10 @@ fn check_frame(frame: &[u8]) -> PyResult<(String, Option<Vec<u16>>)> {
         }
         MavMessage::COOPLOC_RANGE_BEARING(m) => {
             speaks_for(wire::range_bearing_from_message(m).map_err(refused)?.observer)?;
+            None
+        }
+        MavMessage::COOPLOC_STORE_HELD(m) => {
+            speaks_for(wire::store_held_from_message(m).map_err(refused)?.announcer)?;
             None
         }
         _ => None,

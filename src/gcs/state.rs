@@ -423,8 +423,9 @@ impl GcsState {
                     self.vehicle(f.platform).counts.store_fragments += 1;
                 }
             }
-            // (a ground station's request to a node: nothing for this one)
-            CoopMessage::MessageRequest(_) => {}
+            // (a ground station's request to a node, and what a node asking for a store holds of
+            // it: nothing for this one)
+            CoopMessage::MessageRequest(_) | CoopMessage::StoreHeld(_) => {}
         }
     }
 

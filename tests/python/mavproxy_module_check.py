@@ -507,9 +507,12 @@ def module_checks(cl, dialect):
     send(2, d.MAVLink_cooploc_range_message(4_000_000, 4, 10.0, 0.1, 2, 1))
     send(2, d.MAVLink_cooploc_range_message(4_000_000, 4, float("nan"), 0.1, 2, 1))
     send(2, d.MAVLink_cooploc_store_fragment_message(4_000_000, 4, 0, 10, 2, 0, 1, 10, [0] * 232))
-    check("stand-in: heartbeat, acks, ranges, store fragments",
+    send(2, d.MAVLink_cooploc_store_held_message(4_000_000, 77, [1, 0, 0, 0], [0] * 4, 4, 0, 2))
+    send(2, d.MAVLink_cooploc_store_held_message(4_000_000, 77, [0] * 4, [1, 0, 0, 0], 4, 0, 2))  # held of no series
+    check("stand-in: heartbeat, acks, ranges, store fragments, store held",
           v.hb_type == 18 and v.acks == 1 and v.acks_refused == 1 and v.ranges == 1 and v.store_fragments == 1
-          and v.rejected == 6, (v.hb_type, v.acks, v.ranges, v.store_fragments, v.rejected))
+          and v.store_held == 1 and v.rejected == 7,
+          (v.hb_type, v.acks, v.ranges, v.store_fragments, v.store_held, v.rejected))
     # Signing: vehicle 4 signs its frames.
     senders[4].signing.secret_key = bytes(range(32))
     senders[4].signing.sign_outgoing = True

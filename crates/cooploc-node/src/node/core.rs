@@ -69,7 +69,8 @@
 //!      (their Psi keeps accumulating, so that store stays right for them), ask the holders for
 //!      their store right after the epoch (STORE_WANTED, answered by the two lowest-id holders
 //!      with the store in parts of COOPLOC_STORE_FRAGMENT series, paced to
-//!      [`NodeConfig::store_bps`], see [`store_sync`]), and adopt it, brought forward by the
+//!      [`NodeConfig::store_bps`], the fragments a repeated request says are held
+//!      (COOPLOC_STORE_HELD) left out, see [`store_sync`]), and adopt it, brought forward by the
 //!      epochs they were left out of while it came; the team is exact again from the next epoch
 //!      on;
 //!    - else every node *heals* with the covariance-intersection bound of
@@ -1202,7 +1203,7 @@ impl NodeCore {
                 match e.kind {
                     CoopKind::StateFragment | CoopKind::StoreFragment => self.stats.fragments_rejected += 1,
                     CoopKind::Range => self.stats.ranges_rejected += 1,
-                    CoopKind::Epoch | CoopKind::Estimate | CoopKind::MessageRequest => {}
+                    CoopKind::Epoch | CoopKind::StoreHeld | CoopKind::Estimate | CoopKind::MessageRequest => {}
                 }
                 return;
             }
@@ -1282,7 +1283,11 @@ impl NodeCore {
                 }
             }
             CoopMessage::Epoch(a) => self.epoch_message(from, a, out),
-            CoopMessage::Estimate(_) | CoopMessage::MessageRequest(_) => {}
+            // What a teammate asking for a store we serve holds of it: its own word only, and
+            // only on a signed team ([`NodeConfig::authenticated_peers`]): a forger speaking for
+            // it could make us leave out what it lacks, as long as it kept on.
+            CoopMessage::StoreHeld(h) if h.announcer == from && self.cfg.authenticated_peers => self.stores.held_by(from, h),
+            CoopMessage::StoreHeld(_) | CoopMessage::Estimate(_) | CoopMessage::MessageRequest(_) => {}
         }
     }
 
@@ -1734,8 +1739,19 @@ impl NodeCore {
     /// epoch timeout too: the store is brought forward when it comes).
     fn ask_for_store(&mut self, out: &mut Vec<NodeOutput>) {
         if let Some(r) = self.stores.ask(self.last_run, self.wall_us, self.cfg.epoch_timeout_us, self.retry_us()) {
-            self.send_status(r.epoch, r.t, r.members, EpochState::COOPLOC_EPOCH_STATE_STORE_WANTED, r.digest_before, out);
+            self.ask_for_store_again(r, out);
         }
+    }
+
+    /// A repeated request for the store `r`: on a signed team what we hold of it first
+    /// (COOPLOC_STORE_HELD, so that the answerers send only what is missing; an unsigned team
+    /// does not believe it), then the request.
+    fn ask_for_store_again(&mut self, r: StoreRequest, out: &mut Vec<NodeOutput>) {
+        let held = if self.cfg.authenticated_peers { self.stores.held(self.cfg.id) } else { Vec::new() };
+        for h in held {
+            out.push(NodeOutput::ToPeers(wire::store_held_to_message(&h)));
+        }
+        self.send_status(r.epoch, r.t, r.members, EpochState::COOPLOC_EPOCH_STATE_STORE_WANTED, r.digest_before, out);
     }
 
     /// While a store we asked for may still come (an epoch timeout from the first request, and
@@ -1748,7 +1764,7 @@ impl NodeCore {
             Awaiting::No => false,
             Awaiting::Yes(ask) => {
                 if let Some(r) = ask {
-                    self.send_status(r.epoch, r.t, r.members, EpochState::COOPLOC_EPOCH_STATE_STORE_WANTED, r.digest_before, out);
+                    self.ask_for_store_again(r, out);
                 }
                 true
             }
@@ -2212,7 +2228,8 @@ impl NodeCore {
         let per_interval = self.cfg.store_bps.saturating_mul(retry) / 1_000_000 / MAX_RADIO_FRAME as u64;
         let per_answer = if self.cfg.store_bps == 0 { 0 } else { per_interval.max(1) as usize };
         let me = store_sync::Answerer { id: self.cfg.id, rank, per_answer };
-        let Some(frags) = self.stores.answer(epoch, digest_before, ran_with_us, me, self.wall_us, retry) else { return };
+        let asked = store_sync::Asked { to, epoch, digest_before, ran_with_us };
+        let Some(frags) = self.stores.answer(asked, me, self.wall_us, retry) else { return };
         for f in &frags {
             if let Ok(m) = wire::fragment_to_message(f) {
                 out.push(NodeOutput::ToPeers(m));

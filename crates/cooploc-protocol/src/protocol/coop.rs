@@ -6,7 +6,7 @@
 
 use super::MavMessage;
 use super::fragment::Fragment;
-use super::wire::{self, EpochAnnouncement, EstimateReport, MessageRequest, WireError};
+use super::wire::{self, EpochAnnouncement, EstimateReport, MessageRequest, StoreHeld, WireError};
 use crate::estimation::{PlatformId, RangeSample};
 
 /// A message of the cooperative network, decoded and validated.
@@ -17,6 +17,8 @@ pub enum CoopMessage {
     /// A fragment of a peer's cross-covariance store, sent to heal a teammate
     /// (COOPLOC_STORE_FRAGMENT).
     StoreFragment(Fragment),
+    /// What a node that asks for a store holds of it (COOPLOC_STORE_HELD).
+    StoreHeld(StoreHeld),
     /// A range a peer's radio measured at `epoch` (COOPLOC_RANGE).
     Range { epoch: u32, range: RangeSample },
     /// Where a peer is with an epoch (COOPLOC_EPOCH or COOPLOC_EPOCH_SET).
@@ -32,6 +34,7 @@ pub enum CoopMessage {
 pub enum CoopKind {
     StateFragment,
     StoreFragment,
+    StoreHeld,
     Range,
     Epoch,
     Estimate,
@@ -44,6 +47,7 @@ impl CoopKind {
         match self {
             CoopKind::StateFragment => "COOPLOC_STATE_FRAGMENT",
             CoopKind::StoreFragment => "COOPLOC_STORE_FRAGMENT",
+            CoopKind::StoreHeld => "COOPLOC_STORE_HELD",
             CoopKind::Range => "COOPLOC_RANGE",
             CoopKind::Epoch => "COOPLOC_EPOCH",
             CoopKind::Estimate => "COOPLOC_ESTIMATE",
@@ -56,6 +60,7 @@ impl CoopKind {
         Some(match msg {
             MavMessage::COOPLOC_STATE_FRAGMENT(_) => CoopKind::StateFragment,
             MavMessage::COOPLOC_STORE_FRAGMENT(_) => CoopKind::StoreFragment,
+            MavMessage::COOPLOC_STORE_HELD(_) => CoopKind::StoreHeld,
             MavMessage::COOPLOC_RANGE(_) => CoopKind::Range,
             MavMessage::COOPLOC_EPOCH(_) | MavMessage::COOPLOC_EPOCH_SET(_) => CoopKind::Epoch,
             MavMessage::COOPLOC_ESTIMATE(_) => CoopKind::Estimate,
@@ -81,6 +86,7 @@ impl CoopMessage {
         let decoded = match msg {
             MavMessage::COOPLOC_STATE_FRAGMENT(m) => wire::fragment_from_message(m).map(CoopMessage::StateFragment),
             MavMessage::COOPLOC_STORE_FRAGMENT(m) => wire::store_fragment_from_message(m).map(CoopMessage::StoreFragment),
+            MavMessage::COOPLOC_STORE_HELD(m) => wire::store_held_from_message(m).map(CoopMessage::StoreHeld),
             MavMessage::COOPLOC_RANGE(m) => wire::range_from_message(m).map(|(epoch, range)| CoopMessage::Range { epoch, range }),
             MavMessage::COOPLOC_EPOCH(m) => wire::epoch_from_message(m).map(CoopMessage::Epoch),
             MavMessage::COOPLOC_EPOCH_SET(m) => wire::epoch_set_from_message(m).map(CoopMessage::Epoch),
@@ -94,6 +100,7 @@ impl CoopMessage {
         match self {
             CoopMessage::StateFragment(_) => CoopKind::StateFragment,
             CoopMessage::StoreFragment(_) => CoopKind::StoreFragment,
+            CoopMessage::StoreHeld(_) => CoopKind::StoreHeld,
             CoopMessage::Range { .. } => CoopKind::Range,
             CoopMessage::Epoch(_) => CoopKind::Epoch,
             CoopMessage::Estimate(_) => CoopKind::Estimate,
@@ -109,6 +116,7 @@ impl CoopMessage {
             CoopMessage::StateFragment(f) | CoopMessage::StoreFragment(f) => f.platform,
             CoopMessage::Range { range, .. } => range.from,
             CoopMessage::Epoch(a) => a.announcer,
+            CoopMessage::StoreHeld(h) => h.announcer,
             CoopMessage::Estimate(r) => r.platform,
             CoopMessage::MessageRequest(_) => return None,
         })

@@ -212,6 +212,12 @@ impl Reassembler {
         self.partials.range((epoch, 0, 0)..=(epoch, PlatformId::MAX, u32::MAX)).map(|(k, p)| (k.1, &p.have[..]))
     }
 
+    /// The records of `epoch` in progress, with each one's CRC-32 and the fragments held of it
+    /// (the store parts being put together: [`Self::keeping_each_record`]).
+    pub fn incomplete_series(&self, epoch: u32) -> impl Iterator<Item = (u32, &[bool])> {
+        self.partials.range((epoch, 0, 0)..=(epoch, PlatformId::MAX, u32::MAX)).map(|(_, p)| (p.crc, &p.have[..]))
+    }
+
     /// Records dropped incomplete since the last call (taken).
     pub fn take_dropped(&mut self) -> Vec<Incomplete> {
         std::mem::take(&mut self.dropped)
@@ -410,5 +416,11 @@ impl StoreAssembler {
     /// Snapshots in progress.
     pub fn in_progress(&self) -> usize {
         self.candidates.len()
+    }
+
+    /// The indices of the parts held of the snapshot in progress furthest along (none when
+    /// none is).
+    pub fn held_parts(&self) -> Vec<u16> {
+        self.candidates.iter().max_by_key(|c| c.got.len()).map(|c| c.got.keys().copied().collect()).unwrap_or_default()
     }
 }

@@ -12,10 +12,10 @@ use nalgebra::{Matrix3, Vector3};
 
 use super::dialect::cooploc::{
     ATTITUDE_DATA, COMMAND_ACK_DATA, COOPLOC_EPOCH_DATA, COOPLOC_EPOCH_SET_DATA, COOPLOC_ESTIMATE_DATA,
-    COOPLOC_RANGE_BEARING_DATA, COOPLOC_RANGE_DATA, COOPLOC_STATE_FRAGMENT_DATA, COOPLOC_STORE_FRAGMENT_DATA, CooplocEpochState,
-    CooplocMethod, GLOBAL_POSITION_INT_DATA, HEARTBEAT_DATA, HIGHRES_IMU_DATA, LOCAL_POSITION_NED_DATA, MavAutopilot, MavCmd,
-    MavEstimatorType, MavFrame, MavMessage, MavModeFlag, MavResult, MavState, MavType, ODOMETRY_DATA, RAW_IMU_DATA,
-    SCALED_IMU2_DATA, SIM_STATE_DATA, WHEEL_DISTANCE_DATA,
+    COOPLOC_RANGE_BEARING_DATA, COOPLOC_RANGE_DATA, COOPLOC_STATE_FRAGMENT_DATA, COOPLOC_STORE_FRAGMENT_DATA,
+    COOPLOC_STORE_HELD_DATA, CooplocEpochState, CooplocMethod, GLOBAL_POSITION_INT_DATA, HEARTBEAT_DATA, HIGHRES_IMU_DATA,
+    LOCAL_POSITION_NED_DATA, MavAutopilot, MavCmd, MavEstimatorType, MavFrame, MavMessage, MavModeFlag, MavResult, MavState,
+    MavType, ODOMETRY_DATA, RAW_IMU_DATA, SCALED_IMU2_DATA, SIM_STATE_DATA, WHEEL_DISTANCE_DATA,
 };
 use super::fragment::{FRAGMENT_DATA, Fragment, Payload};
 use crate::estimation::{ImuSample, Method, OdometerSample, PlatformId, RangeSample};
@@ -468,6 +468,80 @@ pub fn epoch_set_from_message(m: &COOPLOC_EPOCH_SET_DATA) -> Result<EpochAnnounc
         state: m.state,
         digest: m.digest,
         incomplete,
+    })
+}
+
+// ---- store held ----
+
+/// What a node that asks for a store holds of it already (COOPLOC_STORE_HELD): the parts it
+/// holds whole and, of one part it holds in part (a fragment series, named by its CRC-32), the
+/// fragments. The answerers send only what is missing.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct StoreHeld {
+    pub epoch: u32,
+    pub t: TimeUs,
+    pub announcer: PlatformId,
+    /// The store's digest before the epoch (as the request's).
+    pub digest_before: u64,
+    /// Bit k (of element k / 64): part k held whole.
+    pub whole: Bits256,
+    /// A series held in part: its CRC-32 and the fragments held (bit i: fragment i).
+    pub series: Option<(u32, Bits256)>,
+}
+
+/// 256 flags, bit k in element k / 64 (COOPLOC_STORE_HELD's whole and held).
+pub type Bits256 = [u64; 4];
+
+/// Whether flag `k` of `bits` is set.
+pub fn bit(bits: &Bits256, k: usize) -> bool {
+    k < 256 && bits[k / 64] & (1 << (k % 64)) != 0
+}
+
+/// The flags set at `indices` (those beyond 255 are not).
+pub fn bits_at(indices: impl IntoIterator<Item = usize>) -> Bits256 {
+    let mut bits = [0; 4];
+    for k in indices.into_iter().filter(|&k| k < 256) {
+        bits[k / 64] |= 1 << (k % 64);
+    }
+    bits
+}
+
+impl StoreHeld {
+    /// Whether the node holds fragment `index` of the series `crc32`, which is part `part` of
+    /// the store (whole, or that fragment of it).
+    pub fn holds(&self, part: u16, crc32: u32, index: u8) -> bool {
+        bit(&self.whole, usize::from(part)) || self.series.is_some_and(|(c, held)| c == crc32 && bit(&held, usize::from(index)))
+    }
+}
+
+pub fn store_held_to_message(h: &StoreHeld) -> MavMessage {
+    let (series_crc32, held) = h.series.unwrap_or((0, [0; 4]));
+    MavMessage::COOPLOC_STORE_HELD(COOPLOC_STORE_HELD_DATA {
+        time_usec: h.t.0,
+        digest: h.digest_before,
+        whole: h.whole,
+        held,
+        epoch: h.epoch,
+        series_crc32,
+        announcer: h.announcer,
+    })
+}
+
+pub fn store_held_from_message(m: &COOPLOC_STORE_HELD_DATA) -> Result<StoreHeld, WireError> {
+    let series = match (m.series_crc32, m.held) {
+        (0, [0, 0, 0, 0]) => None,
+        (0, held) => return Err(bad("COOPLOC_STORE_HELD", "held", format!("fragments {held:x?} held of no series"))),
+        // a series has at most 255 fragments (indices 0 to 254)
+        (_, held) if bit(&held, 255) => return Err(bad("COOPLOC_STORE_HELD", "held", "fragment 255 (a series has at most 255)")),
+        (crc, held) => Some((crc, held)),
+    };
+    Ok(StoreHeld {
+        epoch: m.epoch,
+        t: TimeUs(m.time_usec),
+        announcer: m.announcer,
+        digest_before: m.digest,
+        whole: m.whole,
+        series,
     })
 }
 
@@ -1326,6 +1400,37 @@ mod tests {
         ] {
             let e = epoch_set_from_message(&m).unwrap_err().to_string();
             assert!(e.starts_with(&format!("COOPLOC_EPOCH_SET.{field}:")), "{field}: {e}");
+        }
+    }
+
+    /// What a node asking for a store holds goes as it was; it holds a fragment when it holds
+    /// that part whole or that fragment of that series; a mask without a series, or naming a
+    /// 256th fragment, is refused.
+    #[test]
+    fn what_a_node_holds_of_a_store_round_trips_and_is_checked() {
+        let h = StoreHeld {
+            epoch: 7,
+            t: TimeUs(7_000_000),
+            announcer: 3,
+            digest_before: 0xDEAD_BEEF,
+            whole: bits_at([0, 2, 200, 300]),
+            series: Some((0x1234_5678, bits_at([0, 63, 64, 254]))),
+        };
+        assert_eq!(h.whole, [0b101, 0, 0, 1 << 8], "bit 300 is beyond the mask");
+        let MavMessage::COOPLOC_STORE_HELD(m) = store_held_to_message(&h) else { unreachable!() };
+        assert_eq!(store_held_from_message(&m), Ok(h.clone()));
+        let none = StoreHeld { series: None, ..h.clone() };
+        let MavMessage::COOPLOC_STORE_HELD(n) = store_held_to_message(&none) else { unreachable!() };
+        assert_eq!((n.series_crc32, n.held), (0, [0; 4]));
+        assert_eq!(store_held_from_message(&n), Ok(none));
+        assert!(h.holds(2, 1, 9) && h.holds(1, 0x1234_5678, 64) && h.holds(1, 0x1234_5678, 254));
+        assert!(!h.holds(1, 0x1234_5678, 65) && !h.holds(1, 0x1234_5679, 64) && !h.holds(3, 0, 0));
+        for (field, bad) in [
+            ("held", COOPLOC_STORE_HELD_DATA { series_crc32: 0, ..m.clone() }),
+            ("held", COOPLOC_STORE_HELD_DATA { held: [0, 0, 0, 1 << 63], ..m.clone() }),
+        ] {
+            let e = store_held_from_message(&bad).unwrap_err().to_string();
+            assert!(e.starts_with(&format!("COOPLOC_STORE_HELD.{field}:")), "{field}: {e}");
         }
     }
 }
