@@ -36,7 +36,8 @@
 //!    grace aside), and further behind than at its last broadcast, asks the team in its
 //!    record's flags to pass over the next epochs (one, and one more for every further half
 //!    timeout, three at most: [`record::skip_of`]); every node that runs the epoch on the same
-//!    records (two at least) passes over the most any of them asks: nothing sent, nothing
+//!    records (two at least; a left-out member's record does not count, since some nodes hold
+//!    it and others not) passes over the most any of them asks: nothing sent, nothing
 //!    applied, so the stores stay exact. A team whose epochs take longer to resolve than they
 //!    come thus runs fewer of them instead of falling behind until every epoch times out and
 //!    is healed with the bound (50% datagram loss with 0-1 s of latency at 1 Hz: 303.80 m final
@@ -72,7 +73,9 @@
 //!      [`NodeConfig::store_bps`], the fragments a repeated request says are held
 //!      (COOPLOC_STORE_HELD) left out, see [`store_sync`]), and adopt it, brought forward by the
 //!      epochs they were left out of while it came; the team is exact again from the next epoch
-//!      on;
+//!      on. A node that took the store after its record of an epoch went (the record carried
+//!      the store before) is left out of that epoch too, and brings the store forward by it
+//!      instead of asking for another;
 //!    - else every node *heals* with the covariance-intersection bound of
 //!      [`crate::estimation::coop`] (cross blocks dropped, each participant's covariance divided
 //!      by its weight), which is consistent whatever the true cross-covariances were; after it
@@ -1949,7 +1952,6 @@ impl NodeCore {
         }
         let prev_run = self.last_run;
         self.finish_epoch(epoch);
-        self.pass_over_after(epoch, &records);
         if let Some(ours) = ours.filter(|o| !records.iter().any(|r| r.snapshot.id == o.snapshot.id)) {
             self.refused_own_record(t, ours, &records);
         }
@@ -1967,6 +1969,11 @@ impl NodeCore {
         let choice = if dcl && !agree { choose_store(&records) } else { None };
         if let Some(c) = &choice {
             records.retain(|r| c.members.contains(&r.snapshot.id));
+        }
+        // The epochs to pass over are those the records the epoch runs on ask for: a left-out
+        // member's record, which some nodes hold and others not, does not count.
+        self.pass_over_after(epoch, &records);
+        if let Some(c) = &choice {
             if c.members.contains(&self.cfg.id) {
                 for &k in &c.refreshed {
                     self.cross.forget(k);
@@ -2206,11 +2213,16 @@ impl NodeCore {
         out: &mut Vec<NodeOutput>,
     ) {
         self.stats.epochs_excluded += 1;
-        if self.stores.wanting() {
-            let later = LaterEpoch { epoch, records: records.to_vec(), refreshed: c.refreshed.clone() };
-            if self.stores.carry_on(prev_run, later, self.wall_us, self.cfg.epoch_timeout_us) {
-                return;
-            }
+        let later = LaterEpoch { epoch, records: records.to_vec(), refreshed: c.refreshed.clone() };
+        if self.cfg.method == Method::Decentralized && self.store_digest() == c.digest && self.bring_forward(&later) {
+            // The store we took after our record went (which carried the one before): brought
+            // forward by this epoch as its participants brought theirs, we are back at the next.
+            self.stats.store_epochs_replayed += 1;
+            self.remember_run(epoch, c.members.clone());
+            return;
+        }
+        if self.stores.wanting() && self.stores.carry_on(prev_run, later, self.wall_us, self.cfg.epoch_timeout_us) {
+            return;
         }
         let request = StoreRequest { epoch, t, digest_before: c.digest, members: c.members.clone() };
         self.stores.want(request, self.wall_us);
@@ -2776,6 +2788,47 @@ mod tests {
     /// 50% loss and 0-1 s of latency left 2-3 runs in 20 unrecovered). Told epoch 5 after all
     /// (a teammate that has not heard of the stride), it passes it over, and the last epoch it
     /// ran stays the one a store it asked for is checked against.
+    /// The epochs the team passes over are those the records an epoch runs on ask for: the
+    /// record of a member left out of it (its store not valid for the others), which some
+    /// nodes hold and others not, does not count. (In a 16-member team paced at 10% loss, a
+    /// left-out member waiting for its store asked; the nodes that held its record passed two
+    /// epochs over and four that did not ran the first: the team split, and healed.)
+    #[test]
+    fn a_left_out_members_request_to_pass_epochs_over_does_not_count() {
+        use crate::estimation::{Geometry, Snapshot};
+        let record = |id: PlatformId, digest: u64, skip: u8| StateRecord {
+            snapshot: Snapshot {
+                id,
+                geometry: Geometry {
+                    position_ned_m: Vector3::new(f64::from(id) * 10.0, 0.0, 0.0),
+                    position_index: [Some(0), Some(1), None],
+                    heading: None,
+                },
+                covariance: nalgebra::DMatrix::identity(3, 3),
+                psi: nalgebra::DMatrix::identity(3, 3),
+            },
+            digest,
+            own_ref: StoreRef::fresh(0),
+            refs: Vec::new(),
+            flags: record::with_skip(FLAG_FRESH, skip),
+            ranges: Vec::new(),
+        };
+        let run = |third_digest_differs: bool| {
+            let mut core = NodeCore::new(config(1, vec![1, 2, 3]), TimeUs(0), start()).unwrap();
+            let ours = core.store_digest();
+            let mut e = Epoch::new(TimeUs(5_000_000));
+            e.broadcast_at = Some(0);
+            let third = if third_digest_differs { ours ^ 1 } else { ours };
+            e.records = BTreeMap::from([(1, record(1, ours, 0)), (2, record(2, ours, 0)), (3, record(3, third, 2))]);
+            core.epochs.insert(5, e);
+            let mut out = Vec::new();
+            core.run_epoch(5, false, &mut out);
+            (core.stats.store_mismatches, core.stats.epochs_excluded, core.skip_through)
+        };
+        assert_eq!(run(false), (0, 0, Some(7)), "3 runs the epoch with us: its request counts");
+        assert_eq!(run(true), (1, 0, None), "3 is left out (we are not): its request does not count");
+    }
+
     #[test]
     fn epochs_the_team_passes_over_are_no_gap_and_nothing_is_sent_for_them() {
         let say = |core: &mut NodeCore, epoch: u32| announce(core, 2, epoch, vec![2], EpochState::COOPLOC_EPOCH_STATE_COLLECTING);
