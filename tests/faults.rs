@@ -392,12 +392,14 @@ fn four_members_of_a_sixteen_member_team_leave_and_come_back_without_a_heal() {
     assert!((rms(&left) / rms(&base) - 1.0).abs() < 0.15, "{} against {}", rms(&left), rms(&base));
 
     // The same with the store paced at 20,000 B/s per answerer (a radio's share; the 247 KB
-    // store takes several epochs), five runs: every returning member takes a store and nobody
-    // heals. Two rules hold it (without them run 3 healed twice on 14 nodes of 16, and the five
-    // runs ended at 1.15 m RMS against 0.57 loss-free): a member that took the store after its record went (carrying the old one) is left
-    // out of that epoch but brings the store forward by it instead of asking afresh for a new
-    // one; and the epochs the team passes over are those the records it runs on ask for, not a
-    // left-out member's, which some nodes held and others not (they split the team at epoch 48).
+    // store takes several epochs), five runs: every returning member takes one store and nobody
+    // heals. Without two rules run 3 healed twice on 14 nodes of 16 and the five runs ended at
+    // 1.15 m RMS against 0.57 loss-free: a member that took the store after its record went
+    // (carrying the old one) is left out of that epoch but brings the store forward by it
+    // instead of asking afresh for a new one (this test fails without it); and the epochs the
+    // team passes over are those the records it runs on ask for, not a left-out member's,
+    // which some nodes held and others not (they split the team at epoch 48; its own test is
+    // the core's `a_left_out_members_request_to_pass_epochs_over_does_not_count`).
     let paced =
         cooploc::experiment::faults::Faults { store_bps: 20_000, ..case("coop loss 10%, four members leave and come back") };
     let runs: Vec<_> = (0..5u32)

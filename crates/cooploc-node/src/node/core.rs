@@ -2780,14 +2780,6 @@ mod tests {
         }
     }
 
-    /// Epochs the team agreed to pass over ([`NodeCore::pass_over_after`]: a record of epoch 4
-    /// asked for two) are no gap a later epoch waits for, and nothing is sent for them. Node 3,
-    /// which measures no range, learns every epoch from its teammates: told epoch 7 after
-    /// epoch 4, it would otherwise wait an epoch timeout for epochs 5 and 6, which nobody will
-    /// ever say, at every stride (what a first version of the rule did: `cooploc faults` with
-    /// 50% loss and 0-1 s of latency left 2-3 runs in 20 unrecovered). Told epoch 5 after all
-    /// (a teammate that has not heard of the stride), it passes it over, and the last epoch it
-    /// ran stays the one a store it asked for is checked against.
     /// The epochs the team passes over are those the records an epoch runs on ask for: the
     /// record of a member left out of it (its store not valid for the others), which some
     /// nodes hold and others not, does not count. (In a 16-member team paced at 10% loss, a
@@ -2829,6 +2821,14 @@ mod tests {
         assert_eq!(run(true), (1, 0, None), "3 is left out (we are not): its request does not count");
     }
 
+    /// Epochs the team agreed to pass over ([`NodeCore::pass_over_after`]: a record of epoch 4
+    /// asked for two) are no gap a later epoch waits for, and nothing is sent for them. Node 3,
+    /// which measures no range, learns every epoch from its teammates: told epoch 7 after
+    /// epoch 4, it would otherwise wait an epoch timeout for epochs 5 and 6, which nobody will
+    /// ever say, at every stride (what a first version of the rule did: `cooploc faults` with
+    /// 50% loss and 0-1 s of latency left 2-3 runs in 20 unrecovered). Told epoch 5 after all
+    /// (a teammate that has not heard of the stride), it passes it over, and the last epoch it
+    /// ran stays the one a store it asked for is checked against.
     #[test]
     fn epochs_the_team_passes_over_are_no_gap_and_nothing_is_sent_for_them() {
         let say = |core: &mut NodeCore, epoch: u32| announce(core, 2, epoch, vec![2], EpochState::COOPLOC_EPOCH_STATE_COLLECTING);
