@@ -746,6 +746,74 @@ fn a_teammate_that_holds_part_of_a_record_gets_only_the_missing_fragments() {
     assert_eq!(node.stats.fragments_resent, u64::from(count) * 3, "{:?}", node.stats);
 }
 
+/// Partial resends are limited by what they carry, not by their number: requests each lacking
+/// one different fragment of our recent records (what a large team at 10% loss asks for) are
+/// all served within one retry interval until four records' worth of fragments went, where
+/// counted as one resend each only four of them were (and a 64-member team's epochs timed out);
+/// the bytes stay within [`RESENDS_PER_RETRY`] records per interval, and the next interval
+/// serves again.
+#[test]
+fn many_small_resend_requests_are_served_within_the_same_bytes() {
+    use cooploc::node::core::RESENDS_PER_RETRY;
+    use cooploc::protocol::dialect::cooploc::CooplocEpochState;
+    use cooploc::protocol::wire::HeldFragments;
+    let world = World::new(&Scenario::from_toml_str(PAPER_TOML).unwrap()).unwrap();
+    let (mut nodes, epochs) = run_network(&world, Method::Decentralized, "1hz", 1, 0);
+    let last = epochs.len() as u32;
+    let node = &mut nodes[0];
+    let retry = node.config().retry_us;
+    let start = 10_000_000_000u64;
+    // Teammate `from` asks for our record of `epoch`, holding every fragment but `lacks`.
+    let ask = |node: &mut NodeCore, from: u16, epoch: u32, lacks: u8, wall: u64| {
+        node.poll(wall);
+        let a = wire::EpochAnnouncement {
+            epoch,
+            t: TimeUs(u64::from(epoch) * 1_000_000),
+            announcer: from,
+            participants: vec![from],
+            state: CooplocEpochState::COOPLOC_EPOCH_STATE_COLLECTING,
+            digest: 0,
+            incomplete: vec![HeldFragments { platform: 1, held: !(1u32 << lacks) }],
+        };
+        let out = node.handle(NodeInput::Peer { from, msg: Box::new(wire::epoch_to_message(&a).unwrap()) });
+        out.iter().filter(|o| matches!(o, NodeOutput::ToPeers(MavMessage::COOPLOC_STATE_FRAGMENT(_)))).count()
+    };
+    // How many fragments a record of ours is: a whole resend of the last epoch, once its window
+    // is over.
+    let whole = {
+        node.poll(start);
+        let a = wire::EpochAnnouncement {
+            epoch: last,
+            t: TimeUs(u64::from(last) * 1_000_000),
+            announcer: 2,
+            participants: vec![2],
+            state: CooplocEpochState::COOPLOC_EPOCH_STATE_COLLECTING,
+            digest: 0,
+            incomplete: Vec::new(),
+        };
+        let out = node.handle(NodeInput::Peer { from: 2, msg: Box::new(wire::epoch_to_message(&a).unwrap()) });
+        out.iter().filter(|o| matches!(o, NodeOutput::ToPeers(MavMessage::COOPLOC_STATE_FRAGMENT(_)))).count()
+    };
+    assert!(whole >= 3, "a record of several fragments: {whole}");
+    let mut wall = start + retry; // the whole resend is forgotten
+    let (mut served, mut fragments, mut refused) = (0usize, 0usize, 0usize);
+    // Requests from the two teammates, each for a different (epoch, fragment), over one retry
+    // interval.
+    for (k, (epoch, lacks)) in (last - 7..=last).flat_map(|e| (0..whole as u8).map(move |i| (e, i))).enumerate() {
+        let sent = ask(node, 2 + (k % 2) as u16, epoch, lacks, wall + k as u64);
+        assert!(sent <= 1, "only the fragment lacked goes: {sent}");
+        (served, fragments, refused) = (served + sent, fragments + sent, refused + 1 - sent);
+    }
+    eprintln!("{served} single-fragment requests served in one retry interval ({whole}-fragment records), {refused} refused");
+    assert!(
+        served > RESENDS_PER_RETRY && fragments <= RESENDS_PER_RETRY * whole && fragments + whole > RESENDS_PER_RETRY * whole,
+        "{served} small requests served ({fragments} fragments of {whole}-fragment records), {refused} refused"
+    );
+    assert!(refused > 0, "the limit still holds");
+    wall += retry;
+    assert_eq!(ask(node, 3, last - 8, 0, wall), 1, "the next retry interval serves again");
+}
+
 /// The compact encoding (16-bit correlation form, 29% of the f64 record's matrix bytes)
 /// changes the team's result by a small fraction of its uncertainty and never makes it more
 /// confident: over three runs of the paper scenario every node ends within a tenth of a sigma of
