@@ -23,6 +23,7 @@ use crate::protocol::wire::GeoOrigin;
 use crate::recording::{Link, Recorder, RecorderOptions, read_log};
 use crate::replay::{NodeReplay, RUN_METADATA_NAME, compare_methods, replay_nodes};
 use crate::simulator::{BoundEndpoint, Interval, Simulator, SitlConfig, Speed, StreamDefaults, default_endpoints};
+use crate::sitl::scenario::PAPER_TOML;
 use crate::sitl::{Scenario, World};
 
 /// What stopped the demo: a setting, or the step that failed and why.
@@ -58,7 +59,8 @@ impl<T> Step<T> for Option<T> {
 /// What to run.
 #[derive(Debug, Clone)]
 pub struct DemoConfig {
-    pub scenario: PathBuf,
+    /// The scenario file; None: the paper's, built in (`sitl::scenario::PAPER_TOML`).
+    pub scenario: Option<PathBuf>,
     pub seed: u64,
     pub run: u32,
     pub schedule: Option<String>,
@@ -94,7 +96,10 @@ pub struct DemoReport {
 /// The scenario, cut to the demo's duration: itself, as text for the log, its world, and the
 /// ranging schedule.
 fn load_scenario(cfg: &DemoConfig) -> Result<(Scenario, String, World, String), DemoError> {
-    let toml = std::fs::read(&cfg.scenario).step(format!("reading {}", cfg.scenario.display()))?;
+    let toml = match &cfg.scenario {
+        Some(path) => std::fs::read(path).step(format!("reading {}", path.display()))?,
+        None => PAPER_TOML.as_bytes().to_vec(),
+    };
     let mut scenario =
         Scenario::from_toml_str(std::str::from_utf8(&toml).step("the scenario is not UTF-8")?).step("the scenario")?;
     if let Some(d) = cfg.duration_s {

@@ -112,6 +112,34 @@ fn tempfile_dir(tag: &str) -> std::path::PathBuf {
     dir
 }
 
+/// The commands that take a scenario run from any folder: without one they use the paper's,
+/// built into the binary, with the same results as the file in the repository (the real
+/// firmware showed a node that could not start outside the repository; an installed `cooploc
+/// experiment` or `faults` could not either).
+#[test]
+fn without_a_scenario_file_the_commands_run_the_built_in_paper_scenario_from_any_folder() {
+    let empty = tempfile_dir("empty-folder");
+    let ours = run_paper_experiment("from-file", 1, 3);
+    let out = cooploc()
+        .args(["experiment", "--runs", "1", "--seed", "3", "--no-plots", "--out", "out"])
+        .current_dir(&empty)
+        .output()
+        .unwrap();
+    let stdout = String::from_utf8_lossy(&out.stdout);
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    assert!(stdout.contains("built in"), "the output says which scenario ran: {stdout}");
+    for file in ["final_errors.csv", "error_curves.csv"] {
+        let (a, b) = (std::fs::read(ours.join(file)).unwrap(), std::fs::read(empty.join("out").join(file)).unwrap());
+        assert!(a == b, "{file} differs between the built-in scenario and sitl/scenarios/paper.toml");
+    }
+    let faults = cooploc().args(["faults", "--runs", "1", "--only", "fault-free"]).current_dir(&empty).output().unwrap();
+    assert!(faults.status.success(), "{}", String::from_utf8_lossy(&faults.stderr));
+    let missing = cooploc().args(["faults", "--runs", "1", "no-such.toml"]).current_dir(&empty).output().unwrap();
+    assert!(!missing.status.success() && String::from_utf8_lossy(&missing.stderr).contains("no-such.toml"));
+    let _ = std::fs::remove_dir_all(&empty);
+    let _ = std::fs::remove_dir_all(&ours);
+}
+
 /// A broken scenario file is refused with a message that names the field, and nothing is run.
 #[test]
 fn bad_scenario_files_name_the_field() {

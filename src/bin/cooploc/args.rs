@@ -6,14 +6,15 @@ use clap::builder::PossibleValue;
 use cooploc::dataset::run::Regime;
 use cooploc::estimation::Method;
 use cooploc::protocol::record::Encoding;
+use cooploc::sitl::scenario::{PAPER_TOML, Scenario};
+use std::path::{Path, PathBuf};
 
 /// Which simulated run: the scenario, and the seed, run and ranging schedule that pick its
 /// sensor errors and ranges (as in `cooploc experiment`).
 #[derive(clap::Args, Debug, Clone)]
 pub struct SimRun {
-    /// Scenario file.
-    #[arg(default_value = "sitl/scenarios/paper.toml")]
-    pub scenario: std::path::PathBuf,
+    /// Scenario file (default: the paper's scenario, built in: sitl/scenarios/paper.toml).
+    pub scenario: Option<PathBuf>,
     /// Seed of the sensor errors (as in `cooploc experiment`).
     #[arg(long, default_value_t = 1)]
     pub seed: u64,
@@ -187,6 +188,20 @@ impl ValueEnum for EncodingsArg {
             EncodingsArg::All => "all",
         }))
     }
+}
+
+/// The scenario at `path`, or the paper's when none is given: built into the binary, so that a
+/// command runs from any folder, not only from the repository.
+pub fn scenario_or_paper(path: Option<&Path>) -> anyhow::Result<Scenario> {
+    Ok(match path {
+        Some(p) => Scenario::from_path(p)?,
+        None => Scenario::from_toml_str(PAPER_TOML)?,
+    })
+}
+
+/// How the scenario of [`scenario_or_paper`] is named in a command's output.
+pub fn scenario_source(path: Option<&Path>) -> String {
+    path.map_or_else(|| "built in, as sitl/scenarios/paper.toml".to_string(), |p| p.display().to_string())
 }
 
 #[cfg(test)]

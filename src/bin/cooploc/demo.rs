@@ -58,7 +58,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     let report = rt.block_on(run_demo(cfg, |a| {
         println!(
             "cooploc demo: scenario {}, seed {}, run {}, {}x real time",
-            args.sim.scenario.display(),
+            crate::args::scenario_source(args.sim.scenario.as_deref()),
             args.sim.seed,
             args.sim.run,
             args.speed

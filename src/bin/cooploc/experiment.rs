@@ -9,14 +9,12 @@ use cooploc::experiment::report::{self, Tracks};
 use cooploc::experiment::{ExperimentSpec, InputSource, run_experiment};
 use cooploc::node::autopilot::RateRequests;
 use cooploc::node::profile::{Inputs, VehicleProfile};
-use cooploc::sitl::scenario::Scenario;
 use cooploc::sitl::world::World;
 
 #[derive(clap::Args)]
 pub struct Args {
-    /// Scenario file.
-    #[arg(default_value = "sitl/scenarios/paper.toml")]
-    scenario: PathBuf,
+    /// Scenario file (default: the paper's scenario, built in: sitl/scenarios/paper.toml).
+    scenario: Option<PathBuf>,
     /// Number of Monte Carlo runs.
     #[arg(long, default_value_t = 50)]
     runs: u32,
@@ -59,7 +57,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         }
         methods.push(method);
     }
-    let mut scenario = Scenario::from_path(&args.scenario)?;
+    let mut scenario = crate::args::scenario_or_paper(args.scenario.as_deref())?;
     // A vehicle profile replaces the scenario's vehicle; an autopilot sends its samples.
     let source = match (&args.vehicle_config, args.autopilot) {
         (Some(path), autopilot) => {
@@ -113,7 +111,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
     println!(
         "cooploc experiment: scenario {} ({}), {} runs, seed {}, {} threads, {:.1} s",
         scenario.name,
-        args.scenario.display(),
+        crate::args::scenario_source(args.scenario.as_deref()),
         spec.runs,
         spec.seed,
         rayon::current_num_threads(),

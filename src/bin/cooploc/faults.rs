@@ -5,15 +5,13 @@ use std::time::Instant;
 
 use anyhow::{Context, bail};
 use cooploc::experiment::faults::{CaseSummary, clock_offset_cases, large_team_cases, run_case, standard_cases, summarize};
-use cooploc::sitl::scenario::Scenario;
 use cooploc::sitl::world::World;
 use rayon::prelude::*;
 
 #[derive(clap::Args)]
 pub struct Args {
-    /// Scenario file.
-    #[arg(default_value = "sitl/scenarios/paper.toml")]
-    scenario: PathBuf,
+    /// Scenario file (default: the paper's scenario, built in: sitl/scenarios/paper.toml).
+    scenario: Option<PathBuf>,
     /// Seeded runs per case.
     #[arg(long, default_value_t = 20)]
     runs: u32,
@@ -100,7 +98,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         ),
         None => None,
     };
-    let mut scenario = Scenario::from_path(&args.scenario)?;
+    let mut scenario = crate::args::scenario_or_paper(args.scenario.as_deref())?;
     if let Some(n) = args.side_by_side {
         let duration_s = args.duration_s.unwrap_or(scenario.duration_s);
         if !(args.spacing_m > 0.0 && args.reach_m > 0.0 && duration_s > 0.0) {

@@ -7,7 +7,6 @@ use anyhow::{Context, bail};
 use cooploc::estimation::PlatformId;
 use cooploc::node::profile::VehicleProfile;
 use cooploc::simulator::{self, Endpoint, Interval, SitlConfig, Speed, StreamDefaults};
-use cooploc::sitl::scenario::Scenario;
 use cooploc::sitl::world::World;
 use cooploc::time::TimeUs;
 
@@ -174,7 +173,7 @@ struct Validated {
 }
 
 fn validate(args: Args) -> anyhow::Result<Validated> {
-    let mut scenario = Scenario::from_path(&args.sim.scenario)?;
+    let mut scenario = crate::args::scenario_or_paper(args.sim.scenario.as_deref())?;
     let profile = match &args.vehicle_config {
         Some(path) => Some(VehicleProfile::from_path(path)?),
         None => None,
@@ -258,7 +257,7 @@ fn validate(args: Args) -> anyhow::Result<Validated> {
 }
 
 pub fn run(args: Args) -> anyhow::Result<()> {
-    let scenario_path = args.sim.scenario.clone();
+    let scenario_path = crate::args::scenario_source(args.sim.scenario.as_deref());
     let Validated { world, config } = validate(args)?;
     let runtime = tokio::runtime::Builder::new_multi_thread().enable_all().build().context("starting the tokio runtime")?;
     runtime.block_on(async move {
@@ -268,7 +267,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         let sim = simulator::Simulator::bind(world, config).await?;
         println!(
             "cooploc sitl: scenario {name} ({}), schedule {schedule}, seed {seed}, run {run}, speed {}, {} s",
-            scenario_path.display(),
+            scenario_path,
             match speed {
                 Speed::Max => "max".to_string(),
                 Speed::Factor(f) => format!("{f}"),
