@@ -688,13 +688,47 @@ fn a_flood_of_resend_requests_gets_a_bounded_number_of_resends() {
     assert!(per_record > 0 && frames_out == per_record * resent as usize, "{frames_out} fragments for {resent} records");
 }
 
+/// Teammate `from` asks `node` at wall time `wall` for its record of `epoch` (a COLLECTING
+/// COOPLOC_EPOCH_SET naming the fragments it holds of it in `incomplete`); the fragment indices
+/// of that record sent in answer, sorted.
+fn ask_for_record(
+    node: &mut NodeCore,
+    from: u16,
+    epoch: u32,
+    wall: u64,
+    incomplete: Vec<cooploc::protocol::wire::HeldFragments>,
+) -> Vec<u8> {
+    use cooploc::protocol::dialect::cooploc::CooplocEpochState;
+    node.poll(wall);
+    let a = wire::EpochAnnouncement {
+        epoch,
+        t: TimeUs(u64::from(epoch) * 1_000_000),
+        announcer: from,
+        participants: vec![from],
+        state: CooplocEpochState::COOPLOC_EPOCH_STATE_COLLECTING,
+        digest: 0,
+        incomplete,
+    };
+    let msg = wire::epoch_to_message(&a).unwrap();
+    assert!(matches!(msg, MavMessage::COOPLOC_EPOCH_SET(_)));
+    let out = node.handle(NodeInput::Peer { from, msg: Box::new(msg) });
+    let mut sent: Vec<u8> = out
+        .iter()
+        .filter_map(|o| match o {
+            NodeOutput::ToPeers(MavMessage::COOPLOC_STATE_FRAGMENT(f)) if f.epoch == epoch => Some(f.frag_index),
+            _ => None,
+        })
+        .collect();
+    sent.sort();
+    sent
+}
+
 /// A teammate that says which fragments of a record it holds (COOPLOC_EPOCH_SET, while
 /// collecting) gets only the others; a second teammate asking for the whole record within half a
 /// retry interval gets what has not just gone; a third request then gets nothing (every fragment
 /// went this half interval); and once that half interval is over the record goes whole again.
 #[test]
 fn a_teammate_that_holds_part_of_a_record_gets_only_the_missing_fragments() {
-    use cooploc::protocol::dialect::cooploc::CooplocEpochState;
     use cooploc::protocol::wire::HeldFragments;
     let world = World::new(&Scenario::from_toml_str(PAPER_TOML).unwrap()).unwrap();
     let (mut nodes, epochs) = run_network(&world, Method::Decentralized, "1hz", 1, 0);
@@ -703,28 +737,7 @@ fn a_teammate_that_holds_part_of_a_record_gets_only_the_missing_fragments() {
     let retry = node.config().retry_us;
     let start = 10_000_000_000u64;
     let ask = |node: &mut NodeCore, from: u16, wall: u64, incomplete: Vec<HeldFragments>| {
-        node.poll(wall);
-        let a = wire::EpochAnnouncement {
-            epoch: last,
-            t: TimeUs(u64::from(last) * 1_000_000),
-            announcer: from,
-            participants: vec![from],
-            state: CooplocEpochState::COOPLOC_EPOCH_STATE_COLLECTING,
-            digest: 0,
-            incomplete,
-        };
-        let msg = wire::epoch_to_message(&a).unwrap();
-        assert!(matches!(msg, MavMessage::COOPLOC_EPOCH_SET(_)));
-        let out = node.handle(NodeInput::Peer { from, msg: Box::new(msg) });
-        let mut sent: Vec<u8> = out
-            .iter()
-            .filter_map(|o| match o {
-                NodeOutput::ToPeers(MavMessage::COOPLOC_STATE_FRAGMENT(f)) if f.epoch == last => Some(f.frag_index),
-                _ => None,
-            })
-            .collect();
-        sent.sort();
-        sent
+        ask_for_record(node, from, last, wall, incomplete)
     };
     let whole = ask(node, 2, start, vec![]);
     let count = whole.len() as u8;
@@ -755,7 +768,6 @@ fn a_teammate_that_holds_part_of_a_record_gets_only_the_missing_fragments() {
 #[test]
 fn many_small_resend_requests_are_served_within_the_same_bytes() {
     use cooploc::node::core::RESENDS_PER_RETRY;
-    use cooploc::protocol::dialect::cooploc::CooplocEpochState;
     use cooploc::protocol::wire::HeldFragments;
     let world = World::new(&Scenario::from_toml_str(PAPER_TOML).unwrap()).unwrap();
     let (mut nodes, epochs) = run_network(&world, Method::Decentralized, "1hz", 1, 0);
@@ -765,35 +777,11 @@ fn many_small_resend_requests_are_served_within_the_same_bytes() {
     let start = 10_000_000_000u64;
     // Teammate `from` asks for our record of `epoch`, holding every fragment but `lacks`.
     let ask = |node: &mut NodeCore, from: u16, epoch: u32, lacks: u8, wall: u64| {
-        node.poll(wall);
-        let a = wire::EpochAnnouncement {
-            epoch,
-            t: TimeUs(u64::from(epoch) * 1_000_000),
-            announcer: from,
-            participants: vec![from],
-            state: CooplocEpochState::COOPLOC_EPOCH_STATE_COLLECTING,
-            digest: 0,
-            incomplete: vec![HeldFragments { platform: 1, held: !(1u32 << lacks) }],
-        };
-        let out = node.handle(NodeInput::Peer { from, msg: Box::new(wire::epoch_to_message(&a).unwrap()) });
-        out.iter().filter(|o| matches!(o, NodeOutput::ToPeers(MavMessage::COOPLOC_STATE_FRAGMENT(_)))).count()
+        ask_for_record(node, from, epoch, wall, vec![HeldFragments { platform: 1, held: !(1u32 << lacks) }]).len()
     };
     // How many fragments a record of ours is: a whole resend of the last epoch, once its window
     // is over.
-    let whole = {
-        node.poll(start);
-        let a = wire::EpochAnnouncement {
-            epoch: last,
-            t: TimeUs(u64::from(last) * 1_000_000),
-            announcer: 2,
-            participants: vec![2],
-            state: CooplocEpochState::COOPLOC_EPOCH_STATE_COLLECTING,
-            digest: 0,
-            incomplete: Vec::new(),
-        };
-        let out = node.handle(NodeInput::Peer { from: 2, msg: Box::new(wire::epoch_to_message(&a).unwrap()) });
-        out.iter().filter(|o| matches!(o, NodeOutput::ToPeers(MavMessage::COOPLOC_STATE_FRAGMENT(_)))).count()
-    };
+    let whole = ask_for_record(node, 2, last, start, Vec::new()).len();
     assert!(whole >= 3, "a record of several fragments: {whole}");
     let mut wall = start + retry; // the whole resend is forgotten
     let (mut served, mut fragments, mut refused) = (0usize, 0usize, 0usize);
