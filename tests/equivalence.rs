@@ -2,8 +2,9 @@
 //!
 //! Reference: one joint filter over the stacked states of all platforms in which a local
 //! measurement (random, or a GNSS fix of its position) corrects its own platform only (gain nonzero in that platform's rows), a
-//! cooperative event corrects the platforms that broadcast (gain nonzero in their rows), and
-//! every covariance update is the textbook Joseph form on the whole stacked covariance. The
+//! cooperative event corrects the platforms that broadcast and the bystanders (gain nonzero in
+//! their rows; a bystander takes its share without broadcasting, see
+//! `cooploc::estimation::BystanderShare`), and every covariance update is the textbook Joseph form on the whole stacked covariance. The
 //! decentralized filter never forms that matrix: each platform keeps `P_ii` and `Psi_i`, the
 //! team keeps the cross blocks of the last event, and Eq. 10 rebuilds the rest. Why the two are
 //! equal is explained in `crates/cooploc-estimation/src/estimation/coop.rs`.
@@ -11,7 +12,9 @@
 use cooploc::estimation::PositionFixSample;
 use cooploc::estimation::fix::{FixOutcome, position_fix_measurement, update_position_fix};
 use cooploc::estimation::linear::LinearPlatform;
-use cooploc::estimation::{CoopMeasurement, CrossCovariances, CrossMode, PlatformFilter, cooperative_update};
+use cooploc::estimation::{
+    CoopMeasurement, CrossCovariances, CrossMode, PlatformFilter, UpdateOptions, cooperative_update, cooperative_update_with,
+};
 use cooploc::time::TimeUs;
 use nalgebra::{DMatrix, DVector, Vector3};
 use proptest::prelude::*;
@@ -74,7 +77,9 @@ fn rel_close(a: &DMatrix<f64>, b: &DMatrix<f64>, tol: f64) -> bool {
     (a - b).amax() <= tol * scale
 }
 
-fn run_random_team(seed: u64, platforms: usize, ops: usize) -> Result<(), TestCaseError> {
+/// A random team's run; at each cooperative event every platform that does not broadcast is
+/// a bystander with probability `bystander_p` (0: none, the others are left out).
+fn run_random_team(seed: u64, platforms: usize, ops: usize, bystander_p: f64) -> Result<(), TestCaseError> {
     let mut rng = ChaCha8Rng::seed_from_u64(seed);
     let dims: Vec<usize> = (0..platforms).map(|_| rng.random_range(2..=5)).collect();
     let mut offsets = Vec::new();
@@ -168,9 +173,24 @@ fn run_random_team(seed: u64, platforms: usize, ops: usize) -> Result<(), TestCa
                     measurements.push(CoopMeasurement::Linear { blocks, residual: &z - predicted, r: r.clone() });
                     rows.push((big_h, z, r));
                 }
-                let outcome = cooperative_update(&mut cross, &snapshots, &measurements, CrossMode::Propagate).unwrap();
+                let bystanders: Vec<usize> = if bystander_p > 0.0 {
+                    (0..platforms).filter(|i| !participants.contains(i) && rng.random_bool(bystander_p)).collect()
+                } else {
+                    Vec::new()
+                };
+                let opts = UpdateOptions {
+                    bystanders: bystanders.iter().map(|&i| i as u16).collect(),
+                    ..UpdateOptions::new(CrossMode::Propagate)
+                };
+                let outcome = cooperative_update_with(&mut cross, &snapshots, &measurements, &opts).unwrap();
                 for c in &outcome.corrections {
                     team[c.id as usize].apply_joint(&c.dx, &c.p).unwrap();
+                }
+                // Each bystander the store knows takes its share; one it does not know is
+                // uncorrelated with every broadcaster, and its gain in the reference is zero.
+                for b in &outcome.bystanders {
+                    prop_assert!(bystanders.contains(&(b.id as usize)), "a share for {} that is no bystander", b.id);
+                    team[b.id as usize].apply_bystander(&b.a, &b.b).unwrap();
                 }
                 // The reference processes the stacked measurement in one update.
                 let m_total: usize = rows.iter().map(|(_, z, _)| z.len()).sum();
@@ -185,7 +205,8 @@ fn run_random_team(seed: u64, platforms: usize, ops: usize) -> Result<(), TestCa
                     r.view_mut((row, row), (k, k)).copy_from(rr);
                     row += k;
                 }
-                joint.update(&h, &z, &r, &participants);
+                let active: Vec<usize> = participants.iter().chain(&bystanders).copied().collect();
+                joint.update(&h, &z, &r, &active);
             }
         }
         // Every block agrees, diagonal and (through Eq. 10) off-diagonal.
@@ -221,7 +242,21 @@ proptest! {
         platforms in 2usize..=6,
         ops in 1usize..60,
     ) {
-        run_random_team(seed, platforms, ops)?;
+        run_random_team(seed, platforms, ops, 0.0)?;
+    }
+
+    /// Epochs that involve only the platforms that ranged: the others take their share as
+    /// bystanders (all of them, or some, the rest left out), and the team still ends where the
+    /// joint filter does, to 1e-9. With every non-broadcaster a bystander, that is the joint
+    /// filter over every platform, as if all had broadcast.
+    #[test]
+    fn subset_epochs_with_bystanders_equal_the_joint_filter_over_every_platform(
+        seed in any::<u64>(),
+        platforms in 3usize..=7,
+        ops in 1usize..60,
+        all in any::<bool>(),
+    ) {
+        run_random_team(seed, platforms, ops, if all { 1.0 } else { 0.5 })?;
     }
 }
 

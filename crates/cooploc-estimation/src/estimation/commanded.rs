@@ -349,6 +349,14 @@ impl PlatformFilter for CommandedFilter {
         self.psi = Mat5::identity();
         Ok(())
     }
+    fn apply_bystander(&mut self, a: &DVector<f64>, b: &DMatrix<f64>) -> Result<(), EstimationError> {
+        let p = DMatrix::from_column_slice(DIM, DIM, self.p.as_slice());
+        let psi = DMatrix::from_column_slice(DIM, DIM, self.psi.as_slice());
+        let (dx, p) = super::platform::bystander_posterior(&p, &psi, a, b)?;
+        self.inject(dx.as_slice());
+        self.p = Mat5::from_column_slice(p.as_slice());
+        Ok(())
+    }
     fn set_track_psi(&mut self, on: bool) {
         self.track_psi = on;
         if !on {

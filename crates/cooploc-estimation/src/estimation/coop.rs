@@ -538,11 +538,20 @@ pub struct UpdateOptions {
     /// divided by the weight `w = sqrt(c m / (2 NIS))` (the Huber weight of its Mahalanobis
     /// distance), so that it pulls like a distance, not like its square. `None`: no weighting.
     pub huber_nis: Option<f64>,
+    /// Platforms of the store that did not broadcast and take their own share of the update
+    /// (*bystanders*: every node running the update knows they will). With the exact prior,
+    /// each gets a [`BystanderShare`] and its cross blocks with every other non-broadcaster are
+    /// updated too, so that the team ends where the joint filter over every platform would
+    /// (`tests/equivalence.rs`). Any other platform of the store that did not broadcast is
+    /// *left out*: it applies nothing, as if its gain were zero (its blocks with the
+    /// broadcasters still change, its blocks with the other left-out ones do not). A platform
+    /// that broadcast and is listed is refused (`DuplicatePlatform`).
+    pub bystanders: Vec<PlatformId>,
 }
 
 impl UpdateOptions {
     pub fn new(mode: CrossMode) -> Self {
-        Self { mode, prior: JointPrior::Exact, gate_chi2: None, huber_nis: None }
+        Self { mode, prior: JointPrior::Exact, gate_chi2: None, huber_nis: None, bystanders: Vec::new() }
     }
 
     /// The gate for a false-rejection probability `p` of a consistent filter, per measurement.
@@ -566,6 +575,20 @@ pub struct Correction {
     pub p: DMatrix<f64>,
 }
 
+/// A bystander's share of a joint update it did not broadcast for ([`UpdateOptions::bystanders`]),
+/// in the coordinates of its store blocks (its `Psi` since its store reference): with
+/// `X = Psi_P C_Pk` its column of the participants' cross-covariances and `S` the innovation
+/// covariance, `a = X^T H^T S^-1 (z - h)` and `b = X^T H^T S^-1 H X`. The bystander applies
+/// `dx = Psi a` and `P - Psi b Psi^T` and keeps its `Psi`
+/// ([`crate::estimation::PlatformFilter::apply_bystander`]): its gain is the joint filter's,
+/// `K_k = P_kP H^T S^-1`, without its state ever entering the update.
+#[derive(Debug, Clone, PartialEq)]
+pub struct BystanderShare {
+    pub id: PlatformId,
+    pub a: DVector<f64>,
+    pub b: DMatrix<f64>,
+}
+
 /// What a joint update produced.
 #[derive(Debug, Clone)]
 pub struct EventOutcome {
@@ -583,6 +606,10 @@ pub struct EventOutcome {
     /// The Huber weight of each measurement ([`UpdateOptions::huber_nis`]): 1 unweighted, 0
     /// gated; empty without weighting.
     pub robust_weights: Vec<f64>,
+    /// The share of each bystander the store knows ([`UpdateOptions::bystanders`]), in
+    /// platform id order; one the store does not know is uncorrelated with every participant
+    /// and has nothing to apply. Empty with the bound prior or without cross-covariances.
+    pub bystanders: Vec<BystanderShare>,
 }
 
 /// The paper's joint update at a ranging epoch, as every node runs it.
@@ -792,6 +819,9 @@ pub fn cooperative_update_with(
         }
         n += s.dim();
     }
+    if let Some(&k) = opts.bystanders.iter().find(|k| offset.contains_key(k)) {
+        return Err(EstimationError::DuplicatePlatform(k));
+    }
     let find = |id: PlatformId| snapshots.iter().find(|s| s.id == id);
 
     // Linearised measurements (stacked once the prior is known and the gate has run).
@@ -845,6 +875,8 @@ pub fn cooperative_update_with(
             dx: DVector::zeros(n),
             p: p.clone(),
             passive: passive.clone(),
+            passive_white: None,
+            white_residual: DVector::zeros(0),
             diagnostics: UpdateDiagnostics { innovation: DVector::zeros(0), innovation_cov: DMatrix::zeros(0, 0), nis: 0.0 },
         }
     } else {
@@ -857,6 +889,7 @@ pub fn cooperative_update_with(
     if bound {
         cross.clear();
     }
+    let mut bystanders = Vec::new();
     if mode == CrossMode::Propagate {
         store_pairs(cross, snapshots, &layout, &up.p);
         if let Some(x) = &up.passive {
@@ -866,10 +899,50 @@ pub fn cooperative_update_with(
                     cross.set(s.id, *k, dense::block(x, (o, *col), (d, *dk)));
                 }
             }
+            bystanders = bystander_shares(cross, &opts.bystanders, &passive_ids, &up);
         }
     }
     let corrections = corrections(snapshots, &layout, &up.dx, own_blocks);
-    Ok(EventOutcome { corrections, diagnostics: up.diagnostics, prior_covariance: p, gated, weights, robust_weights })
+    Ok(EventOutcome { corrections, diagnostics: up.diagnostics, prior_covariance: p, gated, weights, robust_weights, bystanders })
+}
+
+/// The bystanders' shares of an exact update (see [`BystanderShare`]), and the cross blocks of
+/// every pair of non-broadcasters one of which at least is a bystander: `C_km - Z_k^T Z_m`
+/// with `Z = L^-1 H X` the whitened passive columns (the joint filter's
+/// `P_km - K_k H P_Pm`, whoever else's gain is zero). Pairs of left-out platforms keep
+/// their blocks. With nothing measured (every range gated), nothing changes.
+fn bystander_shares(
+    cross: &mut CrossCovariances,
+    listed: &[PlatformId],
+    passive_ids: &[(PlatformId, usize, usize)],
+    up: &kalman::JointUpdate,
+) -> Vec<BystanderShare> {
+    let Some(z) = up.passive_white.as_ref().filter(|z| z.nrows() > 0) else {
+        return passive_ids
+            .iter()
+            .filter(|(k, _, _)| listed.contains(k))
+            .map(|&(id, _, d)| BystanderShare { id, a: DVector::zeros(d), b: DMatrix::zeros(d, d) })
+            .collect();
+    };
+    let mut shares = Vec::new();
+    for (i, &(k, ck, dk)) in passive_ids.iter().enumerate() {
+        let zk = z.columns(ck, dk);
+        let by_k = listed.contains(&k);
+        if by_k {
+            let mut b = zk.tr_mul(&zk);
+            kalman::symmetrize(&mut b);
+            shares.push(BystanderShare { id: k, a: zk.tr_mul(&up.white_residual), b });
+        }
+        for &(m, cm, dm) in &passive_ids[i + 1..] {
+            if !(by_k || listed.contains(&m)) {
+                continue;
+            }
+            let mut c = cross.get(k, m).unwrap_or_else(|| DMatrix::zeros(dk, dm));
+            c.gemm_tr(-1.0, &zk, &z.columns(cm, dm), 1.0);
+            cross.set(k, m, c);
+        }
+    }
+    shares
 }
 
 /// Each participant's own block of the joint posterior (`layout`: its offset and dimension in
@@ -1014,6 +1087,7 @@ pub fn centralized_local_update(
         gated: Vec::new(),
         weights: Vec::new(),
         robust_weights: Vec::new(),
+        bystanders: Vec::new(),
     })
 }
 

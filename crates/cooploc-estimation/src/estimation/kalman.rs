@@ -97,6 +97,12 @@ pub struct JointUpdate {
     pub p: DMatrix<f64>,
     /// `(I - K H) X` for the passive column block `X` given to [`joint_update`].
     pub passive: Option<DMatrix<f64>>,
+    /// `L^-1 H X` (`S = L L^T`, the innovation covariance) for that block: the whitened
+    /// correlation of the passive columns with the innovation, from which a passive platform's
+    /// own share of the update is built ([`crate::estimation::coop`], bystanders).
+    pub passive_white: Option<DMatrix<f64>>,
+    /// `L^-1 (z - h)`: the whitened innovation.
+    pub white_residual: DVector<f64>,
     pub diagnostics: UpdateDiagnostics,
 }
 
@@ -284,7 +290,7 @@ fn update_by_rows(
     let p_post = super::dense::symmetric_downdate(p, &w, &w_t);
     let dx = w.tr_mul(&white_residual);
     let nis = white_residual.norm_squared();
-    let passive = match passive {
+    let (passive, passive_white) = match passive {
         Some(x) => {
             // (I - K H) X = X - W^T L^-1 (H X)
             let hx = sparse_mul_transposed(&x.transpose(), nonzeros).transpose();
@@ -293,9 +299,9 @@ fn update_by_rows(
                 .ok_or(EstimationError::NotPositiveDefinite { what: "innovation covariance factor" })?;
             let mut out = x.clone();
             out.gemm_tr(-1.0, &w, &z, 1.0);
-            Some(out)
+            (Some(out), Some(z))
         }
-        None => None,
+        None => (None, None),
     };
     check_finite(&p_post, "posterior joint covariance")?;
     check_finite(&dx, "joint state correction")?;
@@ -303,6 +309,8 @@ fn update_by_rows(
         dx,
         p: p_post,
         passive,
+        passive_white,
+        white_residual,
         diagnostics: UpdateDiagnostics { innovation: residual.clone(), innovation_cov: s, nis },
     })
 }

@@ -100,4 +100,10 @@ impl PlatformFilter for LinearPlatform {
         self.psi = DMatrix::identity(self.x.len(), self.x.len());
         Ok(())
     }
+    fn apply_bystander(&mut self, a: &DVector<f64>, b: &DMatrix<f64>) -> Result<(), EstimationError> {
+        let (dx, p) = super::platform::bystander_posterior(&self.p, &self.psi, a, b)?;
+        self.x += dx;
+        self.p = p;
+        Ok(())
+    }
 }

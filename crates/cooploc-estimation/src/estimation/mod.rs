@@ -41,8 +41,8 @@ pub mod team;
 pub mod unicycle;
 
 pub use coop::{
-    BoundScope, CoopMeasurement, Correction, CrossCovariances, CrossMode, EventOutcome, JointPrior, StoreError, StoreRef,
-    UpdateOptions, cooperative_update, cooperative_update_with,
+    BoundScope, BystanderShare, CoopMeasurement, Correction, CrossCovariances, CrossMode, EventOutcome, JointPrior, StoreError,
+    StoreRef, UpdateOptions, cooperative_update, cooperative_update_with,
 };
 pub use error::EstimationError;
 pub use inputs::{ImuSample, OdometerSample, PositionFixSample, RangeSample, WheelSample};

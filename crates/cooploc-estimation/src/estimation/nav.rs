@@ -361,6 +361,12 @@ impl PlatformFilter for NavFilter {
             NavFilter::Planar(f) => f.apply_joint(dx, p),
         }
     }
+    fn apply_bystander(&mut self, a: &DVector<f64>, b: &DMatrix<f64>) -> Result<(), EstimationError> {
+        match self {
+            NavFilter::Ins(f) => f.apply_bystander(a, b),
+            NavFilter::Planar(f) => f.apply_bystander(a, b),
+        }
+    }
     fn set_track_psi(&mut self, on: bool) {
         match self {
             NavFilter::Ins(f) => f.set_track_psi(on),

@@ -101,6 +101,14 @@ pub trait PlatformFilter {
     /// Writes back this platform's block of a joint update: injects `dx`, takes `p` as its
     /// covariance, and restarts `Psi` (paper Step 5). On error nothing changes.
     fn apply_joint(&mut self, dx: &DVector<f64>, p: &DMatrix<f64>) -> Result<(), EstimationError>;
+    /// Takes this platform's share of a joint update it did not broadcast for, as a bystander
+    /// ([`crate::estimation::coop::BystanderShare`]): injects `Psi a`, takes `P - Psi b Psi^T`
+    /// as its covariance, and keeps `Psi` (times the reset Jacobian of the injection, as a local
+    /// update does), so that its store blocks stay in the coordinates of its store reference.
+    /// On error nothing changes. Filters that do not support it say so.
+    fn apply_bystander(&mut self, _a: &DVector<f64>, _b: &DMatrix<f64>) -> Result<(), EstimationError> {
+        Err(EstimationError::NotApplicable("this filter cannot take a bystander's share of a joint update"))
+    }
     /// Turns the bookkeeping of `Psi` on or off. A method that never reconstructs
     /// cross-covariances (dead reckoning, no-propagation, covariance intersection) may save the
     /// work; the default keeps it on.
@@ -144,6 +152,9 @@ impl<T: PlatformFilter + ?Sized> PlatformFilter for Box<T> {
     fn apply_joint(&mut self, dx: &DVector<f64>, p: &DMatrix<f64>) -> Result<(), EstimationError> {
         (**self).apply_joint(dx, p)
     }
+    fn apply_bystander(&mut self, a: &DVector<f64>, b: &DMatrix<f64>) -> Result<(), EstimationError> {
+        (**self).apply_bystander(a, b)
+    }
     fn set_track_psi(&mut self, on: bool) {
         (**self).set_track_psi(on)
     }
@@ -159,6 +170,33 @@ pub fn check_joint_writeback(n: usize, dx: &DVector<f64>, p: &DMatrix<f64>) -> R
     }
     super::kalman::check_finite(dx, "joint correction")?;
     super::kalman::check_finite(p, "joint posterior block")
+}
+
+/// A bystander's correction and posterior covariance ([`PlatformFilter::apply_bystander`]):
+/// `(Psi a, P - Psi b Psi^T)`, checked (sizes, finite, the posterior symmetric positive
+/// semi-definite).
+pub fn bystander_posterior(
+    p: &DMatrix<f64>,
+    psi: &DMatrix<f64>,
+    a: &DVector<f64>,
+    b: &DMatrix<f64>,
+) -> Result<(DVector<f64>, DMatrix<f64>), EstimationError> {
+    let n = p.nrows();
+    if a.len() != n {
+        return Err(EstimationError::DimensionMismatch { what: "bystander's correction", expected: n, got: a.len() });
+    }
+    if b.nrows() != n || b.ncols() != n {
+        return Err(EstimationError::DimensionMismatch { what: "bystander's covariance reduction", expected: n, got: b.nrows() });
+    }
+    super::kalman::check_finite(a, "bystander's correction")?;
+    super::kalman::check_finite(b, "bystander's covariance reduction")?;
+    let dx = psi * a;
+    let mut post = p - psi * b * psi.transpose();
+    super::kalman::symmetrize(&mut post);
+    if !super::kalman::is_psd(&post, 1e-9) {
+        return Err(EstimationError::NotPositiveDefinite { what: "a bystander's posterior covariance" });
+    }
+    Ok((dx, post))
 }
 
 /// Validates the argument of [`PlatformFilter::add_noise`] for a state of size `n`: square of

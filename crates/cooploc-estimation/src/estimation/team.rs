@@ -13,8 +13,8 @@ use serde::{Deserialize, Serialize};
 use super::EstimationError;
 use super::ci::ci_update;
 use super::coop::{
-    CoopMeasurement, Correction, CrossCovariances, CrossMode, JointPrior, UpdateOptions, centralized_local_update,
-    cooperative_update, cooperative_update_with,
+    CoopMeasurement, Correction, CrossCovariances, CrossMode, UpdateOptions, centralized_local_update, cooperative_update,
+    cooperative_update_with,
 };
 use super::kalman::{self, LinearizedMeasurement, UpdateDiagnostics};
 use super::platform::{PlatformFilter, PlatformId, Snapshot};
@@ -243,7 +243,7 @@ impl<F: PlatformFilter> Team<F> {
         if measurements.is_empty() || self.method == Method::DeadReckoning {
             return Ok((None, Vec::new()));
         }
-        let opts = |mode| UpdateOptions { mode, prior: JointPrior::Exact, gate_chi2: Some(gate), huber_nis };
+        let opts = |mode| UpdateOptions { gate_chi2: Some(gate), huber_nis, ..UpdateOptions::new(mode) };
         let snapshots = self.snapshots();
         let weights_of = |out: &super::coop::EventOutcome| {
             if out.robust_weights.len() == measurements.len() {

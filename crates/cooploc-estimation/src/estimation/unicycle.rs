@@ -67,6 +67,13 @@ macro_rules! planar_platform_filter {
             ) -> Result<(), $crate::estimation::EstimationError> {
                 self.core.apply_joint(dx, p)
             }
+            fn apply_bystander(
+                &mut self,
+                a: &nalgebra::DVector<f64>,
+                b: &nalgebra::DMatrix<f64>,
+            ) -> Result<(), $crate::estimation::EstimationError> {
+                self.core.apply_bystander(a, b)
+            }
             fn set_track_psi(&mut self, on: bool) {
                 self.core.set_track_psi(on)
             }
@@ -169,6 +176,14 @@ impl PlatformFilter for PlanarCore {
         self.psi = Matrix3::identity();
         Ok(())
     }
+    fn apply_bystander(&mut self, a: &DVector<f64>, b: &DMatrix<f64>) -> Result<(), EstimationError> {
+        let p = DMatrix::from_column_slice(3, 3, self.p.as_slice());
+        let psi = DMatrix::from_column_slice(3, 3, self.psi.as_slice());
+        let (dx, p) = super::platform::bystander_posterior(&p, &psi, a, b)?;
+        self.inject(&Vector3::new(dx[0], dx[1], dx[2]));
+        self.p = Matrix3::from_column_slice(p.as_slice());
+        Ok(())
+    }
     fn set_track_psi(&mut self, on: bool) {
         self.track_psi = on;
         if !on {
@@ -224,6 +239,31 @@ planar_platform_filter!(UnicycleFilter);
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// A bystander's share on a planar core: `Psi a` injected (yaw wrapped), `P - Psi b Psi^T`
+    /// taken, `Psi` kept; an indefinite result is refused and changes nothing.
+    #[test]
+    fn a_bystanders_share_is_taken_through_psi_and_keeps_it() {
+        let p0 = Matrix3::new(4.0, 0.5, 0.1, 0.5, 3.0, 0.2, 0.1, 0.2, 0.5);
+        let mut c = PlanarCore::new(Vector3::new(1.0, 2.0, 3.1), p0, -0.3).unwrap();
+        let phi = Matrix3::new(1.0, 0.0, -0.4, 0.0, 1.0, 0.9, 0.0, 0.0, 1.0);
+        c.step(&phi, &(Matrix3::identity() * 0.01), &Vector3::zeros());
+        let (p1, psi, x1) = (c.p, c.psi, c.x);
+        assert_ne!(psi, Matrix3::identity());
+        let a = DVector::from_column_slice(&[0.1, -0.2, 0.1]);
+        let b = DMatrix::from_column_slice(3, 3, &[0.5, 0.1, 0.0, 0.1, 0.4, 0.05, 0.0, 0.05, 0.1]);
+        c.apply_bystander(&a, &b).unwrap();
+        let psi_d = DMatrix::from_column_slice(3, 3, psi.as_slice());
+        let dx = &psi_d * &a;
+        let want = DMatrix::from_column_slice(3, 3, p1.as_slice()) - &psi_d * &b * psi_d.transpose();
+        assert!((DMatrix::from_column_slice(3, 3, c.p.as_slice()) - want).amax() < 1e-12);
+        assert_eq!(c.psi, psi);
+        assert!((c.x[0] - x1[0] - dx[0]).abs() < 1e-12 && (c.x[1] - x1[1] - dx[1]).abs() < 1e-12);
+        assert!((c.x[2] - wrap_angle(x1[2] + dx[2])).abs() < 1e-12);
+        let before = (c.p, c.psi, c.x);
+        assert!(c.apply_bystander(&a, &(b * 100.0)).is_err());
+        assert_eq!((c.p, c.psi, c.x), before);
+    }
 
     #[test]
     fn wraps_angles() {

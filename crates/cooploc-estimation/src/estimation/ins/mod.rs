@@ -1205,6 +1205,20 @@ impl PlatformFilter for InsFilter {
         Ok(())
     }
 
+    fn apply_bystander(&mut self, a: &DVector<f64>, b: &DMatrix<f64>) -> Result<(), EstimationError> {
+        self.flush()?;
+        let p = DMatrix::from_column_slice(ERROR_DIM, ERROR_DIM, self.p.get().as_slice());
+        let psi = DMatrix::from_column_slice(ERROR_DIM, ERROR_DIM, self.psi_t.get().transpose().as_slice());
+        let (dx, p) = crate::estimation::platform::bystander_posterior(&p, &psi, a, b)?;
+        self.p.spare_mut().copy_from_slice(p.as_slice());
+        if self.track_psi {
+            let now = *self.psi_t.get();
+            *self.psi_t.spare_mut() = now;
+        }
+        // The injection's error reset, of P and of Psi, as after a local update.
+        self.finish_local_update(&to_vector16(&dx))
+    }
+
     fn add_noise(&mut self, q: &DMatrix<f64>) -> Result<(), EstimationError> {
         crate::estimation::platform::check_noise(ERROR_DIM, q)?;
         self.flush()?;

@@ -444,6 +444,38 @@ fn apply_joint_uses_reset_jacobian() {
     assert_eq!(f, snapshot);
 }
 
+/// A bystander's share (`coop::BystanderShare`): `Psi a` injected, `P - Psi b Psi^T` reset with
+/// the injection's `G`, and `Psi` kept (times `G`), as after a local update; a share that would
+/// leave the covariance indefinite, or of the wrong size, is refused and changes nothing.
+#[test]
+fn a_bystanders_share_keeps_psi_and_resets_with_the_injection() {
+    let mut rng = ChaCha8Rng::seed_from_u64(11);
+    let mut f = busy_filter(&mut rng);
+    let n = Normal::new(0.0, 0.01).unwrap();
+    let a = DVector::from_fn(ERROR_DIM, |_, _| n.sample(&mut rng));
+    let (p0, psi0, x0) = (f.covariance(), f.psi(), f.x);
+    let psi_inv = psi0.clone().try_inverse().unwrap();
+    // b such that Psi b Psi^T is half the covariance
+    let b = 0.5 * &psi_inv * &p0 * psi_inv.transpose();
+    f.apply_bystander(&a, &b).unwrap();
+    let dx = &psi0 * &a;
+    let g = to_dmatrix(&reset_jacobian(&to_vector16(&dx)));
+    assert_ne!(g, DMatrix::identity(ERROR_DIM, ERROR_DIM));
+    let expected = &g * (0.5 * &p0) * g.transpose();
+    assert!((f.covariance() - &expected).amax() < 1e-9 * expected.amax());
+    assert!((f.psi() - &g * &psi0).amax() < 1e-12 * psi0.amax());
+    assert_eq!(f.x, x0.injected(&to_vector16(&dx)).unwrap());
+    // Refused: more taken than the covariance holds, a wrong size, a non-finite entry.
+    let snapshot = f;
+    let too_much = 3.0 * &b;
+    assert!(matches!(f.apply_bystander(&a, &too_much), Err(EstimationError::NotPositiveDefinite { .. })));
+    assert!(f.apply_bystander(&DVector::zeros(15), &b).is_err());
+    let mut bad = b.clone();
+    bad[(2, 2)] = f64::NAN;
+    assert!(f.apply_bystander(&a, &bad).is_err());
+    assert_eq!(f, snapshot);
+}
+
 /// Added noise grows the covariance by exactly `q` and leaves the state and `Psi` alone (the
 /// team's cross-covariances stay exact); a wrong-sized, non-finite, asymmetric or indefinite `q`
 /// is refused and changes nothing.
