@@ -198,12 +198,39 @@ fn three_nodes_reproduce_the_experiment_bit_for_bit() {
             assert_eq!(node.stats.epochs_applied, 380, "{method} node {}: {:?}", node.id(), node.stats);
             assert_eq!(node.stats.dropped_inputs() + node.stats.fragments_rejected + node.stats.records_incomplete, 0);
             assert_eq!((node.stats.epochs_partial, node.stats.epoch_disagreements), (0, 0), "{:?}", node.stats);
+            assert_eq!(node.stats.epochs_unranged, 0, "every vehicle ranges at every epoch");
             let truth = p.truth.last().unwrap();
             let err = truth.pos_ned_m - node.filter().position_ned_m();
             let reference_err = outcome.final_error().pos_err_ne_m;
             assert_eq!([err[0], err[1]], reference_err, "{method} node {}: final error differs from the experiment's", node.id());
         }
     }
+}
+
+/// Radios that reach 400 m (the paper's vehicles are 115-750 m apart): no range involves
+/// vehicle 3 in 90 of the 380 epochs, vehicle 2 in 2. Those epochs run among the vehicles that
+/// ranged, and the other takes its share of their update as a bystander (its Psi goes on); the
+/// nodes still equal the offline run bit for bit, where the team does the same.
+#[test]
+fn epochs_among_the_members_that_ranged_equal_the_offline_run() {
+    let mut scenario = Scenario::from_toml_str(PAPER_TOML).unwrap();
+    scenario.ranging.max_range_m = Some(400.0);
+    let world = World::new(&scenario).unwrap();
+    let (nodes, sent_ranges) = run_network(&world, Method::Decentralized, "1hz", 1, 0);
+    let inputs = world.run_inputs(1, 0);
+    let reference = run_filter(&world, &inputs, &sent_ranges, Method::Decentralized).unwrap();
+    let mut bystood = Vec::new();
+    for (node, (p, outcome)) in nodes.iter().zip(inputs.platforms.iter().zip(&reference.platforms)) {
+        let st = &node.stats;
+        assert_eq!((st.epochs_applied, st.epochs_partial, st.epoch_disagreements, st.heals), (380, 0, 0, 0), "{st:?}");
+        let unranged =
+            sent_ranges.iter().filter(|(_, r)| !r.iter().any(|x| x.from == node.id() || x.to == node.id())).count() as u64;
+        assert_eq!(st.epochs_unranged, unranged, "node {}", node.id());
+        bystood.push(st.epochs_unranged);
+        let err = p.truth.last().unwrap().pos_ned_m - node.filter().position_ned_m();
+        assert_eq!([err[0], err[1]], outcome.final_error().pos_err_ne_m, "node {}: differs from the offline filter", node.id());
+    }
+    assert_eq!(bystood, vec![0, 2, 90]);
 }
 
 /// A mixed team (sitl/scenarios/mixed.toml): two INS vehicles and two wheeled robots running

@@ -71,7 +71,7 @@
 //! reported. The test depends only on the broadcasts and the store, so every node leaves out
 //! the same ones.
 
-use std::collections::BTreeMap;
+use std::collections::{BTreeMap, BTreeSet};
 
 use nalgebra::{DMatrix, DVector};
 
@@ -610,6 +610,16 @@ pub struct EventOutcome {
     /// platform id order; one the store does not know is uncorrelated with every participant
     /// and has nothing to apply. Empty with the bound prior or without cross-covariances.
     pub bystanders: Vec<BystanderShare>,
+}
+
+/// An epoch among the platforms that ranged: the broadcasts of those `measurements` involve
+/// (in the order given) and the ids of the others, the bystanders of
+/// [`UpdateOptions::bystanders`]. With the exact prior the update on that split ends where the
+/// update on every broadcast does (to rounding; the same bits when nobody is left over).
+pub fn split_ranged(snapshots: &[Snapshot], measurements: &[CoopMeasurement]) -> (Vec<Snapshot>, Vec<PlatformId>) {
+    let involved: BTreeSet<PlatformId> = measurements.iter().flat_map(|m| m.platforms()).collect();
+    let (ranged, others): (Vec<&Snapshot>, Vec<&Snapshot>) = snapshots.iter().partition(|s| involved.contains(&s.id));
+    (ranged.into_iter().cloned().collect(), others.into_iter().map(|s| s.id).collect())
 }
 
 /// The paper's joint update at a ranging epoch, as every node runs it.
@@ -1202,6 +1212,81 @@ mod tests {
             assert_eq!(fast_store.digest(), general_store.digest(), "trial {trial}: the stores");
         }
         assert!(ok > 200 && refused >= 40, "{ok} updates, {refused} refusals");
+    }
+
+    /// An epoch among the platforms that ranged, the others bystanders ([`split_ranged`]), ends
+    /// where the update on every broadcast does: the participants' corrections, each
+    /// bystander's share taken through its own `Psi`, and every cross-covariance rebuilt by
+    /// Eq. 10, to 1e-9, over random teams of five with random `Psi` and range measurements
+    /// among a random few.
+    #[test]
+    fn an_epoch_among_the_ranged_with_bystanders_equals_the_epoch_on_every_broadcast() {
+        let mut rng = ChaCha8Rng::seed_from_u64(36);
+        let close = |a: &DMatrix<f64>, b: &DMatrix<f64>, what: &str| {
+            let scale = b.amax().max(1.0);
+            assert!((a - b).amax() <= 1e-9 * scale, "{what}: {a} vs {b}");
+        };
+        let mut bystood = 0;
+        for trial in 0..50 {
+            let (n, d) = (5, 4);
+            let (p, mut snaps) = joint(&mut rng, n, d);
+            for s in &mut snaps {
+                s.psi = DMatrix::identity(d, d) + DMatrix::from_fn(d, d, |_, _| rng.random_range(-0.3..0.3));
+            }
+            let inv: Vec<DMatrix<f64>> = snaps.iter().map(|s| s.psi.clone().try_inverse().unwrap()).collect();
+            let mut cross = CrossCovariances::new();
+            for i in 0..n {
+                for j in i + 1..n {
+                    let pij = p.view((i * d, j * d), (d, d)).into_owned();
+                    cross.set(snaps[i].id, snaps[j].id, &inv[i] * pij * inv[j].transpose());
+                }
+            }
+            // Ranges among two or three of them.
+            let mut ids: Vec<PlatformId> = snaps.iter().map(|s| s.id).collect();
+            while ids.len() > 2 + trial % 2 {
+                ids.remove(rng.random_range(0..ids.len()));
+            }
+            let ranges: Vec<CoopMeasurement> = ids
+                .windows(2)
+                .map(|w| CoopMeasurement::Range {
+                    from: w[0],
+                    to: w[1],
+                    range_m: 100.0 * f64::from(w[1] - w[0]) + 3.0,
+                    sigma_m: 1.0,
+                })
+                .collect();
+            let mut every = cross.clone();
+            let all = cooperative_update(&mut every, &snaps, &ranges, CrossMode::Propagate).unwrap();
+            let (ranged, bystanders) = split_ranged(&snaps, &ranges);
+            assert_eq!(ranged.iter().map(|s| s.id).collect::<Vec<_>>(), ids);
+            let opts = UpdateOptions { bystanders: bystanders.clone(), ..UpdateOptions::new(CrossMode::Propagate) };
+            let among = cooperative_update_with(&mut cross, &ranged, &ranges, &opts).unwrap();
+            assert_eq!(among.bystanders.iter().map(|b| b.id).collect::<Vec<_>>(), bystanders);
+            // Each platform's correction, posterior and Psi after (identity for the participants).
+            type Posterior = (DVector<f64>, DMatrix<f64>, DMatrix<f64>);
+            let mut post: BTreeMap<PlatformId, Posterior> = BTreeMap::new();
+            for c in &among.corrections {
+                post.insert(c.id, (c.dx.clone(), c.p.clone(), DMatrix::identity(d, d)));
+            }
+            for b in &among.bystanders {
+                let s = snaps.iter().find(|s| s.id == b.id).unwrap();
+                let (dx, pk) = crate::estimation::platform::bystander_posterior(&s.covariance, &s.psi, &b.a, &b.b).unwrap();
+                post.insert(b.id, (dx, pk, s.psi.clone()));
+                bystood += 1;
+            }
+            for c in &all.corrections {
+                let (dx, pk, _) = &post[&c.id];
+                close(&DMatrix::from_column_slice(d, 1, dx.as_slice()), &DMatrix::from_column_slice(d, 1, c.dx.as_slice()), "dx");
+                close(pk, &c.p, "P_kk");
+            }
+            for (a, (_, _, psi_a)) in &post {
+                for (b, (_, _, psi_b)) in post.range(a + 1..) {
+                    let rebuilt = psi_a * cross.get(*a, *b).unwrap() * psi_b.transpose();
+                    close(&rebuilt, &every.get(*a, *b).unwrap(), &format!("trial {trial}: P_{a}{b}"));
+                }
+            }
+        }
+        assert!(bystood >= 100, "{bystood} bystanders' shares");
     }
 
     /// The digest is kept between changes and recomputed after every one: each change moves it,

@@ -42,7 +42,7 @@ pub mod unicycle;
 
 pub use coop::{
     BoundScope, BystanderShare, CoopMeasurement, Correction, CrossCovariances, CrossMode, EventOutcome, JointPrior, StoreError,
-    StoreRef, UpdateOptions, cooperative_update, cooperative_update_with,
+    StoreRef, UpdateOptions, cooperative_update, cooperative_update_with, split_ranged,
 };
 pub use error::EstimationError;
 pub use inputs::{ImuSample, OdometerSample, PositionFixSample, RangeSample, WheelSample};

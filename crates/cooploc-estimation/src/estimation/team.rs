@@ -129,6 +129,25 @@ impl<F: PlatformFilter> Team<F> {
         self.ids.iter().zip(&self.filters).map(|(&id, f)| f.snapshot(id)).collect()
     }
 
+    /// The decentralized joint update as the nodes run it: among the platforms the
+    /// measurements involve, each other one a bystander that takes its share
+    /// ([`super::coop::split_ranged`]); the participants' corrections are returned, to write
+    /// back.
+    fn decentralized_event(
+        &mut self,
+        measurements: &[CoopMeasurement],
+        opts: UpdateOptions,
+    ) -> Result<super::coop::EventOutcome, EstimationError> {
+        let (ranged, bystanders) = super::coop::split_ranged(&self.snapshots(), measurements);
+        let opts = UpdateOptions { bystanders, ..opts };
+        let out = cooperative_update_with(&mut self.cross, &ranged, measurements, &opts)?;
+        for s in &out.bystanders {
+            let i = self.index(s.id)?;
+            self.filters[i].apply_bystander(&s.a, &s.b)?;
+        }
+        Ok(out)
+    }
+
     fn write_back(&mut self, corrections: &[Correction]) -> Result<(), EstimationError> {
         for c in corrections {
             let i = self.index(c.id)?;
@@ -284,7 +303,12 @@ impl<F: PlatformFilter> Team<F> {
                 let w = weights_of(&out);
                 (out.corrections, Some(out.diagnostics), w)
             }
-            Method::Decentralized | Method::Centralized => {
+            Method::Decentralized => {
+                let out = self.decentralized_event(measurements, opts(CrossMode::Propagate))?;
+                let w = weights_of(&out);
+                (out.corrections, Some(out.diagnostics), w)
+            }
+            Method::Centralized => {
                 let out = cooperative_update_with(&mut self.cross, &snapshots, measurements, &opts(CrossMode::Propagate))?;
                 let w = weights_of(&out);
                 (out.corrections, Some(out.diagnostics), w)
@@ -308,7 +332,11 @@ impl<F: PlatformFilter> Team<F> {
                 let out = cooperative_update(&mut CrossCovariances::new(), &self.snapshots(), measurements, CrossMode::Ignore)?;
                 (out.corrections, Some(out.diagnostics))
             }
-            Method::Decentralized | Method::Centralized => {
+            Method::Decentralized => {
+                let out = self.decentralized_event(measurements, UpdateOptions::new(CrossMode::Propagate))?;
+                (out.corrections, Some(out.diagnostics))
+            }
+            Method::Centralized => {
                 let snapshots = self.snapshots();
                 let out = cooperative_update(&mut self.cross, &snapshots, measurements, CrossMode::Propagate)?;
                 (out.corrections, Some(out.diagnostics))

@@ -66,8 +66,14 @@
 //!    3 leaving, 7 healed without this, 3 before resends were limited by what they carry, none
 //!    with it).
 //! 3. **Joint update** (Steps 4-5), on the records sorted by platform id. If every record carries
-//!    the same store digest, the exact method runs (the store and the Psi of each record). If
-//!    not, the stores have diverged (a node missed an epoch, ran it on other records, restarted).
+//!    the same store digest, the exact method runs (the store and the Psi of each record),
+//!    among the members the epoch's ranges involve: a member no range involves is a
+//!    *bystander*, its state out of the joint problem; it takes its share of the update
+//!    ([`crate::estimation::BystanderShare`], through its own Psi, which goes on) and every
+//!    node updates the store's blocks between the bystanders, so that the team ends where the
+//!    update on every record would (`tests/equivalence.rs`, to 1e-9; the paper's team with
+//!    radios that reach 400 m, 90 bystander epochs of 380, gives the same final errors to the
+//!    6 digits of the experiment's output). If not, the stores have diverged (a node missed an epoch, ran it on other records, restarted).
 //!    Every node sees the same records, so every node makes the same choice:
 //!    - if a store held by two records or more is *valid for every participant* (the store's
 //!      reference for each, the joint update that last reset its Psi, is the participant's own;
@@ -126,8 +132,8 @@ use crate::estimation::ci::ci_update;
 use crate::estimation::ins::{InsConfig, InsInitialSigma};
 use crate::estimation::nav::{Drive, NavFilter, NavModel, NavState};
 use crate::estimation::{
-    BoundScope, CoopMeasurement, Correction, CrossCovariances, CrossMode, EstimationError, ImuSample, JointPrior, Method,
-    OdometerSample, PlatformFilter, PlatformId, PositionFixSample, RangeSample, StoreRef, UpdateOptions, WheelSample,
+    BoundScope, BystanderShare, CoopMeasurement, Correction, CrossCovariances, CrossMode, EstimationError, ImuSample, JointPrior,
+    Method, OdometerSample, PlatformFilter, PlatformId, PositionFixSample, RangeSample, StoreRef, UpdateOptions, WheelSample,
     cooperative_update_with,
 };
 use crate::protocol::MavMessage;
@@ -429,6 +435,9 @@ pub struct NodeStats {
     pub epochs_excluded: u64,
     /// Epochs the others ran without us while we were frozen, run as they did (our store only).
     pub epochs_bystood: u64,
+    /// Epochs applied (counted in `epochs_applied`) in which no range involved us: the joint
+    /// update ran among those the ranges involve, and we took our share of it as a bystander.
+    pub epochs_unranged: u64,
     /// Epochs known from the team's periodic schedule before anything else said them
     /// ([`NodeConfig::epoch_period_us`]).
     pub epochs_scheduled: u64,
@@ -623,10 +632,14 @@ struct LastEvent {
     ranges: u8,
 }
 
-/// A joint update's result for this node: its own correction, the update's diagnostics (none
-/// for covariance intersection) and the ranges the gate left out.
+/// A joint update's result for this node: its own correction (none when it was a bystander),
+/// its share as a bystander (when the store knows it), the platforms of the records that were
+/// bystanders (their `Psi` goes on), the update's diagnostics (none for covariance
+/// intersection) and the ranges the gate left out.
 struct JointResult {
-    own: Correction,
+    own: Option<Correction>,
+    share: Option<BystanderShare>,
+    bystanders: Vec<PlatformId>,
     diagnostics: Option<crate::estimation::UpdateDiagnostics>,
     gated: Vec<usize>,
 }
@@ -2040,11 +2053,12 @@ impl NodeCore {
             match self.joint_update(&snapshots, &measurements, exact, Vec::new()) {
                 Ok(result) => {
                     if dcl {
-                        // Every participant's Psi restarts here, on every node that ran this.
+                        // Every participant's Psi restarts here, on every node that ran this
+                        // (a bystander's goes on).
                         let digests: Vec<u64> = records.iter().map(|r| r.digest).collect();
                         let r = StoreRef::of_update(epoch, &participants, &digests);
-                        for &p in &participants {
-                            self.cross.set_reference(p, r);
+                        for p in participants.iter().filter(|p| !result.bystanders.contains(p)) {
+                            self.cross.set_reference(*p, r);
                         }
                     }
                     applied = Some(result);
@@ -2055,14 +2069,23 @@ impl NodeCore {
                 }
             }
         }
-        if let Some(JointResult { mut own, diagnostics: diag, gated }) = applied {
+        if let Some(JointResult { mut own, share, diagnostics: diag, gated, .. }) = applied {
             self.stats.ranges_gated += gated.len() as u64;
             if let Some(residual_m) = self.time_to_widen(own_ranges_verdict(self.cfg.id, &records, &ranges, &gated))
                 && let Some(ours) = records.iter().find(|r| r.snapshot.id == self.cfg.id)
+                && let Some(own) = own.as_mut()
             {
                 widen_horizontal(&mut own.p, &ours.snapshot.geometry.position_index, residual_m);
             }
-            if self.replay_from_epoch(t, WriteBack::Joint(&own)).is_err() {
+            // A bystander the store does not know is uncorrelated with every participant: it
+            // has nothing to take.
+            let write_back = match (&own, &share) {
+                (Some(c), _) => WriteBack::Joint(c),
+                (None, Some(s)) => WriteBack::Bystander(s),
+                (None, None) => WriteBack::Nothing,
+            };
+            let took = !matches!(write_back, WriteBack::Nothing);
+            if took && self.replay_from_epoch(t, write_back).is_err() {
                 // Our filter could not take its share: the store no longer matches it. Dropping
                 // the store makes the next epoch's digests differ, and the team heals.
                 self.cross.clear();
@@ -2070,7 +2093,10 @@ impl NodeCore {
                 state = EpochState::COOPLOC_EPOCH_STATE_FAILED;
             } else {
                 self.stats.epochs_applied += 1;
-                self.fresh = false;
+                if own.is_none() {
+                    self.stats.epochs_unranged += 1;
+                }
+                self.fresh &= !took;
                 if dcl {
                     self.own_ref = self.cross.reference(self.cfg.id);
                 }
@@ -2208,13 +2234,13 @@ impl NodeCore {
             return true;
         }
         let snapshots: Vec<_> = later.records.iter().map(|r| r.snapshot.clone()).collect();
-        if self.store_update(&snapshots, &measurements, true, Vec::new()).is_err() {
+        let Ok((_, bystanders)) = self.store_update(&snapshots, &measurements, true, Vec::new()) else {
             return false;
-        }
+        };
         let digests: Vec<u64> = later.records.iter().map(|r| r.digest).collect();
         let r = StoreRef::of_update(later.epoch, &participants, &digests);
-        for &p in &participants {
-            self.cross.set_reference(p, r);
+        for p in participants.iter().filter(|p| !bystanders.contains(p)) {
+            self.cross.set_reference(*p, r);
         }
         true
     }
@@ -2319,47 +2345,64 @@ impl NodeCore {
     ) -> Result<JointResult, EstimationError> {
         let own = |corrections: Vec<Correction>, id| corrections.into_iter().find(|c| c.id == id);
         let id = self.cfg.id;
+        let unknown = EstimationError::UnknownPlatform(id);
         match self.cfg.method {
             Method::NoPropagation => {
                 let opts = UpdateOptions { gate_chi2: self.gate, ..UpdateOptions::new(CrossMode::Ignore) };
                 let o = cooperative_update_with(&mut CrossCovariances::new(), snapshots, measurements, &opts)?;
-                let c = own(o.corrections, id).ok_or(EstimationError::UnknownPlatform(id))?;
-                Ok(JointResult { own: c, diagnostics: Some(o.diagnostics), gated: o.gated })
+                let c = own(o.corrections, id).ok_or(unknown)?;
+                Ok(JointResult {
+                    own: Some(c),
+                    share: None,
+                    bystanders: Vec::new(),
+                    diagnostics: Some(o.diagnostics),
+                    gated: o.gated,
+                })
             }
             Method::Decentralized => {
-                let o = self.store_update(snapshots, measurements, agree, independent)?;
-                let c = own(o.corrections, id).ok_or(EstimationError::UnknownPlatform(id))?;
-                Ok(JointResult { own: c, diagnostics: Some(o.diagnostics), gated: o.gated })
+                let (o, bystanders) = self.store_update(snapshots, measurements, agree, independent)?;
+                let share = o.bystanders.iter().find(|s| s.id == id).cloned();
+                let c = own(o.corrections, id);
+                if c.is_none() && !bystanders.contains(&id) {
+                    return Err(unknown);
+                }
+                Ok(JointResult { own: c, share, bystanders, diagnostics: Some(o.diagnostics), gated: o.gated })
             }
             Method::CovarianceIntersection => {
-                let c = own(ci_update(snapshots, measurements)?, id).ok_or(EstimationError::UnknownPlatform(id))?;
-                Ok(JointResult { own: c, diagnostics: None, gated: Vec::new() })
+                let c = own(ci_update(snapshots, measurements)?, id).ok_or(unknown)?;
+                Ok(JointResult { own: Some(c), share: None, bystanders: Vec::new(), diagnostics: None, gated: Vec::new() })
             }
             Method::DeadReckoning | Method::Centralized => Err(EstimationError::NotApplicable("no joint update")),
         }
     }
 
     /// The decentralized joint update on our store: exact when the stores agree (retried with
-    /// the bound if it fails), else the bound.
+    /// the bound if it fails), else the bound. The exact one runs among the records' platforms
+    /// that the ranges involve, each other one a bystander that takes its share
+    /// ([`crate::estimation::split_ranged`]; returned, with the outcome): the same result as
+    /// with every record, without the bystanders' states in the joint problem. The bound runs
+    /// on every record.
     fn store_update(
         &mut self,
         snapshots: &[crate::estimation::Snapshot],
         measurements: &[CoopMeasurement],
         agree: bool,
         independent: Vec<PlatformId>,
-    ) -> Result<crate::estimation::EventOutcome, EstimationError> {
+    ) -> Result<(crate::estimation::EventOutcome, Vec<PlatformId>), EstimationError> {
         let exact = UpdateOptions { gate_chi2: self.gate, ..UpdateOptions::new(CrossMode::Propagate) };
         let bound = UpdateOptions { prior: JointPrior::Bound { independent, scope: BoundScope::Position }, ..exact.clone() };
-        let first = if agree { &exact } else { &bound };
-        let o = match cooperative_update_with(&mut self.cross, snapshots, measurements, first) {
-            Ok(o) => o,
-            Err(_) if agree => cooperative_update_with(&mut self.cross, snapshots, measurements, &bound)?,
-            Err(e) => return Err(e),
-        };
+        if agree {
+            let (ranged, bystanders) = crate::estimation::split_ranged(snapshots, measurements);
+            let opts = UpdateOptions { bystanders, ..exact };
+            if let Ok(o) = cooperative_update_with(&mut self.cross, &ranged, measurements, &opts) {
+                return Ok((o, opts.bystanders));
+            }
+        }
+        let o = cooperative_update_with(&mut self.cross, snapshots, measurements, &bound)?;
         if !o.weights.is_empty() {
             self.stats.heals += 1;
         }
-        Ok(o)
+        Ok((o, Vec::new()))
     }
 
     #[allow(clippy::too_many_arguments)]

@@ -115,6 +115,8 @@ pub(super) enum WriteBack<'a> {
     Joint(&'a crate::estimation::Correction),
     /// Noise added to our covariance (`Psi` goes on).
     Noise(&'a nalgebra::DMatrix<f64>),
+    /// Our share of a joint update we took no part in but as a bystander (`Psi` goes on).
+    Bystander(&'a crate::estimation::BystanderShare),
 }
 
 /// What became of a local measurement ([`Rewind::local`]).
@@ -420,6 +422,7 @@ impl Rewind {
             WriteBack::Nothing => Ok(()),
             WriteBack::Joint(c) => f.apply_joint(&c.dx, &c.p),
             WriteBack::Noise(q) => f.add_noise(q),
+            WriteBack::Bystander(s) => f.apply_bystander(&s.a, &s.b),
         };
         if let Err(e) = written {
             return Replay::failed(e);
