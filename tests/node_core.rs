@@ -211,26 +211,79 @@ fn three_nodes_reproduce_the_experiment_bit_for_bit() {
 /// vehicle 3 in 90 of the 380 epochs, vehicle 2 in 2. Those epochs run among the vehicles that
 /// ranged, and the other takes its share of their update as a bystander (its Psi goes on); the
 /// nodes still equal the offline run bit for bit, where the team does the same.
+///
+/// On a signed team a member that measured nothing and that nobody ranged at the epoch before
+/// says "no range" in place of its record (one small message for a record's fragments); when a
+/// teammate's record ranges it after all, it sends its record then. The same bits again.
 #[test]
 fn epochs_among_the_members_that_ranged_equal_the_offline_run() {
     let mut scenario = Scenario::from_toml_str(PAPER_TOML).unwrap();
     scenario.ranging.max_range_m = Some(400.0);
     let world = World::new(&scenario).unwrap();
-    let (nodes, sent_ranges) = run_network(&world, Method::Decentralized, "1hz", 1, 0);
     let inputs = world.run_inputs(1, 0);
-    let reference = run_filter(&world, &inputs, &sent_ranges, Method::Decentralized).unwrap();
-    let mut bystood = Vec::new();
-    for (node, (p, outcome)) in nodes.iter().zip(inputs.platforms.iter().zip(&reference.platforms)) {
-        let st = &node.stats;
-        assert_eq!((st.epochs_applied, st.epochs_partial, st.epoch_disagreements, st.heals), (380, 0, 0, 0), "{st:?}");
-        let unranged =
-            sent_ranges.iter().filter(|(_, r)| !r.iter().any(|x| x.from == node.id() || x.to == node.id())).count() as u64;
-        assert_eq!(st.epochs_unranged, unranged, "node {}", node.id());
-        bystood.push(st.epochs_unranged);
-        let err = p.truth.last().unwrap().pos_ned_m - node.filter().position_ned_m();
-        assert_eq!([err[0], err[1]], outcome.final_error().pos_err_ne_m, "node {}: differs from the offline filter", node.id());
+    // (signed, the first copy of each of vehicle 3's words to vehicle 1 lost: asked for, said again)
+    for (signed, lossy) in [(false, false), (true, false), (true, true)] {
+        let mut nodes = start_nodes(&world, Method::Decentralized, 1, 0, Encoding::F64, &|_, _| {});
+        let mut lost = std::collections::BTreeSet::new();
+        let mut net = |from: usize, to: usize, msg: &MavMessage, _wall: u64| {
+            let word =
+                wire::epoch_of(msg).and_then(Result::ok).filter(|a| a.state == wire::EpochState::COOPLOC_EPOCH_STATE_NO_RANGE);
+            !(lossy && from == 2 && to == 0 && word.is_some_and(|a| lost.insert(a.epoch)))
+        };
+        if signed {
+            nodes = nodes
+                .into_iter()
+                .map(|n| {
+                    let mut cfg = n.config().clone();
+                    cfg.authenticated_peers = true;
+                    let (t0, state) = initial_nav_state(&world, 1, 0, n.id()).unwrap();
+                    NodeCore::new(cfg, t0, state).unwrap()
+                })
+                .collect();
+        }
+        let (nodes, sent_ranges) = drive_network(&world, nodes, "1hz", 1, 0, 20, None, &mut net, 0);
+        let reference = run_filter(&world, &inputs, &sent_ranges, Method::Decentralized).unwrap();
+        let mut bystood = Vec::new();
+        let said: u64 = nodes.iter().map(|n| n.stats.no_range_said).sum();
+        for (node, (p, outcome)) in nodes.iter().zip(inputs.platforms.iter().zip(&reference.platforms)) {
+            let st = &node.stats;
+            assert_eq!((st.epochs_applied, st.epochs_partial, st.epoch_disagreements, st.heals), (380, 0, 0, 0), "{st:?}");
+            let unranged =
+                sent_ranges.iter().filter(|(_, r)| !r.iter().any(|x| x.from == node.id() || x.to == node.id())).count() as u64;
+            assert_eq!(st.epochs_unranged, unranged, "node {}", node.id());
+            bystood.push(st.epochs_unranged);
+            // Nothing is lost: every word heard by every teammate, no record asked for again,
+            // and a record sent for each epoch but those of a word that stood.
+            if !lossy {
+                assert_eq!(st.no_range_heard, said - st.no_range_said, "node {}: {st:?}", node.id());
+            }
+            assert_eq!(st.records_resent, 0, "{st:?}");
+            assert_eq!(st.records_sent, 380 - st.no_range_said + st.records_released, "{st:?}");
+            let err = p.truth.last().unwrap().pos_ned_m - node.filter().position_ned_m();
+            assert_eq!(
+                [err[0], err[1]],
+                outcome.final_error().pos_err_ne_m,
+                "node {}: differs from the offline filter",
+                node.id()
+            );
+        }
+        assert_eq!(bystood, vec![0, 2, 90]);
+        let (words, released) = (nodes[2].stats.no_range_said, nodes[2].stats.records_released);
+        let again = nodes[2].stats.no_range_said_again;
+        eprintln!(
+            "signed {signed}, lossy {lossy}: vehicle 3 said no range at {words} epochs ({} lost on the way to vehicle 1, {again} \
+             said again when asked), then sent its record at {released} of them",
+            lost.len()
+        );
+        assert_eq!((lost.is_empty(), again == 0), (!lossy, !lossy));
+        if signed {
+            // Each stretch out of reach costs one record (the first epoch: it was ranged at the
+            // one before) and each return one word (its record follows).
+            assert!(words > 60 && released > 0 && released < 20, "{:?}", nodes[2].stats);
+        } else {
+            assert_eq!(said, 0, "no word on an unsigned team");
+        }
     }
-    assert_eq!(bystood, vec![0, 2, 90]);
 }
 
 /// A mixed team (sitl/scenarios/mixed.toml): two INS vehicles and two wheeled robots running

@@ -121,7 +121,9 @@ impl EpochTally {
             return EpochOutcome::Dropped;
         }
         match a.state {
-            EpochState::COOPLOC_EPOCH_STATE_COLLECTING | EpochState::COOPLOC_EPOCH_STATE_NO_RECORD => {
+            EpochState::COOPLOC_EPOCH_STATE_COLLECTING
+            | EpochState::COOPLOC_EPOCH_STATE_NO_RECORD
+            | EpochState::COOPLOC_EPOCH_STATE_NO_RANGE => {
                 return EpochOutcome::Ignored;
             }
             EpochState::COOPLOC_EPOCH_STATE_STORE_WANTED => {

@@ -454,6 +454,13 @@ pub struct NodeStats {
     /// for a teammate's record.
     pub no_record_said: u64,
     pub no_record_heard: u64,
+    /// Our "no range" words (COOPLOC_EPOCH_STATE_NO_RANGE) sent in place of a record, and sent
+    /// again to a teammate that asked; such words heard from teammates; our records sent after
+    /// a word all the same because a teammate's record ranged us.
+    pub no_range_said: u64,
+    pub no_range_said_again: u64,
+    pub no_range_heard: u64,
+    pub records_released: u64,
     /// Answers to a teammate that asked for our store (the whole store, or paced, a piece of
     /// it), the store fragments they carried, and stores adopted from a teammate.
     pub stores_sent: u64,
@@ -522,6 +529,12 @@ struct Epoch {
     broadcast_late: bool,
     /// Members that said they have no record of this epoch and will send none: not waited for.
     no_record: BTreeSet<PlatformId>,
+    /// Members that said "no range" in place of their record (ours too when we did), with the
+    /// store digest they hold: their share is in unless a record ranges them.
+    words: BTreeMap<PlatformId, u64>,
+    /// Our record and its fragments, held back while our "no range" stands: sent once a
+    /// teammate's record ranges us.
+    withheld: Option<(StateRecord, Vec<MavMessage>)>,
 }
 
 impl Epoch {
@@ -543,7 +556,26 @@ impl Epoch {
             plan_over_at: None,
             broadcast_late: false,
             no_record: BTreeSet::new(),
+            words: BTreeMap::new(),
+            withheld: None,
         }
+    }
+
+    /// Whether a record held ranges `p`: its record is then needed, its word not enough.
+    fn ranges_to(&self, p: PlatformId) -> bool {
+        self.records.values().any(|r| r.ranges.iter().any(|x| x.to == p))
+    }
+
+    /// Whether `p`'s share of the epoch is in: its record, or its word no record contradicts.
+    fn has(&self, p: PlatformId) -> bool {
+        self.records.contains_key(&p) || (self.words.contains_key(&p) && !self.ranges_to(p))
+    }
+
+    /// The members whose share is in (what a COLLECTING status lists).
+    fn settled(&self) -> Vec<PlatformId> {
+        let mut s: BTreeSet<PlatformId> = self.records.keys().copied().collect();
+        s.extend(self.words.keys().copied().filter(|&p| !self.ranges_to(p)));
+        s.into_iter().collect()
     }
 
     /// Every record held, per platform: the first one and its rivals (what the vetting decides
@@ -732,6 +764,14 @@ pub struct NodeCore {
     epoch_resent: BTreeMap<u32, ResendWindow>,
     /// Wall time we last said "no record" of each epoch (within half a retry interval).
     no_record_said_at: BTreeMap<u32, u64>,
+    /// Our "no range" words of recent epochs (epoch, time, digest), for teammates that ask for
+    /// them after we ran the epoch, and when we last said each (within half a retry interval).
+    words_said: VecDeque<(u32, TimeUs, u64)>,
+    word_said_at: BTreeMap<u32, u64>,
+    /// Whether a record of the last epoch we ran ranged us: we then send our record at the
+    /// next epoch even without ranges of our own (a member the others range, as one of the
+    /// paper team's vehicles, would otherwise send a word and then its record every epoch).
+    ranged_last: bool,
     /// With airtime slots: the teammates that asked once for a whole record of ours, by epoch
     /// (the request may have been stale; answered when repeated).
     asked_once: BTreeSet<(u32, PlatformId)>,
@@ -848,6 +888,9 @@ impl NodeCore {
             resent_at: VecDeque::new(),
             epoch_resent: BTreeMap::new(),
             no_record_said_at: BTreeMap::new(),
+            words_said: VecDeque::new(),
+            word_said_at: BTreeMap::new(),
+            ranged_last: true,
             asked_once: BTreeSet::new(),
             on_air_until: BTreeMap::new(),
             ran_on: VecDeque::new(),
@@ -1364,6 +1407,22 @@ impl NodeCore {
             }
             return;
         }
+        if a.state == EpochState::COOPLOC_EPOCH_STATE_NO_RANGE {
+            // A member's word in place of its record: its share is in unless a record ranges
+            // it. Believed from signed peers only, as "no record" is: a forger's word for a
+            // genuine member would have the team run the epoch without its record.
+            let wall = self.wall_us;
+            if self.cfg.authenticated_peers
+                && let Some(e) = self.learn_epoch(a.epoch, a.t)
+                && e.t == a.t
+                && !e.records.contains_key(&from)
+                && e.words.insert(from, a.digest).is_none()
+            {
+                e.progress_at = wall;
+                self.stats.no_range_heard += 1;
+            }
+            return;
+        }
         if a.state == EpochState::COOPLOC_EPOCH_STATE_COLLECTING {
             self.collecting.insert(from, (a.epoch, self.wall_us));
             self.learn_epoch(a.epoch, a.t);
@@ -1384,13 +1443,13 @@ impl NodeCore {
             && let Some(e) = self.epochs.get_mut(&a.epoch)
             && e.broadcast_at.is_some()
             && !e.early_request_sent
-            && a.participants.iter().any(|p| !e.records.contains_key(p))
+            && a.participants.iter().any(|p| !e.has(*p))
         {
             // A peer ran the epoch on records we lack: ask for them now rather than
             // at the next retry.
             e.early_request_sent = true;
             e.last_status_at = self.wall_us;
-            let (t, held) = (e.t, e.records.keys().copied().collect());
+            let (t, held) = (e.t, e.settled());
             let digest = self.store_digest();
             self.send_status(a.epoch, t, held, EpochState::COOPLOC_EPOCH_STATE_COLLECTING, digest, out);
         }
@@ -1400,6 +1459,9 @@ impl NodeCore {
             // before our record reached it: a shared channel delivers in order, and its request
             // came behind our record. Answered when it asks again (it still lacks the record a
             // retry interval later); a request that was stale is followed by its report instead.
+            if self.answer_with_word(a.epoch, out) {
+                return;
+            }
             let sent = self.sent.iter().any(|(e, _)| *e == a.epoch);
             if self.cfg.slot_us > 0 && held.is_none() && sent && self.asked_once.insert((a.epoch, from)) {
                 self.stats.requests_deferred += 1;
@@ -1592,6 +1654,7 @@ impl NodeCore {
             // Records the teammates' ranges contradict are refused now, and their platform
             // waited for again (its genuine record may still come: a forger's came first).
             self.sift(epoch);
+            self.release_withheld(epoch, out);
             let waiting_on_plan = self.epochs.get(&epoch).is_some_and(|e| e.plan_over_at.is_none());
             if self.cfg.slot_us > 0 && waiting_on_plan && self.plan_over(epoch) {
                 let wall = self.wall_us;
@@ -1610,7 +1673,7 @@ impl NodeCore {
                 .team
                 .iter()
                 .copied()
-                .filter(|p| !self.absent.contains(p) && !e.records.contains_key(p))
+                .filter(|p| !self.absent.contains(p) && !e.has(*p))
                 .partition(|&p| !self.born_after(epoch, p) && !e.no_record.contains(&p));
             let complete = missing.is_empty();
             if !complete && self.cfg.slot_us > 0 && e.plan_over_at.is_none() {
@@ -1628,7 +1691,7 @@ impl NodeCore {
             // it as they did, as a bystander; with us, or if nobody says within a timeout, as
             // usual.
             if let Some(ran) = e.peer_ran.clone().filter(|p| e.after_freeze && !p.contains(&self.cfg.id)) {
-                if ran.iter().all(|p| e.records.contains_key(p)) || waited >= self.cfg.epoch_timeout_us || lagging {
+                if ran.iter().all(|p| e.has(*p)) || waited >= self.cfg.epoch_timeout_us || lagging {
                     self.run_bystander(epoch, &ran);
                     continue;
                 }
@@ -1657,7 +1720,7 @@ impl NodeCore {
                 // A peer ran it already: on the records it ran, not on ours, so that the stores
                 // stay equal. Its records we lack are waited for (asked for) one timeout more.
                 let follow = e.peer_ran.clone();
-                let lacking = follow.as_ref().is_some_and(|ran| ran.iter().any(|p| !e.records.contains_key(p)));
+                let lacking = follow.as_ref().is_some_and(|ran| ran.iter().any(|p| !e.has(*p)));
                 if follow.is_some()
                     && let Some(e) = self.epochs.get_mut(&epoch)
                     && !std::mem::replace(&mut e.followed, true)
@@ -1777,7 +1840,7 @@ impl NodeCore {
             return;
         }
         e.last_status_at = self.wall_us;
-        let (t, held): (TimeUs, Vec<PlatformId>) = (e.t, e.records.keys().copied().collect());
+        let (t, held): (TimeUs, Vec<PlatformId>) = (e.t, e.settled());
         let digest = self.store_digest();
         self.send_status(epoch, t, held, EpochState::COOPLOC_EPOCH_STATE_COLLECTING, digest, out);
     }
@@ -1868,7 +1931,13 @@ impl NodeCore {
         let skip = self.skip_to_ask(t);
         self.stats.skips_asked += u64::from(skip > 0);
         let fresh = if self.fresh { FLAG_FRESH } else { 0 };
+        // "No range" in place of our record: the decentralized method on a signed team (the
+        // word is believed from signed peers only), nothing measured, no epochs to ask to pass
+        // over, and nobody ranged us at the last epoch.
+        let may_say_no_range =
+            self.cfg.method == Method::Decentralized && self.cfg.authenticated_peers && skip == 0 && !self.ranged_last;
         let e = self.epochs.get_mut(&epoch).expect("open");
+        let word = may_say_no_range && e.own_ranges.is_empty();
         let ours = StateRecord {
             snapshot,
             digest: if self.cfg.method == Method::Decentralized { self.cross.digest() } else { 0 },
@@ -1887,22 +1956,76 @@ impl NodeCore {
         e.last_status_at = wall;
         e.broadcast_late = late;
         if let Some((own, msgs)) = sent {
+            if word {
+                // Held back: sent if a teammate's record ranges us (see `release_withheld`).
+                let digest = own.digest;
+                e.words.insert(self.cfg.id, digest);
+                e.withheld = Some((own, msgs));
+                self.words_said.push_back((epoch, t, digest));
+                if self.words_said.len() > EPOCHS_REMEMBERED {
+                    self.words_said.pop_front();
+                }
+                self.stats.no_range_said += 1;
+                self.send_status(epoch, t, Vec::new(), EpochState::COOPLOC_EPOCH_STATE_NO_RANGE, digest, out);
+                return;
+            }
             out.extend(msgs.iter().cloned().map(NodeOutput::ToPeers));
             e.records.insert(self.cfg.id, own);
-            self.stats.records_sent += 1;
-            self.sent.push_back((epoch, msgs));
             if slot > 0 {
                 self.on_air_until.insert(epoch, wall + on_air_us);
                 self.channel_busy_at = self.channel_busy_at.max(wall + self.to_wall_us(slot));
             }
-            if self.sent.len() > EPOCHS_REMEMBERED
-                && let Some((old, _)) = self.sent.pop_front()
-            {
-                self.epoch_resent.remove(&old);
-                self.asked_once.retain(|(e, _)| *e > old);
-                self.on_air_until.remove(&old);
-            }
+            self.remember_sent(epoch, msgs);
         }
+    }
+
+    /// Keeps our fragments of `epoch` for resends (the last [`EPOCHS_REMEMBERED`] epochs').
+    fn remember_sent(&mut self, epoch: u32, msgs: Vec<MavMessage>) {
+        self.stats.records_sent += 1;
+        self.sent.push_back((epoch, msgs));
+        if self.sent.len() > EPOCHS_REMEMBERED
+            && let Some((old, _)) = self.sent.pop_front()
+        {
+            self.epoch_resent.remove(&old);
+            self.asked_once.retain(|(e, _)| *e > old);
+            self.on_air_until.remove(&old);
+        }
+    }
+
+    /// Our record of `epoch`, held back while our "no range" stood, sent after all once a
+    /// teammate's record ranges us (its record is then needed: the ranges involve us).
+    fn release_withheld(&mut self, epoch: u32, out: &mut Vec<NodeOutput>) {
+        let id = self.cfg.id;
+        let Some(e) = self.epochs.get_mut(&epoch).filter(|e| e.withheld.is_some() && e.ranges_to(id)) else { return };
+        let Some((own, msgs)) = e.withheld.take() else { return };
+        e.words.remove(&id);
+        e.records.insert(id, own);
+        out.extend(msgs.iter().cloned().map(NodeOutput::ToPeers));
+        self.stats.records_released += 1;
+        self.remember_sent(epoch, msgs);
+    }
+
+    /// A teammate asked for our record of `epoch` while it lacks our "no range" word: the word
+    /// again, when we said one in its place and still do (at most once per half retry
+    /// interval). False when our answer is not a word.
+    fn answer_with_word(&mut self, epoch: u32, out: &mut Vec<NodeOutput>) -> bool {
+        let id = self.cfg.id;
+        let open = self.epochs.get(&epoch).map(|e| (e.t, e.withheld.is_some(), e.words.get(&id).copied()));
+        let word = match open {
+            Some((t, true, Some(digest))) => Some((t, digest)),
+            Some(_) => None,
+            None if self.sent.iter().any(|(e, _)| *e == epoch) => None,
+            None => self.words_said.iter().find(|w| w.0 == epoch).map(|&(_, t, d)| (t, d)),
+        };
+        let Some((t, digest)) = word else { return false };
+        let (wall, retry) = (self.wall_us, self.retry_us());
+        self.word_said_at.retain(|_, at| wall < *at + retry / 2);
+        if let std::collections::btree_map::Entry::Vacant(v) = self.word_said_at.entry(epoch) {
+            v.insert(wall);
+            self.stats.no_range_said_again += 1;
+            self.send_status(epoch, t, Vec::new(), EpochState::COOPLOC_EPOCH_STATE_NO_RANGE, digest, out);
+        }
+        true
     }
 
     /// Forgets an epoch that was run or passed over. It becomes the last one resolved only if its
@@ -1990,10 +2113,16 @@ impl NodeCore {
             self.stats.longest_wait_us = self.stats.longest_wait_us.max(self.wall_us.saturating_sub(at));
         }
         let ours = e.records.get(&self.cfg.id).cloned();
+        let mut words = e.words.clone();
         let mut records = self.vetted(epoch); // sorted by platform id
         if let Some(only) = only {
             records.retain(|r| only.contains(&r.snapshot.id));
         }
+        // The words that stand: of members without a record here that no record ranges.
+        words.retain(|p, _| {
+            only.is_none_or(|o| o.contains(p))
+                && !records.iter().any(|r| r.snapshot.id == *p || r.ranges.iter().any(|x| x.to == *p))
+        });
         let prev_run = self.last_run;
         self.finish_epoch(epoch);
         if let Some(ours) = ours.filter(|o| !records.iter().any(|r| r.snapshot.id == o.snapshot.id)) {
@@ -2010,15 +2139,18 @@ impl NodeCore {
         // Diverged stores: the records that share a store valid for everyone run the exact
         // method; the others are left out and take that store afterwards.
         let digest_before = self.store_digest();
-        let choice = if dcl && !agree { choose_store(&records) } else { None };
+        let mut choice = if dcl && !agree { choose_store(&records) } else { None };
         if let Some(c) = &choice {
             records.retain(|r| c.members.contains(&r.snapshot.id));
         }
         // The epochs to pass over are those the records the epoch runs on ask for: a left-out
         // member's record, which some nodes hold and others not, does not count.
         self.pass_over_after(epoch, &records);
+        self.ranged_last = records.iter().any(|r| r.ranges.iter().any(|x| x.to == self.cfg.id));
+        let bystanders = self.word_bystanders(&words, &records, agree, &mut choice);
+        let record_ids: Vec<PlatformId> = records.iter().map(|r| r.snapshot.id).collect();
         if let Some(c) = &choice {
-            if c.members.contains(&self.cfg.id) {
+            if c.members.contains(&self.cfg.id) || bystanders.contains(&self.cfg.id) {
                 for &k in &c.refreshed {
                     self.cross.forget(k);
                 }
@@ -2028,15 +2160,17 @@ impl NodeCore {
             }
         }
         let exact = agree || choice.is_some();
-        let participants: Vec<PlatformId> = records.iter().map(|r| r.snapshot.id).collect();
+        let mut participants = record_ids.clone();
+        participants.extend(&bystanders);
+        participants.sort_unstable();
         let ranges: Vec<RangeSample> =
-            records.iter().flat_map(|r| r.ranges.iter().filter(|x| participants.contains(&x.to)).copied()).collect();
+            records.iter().flat_map(|r| r.ranges.iter().filter(|x| record_ids.contains(&x.to)).copied()).collect();
         let measurements: Vec<CoopMeasurement> = ranges.iter().map(CoopMeasurement::from).collect();
         let own_index = participants.iter().position(|&p| p == self.cfg.id);
         if dcl && exact && own_index.is_none() && self.stores.wanting() {
             // Run without our record (it came late, or we waited for a store): a store still
             // coming is brought forward by it.
-            let later = LaterEpoch { epoch, records: records.clone(), refreshed: Vec::new() };
+            let later = LaterEpoch { epoch, records: records.clone(), refreshed: Vec::new(), bystanders: bystanders.clone() };
             self.stores.carry_on(prev_run, later, self.wall_us, self.cfg.epoch_timeout_us);
         }
         let nothing_to_do =
@@ -2050,14 +2184,14 @@ impl NodeCore {
             // Every participant takes a weight in a heal: a member that has never applied an
             // epoch may still be correlated with those that used its record (nodes that ran an
             // epoch on different sets), so its FRESH flag is no proof of independence.
-            match self.joint_update(&snapshots, &measurements, exact, Vec::new()) {
+            match self.joint_update(&snapshots, &measurements, exact, Vec::new(), bystanders) {
                 Ok(result) => {
                     if dcl {
                         // Every participant's Psi restarts here, on every node that ran this
                         // (a bystander's goes on).
                         let digests: Vec<u64> = records.iter().map(|r| r.digest).collect();
-                        let r = StoreRef::of_update(epoch, &participants, &digests);
-                        for p in participants.iter().filter(|p| !result.bystanders.contains(p)) {
+                        let r = StoreRef::of_update(epoch, &record_ids, &digests);
+                        for p in record_ids.iter().filter(|p| !result.bystanders.contains(p)) {
                             self.cross.set_reference(*p, r);
                         }
                     }
@@ -2110,6 +2244,40 @@ impl NodeCore {
         if own_index.is_some() {
             self.send_status(epoch, t, participants, state, digest, out);
         }
+    }
+
+    /// The bystanders by word of an epoch run on `records` (`agree`: their stores agree; else
+    /// `choice`, the store chosen, if any): of the members whose word stands (`words`), those
+    /// that hold the store the epoch runs on. The others' words are left out (they take that
+    /// store afterwards), counted as a store mismatch; when ours is one of them, `choice`
+    /// becomes the store that leaves us out, as a record of ours would be.
+    fn word_bystanders(
+        &mut self,
+        words: &BTreeMap<PlatformId, u64>,
+        records: &[StateRecord],
+        agree: bool,
+        choice: &mut Option<StoreChoice>,
+    ) -> Vec<PlatformId> {
+        let dcl = self.cfg.method == Method::Decentralized;
+        let run_digest = match choice {
+            Some(c) => Some(c.digest),
+            None if dcl && agree => records.first().map(|r| r.digest),
+            None => None,
+        };
+        let bystanders: Vec<PlatformId> = words.iter().filter(|&(_, d)| Some(*d) == run_digest).map(|(&p, _)| p).collect();
+        if agree && run_digest.is_some() && bystanders.len() < words.len() {
+            self.stats.store_mismatches += 1;
+        }
+        let ours_left_out = words.contains_key(&self.cfg.id) && !bystanders.contains(&self.cfg.id);
+        match (choice.as_mut(), run_digest) {
+            (Some(c), _) => c.bystanders = bystanders.clone(),
+            (None, Some(digest)) if ours_left_out => {
+                let members = records.iter().map(|r| r.snapshot.id).collect();
+                *choice = Some(StoreChoice { digest, members, refreshed: Vec::new(), bystanders: bystanders.clone() });
+            }
+            (None, _) => {}
+        }
+        bystanders
     }
 
     /// Counts an epoch's verdict on the ranges that involve us (see [`own_ranges_verdict`]);
@@ -2192,16 +2360,24 @@ impl NodeCore {
         if !self.epochs.contains_key(&epoch) {
             return;
         }
+        let words: Vec<PlatformId> = self.epochs.get(&epoch).map(|e| e.words.keys().copied().collect()).unwrap_or_default();
         let mut records = self.vetted(epoch);
         records.retain(|r| ran.contains(&r.snapshot.id));
+        // The members they ran it on whose word we hold and no record ranges: bystanders.
+        let bystanders: Vec<PlatformId> = words
+            .into_iter()
+            .filter(|p| ran.contains(p) && !records.iter().any(|r| r.snapshot.id == *p || r.ranges.iter().any(|x| x.to == *p)))
+            .collect();
         let prev_run = self.last_run;
         self.finish_epoch(epoch);
         self.pass_over_after(epoch, &records);
         self.stats.epochs_bystood += 1;
-        let participants: Vec<PlatformId> = records.iter().map(|r| r.snapshot.id).collect();
+        let mut participants: Vec<PlatformId> = records.iter().map(|r| r.snapshot.id).collect();
+        participants.extend(&bystanders);
+        participants.sort_unstable();
         let ours = self.store_digest();
         let dcl = self.cfg.method == Method::Decentralized;
-        let later = LaterEpoch { epoch, records, refreshed: Vec::new() };
+        let later = LaterEpoch { epoch, records, refreshed: Vec::new(), bystanders };
         if dcl && participants == ran && later.records.iter().all(|r| r.digest == ours) {
             self.bring_forward(&later);
         } else if dcl && participants == ran {
@@ -2234,7 +2410,7 @@ impl NodeCore {
             return true;
         }
         let snapshots: Vec<_> = later.records.iter().map(|r| r.snapshot.clone()).collect();
-        let Ok((_, bystanders)) = self.store_update(&snapshots, &measurements, true, Vec::new()) else {
+        let Ok((_, bystanders)) = self.store_update(&snapshots, &measurements, true, Vec::new(), later.bystanders.clone()) else {
             return false;
         };
         let digests: Vec<u64> = later.records.iter().map(|r| r.digest).collect();
@@ -2271,7 +2447,8 @@ impl NodeCore {
     ) {
         self.stats.epochs_excluded += 1;
         // The epoch's records are copied only where they are kept or replayed.
-        let later = || LaterEpoch { epoch, records: records.to_vec(), refreshed: c.refreshed.clone() };
+        let later =
+            || LaterEpoch { epoch, records: records.to_vec(), refreshed: c.refreshed.clone(), bystanders: c.bystanders.clone() };
         if self.cfg.method == Method::Decentralized && self.store_digest() == c.digest && self.bring_forward(&later()) {
             // The store we took after our record went (which carried the one before): brought
             // forward by this epoch as its participants brought theirs, we are back at the next.
@@ -2342,6 +2519,7 @@ impl NodeCore {
         measurements: &[CoopMeasurement],
         agree: bool,
         independent: Vec<PlatformId>,
+        words: Vec<PlatformId>,
     ) -> Result<JointResult, EstimationError> {
         let own = |corrections: Vec<Correction>, id| corrections.into_iter().find(|c| c.id == id);
         let id = self.cfg.id;
@@ -2360,7 +2538,7 @@ impl NodeCore {
                 })
             }
             Method::Decentralized => {
-                let (o, bystanders) = self.store_update(snapshots, measurements, agree, independent)?;
+                let (o, bystanders) = self.store_update(snapshots, measurements, agree, independent, words)?;
                 let share = o.bystanders.iter().find(|s| s.id == id).cloned();
                 let c = own(o.corrections, id);
                 if c.is_none() && !bystanders.contains(&id) {
@@ -2380,19 +2558,23 @@ impl NodeCore {
     /// the bound if it fails), else the bound. The exact one runs among the records' platforms
     /// that the ranges involve, each other one a bystander that takes its share
     /// ([`crate::estimation::split_ranged`]; returned, with the outcome): the same result as
-    /// with every record, without the bystanders' states in the joint problem. The bound runs
-    /// on every record.
+    /// with every record, without the bystanders' states in the joint problem. The members
+    /// whose word stands (`words`: no record, the same store) are bystanders too. The bound
+    /// runs on every record.
     fn store_update(
         &mut self,
         snapshots: &[crate::estimation::Snapshot],
         measurements: &[CoopMeasurement],
         agree: bool,
         independent: Vec<PlatformId>,
+        words: Vec<PlatformId>,
     ) -> Result<(crate::estimation::EventOutcome, Vec<PlatformId>), EstimationError> {
         let exact = UpdateOptions { gate_chi2: self.gate, ..UpdateOptions::new(CrossMode::Propagate) };
         let bound = UpdateOptions { prior: JointPrior::Bound { independent, scope: BoundScope::Position }, ..exact.clone() };
         if agree {
-            let (ranged, bystanders) = crate::estimation::split_ranged(snapshots, measurements);
+            let (ranged, mut bystanders) = crate::estimation::split_ranged(snapshots, measurements);
+            bystanders.extend(words);
+            bystanders.sort_unstable();
             let opts = UpdateOptions { bystanders, ..exact };
             if let Ok(o) = cooperative_update_with(&mut self.cross, &ranged, measurements, &opts) {
                 return Ok((o, opts.bystanders));

@@ -142,6 +142,8 @@ pub(super) struct LaterEpoch {
     pub(super) epoch: u32,
     pub(super) records: Vec<StateRecord>,
     pub(super) refreshed: Vec<PlatformId>,
+    /// The members that took part by their word alone (bystanders: no record, the same store).
+    pub(super) bystanders: Vec<PlatformId>,
 }
 
 /// Our store right after an epoch we took part in, for teammates that ask.
@@ -471,6 +473,8 @@ pub(super) struct StoreChoice {
     /// Participants that started independently of the team after the store last saw them: their
     /// blocks are forgotten (their errors are uncorrelated with everyone's).
     pub(super) refreshed: Vec<PlatformId>,
+    /// The members whose "no range" word carries that store: bystanders of the epoch.
+    pub(super) bystanders: Vec<PlatformId>,
 }
 
 /// When the records of an epoch carry different store digests: the store, among theirs, that is
@@ -506,7 +510,12 @@ pub(super) fn choose_store(records: &[StateRecord]) -> Option<StoreChoice> {
             }
         });
         if valid {
-            best = Some(StoreChoice { digest, members: holders.iter().map(|r| r.snapshot.id).collect(), refreshed });
+            best = Some(StoreChoice {
+                digest,
+                members: holders.iter().map(|r| r.snapshot.id).collect(),
+                refreshed,
+                bystanders: Vec::new(),
+            });
         }
     }
     best
@@ -662,7 +671,7 @@ mod tests {
     #[test]
     fn a_store_still_coming_is_carried_on_through_the_epochs_run_without_us() {
         let (timeout, retry) = (1_000_000, 300_000);
-        let later = |epoch| LaterEpoch { epoch, records: Vec::new(), refreshed: Vec::new() };
+        let later = |epoch| LaterEpoch { epoch, records: Vec::new(), refreshed: Vec::new(), bystanders: Vec::new() };
         let mut s = StoreSync::new();
         assert!(!s.carry_on(Some(5), later(6), 0, timeout), "nothing wanted");
         s.want(request(5), 10_000_000);
