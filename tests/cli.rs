@@ -114,17 +114,23 @@ fn a_ground_station_needs_a_team_key_or_insecure_by_name() {
     assert!(lines.iter().any(|l| l.contains("gcs cooperative network UNAUTHENTICATED (--insecure)")), "{lines:?}");
 }
 
-/// `cooploc faults --side-by-side N` takes 2 to 64 vehicles, its geometry only with it, and
-/// positive distances: each refusal names what is wrong, and nothing runs.
+/// `cooploc faults --side-by-side N` takes 2 to 64 vehicles, its spacing only with it, and
+/// positive distances; `--reach-m` (any scenario, `experiment` too) a positive distance: each
+/// refusal names what is wrong, and nothing runs.
 #[test]
 fn a_large_team_fault_run_refuses_what_cannot_be() {
     let (code, out) = run(&["faults", "--side-by-side", "65"]);
     assert_eq!(code, Some(2), "{out}");
     assert!(out.contains("--side-by-side") && out.contains("65"), "{out}");
-    let (code, out) = run(&["faults", "--reach-m", "200"]);
+    let (code, out) = run(&["faults", "--spacing-m", "200"]);
     assert_eq!(code, Some(2), "{out}");
     assert!(out.contains("--side-by-side"), "the geometry needs the team: {out}");
     let (code, out) = run(&["faults", "--side-by-side", "4", "--spacing-m", "-5"]);
     assert_eq!(code, Some(1), "{out}");
-    assert!(out.contains("--spacing-m, --reach-m and --duration-s must be positive"), "{out}");
+    assert!(out.contains("--spacing-m and --duration-s must be positive"), "{out}");
+    for command in ["faults", "experiment"] {
+        let (code, out) = run(&[command, "--reach-m", "-5"]);
+        assert_eq!(code, Some(1), "{out}");
+        assert!(out.contains("--reach-m -5: the radios' reach must be a positive distance in m"), "{out}");
+    }
 }

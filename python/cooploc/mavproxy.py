@@ -168,7 +168,7 @@ METHODS = {
     4: "covariance_intersection",
 }
 #: COOPLOC_EPOCH_STATE.
-EPOCH_COLLECTING, EPOCH_APPLIED, EPOCH_PARTIAL, EPOCH_FAILED, EPOCH_STORE_WANTED, EPOCH_NO_RECORD = range(6)
+EPOCH_COLLECTING, EPOCH_APPLIED, EPOCH_PARTIAL, EPOCH_FAILED, EPOCH_STORE_WANTED, EPOCH_NO_RECORD, EPOCH_NO_RANGE = range(7)
 
 
 # ---- pure functions -------------------------------------------------------------------------

@@ -199,6 +199,18 @@ pub fn scenario_or_paper(path: Option<&Path>) -> anyhow::Result<Scenario> {
     })
 }
 
+/// `--reach-m`: the radios' reach replaces the scenario's (two vehicles range only while at
+/// most this far apart); a reach that is not a positive distance is refused.
+pub fn limit_reach(scenario: &mut Scenario, reach_m: Option<f64>) -> anyhow::Result<()> {
+    if let Some(r) = reach_m {
+        if !(r.is_finite() && r > 0.0) {
+            anyhow::bail!("--reach-m {r}: the radios' reach must be a positive distance in m");
+        }
+        scenario.ranging.max_range_m = Some(r);
+    }
+    Ok(())
+}
+
 /// How the scenario of [`scenario_or_paper`] is named in a command's output.
 pub fn scenario_source(path: Option<&Path>) -> String {
     path.map_or_else(|| "built in, as sitl/scenarios/paper.toml".to_string(), |p| p.display().to_string())

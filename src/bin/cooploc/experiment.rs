@@ -27,6 +27,10 @@ pub struct Args {
     /// Methods, comma separated.
     #[arg(long, value_enum, value_delimiter = ',', default_value = "dr,naive,dcl,centralized,ci")]
     methods: Vec<crate::args::MethodArg>,
+    /// The radios' reach, m: two vehicles range only while at most this far apart (default:
+    /// the scenario's).
+    #[arg(long)]
+    reach_m: Option<f64>,
     /// Ranging schedules of the scenario, comma separated (default: all of them).
     #[arg(long, value_delimiter = ',')]
     schedules: Vec<String>,
@@ -58,6 +62,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         methods.push(method);
     }
     let mut scenario = crate::args::scenario_or_paper(args.scenario.as_deref())?;
+    crate::args::limit_reach(&mut scenario, args.reach_m)?;
     // A vehicle profile replaces the scenario's vehicle; an autopilot sends its samples.
     let source = match (&args.vehicle_config, args.autopilot) {
         (Some(path), autopilot) => {

@@ -62,9 +62,10 @@ pub struct Args {
     /// With --side-by-side: the distance between neighbours, m.
     #[arg(long, default_value_t = 100.0, requires = "side_by_side")]
     spacing_m: f64,
-    /// With --side-by-side: the radios' reach, m (310: three neighbours on each side).
-    #[arg(long, default_value_t = 310.0, requires = "side_by_side")]
-    reach_m: f64,
+    /// The radios' reach, m: two vehicles range only while at most this far apart (default:
+    /// the scenario's; with --side-by-side, 310: three neighbours on each side).
+    #[arg(long)]
+    reach_m: Option<f64>,
     /// With --side-by-side: the run's length, s.
     #[arg(long, requires = "side_by_side")]
     duration_s: Option<f64>,
@@ -99,12 +100,14 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         None => None,
     };
     let mut scenario = crate::args::scenario_or_paper(args.scenario.as_deref())?;
+    crate::args::limit_reach(&mut scenario, args.reach_m)?;
     if let Some(n) = args.side_by_side {
         let duration_s = args.duration_s.unwrap_or(scenario.duration_s);
-        if !(args.spacing_m > 0.0 && args.reach_m > 0.0 && duration_s > 0.0) {
-            bail!("--spacing-m, --reach-m and --duration-s must be positive");
+        let reach_m = args.reach_m.unwrap_or(310.0);
+        if !(args.spacing_m > 0.0 && duration_s > 0.0) {
+            bail!("--spacing-m and --duration-s must be positive");
         }
-        scenario = scenario.side_by_side(usize::from(n), args.spacing_m, args.reach_m, duration_s);
+        scenario = scenario.side_by_side(usize::from(n), args.spacing_m, reach_m, duration_s);
     }
     let world = World::new(&scenario)?;
     let duration_s = world.scenario().duration_s;
@@ -149,7 +152,7 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         summaries.push(summarize(case.name, &runs));
     }
     println!(
-        "cooploc faults: {} cases x {} runs, method {}, encoding {}, schedule {}, seed {}{}{}{}{} ({:.1} s)",
+        "cooploc faults: {} cases x {} runs, method {}, encoding {}, schedule {}, seed {}{}{}{}{}{} ({:.1} s)",
         cases.len(),
         args.runs,
         method.short_name(),
@@ -160,11 +163,9 @@ pub fn run(args: Args) -> anyhow::Result<()> {
         args.speed.map(|s| format!(", every case at {s}x real time")).unwrap_or_default(),
         delay_ms.map(|(lo, hi)| format!(", every case with delays of {lo}-{hi} ms")).unwrap_or_default(),
         args.side_by_side
-            .map(|n| format!(
-                ", {n} vehicles side by side {} m apart, radios reaching {} m, {duration_s} s",
-                args.spacing_m, args.reach_m
-            ))
+            .map(|n| format!(", {n} vehicles side by side {} m apart, {duration_s} s", args.spacing_m))
             .unwrap_or_default(),
+        world.scenario().ranging.max_range_m.map(|r| format!(", radios reaching {r} m")).unwrap_or_default(),
         started.elapsed().as_secs_f64()
     );
     if args.clock_sweep {

@@ -32,6 +32,13 @@
 //!    joint problem: nodes that hold the same records solve the same problem. With airtime
 //!    slots ([`NodeConfig::slot_us`]) the node broadcasts its slot later (its place in the
 //!    sorted team times the slot), and the wait below starts only when every slot is over.
+//!    On a signed team, a node that measured no range at the epoch, that no record ranged at
+//!    the epoch before and that asks for nothing to be passed over says "no range"
+//!    (COOPLOC_EPOCH_STATE_NO_RANGE, with its store digest) in place of its record: one small
+//!    message for the record's fragments. It keeps the record, and sends it once a teammate's
+//!    record of the epoch ranges it (its state is then in the joint problem); a teammate that
+//!    asks while it lacks the word is sent the word again. (Believed from signed peers only, as
+//!    NO_RECORD: a forger's word for a genuine member would have the team run without it.)
 //!    A node whose filter is an epoch timeout of wall time or more behind `t_e` (its range
 //!    grace aside), and further behind than at its last broadcast, asks the team in its
 //!    record's flags to pass over the next epochs (one, and one more for every further half
@@ -43,7 +50,8 @@
 //!    is healed with the bound (50% datagram loss with 0-1 s of latency at 1 Hz: 303.80 m final
 //!    RMS before, 6.11 m after, `cooploc faults --only "coop loss 50%, packed datagrams"
 //!    --delay-ms 0-1000`).
-//! 2. **Agreement**: the node waits for the record of every expected team member, sending a
+//! 2. **Agreement**: the node waits for the record of every expected team member (or its word,
+//!    unless a record ranges it), sending a
 //!    COOPLOC_EPOCH (COLLECTING, the records it holds) every `retry_us` of wall time; a member
 //!    not listed resends its record, or, when it resolved the epoch without one (passed it over,
 //!    was away), answers NO_RECORD, and a signed team stops waiting for it. The retry interval
@@ -73,7 +81,9 @@
 //!    node updates the store's blocks between the bystanders, so that the team ends where the
 //!    update on every record would (`tests/equivalence.rs`, to 1e-9; the paper's team with
 //!    radios that reach 400 m, 90 bystander epochs of 380, gives the same final errors to the
-//!    6 digits of the experiment's output). If not, the stores have diverged (a node missed an epoch, ran it on other records, restarted).
+//!    6 digits of the experiment's output). A member whose word stands is a bystander too when
+//!    its word carries the store the epoch runs on, and left out (it takes that store
+//!    afterwards) when not. If not, the stores have diverged (a node missed an epoch, ran it on other records, restarted).
 //!    Every node sees the same records, so every node makes the same choice:
 //!    - if a store held by two records or more is *valid for every participant* (the store's
 //!      reference for each, the joint update that last reset its Psi, is the participant's own;
