@@ -83,7 +83,8 @@
 //!    radios that reach 400 m, 90 bystander epochs of 380, gives the same final errors to the
 //!    6 digits of the experiment's output). A member whose word stands is a bystander too when
 //!    its word carries the store the epoch runs on, and left out (it takes that store
-//!    afterwards) when not. If not, the stores have diverged (a node missed an epoch, ran it on other records, restarted).
+//!    afterwards) when not. If the records' digests differ, the stores have diverged (a node
+//!    missed an epoch, ran it on other records, restarted).
 //!    Every node sees the same records, so every node makes the same choice:
 //!    - if a store held by two records or more is *valid for every participant* (the store's
 //!      reference for each, the joint update that last reset its Psi, is the participant's own;
