@@ -3245,6 +3245,43 @@ mod tests {
         }
     }
 
+    /// A teammate's "no range" in place of its record settles it, on a signed team only: node 1
+    /// of [1, 3] stops waiting for node 3 when node 3 says it; an unsigned team waits the
+    /// timeout out (anyone could have said it), and no word is counted.
+    #[test]
+    fn a_signed_teammates_no_range_settles_it_an_unsigned_ones_does_not() {
+        let run = |signed: bool| -> (Option<f64>, u64) {
+            let cfg = NodeConfig { authenticated_peers: signed, ..config(1, vec![1, 3]) };
+            let mut core = NodeCore::new(cfg, TimeUs(0), start()).unwrap();
+            for k in 1..=800 {
+                let t = k * 10_000;
+                step_at_rest(&mut core, t, k == 1);
+                if t == 4_000_000 {
+                    announce(&mut core, 3, 5, vec![], EpochState::COOPLOC_EPOCH_STATE_COLLECTING);
+                }
+                if t == 5_500_000 {
+                    let a = wire::EpochAnnouncement {
+                        epoch: 5,
+                        t: TimeUs(5_000_000),
+                        announcer: 3,
+                        participants: Vec::new(),
+                        state: EpochState::COOPLOC_EPOCH_STATE_NO_RANGE,
+                        digest: core.store_digest(),
+                        incomplete: Vec::new(),
+                    };
+                    core.handle(NodeInput::Peer { from: 3, msg: Box::new(wire::epoch_to_message(&a).unwrap()) });
+                }
+                if core.last_epoch() == Some(5) {
+                    return (Some(t as f64 / 1e6), core.stats.no_range_heard);
+                }
+            }
+            (None, core.stats.no_range_heard)
+        };
+        assert_eq!(run(true), (Some(5.5), 1));
+        let (waited, heard) = run(false);
+        assert!(waited.expect("resolved at the timeout") > 7.0 && heard == 0, "unsigned: {waited:?}, {heard} heard");
+    }
+
     /// Back from a silence (no epoch resolved for a timeout), a node that knows a later epoch
     /// only from a range echo waits for its team to say which epoch it is at, rather than
     /// broadcast the later one and close every epoch before it to itself (`cooploc faults
