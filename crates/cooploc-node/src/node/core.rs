@@ -675,6 +675,12 @@ struct LastEvent {
     ranges: u8,
 }
 
+/// Whether `p`'s "no range" word stands among the epoch's `records`: none of them is its own,
+/// and none ranges it.
+fn word_stands(records: &[StateRecord], p: PlatformId) -> bool {
+    !records.iter().any(|r| r.snapshot.id == p || r.ranges.iter().any(|x| x.to == p))
+}
+
 /// A joint update's result for this node: its own correction (none when it was a bystander),
 /// its share as a bystander (when the store knows it), the platforms of the records that were
 /// bystanders (their `Psi` goes on), the update's diagnostics (none for covariance
@@ -2130,10 +2136,7 @@ impl NodeCore {
             records.retain(|r| only.contains(&r.snapshot.id));
         }
         // The words that stand: of members without a record here that no record ranges.
-        words.retain(|p, _| {
-            only.is_none_or(|o| o.contains(p))
-                && !records.iter().any(|r| r.snapshot.id == *p || r.ranges.iter().any(|x| x.to == *p))
-        });
+        words.retain(|p, _| only.is_none_or(|o| o.contains(p)) && word_stands(&records, *p));
         let prev_run = self.last_run;
         self.finish_epoch(epoch);
         if let Some(ours) = ours.filter(|o| !records.iter().any(|r| r.snapshot.id == o.snapshot.id)) {
@@ -2375,10 +2378,7 @@ impl NodeCore {
         let mut records = self.vetted(epoch);
         records.retain(|r| ran.contains(&r.snapshot.id));
         // The members they ran it on whose word we hold and no record ranges: bystanders.
-        let bystanders: Vec<PlatformId> = words
-            .into_iter()
-            .filter(|p| ran.contains(p) && !records.iter().any(|r| r.snapshot.id == *p || r.ranges.iter().any(|x| x.to == *p)))
-            .collect();
+        let bystanders: Vec<PlatformId> = words.into_iter().filter(|p| ran.contains(p) && word_stands(&records, *p)).collect();
         let prev_run = self.last_run;
         self.finish_epoch(epoch);
         self.pass_over_after(epoch, &records);
