@@ -6,29 +6,28 @@
 //! `cargo run --release -- faults` prints the same numbers as a table (docs/robustness.md).
 
 use cooploc::estimation::Method;
-use cooploc::experiment::faults::{CaseSummary, run_case, standard_cases, summarize};
+use cooploc::experiment::faults::{CaseSummary, FaultCase, RunOutcome, run_case, standard_cases, summarize};
 use cooploc::protocol::record::Encoding;
 use cooploc::sitl::{PAPER_TOML, Scenario, World};
 use rayon::prelude::*;
 
 const RUNS: u32 = 20;
 
+/// Every case of `cases` run `runs` times (seeded runs 0..runs, in parallel): the runs of each.
+fn run_cases(world: &World, cases: &[FaultCase], runs: u32) -> Vec<Vec<RunOutcome>> {
+    let jobs: Vec<(usize, u32)> = (0..cases.len()).flat_map(|c| (0..runs).map(move |r| (c, r))).collect();
+    let outcomes: Vec<(usize, RunOutcome)> = jobs
+        .par_iter()
+        .map(|&(c, r)| (c, run_case(world, &cases[c].faults, Method::Decentralized, "1hz", 1, r, Encoding::F64).unwrap()))
+        .collect();
+    (0..cases.len()).map(|c| outcomes.iter().filter(|(k, _)| *k == c).map(|(_, o)| o.clone()).collect()).collect()
+}
+
 fn summaries() -> Vec<CaseSummary> {
     let world = World::new(&Scenario::from_toml_str(PAPER_TOML).unwrap()).unwrap();
     let cases = standard_cases();
-    let jobs: Vec<(usize, u32)> = (0..cases.len()).flat_map(|c| (0..RUNS).map(move |r| (c, r))).collect();
-    let outcomes: Vec<_> = jobs
-        .par_iter()
-        .map(|&(c, r)| (c, run_case(&world, &cases[c].faults, Method::Decentralized, "1hz", 1, r, Encoding::F64).unwrap()))
-        .collect();
-    cases
-        .iter()
-        .enumerate()
-        .map(|(c, case)| {
-            let runs: Vec<_> = outcomes.iter().filter(|(k, _)| *k == c).map(|(_, o)| o.clone()).collect();
-            summarize(case.name, &runs)
-        })
-        .collect()
+    let outcomes = run_cases(&world, &cases, RUNS);
+    cases.iter().enumerate().map(|(c, case)| summarize(case.name, &outcomes[c])).collect()
 }
 
 #[test]
@@ -511,15 +510,11 @@ fn a_clock_off_by_less_than_half_the_epoch_grid_costs_little_and_past_it_splits_
     let cases: Vec<_> =
         cooploc::experiment::faults::clock_offset_cases().into_iter().filter(|c| names.contains(&c.name)).collect();
     assert_eq!(cases.len(), names.len());
-    let jobs: Vec<(usize, u32)> = (0..cases.len()).flat_map(|c| (0..RUNS).map(move |r| (c, r))).collect();
-    let outcomes: Vec<_> = jobs
-        .par_iter()
-        .map(|&(c, r)| (c, run_case(&world, &cases[c].faults, Method::Decentralized, "1hz", 1, r, Encoding::F64).unwrap()))
-        .collect();
+    let outcomes = run_cases(&world, &cases, RUNS);
     let get = |name: &str| {
         let c = cases.iter().position(|c| c.name == name).unwrap();
-        let runs: Vec<_> = outcomes.iter().filter(|(k, _)| *k == c).map(|(_, o)| o.clone()).collect();
-        let s = summarize(name, &runs);
+        let runs = &outcomes[c];
+        let s = summarize(name, runs);
         eprintln!("{name}: whole-run RMS {:.3} m, team NEES {:.2} {:?}, {s:?}", s.run_rms_m, s.team_nees, s.team_nees_band);
         s
     };
@@ -626,18 +621,14 @@ fn members_out_of_every_range_say_no_range_and_the_team_stays_exact_under_loss()
     let names = ["fault-free", "coop loss 10%", "node 3 leaves for 60 s, 10% loss, delay 0-300 ms"];
     let cases: Vec<_> = standard_cases().into_iter().filter(|c| names.contains(&c.name)).collect();
     assert_eq!(cases.len(), names.len());
-    let jobs: Vec<(usize, u32)> = (0..cases.len()).flat_map(|c| (0..RUNS).map(move |r| (c, r))).collect();
-    let outcomes: Vec<_> = jobs
-        .par_iter()
-        .map(|&(c, r)| (c, run_case(&world, &cases[c].faults, Method::Decentralized, "1hz", 1, r, Encoding::F64).unwrap()))
-        .collect();
+    let outcomes = run_cases(&world, &cases, RUNS);
     let mut base = None;
     for (c, case) in cases.iter().enumerate() {
-        let runs: Vec<_> = outcomes.iter().filter(|(k, _)| *k == c).map(|(_, o)| o.clone()).collect();
+        let runs = &outcomes[c];
         let said: u64 = runs.iter().map(|o| team_sum(o, |s| s.no_range_said)).sum();
         let heard: u64 = runs.iter().map(|o| team_sum(o, |s| s.no_range_heard)).sum();
         let bystood: u64 = runs.iter().map(|o| team_sum(o, |s| s.epochs_unranged)).sum();
-        let s = summarize(case.name, &runs);
+        let s = summarize(case.name, runs);
         eprintln!("{}: {said} words said, {heard} heard, {bystood} epochs taken as a bystander; {s:?}", case.name);
         // The words are in use: node 3 says some 90 per run, some 30 in the run it is away for
         // 60 s of (it then comes back with its old store, and is left out until it has the team's).

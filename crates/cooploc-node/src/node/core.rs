@@ -3214,27 +3214,38 @@ mod tests {
         assert_eq!(no_records(&announce(&mut core, 1, 8, vec![1], collecting)), vec![(8, 0)]);
     }
 
+    /// Node 1 of [1, 3] learns epoch 5 from node 3 at 4 s, broadcasts its record and waits for
+    /// node 3's; at 5.5 s `tell` delivers what node 3 says. The wall time node 1 resolves epoch 5
+    /// (if within 8 s), and its core.
+    fn wait_for_node_3(signed: bool, tell: &dyn Fn(&mut NodeCore)) -> (Option<f64>, NodeCore) {
+        let cfg = NodeConfig { authenticated_peers: signed, ..config(1, vec![1, 3]) };
+        let mut core = NodeCore::new(cfg, TimeUs(0), start()).unwrap();
+        for k in 1..=800 {
+            let t = k * 10_000;
+            step_at_rest(&mut core, t, k == 1);
+            if t == 4_000_000 {
+                announce(&mut core, 3, 5, vec![], EpochState::COOPLOC_EPOCH_STATE_COLLECTING);
+            }
+            if t == 5_500_000 {
+                tell(&mut core);
+            }
+            if core.last_epoch() == Some(5) {
+                return (Some(t as f64 / 1e6), core);
+            }
+        }
+        (None, core)
+    }
+
     #[test]
     fn a_signed_teammate_that_says_it_has_no_record_is_not_waited_for() {
-        // node 1 of [1, 3] learns epoch 5 from node 3, broadcasts its record and waits for node
-        // 3's; at 5.5 s node 3 says it has none (when `told`): the wall time node 1 resolves 5
+        // at 5.5 s node 3 says it has none (when `told`): the wall time node 1 resolves 5
         let run = |told: bool, signed: bool| -> Option<f64> {
-            let cfg = NodeConfig { authenticated_peers: signed, ..config(1, vec![1, 3]) };
-            let mut core = NodeCore::new(cfg, TimeUs(0), start()).unwrap();
-            for k in 1..=800 {
-                let t = k * 10_000;
-                step_at_rest(&mut core, t, k == 1);
-                if t == 4_000_000 {
-                    announce(&mut core, 3, 5, vec![], EpochState::COOPLOC_EPOCH_STATE_COLLECTING);
+            let tell = |core: &mut NodeCore| {
+                if told {
+                    announce(core, 3, 5, vec![], EpochState::COOPLOC_EPOCH_STATE_NO_RECORD);
                 }
-                if t == 5_500_000 && told {
-                    announce(&mut core, 3, 5, vec![], EpochState::COOPLOC_EPOCH_STATE_NO_RECORD);
-                }
-                if core.last_epoch() == Some(5) {
-                    return Some(t as f64 / 1e6);
-                }
-            }
-            None
+            };
+            wait_for_node_3(signed, &tell).0
         };
         assert_eq!(run(true, true), Some(5.5));
         // not told: the epoch timeout (2 s) from the broadcast; nor when told on an unsigned
@@ -3250,32 +3261,21 @@ mod tests {
     /// timeout out (anyone could have said it), and no word is counted.
     #[test]
     fn a_signed_teammates_no_range_settles_it_an_unsigned_ones_does_not() {
-        let run = |signed: bool| -> (Option<f64>, u64) {
-            let cfg = NodeConfig { authenticated_peers: signed, ..config(1, vec![1, 3]) };
-            let mut core = NodeCore::new(cfg, TimeUs(0), start()).unwrap();
-            for k in 1..=800 {
-                let t = k * 10_000;
-                step_at_rest(&mut core, t, k == 1);
-                if t == 4_000_000 {
-                    announce(&mut core, 3, 5, vec![], EpochState::COOPLOC_EPOCH_STATE_COLLECTING);
-                }
-                if t == 5_500_000 {
-                    let a = wire::EpochAnnouncement {
-                        epoch: 5,
-                        t: TimeUs(5_000_000),
-                        announcer: 3,
-                        participants: Vec::new(),
-                        state: EpochState::COOPLOC_EPOCH_STATE_NO_RANGE,
-                        digest: core.store_digest(),
-                        incomplete: Vec::new(),
-                    };
-                    core.handle(NodeInput::Peer { from: 3, msg: Box::new(wire::epoch_to_message(&a).unwrap()) });
-                }
-                if core.last_epoch() == Some(5) {
-                    return (Some(t as f64 / 1e6), core.stats.no_range_heard);
-                }
-            }
-            (None, core.stats.no_range_heard)
+        let no_range = |core: &mut NodeCore| {
+            let a = wire::EpochAnnouncement {
+                epoch: 5,
+                t: TimeUs(5_000_000),
+                announcer: 3,
+                participants: Vec::new(),
+                state: EpochState::COOPLOC_EPOCH_STATE_NO_RANGE,
+                digest: core.store_digest(),
+                incomplete: Vec::new(),
+            };
+            core.handle(NodeInput::Peer { from: 3, msg: Box::new(wire::epoch_to_message(&a).unwrap()) });
+        };
+        let run = |signed: bool| {
+            let (at, core) = wait_for_node_3(signed, &no_range);
+            (at, core.stats.no_range_heard)
         };
         assert_eq!(run(true), (Some(5.5), 1));
         let (waited, heard) = run(false);
